@@ -1,0 +1,92 @@
+"""The ``bdsfix`` command line (contract in ARCHITECTURE.md). Each subcommand delegates to
+the module that owns its concern; only this entry point configures logging."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Callable, Sequence
+
+from service import __version__
+from service.errors import BdsfixError
+
+log = logging.getLogger(__name__)
+
+# subcommand -> "module:function"; the function takes the parsed namespace, returns an exit code
+_HANDLERS: dict[str, str] = {
+    "solve": "service.batch:main_solve",
+    "coverage": "service.coverage:main_coverage",
+}
+
+
+def _float_list(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bdsfix", description=__doc__)
+    p.add_argument("--version", action="version", version=f"bdsfix {__version__}")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("solve", help="batch per-epoch solutions from RINEX 3 obs + nav")
+    s.add_argument("obs")
+    s.add_argument("nav", nargs="+", help="one or more RINEX 3 nav files")
+    s.add_argument("--mode", choices=["fast", "spp", "both"], default="both")
+    s.add_argument("--fractional", choices=["non-geo", "none"], default="non-geo")
+    s.add_argument("--period-ms", type=int, choices=[1, 20], default=1)
+    s.add_argument("--elmask-deg", type=float, default=10.0)
+    s.add_argument("--beta", type=float, default=None,
+                   help="GDOP gate; default derived from T and --range-error-m")
+    s.add_argument("--range-error-m", type=float, default=50.0,
+                   help="assumed 3-sigma range error used to derive the gate")
+    s.add_argument("--iono", choices=["auto", "bds", "gps", "off"], default="auto")
+    s.add_argument("--tropo", choices=["saastamoinen", "off"], default="saastamoinen")
+    s.add_argument("--format", choices=["jsonl", "csv", "nmea"], default="jsonl")
+    s.add_argument("--out", default="-", help="output file, - for stdout")
+
+    c = sub.add_parser("coverage", help="usability study of the fast fix (paper Table 3)")
+    c.add_argument("--days", type=float, default=8.0)
+    c.add_argument("--step-s", type=float, default=300.0)
+    c.add_argument("--grid-deg", type=float, default=1.0)
+    c.add_argument("--altitudes-m", type=_float_list, default=[0.0, 1_000_000.0])
+    c.add_argument("--beta", type=float, default=3000.0)
+    c.add_argument("--elmask-deg", type=float, default=0.0)
+    c.add_argument("--nav", help="RINEX nav file: broadcast constellation instead of Table 1")
+    c.add_argument("--epoch", help="ISO UTC start time (default 2015-05-19T04:00:00)")
+    c.add_argument("--json", dest="json_out", help="write the result as JSON to FILE (- stdout)")
+    c.add_argument("--plot", help="write a coverage map PNG (needs the plot extra)")
+    c.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def _resolve(spec: str) -> Callable[[argparse.Namespace], int]:
+    module, func = spec.split(":")
+    handler: Callable[[argparse.Namespace], int] = getattr(importlib.import_module(module), func)
+    return handler
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return _resolve(_HANDLERS[args.command])(args)
+    except BdsfixError as exc:
+        print(f"bdsfix {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        return 0
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,92 @@
+"""Coordinates and geometry on CGCS2000: geodetic conversion, look angles, DOP.
+
+All functions broadcast over leading batch dimensions, so the per-epoch engine and the batch
+coverage study share them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.constants import A_CGCS2000_M, F_CGCS2000
+
+_E2 = F_CGCS2000 * (2.0 - F_CGCS2000)
+
+
+def geodetic_to_ecef(lat_rad: np.ndarray | float, lon_rad: np.ndarray | float,
+                     alt_m: np.ndarray | float) -> np.ndarray:
+    """Geodetic latitude, longitude [rad] and ellipsoidal height [m] to ECEF [m] (..., 3)."""
+    lat = np.asarray(lat_rad, dtype=float)
+    lon = np.asarray(lon_rad, dtype=float)
+    h = np.asarray(alt_m, dtype=float)
+    sin_lat = np.sin(lat)
+    n = A_CGCS2000_M / np.sqrt(1.0 - _E2 * sin_lat**2)
+    x = (n + h) * np.cos(lat) * np.cos(lon)
+    y = (n + h) * np.cos(lat) * np.sin(lon)
+    z = (n * (1.0 - _E2) + h) * sin_lat
+    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
+
+
+def ecef_to_geodetic(x_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ECEF [m] (..., 3) to geodetic latitude, longitude [rad] and height [m] (iterative)."""
+    r = np.asarray(x_ecef_m, dtype=float)
+    x, y, z = r[..., 0], r[..., 1], r[..., 2]
+    p = np.hypot(x, y)
+    lon = np.arctan2(y, x)
+    lat = np.arctan2(z, p * (1.0 - _E2))
+    h = np.zeros_like(p)
+    for _ in range(8):
+        sin_lat = np.sin(lat)
+        n = A_CGCS2000_M / np.sqrt(1.0 - _E2 * sin_lat**2)
+        h = np.where(np.abs(np.cos(lat)) > 1e-9, p / np.maximum(np.cos(lat), 1e-300) - n,
+                     np.abs(z) - n * (1.0 - _E2))
+        lat = np.arctan2(z, p * (1.0 - _E2 * n / (n + h)))
+    return lat, lon, h
+
+
+def enu_rotation(lat_rad: np.ndarray | float, lon_rad: np.ndarray | float) -> np.ndarray:
+    """Rotation (..., 3, 3) whose rows are the local east, north and up unit vectors in ECEF."""
+    lat = np.asarray(lat_rad, dtype=float)
+    lon = np.asarray(lon_rad, dtype=float)
+    sl, cl = np.sin(lat), np.cos(lat)
+    so, co = np.sin(lon), np.cos(lon)
+    zero = np.zeros_like(sl * so)
+    east = np.stack(np.broadcast_arrays(-so, co, zero), axis=-1)
+    north = np.stack(np.broadcast_arrays(-sl * co, -sl * so, cl), axis=-1)
+    up = np.stack(np.broadcast_arrays(cl * co, cl * so, sl), axis=-1)
+    return np.stack([east, north, up], axis=-2)
+
+
+def look_angles(rx_ecef_m: np.ndarray, sat_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation and azimuth [rad] of satellites (..., n, 3) seen from receivers (..., 3)."""
+    rx = np.asarray(rx_ecef_m, dtype=float)
+    lat, lon, _ = ecef_to_geodetic(rx)
+    rot = enu_rotation(lat, lon)
+    d = np.asarray(sat_ecef_m, dtype=float) - rx[..., None, :]
+    enu = np.einsum("...ij,...nj->...ni", rot, d)
+    horiz = np.hypot(enu[..., 0], enu[..., 1])
+    el = np.arctan2(enu[..., 2], horiz)
+    az = np.mod(np.arctan2(enu[..., 0], enu[..., 1]), 2 * np.pi)
+    return el, az
+
+
+def dop_matrix(los_unit: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+    """D = G^T G with G rows [-e^T, 1] (paper eq. 12); ``los_unit`` is (..., n, 3).
+
+    ``weight`` (..., n) of 0/1 masks rows out, so batches with different satellite counts
+    share one array shape.
+    """
+    e = np.asarray(los_unit, dtype=float)
+    g = np.concatenate([-e, np.ones(e.shape[:-1] + (1,))], axis=-1)
+    if weight is not None:
+        g = g * np.asarray(weight, dtype=float)[..., None]
+    return np.einsum("...ni,...nj->...ij", g, g)
+
+
+def gdop(los_unit: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+    """GDOP = sqrt(trace(D^-1)) = sqrt(sum 1/lambda_k) (paper eq. 20); inf where singular."""
+    d = dop_matrix(los_unit, weight)
+    eig = np.linalg.eigvalsh(d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(eig > 0.0, 1.0 / eig, np.inf)
+    return np.sqrt(np.sum(inv, axis=-1))
