@@ -147,6 +147,19 @@ class NavSubframe:
 
 
 @dataclass(frozen=True, slots=True)
+class SatView:
+    """One satellite as seen at an epoch (for GSV/GSA and the ZMQ ``SKY`` topic)."""
+
+    prn: str
+    el_deg: float
+    az_deg: float
+    cn0_dbhz: float
+    used: bool
+    full: bool
+    signal: str = "2I"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class Fix:
     """A solver's result for one epoch; ``mode == "none"`` carries ``reason`` instead.
 
@@ -164,6 +177,9 @@ class Fix:
     clock_bias_m: float | None = None
     gdop_full: float | None = None
     pdop: float | None = None
+    hdop: float | None = None
+    vdop: float | None = None
+    std_enu_m: tuple[float, float, float] | None = None
     used: tuple[str, ...] = ()
     full: tuple[str, ...] = ()
     fractional: tuple[str, ...] = ()
@@ -172,6 +188,7 @@ class Fix:
     resid_rms_m: float | None = None
     iterations: int = 0
     reason: str | None = None
+    sky: tuple[SatView, ...] = ()
 
     @property
     def ok(self) -> bool:
