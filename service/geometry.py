@@ -77,7 +77,7 @@ def dop_matrix(los_unit: np.ndarray, weight: np.ndarray | None = None) -> np.nda
     share one array shape.
     """
     e = np.asarray(los_unit, dtype=float)
-    g = np.concatenate([-e, np.ones(e.shape[:-1] + (1,))], axis=-1)
+    g = np.concatenate([-e, np.ones((*e.shape[:-1], 1))], axis=-1)
     if weight is not None:
         g = g * np.asarray(weight, dtype=float)[..., None]
     return np.einsum("...ni,...nj->...ij", g, g)

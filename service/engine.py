@@ -1,0 +1,419 @@
+"""The positioning engine: the Zhao-Cui-Lu fast fix and conventional SPP, as pure functions.
+
+The fast fix follows the paper's eqs. (1)-(16): unknowns [x, y, z, b, N_1..N_m] start at zero;
+fractional rows z_j = |X_j - x| + b - N_j c T_j get a -c T_j column (eq. 11); x and b take the
+least-squares step (eq. 10) while each N_j takes round(dN_j) (eq. 13); transmit times use
+z_j + N_j c T_j (eq. 5); iteration stops when the position/clock step is below theta and every
+rounded dN is zero (eq. 14). The GEO-GDOP eigenvalue gate (eqs. 12, 20-21) is then evaluated
+over the full rows at the converged position, and the state is corrected with the integers
+fixed (eqs. 15-16). With every measurement full there are no N columns and the procedure is
+conventional single-point positioning, which is how :func:`solve_spp` is built.
+
+Two phases, so that fast and SPP share one fixed point:
+1. From the Earth's centre with no corrections and no elevation mask (they mean nothing
+   before the position does): the paper's iteration, gate and final correction.
+2. From that position: elevation mask (a masked fractional satellite loses its row; its
+   integer is already fixed), Klobuchar and Saastamoinen corrections, elevation weights,
+   iterated to convergence. A post-fit residual check then refuses any solution whose
+   residuals betray a wrong integer set or an outlier.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+
+from service.constants import C_M_S, is_geo
+from service.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
+from service.ephemeris import EphemerisStore
+from service.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
+from service.orbit import EphemerisArrays, sat_pos_clock
+from service.timebase import gpst_to_bdt
+from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
+
+log = logging.getLogger(__name__)
+
+IonoChoice = Literal["auto", "bds", "gps", "off"]
+
+
+@dataclass(frozen=True, slots=True)
+class SolverConfig:
+    """Solver settings. ``beta=None`` derives the gate from T and ``range_error_m``."""
+
+    elmask_deg: float = 10.0
+    beta: float | None = None
+    range_error_m: float = 50.0
+    iono: IonoChoice = "auto"
+    tropo: bool = True
+    weighted: bool = True
+    max_iter: int = 30
+    theta_m: float = 1e-3
+    conv_m: float = 1e-4
+    resid_max_m: float = 1000.0
+    sigma_a_m: float = 0.3
+    sigma_b_m: float = 0.3
+
+
+def derive_beta(period_s: float, range_error_m: float) -> float:
+    """Gate threshold beta = alpha / max|d rho| with alpha = c T / 2 (paper eq. 21).
+
+    For T = 1 ms and a 50 m 3-sigma range error this is 2998, the paper's 3000.
+    """
+    return C_M_S * period_s / 2.0 / range_error_m
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Rows:
+    """Measurement rows of one solve, aligned with their ephemerides."""
+
+    prn: tuple[str, ...]
+    z_m: np.ndarray  # full pseudorange, or fractional value in [0, cT)
+    ct_m: np.ndarray  # c*T for fractional rows, 0 for full rows
+    cn0_dbhz: np.ndarray
+    eph: EphemerisArrays
+
+    @property
+    def frac(self) -> np.ndarray:
+        return self.ct_m > 0
+
+    def take(self, idx: np.ndarray) -> _Rows:
+        return _Rows(tuple(self.prn[i] for i in idx), self.z_m[idx], self.ct_m[idx],
+                     self.cn0_dbhz[idx], self.eph.take(idx))
+
+
+@dataclass(slots=True)
+class _Geometry:
+    los: np.ndarray  # unit vectors receiver -> satellite (n, 3)
+    pred_m: np.ndarray  # predicted pseudorange without the receiver clock and N terms
+    sat_ecef_m: np.ndarray
+
+
+def _geometry(rows: _Rows, bdt_week: int, bdt_sow_s: float, x: np.ndarray,
+              n_int: np.ndarray) -> _Geometry:
+    """Satellite positions at transmit time (paper eqs. 4-5) and geometric ranges."""
+    pr_m = rows.z_m + n_int * rows.ct_m
+    eph = rows.eph
+    t1 = bdt_sow_s - pr_m / C_M_S
+    dtc = t1 - eph.toc_sow_s
+    t_tx = t1 - (eph.af0_s + eph.af1_s_s * dtc)
+    sat, clk_s = sat_pos_clock(eph, bdt_week, t_tx)
+    rho = np.linalg.norm(sat - x, axis=1)
+    sat = sagnac_rotate(sat, rho / C_M_S)
+    d = sat - x
+    rho = np.linalg.norm(d, axis=1)
+    return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
+
+
+def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    if w is not None:
+        sw = np.sqrt(w)
+        h, dz = h * sw[:, None], dz * sw
+    step, *_ = np.linalg.lstsq(h, dz, rcond=None)
+    return np.asarray(step)
+
+
+def _design(los: np.ndarray) -> np.ndarray:
+    return np.concatenate([-los, np.ones((len(los), 1))], axis=1)
+
+
+def _iono_model(store_iono: KlobucharParams | None, gps_iono: KlobucharParams | None,
+                choice: IonoChoice) -> KlobucharParams | None:
+    if choice == "off":
+        return None
+    if choice == "bds":
+        return store_iono if store_iono is not None and store_iono.system == "BDS" else None
+    if choice == "gps":
+        return gps_iono
+    return store_iono if store_iono is not None else gps_iono
+
+
+@dataclass(frozen=True, slots=True)
+class IonoSet:
+    """Broadcast ionosphere coefficients available to the solver."""
+
+    bds: KlobucharParams | None = None
+    gps: KlobucharParams | None = None
+
+
+def _plausible(x: np.ndarray) -> bool:
+    r = float(np.linalg.norm(x))
+    return 6.0e6 < r < 8.5e6
+
+
+class _Decline(Exception):
+    def __init__(self, reason: str, **info: object) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.info = info
+
+
+def _solve_rows(rows: _Rows, gpst_week: int, gpst_tow_s: float, iono: IonoSet,
+                cfg: SolverConfig, solver: Literal["fast", "spp"]) -> Fix:
+    bdt_week, bdt_sow = gpst_to_bdt(gpst_week, gpst_tow_s)
+    frac = rows.frac
+    n_full, n_frac = int((~frac).sum()), int(frac.sum())
+    base = Fix(solver=solver, mode="none", gpst_week=gpst_week, gpst_tow_s=gpst_tow_s,
+               full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
+               fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f))
+    if n_full < 4:
+        reason = (f"too few full measurements: {n_full} full, {n_frac} fractional "
+                  "(need at least 4 full)")
+        return replace(base, reason=reason)
+
+    # ---- phase 1: paper eqs. (3)-(14), from the Earth's centre, no corrections ----------
+    x = np.zeros(3)
+    b = 0.0
+    n_int = np.zeros(len(rows.prn))
+    frac_idx = np.flatnonzero(frac)
+    converged = False
+    it = 0
+    geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+    for it in range(1, cfg.max_iter + 1):
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b  # eqs. (7)-(8)
+        h = _design(geo.los)
+        if n_frac:
+            # eq. (11) with the ambiguity in metres (column -1 instead of -cT) for conditioning
+            hn = np.zeros((len(rows.prn), n_frac))
+            hn[frac_idx, np.arange(n_frac)] = -1.0
+            h = np.concatenate([h, hn], axis=1)
+        try:
+            step = _lsq(h, dz)
+        except np.linalg.LinAlgError:
+            return replace(base, reason="singular geometry in the fast-fix iteration")
+        x = x + step[:3]
+        b += step[3]
+        dn = np.rint(step[4:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
+        n_int[frac_idx] += dn  # eq. (13)
+        geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+        if np.linalg.norm(step[:4]) < cfg.theta_m and not np.any(dn):  # eq. (14)
+            converged = True
+            break
+    if not np.all(np.isfinite(x)) or not converged:
+        return replace(base, iterations=it,
+                       reason=f"no convergence after {it} iterations")
+
+    # eq. (12), (20)-(21): GEO-GDOP gate over the full rows at the converged position
+    gd = float(gdop(geo.los[~frac]))
+    beta = cfg.beta
+    if beta is None:
+        t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
+        beta = derive_beta(t_min, cfg.range_error_m)
+    if n_frac and not gd < beta:
+        return replace(base, gdop_full=gd, iterations=it,
+                       reason=f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}")
+
+    # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
+    x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, cfg, None, None)
+    it += it2
+
+    # ---- phase 2: mask, corrections, weights ---------------------------------------------
+    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
+    meaningful = _plausible(x)
+    if meaningful:
+        el, _ = look_angles(x, geo.sat_ecef_m)
+        keep = np.flatnonzero(el >= np.radians(cfg.elmask_deg))
+    else:
+        keep = np.arange(len(rows.prn))
+    kept = rows.take(keep)
+    n_int_k = n_int[keep]
+    kfrac = kept.frac
+    if int((~kfrac).sum()) < 4:
+        return replace(base, gdop_full=gd, iterations=it,
+                       reason=(f"too few full measurements above the {cfg.elmask_deg:g} deg "
+                               f"mask: {int((~kfrac).sum())}"))
+    model = _iono_model(iono.bds, iono.gps, cfg.iono) if meaningful else None
+    x, b, geo, it3 = _fixed_iterations(kept, bdt_week, bdt_sow, x, b, n_int_k, cfg, model,
+                                       (lat, lon, alt) if meaningful else None)
+    it += it3
+    if not np.all(np.isfinite(x)):
+        return replace(base, iterations=it, reason="solution diverged")
+
+    # ---- integrity: post-fit residuals -----------------------------------------------------
+    corr = _corrections(kept, geo, x, bdt_sow, gpst_tow_s, model, cfg,
+                        meaningful) if meaningful else np.zeros(len(kept.prn))
+    v = kept.z_m + n_int_k * kept.ct_m - geo.pred_m - b - corr
+    vmax_i = int(np.argmax(np.abs(v)))
+    resid_rms = float(np.sqrt(np.mean(v**2)))
+    gd_final = float(gdop(geo.los[~kfrac]))
+    ambiguity = {rows.prn[i]: int(n_int[i]) for i in frac_idx}
+    recovered = {rows.prn[i]: float(rows.z_m[i] + n_int[i] * rows.ct_m[i]) for i in frac_idx}
+    if abs(v[vmax_i]) > cfg.resid_max_m:
+        return replace(base, gdop_full=gd_final, iterations=it, resid_rms_m=resid_rms,
+                       ambiguity=ambiguity,
+                       reason=(f"residual check failed: |v| = {abs(v[vmax_i]):.1f} m on "
+                               f"{kept.prn[vmax_i]} > {cfg.resid_max_m:g} m"))
+
+    lat_r, lon_r, alt_m = (float(q) for q in ecef_to_geodetic(x))
+    a = _design(geo.los)
+    rot = enu_rotation(lat_r, lon_r)
+    q = np.linalg.inv(a.T @ a)[:3, :3]
+    q_enu = rot @ q @ rot.T
+    w = _weights(kept, geo, x, cfg) if meaningful else np.ones(len(kept.prn))
+    qw = np.linalg.inv((a * w[:, None]).T @ a)[:3, :3]
+    std = np.sqrt(np.diag(rot @ qw @ rot.T))
+    mode: Literal["fast", "spp"] = "fast" if bool(np.any(kfrac)) else "spp"
+    return replace(
+        base,
+        mode=mode,
+        x_ecef_m=(float(x[0]), float(x[1]), float(x[2])),
+        lat_deg=float(np.degrees(lat_r)),
+        lon_deg=float(np.degrees(lon_r)),
+        alt_m=alt_m,
+        clock_bias_m=float(b),
+        gdop_full=gd_final if solver == "fast" else None,
+        pdop=float(np.sqrt(np.trace(q_enu))),
+        hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
+        vdop=float(np.sqrt(q_enu[2, 2])),
+        std_enu_m=(float(std[0]), float(std[1]), float(std[2])),
+        used=kept.prn,
+        full=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if not f),
+        fractional=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if f),
+        ambiguity=ambiguity,
+        recovered_pr_m=recovered,
+        resid_rms_m=resid_rms,
+        iterations=it,
+    )
+
+
+def _weights(rows: _Rows, geo: _Geometry, x: np.ndarray, cfg: SolverConfig) -> np.ndarray:
+    """Elevation weights 1 / (a^2 + b^2 / sin^2 E) [1/m^2]."""
+    if not cfg.weighted:
+        return np.ones(len(rows.prn))
+    el, _ = look_angles(x, geo.sat_ecef_m)
+    s = np.maximum(np.sin(el), 0.05)
+    return 1.0 / (cfg.sigma_a_m**2 + cfg.sigma_b_m**2 / s**2)
+
+
+def _corrections(rows: _Rows, geo: _Geometry, x: np.ndarray, bdt_sow: float, gpst_tow: float,
+                 model: KlobucharParams | None, cfg: SolverConfig, meaningful: bool) -> np.ndarray:
+    if not meaningful:
+        return np.zeros(len(rows.prn))
+    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
+    el, az = look_angles(x, geo.sat_ecef_m)
+    corr = np.zeros(len(rows.prn))
+    if model is not None and alt < 100e3:
+        if model.system == "BDS":
+            corr += klobuchar_bds_m(model, lat, lon, el, az, bdt_sow)
+        else:
+            corr += klobuchar_gps_m(model, lat, lon, el, az, gpst_tow)
+    if cfg.tropo:
+        corr += saastamoinen_m(lat, alt, el)
+    return corr
+
+
+def _fixed_iterations(rows: _Rows, bdt_week: int, bdt_sow: float, x: np.ndarray, b: float,
+                      n_int: np.ndarray, cfg: SolverConfig, model: KlobucharParams | None,
+                      llh: tuple[float, float, float] | None
+                      ) -> tuple[np.ndarray, float, _Geometry, int]:
+    """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated."""
+    meaningful = llh is not None
+    gpst_tow = bdt_sow + 14.0
+    geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+    it = 0
+    for it in range(1, cfg.max_iter + 1):
+        corr = _corrections(rows, geo, x, bdt_sow, gpst_tow, model, cfg, meaningful)
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b - corr
+        w = _weights(rows, geo, x, cfg) if meaningful else None
+        step = _lsq(_design(geo.los), dz, w)
+        x = x + step[:3]
+        b += float(step[3])
+        geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+        if np.linalg.norm(step) < cfg.conv_m:
+            break
+    return x, b, geo, it
+
+
+def _sky(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
+    if fix.x_ecef_m is None:
+        return ()
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    ephs, idx = [], []
+    for i, prn in enumerate(epoch.prn):
+        e = store.select(prn, bdt_week, bdt_sow)
+        if e is not None:
+            ephs.append(e)
+            idx.append(i)
+    if not ephs:
+        return ()
+    arr = EphemerisArrays.from_ephemerides(ephs)
+    pos, _ = sat_pos_clock(arr, bdt_week, np.full(len(ephs), bdt_sow - 0.075))
+    el, az = look_angles(np.asarray(fix.x_ecef_m), pos)
+    used = set(fix.used)
+    return tuple(
+        SatView(prn=epoch.prn[i], el_deg=float(np.degrees(el[k])),
+                az_deg=float(np.degrees(az[k])), cn0_dbhz=float(epoch.cn0_dbhz[i]),
+                used=epoch.prn[i] in used, full=bool(np.isfinite(epoch.pr_m[i])),
+                signal=epoch.signal[i])
+        for k, i in enumerate(idx))
+
+
+def select_rows(epoch: MeasurementEpoch, store: EphemerisStore,
+                solver: Literal["fast", "spp"]) -> tuple[_Rows | None, list[str]]:
+    """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
+
+    Returns the rows and the PRNs dropped for want of a usable ephemeris.
+    """
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    full = np.isfinite(epoch.pr_m)
+    fracok = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
+    use = full | fracok if solver == "fast" else full
+    idx: list[int] = []
+    ephs: list[Ephemeris] = []
+    missing: list[str] = []
+    for i in np.flatnonzero(use):
+        e = store.select(epoch.prn[i], bdt_week, bdt_sow)
+        if e is None:
+            missing.append(epoch.prn[i])
+            continue
+        idx.append(int(i))
+        ephs.append(e)
+    if not idx:
+        return None, missing
+    ii = np.asarray(idx)
+    z = np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii])
+    ct = np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii])
+    rows = _Rows(prn=tuple(epoch.prn[i] for i in idx), z_m=z, ct_m=ct,
+                 cn0_dbhz=epoch.cn0_dbhz[ii], eph=EphemerisArrays.from_ephemerides(ephs))
+    return rows, missing
+
+
+def solve(epoch: MeasurementEpoch, store: EphemerisStore, iono: IonoSet | None = None,
+          cfg: SolverConfig | None = None, solver: Literal["fast", "spp"] = "fast",
+          with_sky: bool = False) -> Fix:
+    """Solve one epoch; never raises for bad geometry, returns ``mode="none"`` with a reason."""
+    cfg = cfg or SolverConfig()
+    iono = iono or IonoSet()
+    rows, missing = select_rows(epoch, store, solver)
+    if rows is None:
+        why = "no measurements" if not missing else f"no usable ephemeris for {len(missing)} sats"
+        return Fix(solver=solver, mode="none", gpst_week=epoch.gpst_week,
+                   gpst_tow_s=epoch.gpst_tow_s, reason=why)
+    fix = _solve_rows(rows, epoch.gpst_week, epoch.gpst_tow_s, iono, cfg, solver)
+    if with_sky and fix.ok:
+        fix = replace(fix, sky=_sky(epoch, store, fix))
+    return fix
+
+
+def solve_spp(epoch: MeasurementEpoch, store: EphemerisStore, iono: IonoSet | None = None,
+              cfg: SolverConfig | None = None) -> Fix:
+    """Conventional SPP: the same iteration over full pseudoranges only."""
+    return solve(epoch, store, iono, cfg, solver="spp")
+
+
+def fractionalize(epoch: MeasurementEpoch, period_s: float = 1e-3,
+                  keep_full: Sequence[str] | None = None) -> MeasurementEpoch:
+    """Reduce pseudoranges modulo c*T except for ``keep_full`` PRNs (default: the GEOs).
+
+    ``numpy.mod`` keeps z + N c T equal to the original to floating-point precision.
+    """
+    keep = set(keep_full) if keep_full is not None else {p for p in epoch.prn if is_geo(p)}
+    mask = np.array([p not in keep for p in epoch.prn], dtype=bool)
+    ct = C_M_S * period_s
+    pr = np.where(mask, np.nan, epoch.pr_m)
+    frac = np.where(mask, np.mod(epoch.pr_m, ct), epoch.frac_pr_m)
+    per = np.where(mask, period_s, epoch.period_s)
+    return replace(epoch, pr_m=pr, frac_pr_m=frac, period_s=per)
