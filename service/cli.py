@@ -41,10 +41,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fractional", choices=["non-geo", "none"], default="non-geo")
     s.add_argument("--period-ms", type=int, choices=[1, 20], default=1)
     s.add_argument("--elmask-deg", type=float, default=10.0)
-    s.add_argument("--beta", type=float, default=None,
-                   help="GDOP gate; default derived from T and --range-error-m")
-    s.add_argument("--range-error-m", type=float, default=50.0,
-                   help="assumed 3-sigma range error used to derive the gate")
+    s.add_argument(
+        "--beta",
+        type=float,
+        default=None,
+        help="GDOP gate; default derived from T and --range-error-m",
+    )
+    s.add_argument(
+        "--range-error-m",
+        type=float,
+        default=50.0,
+        help="assumed 3-sigma range error used to derive the gate",
+    )
     s.add_argument("--iono", choices=["auto", "bds", "gps", "off"], default="auto")
     s.add_argument("--tropo", choices=["saastamoinen", "off"], default="saastamoinen")
     s.add_argument("--format", choices=["jsonl", "csv", "nmea"], default="jsonl")
@@ -75,8 +83,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, stream=sys.stderr,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
+    )
     try:
         return _resolve(_HANDLERS[args.command])(args)
     except BdsfixError as exc:

@@ -29,8 +29,14 @@ def sagnac_rotate(sat_ecef_m: np.ndarray, travel_time_s: np.ndarray) -> np.ndarr
     return np.stack([c * x + s * y, -s * x + c * y, z], axis=-1)
 
 
-def klobuchar_bds_m(params: KlobucharParams, lat_rad: float, lon_rad: float,
-                    el_rad: np.ndarray, az_rad: np.ndarray, bdt_sow_s: float) -> np.ndarray:
+def klobuchar_bds_m(
+    params: KlobucharParams,
+    lat_rad: float,
+    lon_rad: float,
+    el_rad: np.ndarray,
+    az_rad: np.ndarray,
+    bdt_sow_s: float,
+) -> np.ndarray:
     """B1I ionospheric delay [m], BDS Klobuchar form (ICD B1I 5.2.4.7).
 
     Pierce point on a 375 km shell (R = 6378 km), geographic latitude; vertical delay
@@ -54,8 +60,14 @@ def klobuchar_bds_m(params: KlobucharParams, lat_rad: float, lon_rad: float,
     return C_M_S * iz / np.sqrt(1.0 - ratio**2)
 
 
-def klobuchar_gps_m(params: KlobucharParams, lat_rad: float, lon_rad: float,
-                    el_rad: np.ndarray, az_rad: np.ndarray, gpst_tow_s: float) -> np.ndarray:
+def klobuchar_gps_m(
+    params: KlobucharParams,
+    lat_rad: float,
+    lon_rad: float,
+    el_rad: np.ndarray,
+    az_rad: np.ndarray,
+    gpst_tow_s: float,
+) -> np.ndarray:
     """B1I ionospheric delay [m] from GPS Klobuchar coefficients (IS-GPS-200 20.3.3.5.2.5).
 
     Geomagnetic latitude, 350 km shell, obliquity 1 + 16 (0.53 - E)^3 (semicircles); the L1
@@ -78,8 +90,9 @@ def klobuchar_gps_m(params: KlobucharParams, lat_rad: float, lon_rad: float,
     return C_M_S * delay * (F_GPS_L1_HZ / F_B1I_HZ) ** 2
 
 
-def saastamoinen_m(lat_rad: float, alt_m: float, el_rad: np.ndarray,
-                   humidity: float = 0.7) -> np.ndarray:
+def saastamoinen_m(
+    lat_rad: float, alt_m: float, el_rad: np.ndarray, humidity: float = 0.7
+) -> np.ndarray:
     """Slant tropospheric delay [m], Saastamoinen model with a standard atmosphere."""
     el = np.asarray(el_rad, dtype=float)
     if alt_m < -100.0 or alt_m > 1e4:

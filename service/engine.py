@@ -81,8 +81,13 @@ class _Rows:
         return self.ct_m > 0
 
     def take(self, idx: np.ndarray) -> _Rows:
-        return _Rows(tuple(self.prn[i] for i in idx), self.z_m[idx], self.ct_m[idx],
-                     self.cn0_dbhz[idx], self.eph.take(idx))
+        return _Rows(
+            tuple(self.prn[i] for i in idx),
+            self.z_m[idx],
+            self.ct_m[idx],
+            self.cn0_dbhz[idx],
+            self.eph.take(idx),
+        )
 
 
 @dataclass(slots=True)
@@ -92,8 +97,9 @@ class _Geometry:
     sat_ecef_m: np.ndarray
 
 
-def _geometry(rows: _Rows, bdt_week: int, bdt_sow_s: float, x: np.ndarray,
-              n_int: np.ndarray) -> _Geometry:
+def _geometry(
+    rows: _Rows, bdt_week: int, bdt_sow_s: float, x: np.ndarray, n_int: np.ndarray
+) -> _Geometry:
     """Satellite positions at transmit time (paper eqs. 4-5) and geometric ranges."""
     pr_m = rows.z_m + n_int * rows.ct_m
     eph = rows.eph
@@ -120,8 +126,9 @@ def _design(los: np.ndarray) -> np.ndarray:
     return np.concatenate([-los, np.ones((len(los), 1))], axis=1)
 
 
-def _iono_model(store_iono: KlobucharParams | None, gps_iono: KlobucharParams | None,
-                choice: IonoChoice) -> KlobucharParams | None:
+def _iono_model(
+    store_iono: KlobucharParams | None, gps_iono: KlobucharParams | None, choice: IonoChoice
+) -> KlobucharParams | None:
     if choice == "off":
         return None
     if choice == "bds":
@@ -151,17 +158,29 @@ class _Decline(Exception):
         self.info = info
 
 
-def _solve_rows(rows: _Rows, gpst_week: int, gpst_tow_s: float, iono: IonoSet,
-                cfg: SolverConfig, solver: Literal["fast", "spp"]) -> Fix:
+def _solve_rows(
+    rows: _Rows,
+    gpst_week: int,
+    gpst_tow_s: float,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> Fix:
     bdt_week, bdt_sow = gpst_to_bdt(gpst_week, gpst_tow_s)
     frac = rows.frac
     n_full, n_frac = int((~frac).sum()), int(frac.sum())
-    base = Fix(solver=solver, mode="none", gpst_week=gpst_week, gpst_tow_s=gpst_tow_s,
-               full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
-               fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f))
+    base = Fix(
+        solver=solver,
+        mode="none",
+        gpst_week=gpst_week,
+        gpst_tow_s=gpst_tow_s,
+        full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
+        fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
+    )
     if n_full < 4:
-        reason = (f"too few full measurements: {n_full} full, {n_frac} fractional "
-                  "(need at least 4 full)")
+        reason = (
+            f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
+        )
         return replace(base, reason=reason)
 
     # ---- phase 1: paper eqs. (3)-(14), from the Earth's centre, no corrections ----------
@@ -193,8 +212,7 @@ def _solve_rows(rows: _Rows, gpst_week: int, gpst_tow_s: float, iono: IonoSet,
             converged = True
             break
     if not np.all(np.isfinite(x)) or not converged:
-        return replace(base, iterations=it,
-                       reason=f"no convergence after {it} iterations")
+        return replace(base, iterations=it, reason=f"no convergence after {it} iterations")
 
     # eq. (12), (20)-(21): GEO-GDOP gate over the full rows at the converged position
     gd = float(gdop(geo.los[~frac]))
@@ -203,8 +221,12 @@ def _solve_rows(rows: _Rows, gpst_week: int, gpst_tow_s: float, iono: IonoSet,
         t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
-        return replace(base, gdop_full=gd, iterations=it,
-                       reason=f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}")
+        return replace(
+            base,
+            gdop_full=gd,
+            iterations=it,
+            reason=f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}",
+        )
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
     x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, cfg, None, None)
@@ -222,19 +244,29 @@ def _solve_rows(rows: _Rows, gpst_week: int, gpst_tow_s: float, iono: IonoSet,
     n_int_k = n_int[keep]
     kfrac = kept.frac
     if int((~kfrac).sum()) < 4:
-        return replace(base, gdop_full=gd, iterations=it,
-                       reason=(f"too few full measurements above the {cfg.elmask_deg:g} deg "
-                               f"mask: {int((~kfrac).sum())}"))
+        return replace(
+            base,
+            gdop_full=gd,
+            iterations=it,
+            reason=(
+                f"too few full measurements above the {cfg.elmask_deg:g} deg "
+                f"mask: {int((~kfrac).sum())}"
+            ),
+        )
     model = _iono_model(iono.bds, iono.gps, cfg.iono) if meaningful else None
-    x, b, geo, it3 = _fixed_iterations(kept, bdt_week, bdt_sow, x, b, n_int_k, cfg, model,
-                                       (lat, lon, alt) if meaningful else None)
+    x, b, geo, it3 = _fixed_iterations(
+        kept, bdt_week, bdt_sow, x, b, n_int_k, cfg, model, (lat, lon, alt) if meaningful else None
+    )
     it += it3
     if not np.all(np.isfinite(x)):
         return replace(base, iterations=it, reason="solution diverged")
 
     # ---- integrity: post-fit residuals -----------------------------------------------------
-    corr = _corrections(kept, geo, x, bdt_sow, gpst_tow_s, model, cfg,
-                        meaningful) if meaningful else np.zeros(len(kept.prn))
+    corr = (
+        _corrections(kept, geo, x, bdt_sow, gpst_tow_s, model, cfg, meaningful)
+        if meaningful
+        else np.zeros(len(kept.prn))
+    )
     v = kept.z_m + n_int_k * kept.ct_m - geo.pred_m - b - corr
     vmax_i = int(np.argmax(np.abs(v)))
     resid_rms = float(np.sqrt(np.mean(v**2)))
@@ -242,10 +274,17 @@ def _solve_rows(rows: _Rows, gpst_week: int, gpst_tow_s: float, iono: IonoSet,
     ambiguity = {rows.prn[i]: int(n_int[i]) for i in frac_idx}
     recovered = {rows.prn[i]: float(rows.z_m[i] + n_int[i] * rows.ct_m[i]) for i in frac_idx}
     if abs(v[vmax_i]) > cfg.resid_max_m:
-        return replace(base, gdop_full=gd_final, iterations=it, resid_rms_m=resid_rms,
-                       ambiguity=ambiguity,
-                       reason=(f"residual check failed: |v| = {abs(v[vmax_i]):.1f} m on "
-                               f"{kept.prn[vmax_i]} > {cfg.resid_max_m:g} m"))
+        return replace(
+            base,
+            gdop_full=gd_final,
+            iterations=it,
+            resid_rms_m=resid_rms,
+            ambiguity=ambiguity,
+            reason=(
+                f"residual check failed: |v| = {abs(v[vmax_i]):.1f} m on "
+                f"{kept.prn[vmax_i]} > {cfg.resid_max_m:g} m"
+            ),
+        )
 
     lat_r, lon_r, alt_m = (float(q) for q in ecef_to_geodetic(x))
     a = _design(geo.los)
@@ -288,8 +327,16 @@ def _weights(rows: _Rows, geo: _Geometry, x: np.ndarray, cfg: SolverConfig) -> n
     return 1.0 / (cfg.sigma_a_m**2 + cfg.sigma_b_m**2 / s**2)
 
 
-def _corrections(rows: _Rows, geo: _Geometry, x: np.ndarray, bdt_sow: float, gpst_tow: float,
-                 model: KlobucharParams | None, cfg: SolverConfig, meaningful: bool) -> np.ndarray:
+def _corrections(
+    rows: _Rows,
+    geo: _Geometry,
+    x: np.ndarray,
+    bdt_sow: float,
+    gpst_tow: float,
+    model: KlobucharParams | None,
+    cfg: SolverConfig,
+    meaningful: bool,
+) -> np.ndarray:
     if not meaningful:
         return np.zeros(len(rows.prn))
     lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
@@ -305,10 +352,17 @@ def _corrections(rows: _Rows, geo: _Geometry, x: np.ndarray, bdt_sow: float, gps
     return corr
 
 
-def _fixed_iterations(rows: _Rows, bdt_week: int, bdt_sow: float, x: np.ndarray, b: float,
-                      n_int: np.ndarray, cfg: SolverConfig, model: KlobucharParams | None,
-                      llh: tuple[float, float, float] | None
-                      ) -> tuple[np.ndarray, float, _Geometry, int]:
+def _fixed_iterations(
+    rows: _Rows,
+    bdt_week: int,
+    bdt_sow: float,
+    x: np.ndarray,
+    b: float,
+    n_int: np.ndarray,
+    cfg: SolverConfig,
+    model: KlobucharParams | None,
+    llh: tuple[float, float, float] | None,
+) -> tuple[np.ndarray, float, _Geometry, int]:
     """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated."""
     meaningful = llh is not None
     gpst_tow = bdt_sow + 14.0
@@ -344,15 +398,22 @@ def _sky(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatV
     el, az = look_angles(np.asarray(fix.x_ecef_m), pos)
     used = set(fix.used)
     return tuple(
-        SatView(prn=epoch.prn[i], el_deg=float(np.degrees(el[k])),
-                az_deg=float(np.degrees(az[k])), cn0_dbhz=float(epoch.cn0_dbhz[i]),
-                used=epoch.prn[i] in used, full=bool(np.isfinite(epoch.pr_m[i])),
-                signal=epoch.signal[i])
-        for k, i in enumerate(idx))
+        SatView(
+            prn=epoch.prn[i],
+            el_deg=float(np.degrees(el[k])),
+            az_deg=float(np.degrees(az[k])),
+            cn0_dbhz=float(epoch.cn0_dbhz[i]),
+            used=epoch.prn[i] in used,
+            full=bool(np.isfinite(epoch.pr_m[i])),
+            signal=epoch.signal[i],
+        )
+        for k, i in enumerate(idx)
+    )
 
 
-def select_rows(epoch: MeasurementEpoch, store: EphemerisStore,
-                solver: Literal["fast", "spp"]) -> tuple[_Rows | None, list[str]]:
+def select_rows(
+    epoch: MeasurementEpoch, store: EphemerisStore, solver: Literal["fast", "spp"]
+) -> tuple[_Rows | None, list[str]]:
     """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
 
     Returns the rows and the PRNs dropped for want of a usable ephemeris.
@@ -376,36 +437,56 @@ def select_rows(epoch: MeasurementEpoch, store: EphemerisStore,
     ii = np.asarray(idx)
     z = np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii])
     ct = np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii])
-    rows = _Rows(prn=tuple(epoch.prn[i] for i in idx), z_m=z, ct_m=ct,
-                 cn0_dbhz=epoch.cn0_dbhz[ii], eph=EphemerisArrays.from_ephemerides(ephs))
+    rows = _Rows(
+        prn=tuple(epoch.prn[i] for i in idx),
+        z_m=z,
+        ct_m=ct,
+        cn0_dbhz=epoch.cn0_dbhz[ii],
+        eph=EphemerisArrays.from_ephemerides(ephs),
+    )
     return rows, missing
 
 
-def solve(epoch: MeasurementEpoch, store: EphemerisStore, iono: IonoSet | None = None,
-          cfg: SolverConfig | None = None, solver: Literal["fast", "spp"] = "fast",
-          with_sky: bool = False) -> Fix:
+def solve(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    solver: Literal["fast", "spp"] = "fast",
+    with_sky: bool = False,
+) -> Fix:
     """Solve one epoch; never raises for bad geometry, returns ``mode="none"`` with a reason."""
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
     rows, missing = select_rows(epoch, store, solver)
     if rows is None:
         why = "no measurements" if not missing else f"no usable ephemeris for {len(missing)} sats"
-        return Fix(solver=solver, mode="none", gpst_week=epoch.gpst_week,
-                   gpst_tow_s=epoch.gpst_tow_s, reason=why)
+        return Fix(
+            solver=solver,
+            mode="none",
+            gpst_week=epoch.gpst_week,
+            gpst_tow_s=epoch.gpst_tow_s,
+            reason=why,
+        )
     fix = _solve_rows(rows, epoch.gpst_week, epoch.gpst_tow_s, iono, cfg, solver)
     if with_sky and fix.ok:
         fix = replace(fix, sky=_sky(epoch, store, fix))
     return fix
 
 
-def solve_spp(epoch: MeasurementEpoch, store: EphemerisStore, iono: IonoSet | None = None,
-              cfg: SolverConfig | None = None) -> Fix:
+def solve_spp(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+) -> Fix:
     """Conventional SPP: the same iteration over full pseudoranges only."""
     return solve(epoch, store, iono, cfg, solver="spp")
 
 
-def fractionalize(epoch: MeasurementEpoch, period_s: float = 1e-3,
-                  keep_full: Sequence[str] | None = None) -> MeasurementEpoch:
+def fractionalize(
+    epoch: MeasurementEpoch, period_s: float = 1e-3, keep_full: Sequence[str] | None = None
+) -> MeasurementEpoch:
     """Reduce pseudoranges modulo c*T except for ``keep_full`` PRNs (default: the GEOs).
 
     ``numpy.mod`` keeps z + N c T equal to the original to floating-point precision.

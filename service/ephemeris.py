@@ -44,8 +44,13 @@ class EphemerisStore:
         """Hold ``eph`` unless it is unhealthy (SatH1 != 0); returns whether it was kept."""
         if eph.health != 0:
             self.refused += 1
-            log.info("refused unhealthy ephemeris %s toe %s (SatH1=%d, from %s)",
-                     eph.prn, eph.toe_sow_s, eph.health, eph.source)
+            log.info(
+                "refused unhealthy ephemeris %s toe %s (SatH1=%d, from %s)",
+                eph.prn,
+                eph.toe_sow_s,
+                eph.health,
+                eph.source,
+            )
             return False
         self._by_prn.setdefault(eph.prn, {})[(eph.week, eph.toe_sow_s)] = eph
         return True
@@ -58,8 +63,9 @@ class EphemerisStore:
         cands = self._by_prn.get(prn)
         if not cands:
             return None
-        best = min(cands.values(),
-                   key=lambda e: abs(diff_s(bdt_week, bdt_sow_s, e.week, e.toe_sow_s)))
+        best = min(
+            cands.values(), key=lambda e: abs(diff_s(bdt_week, bdt_sow_s, e.week, e.toe_sow_s))
+        )
         if abs(diff_s(bdt_week, bdt_sow_s, best.week, best.toe_sow_s)) > self.max_age_s:
             return None
         return best
@@ -117,8 +123,9 @@ class EphemerisStore:
                 store.add(Ephemeris(**{**item, "source": "store"}))
             if doc.get("iono"):
                 io = doc["iono"]
-                store.iono = KlobucharParams(alpha=tuple(io["alpha"]), beta=tuple(io["beta"]),
-                                             system=io["system"])
+                store.iono = KlobucharParams(
+                    alpha=tuple(io["alpha"]), beta=tuple(io["beta"]), system=io["system"]
+                )
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise EphemerisError(f"{path}: cannot read ephemeris store: {exc}") from exc
         return store

@@ -13,8 +13,9 @@ from service.constants import A_CGCS2000_M, F_CGCS2000
 _E2 = F_CGCS2000 * (2.0 - F_CGCS2000)
 
 
-def geodetic_to_ecef(lat_rad: np.ndarray | float, lon_rad: np.ndarray | float,
-                     alt_m: np.ndarray | float) -> np.ndarray:
+def geodetic_to_ecef(
+    lat_rad: np.ndarray | float, lon_rad: np.ndarray | float, alt_m: np.ndarray | float
+) -> np.ndarray:
     """Geodetic latitude, longitude [rad] and ellipsoidal height [m] to ECEF [m] (..., 3)."""
     lat = np.asarray(lat_rad, dtype=float)
     lon = np.asarray(lon_rad, dtype=float)
@@ -38,8 +39,11 @@ def ecef_to_geodetic(x_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     for _ in range(8):
         sin_lat = np.sin(lat)
         n = A_CGCS2000_M / np.sqrt(1.0 - _E2 * sin_lat**2)
-        h = np.where(np.abs(np.cos(lat)) > 1e-9, p / np.maximum(np.cos(lat), 1e-300) - n,
-                     np.abs(z) - n * (1.0 - _E2))
+        h = np.where(
+            np.abs(np.cos(lat)) > 1e-9,
+            p / np.maximum(np.cos(lat), 1e-300) - n,
+            np.abs(z) - n * (1.0 - _E2),
+        )
         lat = np.arctan2(z, p * (1.0 - _E2 * n / (n + h)))
     return lat, lon, h
 

@@ -27,9 +27,28 @@ from service.types import Ephemeris
 _HALF_WEEK_S = WEEK_S / 2
 
 _ARRAY_FIELDS = (
-    "week", "toe_sow_s", "toc_sow_s", "af0_s", "af1_s_s", "af2_s_s2", "sqrt_a_sqrt_m", "e",
-    "i0_rad", "omega0_rad", "omega_rad", "m0_rad", "delta_n_rad_s", "omega_dot_rad_s",
-    "idot_rad_s", "cuc_rad", "cus_rad", "crc_m", "crs_m", "cic_rad", "cis_rad", "tgd1_s",
+    "week",
+    "toe_sow_s",
+    "toc_sow_s",
+    "af0_s",
+    "af1_s_s",
+    "af2_s_s2",
+    "sqrt_a_sqrt_m",
+    "e",
+    "i0_rad",
+    "omega0_rad",
+    "omega_rad",
+    "m0_rad",
+    "delta_n_rad_s",
+    "omega_dot_rad_s",
+    "idot_rad_s",
+    "cuc_rad",
+    "cus_rad",
+    "crc_m",
+    "crs_m",
+    "cic_rad",
+    "cis_rad",
+    "tgd1_s",
 )
 
 
@@ -64,10 +83,14 @@ class EphemerisArrays:
 
     @classmethod
     def from_ephemerides(cls, ephs: Sequence[Ephemeris]) -> EphemerisArrays:
-        cols = {name: np.array([getattr(e, name) for e in ephs], dtype=float)
-                for name in _ARRAY_FIELDS}
-        return cls(prn=tuple(e.prn for e in ephs),
-                   geo=np.array([is_geo(e.prn) for e in ephs], dtype=bool), **cols)
+        cols = {
+            name: np.array([getattr(e, name) for e in ephs], dtype=float) for name in _ARRAY_FIELDS
+        }
+        return cls(
+            prn=tuple(e.prn for e in ephs),
+            geo=np.array([is_geo(e.prn) for e in ephs], dtype=bool),
+            **cols,
+        )
 
     def take(self, index: np.ndarray | Sequence[int]) -> EphemerisArrays:
         """Rows ``index`` as a new set."""
@@ -111,9 +134,11 @@ def sat_pos_clock(
     inc = eph.i0_rad + eph.idot_rad_s * tk + eph.cis_rad * s2 + eph.cic_rad * c2
     xp, yp = r * np.cos(u), r * np.sin(u)
 
-    node = eph.omega0_rad + np.where(
-        eph.geo, eph.omega_dot_rad_s * tk, (eph.omega_dot_rad_s - OMEGA_E_RAD_S) * tk
-    ) - OMEGA_E_RAD_S * eph.toe_sow_s
+    node = (
+        eph.omega0_rad
+        + np.where(eph.geo, eph.omega_dot_rad_s * tk, (eph.omega_dot_rad_s - OMEGA_E_RAD_S) * tk)
+        - OMEGA_E_RAD_S * eph.toe_sow_s
+    )
     cn, sn, ci, si = np.cos(node), np.sin(node), np.cos(inc), np.sin(inc)
     x = xp * cn - yp * ci * sn
     y = xp * sn + yp * ci * cn
@@ -133,6 +158,11 @@ def sat_pos_clock(
         z = np.where(eph.geo, zg, z)
 
     dtc = _wrap_half_week(dweek + (t_sow - eph.toc_sow_s))
-    clock_s = (eph.af0_s + eph.af1_s_s * dtc + eph.af2_s_s2 * dtc**2
-               + F_REL_S_PER_SQRT_M * eph.e * eph.sqrt_a_sqrt_m * sin_e - eph.tgd1_s)
+    clock_s = (
+        eph.af0_s
+        + eph.af1_s_s * dtc
+        + eph.af2_s_s2 * dtc**2
+        + F_REL_S_PER_SQRT_M * eph.e * eph.sqrt_a_sqrt_m * sin_e
+        - eph.tgd1_s
+    )
     return np.stack([x, y, z], axis=-1), clock_s
