@@ -30,7 +30,10 @@ _LEAP_TABLE: tuple[tuple[dt.datetime, int], ...] = (
 def normalize(week: int, sow_s: float) -> tuple[int, float]:
     """Bring seconds-of-week into [0, 604800), carrying whole weeks."""
     carry = int(sow_s // WEEK_S)
-    return week + carry, sow_s - carry * WEEK_S
+    sow = sow_s - carry * WEEK_S
+    if sow >= WEEK_S:  # a tiny negative input rounds up to a whole week
+        return week + carry + 1, 0.0
+    return week + carry, sow
 
 
 def diff_s(week_a: int, sow_a: float, week_b: int, sow_b: float) -> float:
