@@ -2,6 +2,7 @@
 against continuity between consecutive ephemerides, and against GEO nominal longitudes."""
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -62,7 +63,7 @@ def test_consecutive_ephemerides_agree_between_toes(records):
     checked = {"geo": 0, "non-geo": 0}
     for prn, recs in by_prn.items():
         recs.sort(key=lambda r: (r["BDTWeek"], r["Toe"]))
-        for a, b in zip(recs, recs[1:], strict=False):
+        for a, b in itertools.pairwise(recs):
             if b["Toe"] - a["Toe"] != 3600 or b["BDTWeek"] != a["BDTWeek"]:
                 continue
             t = np.array([a["Toe"] + 1800.0])
