@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from service.types import Ephemeris
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HKSC_TRUTH_ECEF_M = np.array([-2414266.9197, 5386768.9868, 2407460.0314])
 
@@ -73,3 +75,35 @@ def icd_position(rec: dict, t_bdt_sow: float, geo: bool) -> tuple[float, float, 
     rz = np.array([[math.cos(p), math.sin(p), 0], [-math.sin(p), math.cos(p), 0], [0, 0, 1]])
     out = rz @ rx @ np.array([x, y, z])
     return float(out[0]), float(out[1]), float(out[2])
+
+
+def eph_from_georinex(rec: dict) -> Ephemeris:
+    """Map a georinex record to our type (field mapping only, no computation)."""
+    sod = (rec["epoch"] - rec["epoch"].astype("datetime64[D]")).astype(int)
+    dow = (rec["epoch"].astype("datetime64[D]").astype(int) - 3) % 7  # 1970-01-01 was Thu
+    return Ephemeris(
+        prn=rec["prn"],
+        week=int(rec["BDTWeek"]),
+        toe_sow_s=rec["Toe"],
+        toc_sow_s=float(dow * 86400 + sod),
+        af0_s=rec["SVclockBias"],
+        af1_s_s=rec["SVclockDrift"],
+        af2_s_s2=rec["SVclockDriftRate"],
+        sqrt_a_sqrt_m=rec["sqrtA"],
+        e=rec["Eccentricity"],
+        i0_rad=rec["Io"],
+        omega0_rad=rec["Omega0"],
+        omega_rad=rec["omega"],
+        m0_rad=rec["M0"],
+        delta_n_rad_s=rec["DeltaN"],
+        omega_dot_rad_s=rec["OmegaDot"],
+        idot_rad_s=rec["IDOT"],
+        cuc_rad=rec["Cuc"],
+        cus_rad=rec["Cus"],
+        crc_m=rec["Crc"],
+        crs_m=rec["Crs"],
+        cic_rad=rec["Cic"],
+        cis_rad=rec["Cis"],
+        tgd1_s=rec["TGD1"],
+        health=int(rec["SatH1"]),
+    )

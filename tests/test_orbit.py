@@ -11,25 +11,10 @@ import pytest
 from service.constants import is_geo
 from service.geometry import ecef_to_geodetic
 from service.orbit import EphemerisArrays, sat_pos_clock
-from service.types import Ephemeris
 from tests._independent import DATA, georinex_bds_ephemerides, icd_position
+from tests._independent import eph_from_georinex as _eph
 
 NAV = DATA / "hksc-2021" / "hksc1610.nav"
-
-
-def _eph(rec: dict) -> Ephemeris:
-    """Map a georinex record to our type (field mapping only, no computation)."""
-    sod = (rec["epoch"] - rec["epoch"].astype("datetime64[D]")).astype(int)
-    dow = (rec["epoch"].astype("datetime64[D]").astype(int) - 3) % 7  # 1970-01-01 was Thu
-    return Ephemeris(
-        prn=rec["prn"], week=int(rec["BDTWeek"]), toe_sow_s=rec["Toe"],
-        toc_sow_s=float(dow * 86400 + sod), af0_s=rec["SVclockBias"], af1_s_s=rec["SVclockDrift"],
-        af2_s_s2=rec["SVclockDriftRate"], sqrt_a_sqrt_m=rec["sqrtA"], e=rec["Eccentricity"],
-        i0_rad=rec["Io"], omega0_rad=rec["Omega0"], omega_rad=rec["omega"], m0_rad=rec["M0"],
-        delta_n_rad_s=rec["DeltaN"], omega_dot_rad_s=rec["OmegaDot"], idot_rad_s=rec["IDOT"],
-        cuc_rad=rec["Cuc"], cus_rad=rec["Cus"], crc_m=rec["Crc"], crs_m=rec["Crs"],
-        cic_rad=rec["Cic"], cis_rad=rec["Cis"], tgd1_s=rec["TGD1"], health=int(rec["SatH1"]),
-    )
 
 
 @pytest.fixture(scope="module")
