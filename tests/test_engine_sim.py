@@ -96,7 +96,7 @@ def test_fewer_than_four_geos_declines_with_reason(store):
 
 
 def test_all_full_reduces_to_spp(store):
-    x, ep = _scene(store, 22.3, 114.2, 0.0, 0.0, 0.003, 1.3, 2)
+    _x, ep = _scene(store, 22.3, 114.2, 0.0, 0.0, 0.003, 1.3, 2)
     fast = solve(ep, store, cfg=CFG, solver="fast")
     spp = solve(ep, store, cfg=CFG, solver="spp")
     assert fast.mode == "spp" and not fast.ambiguity
