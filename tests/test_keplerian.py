@@ -47,7 +47,7 @@ def test_broadcast_form_matches_direct_propagation(prn):
     eph = ephemeris_from_kepler(prn, a, e, inc, raan, argp, m0, gmst0, 900, toe)
     arr = EphemerisArrays.from_ephemerides([eph])
     for dt in (0.0, 0.6, 600.0, 3600.0, 43_200.0, 86_400.0, 250_000.0):
-        pos, clk = sat_pos_clock(arr, 900, np.array([toe + dt]))
+        pos, _ = sat_pos_clock(arr, 900, np.array([toe + dt]))
         ref = _direct_ecef(a, e, inc, raan, argp, m0, gmst0, dt)
         assert np.linalg.norm(pos[0] - ref) < 1e-3, (prn, dt)
 
