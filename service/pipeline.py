@@ -1,0 +1,170 @@
+"""The engine loop shared by replay and the daemon: events in, fixes and TRACK/STATUS out.
+
+Per measurement epoch: the tracker decides which measurements are full, the engine solves
+from all usable ones (the fast fix, which is SPP when everything is full), and integrity
+bookkeeping compares every recovered pseudorange with the full one that arrives once the
+satellite's SOW decodes. A refused solution is passed on as ``mode="none"`` with its reason,
+never as a position.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.constants import C_M_S
+from service.engine import IonoSet, SolverConfig, solve
+from service.ephemeris import EphemerisStore
+from service.timebase import diff_s
+from service.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
+from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, NavSubframe
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class IntegrityCheck:
+    """A recovered pseudorange checked against the full one after the SOW arrived."""
+
+    prn: str
+    gpst_week: int
+    gpst_tow_s: float
+    recovered_pr_m: float
+    full_pr_m: float
+    elapsed_s: float
+    ok: bool
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EpochResult:
+    """Everything one measurement epoch produced."""
+
+    epoch: MeasurementEpoch
+    fix: Fix
+    since_start_s: float
+    track: tuple[TrackEvent, ...] = ()
+    integrity: tuple[IntegrityCheck, ...] = ()
+
+
+@dataclass(slots=True)
+class _Recovered:
+    week: int
+    tow_s: float
+    pr_m: float
+    period_s: float
+
+
+@dataclass
+class Pipeline:
+    """Stateful wiring of tracker, ephemeris store and engine (no I/O of its own)."""
+
+    store: EphemerisStore
+    iono: IonoSet = field(default_factory=IonoSet)
+    cfg: SolverConfig = field(default_factory=SolverConfig)
+    restart_at_s: float | None = None
+    sync_seed: int = 0
+    on_track: Callable[[TrackEvent], None] | None = None
+    tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
+    counters: Counter[str] = field(default_factory=Counter)
+    _first: tuple[int, float] | None = None
+    _restarted: bool = False
+    _recovered: dict[str, _Recovered] = field(default_factory=dict)
+    _assembler: Any = None
+
+    # --- navigation data -----------------------------------------------------------------
+    def add_ephemeris(self, eph: Ephemeris) -> None:
+        if self.store.add(eph):
+            self.counters[f"ephemeris_{eph.source}"] += 1
+        else:
+            self.counters["ephemeris_refused"] += 1
+
+    def set_iono(self, params: KlobucharParams) -> None:
+        if params.system == "BDS":
+            self.iono = IonoSet(bds=params, gps=self.iono.gps)
+            self.store.iono = params
+
+    def on_subframe(self, sf: NavSubframe) -> list[TrackEvent]:
+        self.counters["subframes"] += 1
+        events = self.tracker.on_subframe(sf)
+        self._feed_assembler(sf)
+        self._emit(events)
+        return events
+
+    def _feed_assembler(self, sf: NavSubframe) -> None:
+        try:
+            from service.bds_nav import EphemerisAssembler
+        except ImportError:  # pragma: no cover - codec not installed
+            return
+        if self._assembler is None:
+            self._assembler = EphemerisAssembler()
+        for item in self._assembler.feed(sf.prn, sf.nav_type, sf.words):
+            if isinstance(item, Ephemeris):
+                self.add_ephemeris(item)
+            elif isinstance(item, KlobucharParams):
+                self.set_iono(item)
+
+    # --- measurements ---------------------------------------------------------------------
+    def on_epoch(self, epoch: MeasurementEpoch) -> EpochResult:
+        self.counters["epochs"] += 1
+        if self._first is None:
+            self._first = (epoch.gpst_week, epoch.gpst_tow_s)
+        if (
+            self.restart_at_s is not None
+            and not self._restarted
+            and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) >= self.restart_at_s
+        ):
+            self._restarted = True
+            rng = np.random.default_rng(self.sync_seed)
+            delays = {p: float(rng.uniform(0.1, 0.5)) for p in sorted(epoch.prn)}
+            self.tracker.restart(
+                epoch.gpst_week,
+                epoch.gpst_tow_s,
+                SubframeEmulator(epoch.gpst_week, epoch.gpst_tow_s, delays),
+            )
+            self._recovered.clear()
+        view, events = self.tracker.on_epoch(epoch)
+        checks = self._check_integrity(view, events)
+        fix = solve(view, self.store, self.iono, self.cfg, solver="fast", with_sky=True)
+        self.counters[f"fix_{fix.mode}"] += 1
+        if fix.mode == "fast":
+            for prn, pr in fix.recovered_pr_m.items():
+                i = view.prn.index(prn)
+                self._recovered[prn] = _Recovered(
+                    epoch.gpst_week, epoch.gpst_tow_s, pr, float(view.period_s[i])
+                )
+        self._emit(events)
+        since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
+        return EpochResult(view, fix, since, tuple(events), tuple(checks))
+
+    def _check_integrity(
+        self, view: MeasurementEpoch, events: list[TrackEvent]
+    ) -> list[IntegrityCheck]:
+        checks = []
+        for ev in events:
+            if ev.event != "full" or ev.prn not in self._recovered:
+                continue
+            rec = self._recovered.pop(ev.prn)
+            i = view.prn.index(ev.prn)
+            full = float(view.pr_m[i])
+            dt = diff_s(view.gpst_week, view.gpst_tow_s, rec.week, rec.tow_s)
+            ok = bool(np.isfinite(full)) and abs(full - rec.pr_m) < C_M_S * rec.period_s / 2
+            checks.append(
+                IntegrityCheck(ev.prn, view.gpst_week, view.gpst_tow_s, rec.pr_m, full, dt, ok)
+            )
+            self.counters["integrity_checks"] += 1
+            if not ok:
+                self.counters["integrity_failures"] += 1
+                log.error(
+                    "integrity: %s recovered %.1f m, SOW gives %.1f m", ev.prn, rec.pr_m, full
+                )
+        return checks
+
+    def _emit(self, events: list[TrackEvent]) -> None:
+        if self.on_track is not None:
+            for ev in events:
+                self.on_track(ev)
