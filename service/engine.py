@@ -229,15 +229,13 @@ def _solve_rows(
         )
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
-    x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, cfg, None, None)
+    x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, cfg, None, False)
     it += it2
 
     # ---- phase 2: mask, corrections, weights ---------------------------------------------
-    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
     meaningful = _plausible(x)
     if meaningful:
-        el, _ = look_angles(x, geo.sat_ecef_m)
-        keep = np.flatnonzero(el >= np.radians(cfg.elmask_deg))
+        keep = np.flatnonzero(_local(x, geo.sat_ecef_m).el_rad >= np.radians(cfg.elmask_deg))
     else:
         keep = np.arange(len(rows.prn))
     kept = rows.take(keep)
@@ -255,18 +253,15 @@ def _solve_rows(
         )
     model = _iono_model(iono.bds, iono.gps, cfg.iono) if meaningful else None
     x, b, geo, it3 = _fixed_iterations(
-        kept, bdt_week, bdt_sow, x, b, n_int_k, cfg, model, (lat, lon, alt) if meaningful else None
+        kept, bdt_week, bdt_sow, x, b, n_int_k, cfg, model, meaningful
     )
     it += it3
     if not np.all(np.isfinite(x)):
         return replace(base, iterations=it, reason="solution diverged")
 
     # ---- integrity: post-fit residuals -----------------------------------------------------
-    corr = (
-        _corrections(kept, geo, x, bdt_sow, gpst_tow_s, model, cfg, meaningful)
-        if meaningful
-        else np.zeros(len(kept.prn))
-    )
+    loc = _local(x, geo.sat_ecef_m)
+    corr = _corrections(loc, bdt_sow, model, cfg) if meaningful else np.zeros(len(kept.prn))
     v = kept.z_m + n_int_k * kept.ct_m - geo.pred_m - b - corr
     vmax_i = int(np.argmax(np.abs(v)))
     resid_rms = float(np.sqrt(np.mean(v**2)))
@@ -286,12 +281,12 @@ def _solve_rows(
             ),
         )
 
-    lat_r, lon_r, alt_m = (float(q) for q in ecef_to_geodetic(x))
+    lat_r, lon_r, alt_m = loc.lat_rad, loc.lon_rad, loc.alt_m
     a = _design(geo.los)
     rot = enu_rotation(lat_r, lon_r)
     q = np.linalg.inv(a.T @ a)[:3, :3]
     q_enu = rot @ q @ rot.T
-    w = _weights(kept, geo, x, cfg) if meaningful else np.ones(len(kept.prn))
+    w = _weights(loc, cfg) if meaningful else np.ones(len(kept.prn))
     qw = np.linalg.inv((a * w[:, None]).T @ a)[:3, :3]
     std = np.sqrt(np.diag(rot @ qw @ rot.T))
     mode: Literal["fast", "spp"] = "fast" if bool(np.any(kfrac)) else "spp"
@@ -318,37 +313,48 @@ def _solve_rows(
     )
 
 
-def _weights(rows: _Rows, geo: _Geometry, x: np.ndarray, cfg: SolverConfig) -> np.ndarray:
+@dataclass(frozen=True, slots=True, eq=False)
+class _Local:
+    """Receiver geodetic position and satellite look angles at one iterate."""
+
+    lat_rad: float
+    lon_rad: float
+    alt_m: float
+    el_rad: np.ndarray
+    az_rad: np.ndarray
+
+
+def _local(x: np.ndarray, sat_ecef_m: np.ndarray) -> _Local:
+    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
+    el, az = look_angles(x, sat_ecef_m, (lat, lon))
+    return _Local(lat, lon, alt, el, az)
+
+
+def _weights(loc: _Local, cfg: SolverConfig) -> np.ndarray:
     """Elevation weights 1 / (a^2 + b^2 / sin^2 E) [1/m^2]."""
     if not cfg.weighted:
-        return np.ones(len(rows.prn))
-    el, _ = look_angles(x, geo.sat_ecef_m)
-    s = np.maximum(np.sin(el), 0.05)
+        return np.ones(len(loc.el_rad))
+    s = np.maximum(np.sin(loc.el_rad), 0.05)
     return 1.0 / (cfg.sigma_a_m**2 + cfg.sigma_b_m**2 / s**2)
 
 
 def _corrections(
-    rows: _Rows,
-    geo: _Geometry,
-    x: np.ndarray,
-    bdt_sow: float,
-    gpst_tow: float,
-    model: KlobucharParams | None,
-    cfg: SolverConfig,
-    meaningful: bool,
+    loc: _Local, bdt_sow: float, model: KlobucharParams | None, cfg: SolverConfig
 ) -> np.ndarray:
-    if not meaningful:
-        return np.zeros(len(rows.prn))
-    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
-    el, az = look_angles(x, geo.sat_ecef_m)
-    corr = np.zeros(len(rows.prn))
-    if model is not None and alt < 100e3:
+    """Ionospheric and tropospheric delays [m] for the rows at this iterate."""
+    corr = np.zeros(len(loc.el_rad))
+    if model is not None and loc.alt_m < 100e3:
         if model.system == "BDS":
-            corr += klobuchar_bds_m(model, lat, lon, el, az, bdt_sow)
+            corr += klobuchar_bds_m(
+                model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, bdt_sow
+            )
         else:
-            corr += klobuchar_gps_m(model, lat, lon, el, az, gpst_tow)
+            gpst_tow = bdt_sow + 14.0
+            corr += klobuchar_gps_m(
+                model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, gpst_tow
+            )
     if cfg.tropo:
-        corr += saastamoinen_m(lat, alt, el)
+        corr += saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad)
     return corr
 
 
@@ -361,17 +367,21 @@ def _fixed_iterations(
     n_int: np.ndarray,
     cfg: SolverConfig,
     model: KlobucharParams | None,
-    llh: tuple[float, float, float] | None,
+    meaningful: bool,
 ) -> tuple[np.ndarray, float, _Geometry, int]:
-    """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated."""
-    meaningful = llh is not None
-    gpst_tow = bdt_sow + 14.0
+    """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated.
+
+    When the position is ``meaningful`` the rows get elevation weights and the delays.
+    """
     geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
     it = 0
     for it in range(1, cfg.max_iter + 1):
-        corr = _corrections(rows, geo, x, bdt_sow, gpst_tow, model, cfg, meaningful)
-        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b - corr
-        w = _weights(rows, geo, x, cfg) if meaningful else None
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b
+        w = None
+        if meaningful:
+            loc = _local(x, geo.sat_ecef_m)
+            dz = dz - _corrections(loc, bdt_sow, model, cfg)
+            w = _weights(loc, cfg)
         step = _lsq(_design(geo.los), dz, w)
         x = x + step[:3]
         b += float(step[3])

@@ -36,7 +36,7 @@ def ecef_to_geodetic(x_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     lon = np.arctan2(y, x)
     lat = np.arctan2(z, p * (1.0 - _E2))
     h = np.zeros_like(p)
-    for _ in range(8):
+    for _ in range(4):
         sin_lat = np.sin(lat)
         n = A_CGCS2000_M / np.sqrt(1.0 - _E2 * sin_lat**2)
         h = np.where(
@@ -61,10 +61,20 @@ def enu_rotation(lat_rad: np.ndarray | float, lon_rad: np.ndarray | float) -> np
     return np.stack([east, north, up], axis=-2)
 
 
-def look_angles(rx_ecef_m: np.ndarray, sat_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Elevation and azimuth [rad] of satellites (..., n, 3) seen from receivers (..., 3)."""
+def look_angles(
+    rx_ecef_m: np.ndarray,
+    sat_ecef_m: np.ndarray,
+    lat_lon_rad: tuple[np.ndarray | float, np.ndarray | float] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation and azimuth [rad] of satellites (..., n, 3) seen from receivers (..., 3).
+
+    ``lat_lon_rad`` saves the geodetic conversion when the caller already has it.
+    """
     rx = np.asarray(rx_ecef_m, dtype=float)
-    lat, lon, _ = ecef_to_geodetic(rx)
+    if lat_lon_rad is None:
+        lat, lon, _ = ecef_to_geodetic(rx)
+    else:
+        lat, lon = np.asarray(lat_lon_rad[0]), np.asarray(lat_lon_rad[1])
     rot = enu_rotation(lat, lon)
     d = np.asarray(sat_ecef_m, dtype=float) - rx[..., None, :]
     enu = np.einsum("...ij,...nj->...ni", rot, d)

@@ -123,7 +123,7 @@ def sat_pos_clock(
     n = np.sqrt(GM_M3_S2 / a**3) + eph.delta_n_rad_s
     mk = eph.m0_rad + n * tk
     ek = mk.copy()
-    for _ in range(8):  # Kepler's equation by Newton's method; |e| < 0.01 for BDS
+    for _ in range(5):  # Kepler's equation by Newton (quadratic); e < 0.01 for BDS
         ek = ek - (ek - eph.e * np.sin(ek) - mk) / (1.0 - eph.e * np.cos(ek))
     sin_e, cos_e = np.sin(ek), np.cos(ek)
     nu = np.arctan2(np.sqrt(1.0 - eph.e**2) * sin_e, cos_e - eph.e)
