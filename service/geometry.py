@@ -36,7 +36,7 @@ def ecef_to_geodetic(x_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     lon = np.arctan2(y, x)
     lat = np.arctan2(z, p * (1.0 - _E2))
     h = np.zeros_like(p)
-    for _ in range(4):
+    for _ in range(5):
         sin_lat = np.sin(lat)
         n = A_CGCS2000_M / np.sqrt(1.0 - _E2 * sin_lat**2)
         h = np.where(
@@ -101,6 +101,7 @@ def gdop(los_unit: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     """GDOP = sqrt(trace(D^-1)) = sqrt(sum 1/lambda_k) (paper eq. 20); inf where singular."""
     d = dop_matrix(los_unit, weight)
     eig = np.linalg.eigvalsh(d)
+    floor = 1e-12 * np.max(eig, axis=-1, keepdims=True)  # rank-deficient: singular
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(eig > 0.0, 1.0 / eig, np.inf)
+        inv = np.where(eig > floor, 1.0 / eig, np.inf)
     return np.sqrt(np.sum(inv, axis=-1))
