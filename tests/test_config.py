@@ -1,0 +1,63 @@
+"""TOML configuration and its flags: every key a flag, clear one-line errors."""
+
+import argparse
+
+import pytest
+
+from service.config import DaemonConfig, add_config_flags, load_config, overrides_from_args
+from service.errors import ConfigError
+
+
+def _write(tmp_path, text):
+    p = tmp_path / "bdsfix.toml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_defaults_bind_loopback_only():
+    cfg = load_config(None)
+    assert cfg.nmea_tcp.startswith("127.0.0.1:") and cfg.zmq.startswith("tcp://127.0.0.1:")
+
+
+def test_file_values_and_flag_overrides(tmp_path):
+    p = _write(
+        tmp_path,
+        'source = "/dev/ttyACM0"\nbaud = 38400\nnav = ["a.nav", "b.nav"]\n'
+        "elmask_deg = 5\ntropo = false\n",
+    )
+    parser = argparse.ArgumentParser()
+    add_config_flags(parser)
+    args = parser.parse_args(["--baud", "9600", "--talker", "GB"])
+    cfg = load_config(p, overrides_from_args(args))
+    assert cfg == DaemonConfig(
+        source="/dev/ttyACM0",
+        baud=9600,
+        nav=("a.nav", "b.nav"),
+        elmask_deg=5.0,
+        tropo=False,
+        talker="GB",
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("sauce = 1\n", "unknown key 'sauce'"),
+        ('baud = "fast"\n', "key 'baud' must be int"),
+        ("tropo = 1\n", "key 'tropo' must be bool"),
+        ('talker = "XX"\n', "key 'talker' must be one of"),
+        ("baud = \n", "not valid TOML"),
+        ("nav = [1]\n", "key 'nav' must be a list of strings"),
+    ],
+)
+def test_bad_config_names_file_and_key(tmp_path, text, message):
+    p = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(p)
+    assert message in str(exc.value) and str(p) in str(exc.value)
+    assert "\n" not in str(exc.value)
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.toml")
