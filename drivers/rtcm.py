@@ -1,0 +1,336 @@
+"""RTCM3 messages (parsed by pyrtcm) to bdsfix events.
+
+Reference: RTCM Standard 10403.3, section 3.5.12 (Multiple Signal Messages, MSM) and
+3.5.13 / Table 3.5-130 ff. (message 1042, BDS satellite ephemeris), with the field
+definitions of section 3.4 (DF397-DF408, DF427, DF488-DF515). BDS facts from
+BDS-SIS-ICD-B1I-3.0.
+
+- BDS MSM4/5/6/7 (1124-1127): per satellite the rough range in integer milliseconds (DF397,
+  255 = unknown) and modulo 1 ms (DF398); per cell the fine pseudorange (DF400 in MSM4/5,
+  DF405 in MSM6/7). A cell's full pseudorange is c*1ms*(DF397 + DF398 + fine). A cell whose
+  integer milliseconds are unknown is kept as a *fractional* measurement,
+  ``frac_pr_m = c*1ms*((DF398 + fine) mod 1)`` with ``pr_m`` NaN (RTKLIB drops such cells).
+  Only B1I cells (signal ID 2, RINEX ``2I``; Table 3.5-108) enter the epoch.
+- The BDS MSM epoch time DF427 is BDT milliseconds of week; GPST = BDT + 14 s. The GPS week
+  comes from a :class:`~drivers.framing.WeekContext` shared with the other mappers of the
+  stream: a constructor hint, the latest exact week (UBX RXM-RAWX / NAV-TIMEGPS) or the week
+  of the latest 1042 toe, and the time of week is put in the week nearest that reference.
+- 1042 becomes an :class:`~service.types.Ephemeris` (``source="rtcm"``). pyrtcm applies the
+  scale factors (toe/toc in s, angles in semicircles, TGD in ns); angles and rates are turned
+  into radians with the ICD's pi = 3.1415926535898 (ICD 5.2.4.9).
+
+Counter keys: ``rtcm:<number>`` per message, ``rtcm_ignored``, ``msm_bds``,
+``msm_cells_b1i``, ``msm_cells_other_signal``, ``msm_cells_fractional``,
+``msm_cells_invalid``, ``msm_duplicate_cells``, ``msm_no_week``, ``msm_bad_time``, ``epochs_rtcm``,
+``ephemerides_rtcm``, ``eph_bad_prn``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pyrtcm import RTCMReader
+
+from drivers.framing import Counters, Event, WeekContext
+from service.constants import C_M_S, F_B1I_HZ, WEEK_S, prn_id
+from service.timebase import BDT_GPS_WEEK_OFFSET, BDT_GPST_OFFSET_S, diff_s, normalize
+from service.types import Ephemeris, MeasurementEpoch
+
+log = logging.getLogger(__name__)
+
+ICD_PI = 3.1415926535898
+"""pi as the ICD fixes it for semicircle conversions (BDS-SIS-ICD-B1I-3.0, 5.2.4.9)."""
+
+MS_RANGE_M = C_M_S * 1e-3
+B1I_WAVELENGTH_M = C_M_S / F_B1I_HZ
+
+BDS_MSM = {1124: 4, 1125: 5, 1126: 6, 1127: 7}
+"""BDS MSM message numbers and their MSM level."""
+
+EPH_BDS = 1042
+USED_MESSAGES = frozenset({*BDS_MSM, EPH_BDS})
+MSM_RANGE = range(1071, 1138)
+"""All MSM numbers (GPS 107x ... IRNSS 113x); their header layout is common."""
+
+
+@dataclass(frozen=True, slots=True)
+class MsmLayout:
+    """Which data fields an MSM level carries (RTCM 10403.3 Tables 3.5-78 ff.)."""
+
+    fine_pr: str
+    cnr: str
+    lock: str
+    rates: bool
+
+
+MSM_LAYOUT: dict[int, MsmLayout] = {
+    4: MsmLayout(fine_pr="DF400", cnr="DF403", lock="DF402", rates=False),
+    5: MsmLayout(fine_pr="DF400", cnr="DF403", lock="DF402", rates=True),
+    6: MsmLayout(fine_pr="DF405", cnr="DF408", lock="DF407", rates=False),
+    7: MsmLayout(fine_pr="DF405", cnr="DF408", lock="DF407", rates=True),
+}
+
+BDS_MSM_SIGNALS: dict[int, str] = {
+    2: "2I", 3: "2Q", 4: "2X", 8: "6I", 9: "6Q", 10: "6X", 14: "7I", 15: "7Q", 16: "7X",
+    22: "5D", 23: "5P", 24: "5X", 25: "7D", 30: "1D", 31: "1P", 32: "1X",
+}  # fmt: skip
+"""BDS MSM signal ID -> RINEX observation code (RTCM 10403.3 Table 3.5-108)."""
+
+B1I_CODE = "2I"
+ROUGH_INT_MS_UNKNOWN = 255  # DF397
+FINE_PR_INVALID_MS = -(2.0**-10)  # DF400 raw -2^14 * 2^-24 ms; DF405 raw -2^19 * 2^-29 ms
+ROUGH_RATE_INVALID_M_S = -8192  # DF399 raw 0x2000
+FINE_RATE_INVALID_M_S = -16384 * 1e-4  # DF404 raw 0x4000
+
+URA_M = (2.4, 3.4, 4.85, 6.85, 9.65, 13.65, 24.0, 48.0, 96.0, 192.0, 384.0, 768.0,
+         1536.0, 3072.0, 6144.0, 6144.0)  # fmt: skip
+"""URA upper bounds per URAI (ICD 5.2.4.5); index 15 (> 6144 m) is reported as 6144."""
+
+# (Ephemeris field, 1042 data field, factor applied to pyrtcm's scaled value)
+EPH_1042_FIELDS: tuple[tuple[str, str, float], ...] = (
+    ("week", "DF489", 1.0),
+    ("toe_sow_s", "DF505", 1.0),
+    ("toc_sow_s", "DF493", 1.0),
+    ("af0_s", "DF496", 1.0),
+    ("af1_s_s", "DF495", 1.0),
+    ("af2_s_s2", "DF494", 1.0),
+    ("sqrt_a_sqrt_m", "DF504", 1.0),
+    ("e", "DF502", 1.0),
+    ("i0_rad", "DF509", ICD_PI),
+    ("omega0_rad", "DF507", ICD_PI),
+    ("omega_rad", "DF511", ICD_PI),
+    ("m0_rad", "DF500", ICD_PI),
+    ("delta_n_rad_s", "DF499", ICD_PI),
+    ("omega_dot_rad_s", "DF512", ICD_PI),
+    ("idot_rad_s", "DF491", ICD_PI),
+    ("cuc_rad", "DF501", 1.0),
+    ("cus_rad", "DF503", 1.0),
+    ("crc_m", "DF510", 1.0),
+    ("crs_m", "DF498", 1.0),
+    ("cic_rad", "DF506", 1.0),
+    ("cis_rad", "DF508", 1.0),
+    ("tgd1_s", "DF513", 1e-9),
+    ("tgd2_s", "DF514", 1e-9),
+    ("health", "DF515", 1.0),
+    ("aode", "DF492", 1.0),
+    ("aodc", "DF497", 1.0),
+)
+_INT_FIELDS = frozenset({"week", "health", "aode", "aodc"})
+
+
+def message_number(raw: bytes) -> int:
+    """RTCM3 message number (DF002, first 12 payload bits) of a complete frame."""
+    return ((raw[3] << 4) | (raw[4] >> 4)) if len(raw) >= 5 else 0
+
+
+def msm_multiple_message_bit(raw: bytes) -> bool:
+    """DF393 of any MSM frame: payload bit 54 (after DF002, DF003 and the 30-bit epoch)."""
+    return bool((raw[3 + 6] >> 1) & 1)
+
+
+def msm_lock_time_s(level: int, indicator: int) -> float:
+    """Minimum lock time [s] from DF402 (Table 3.5-74) or DF407 (Table 3.5-75)."""
+    if level in (4, 5):
+        return 0.0 if indicator == 0 else 2.0 ** (indicator + 4) * 1e-3
+    if indicator < 64:
+        return indicator * 1e-3
+    if indicator > 704:
+        return math.nan
+    k = indicator // 32 - 1
+    return 2.0**k * (indicator - 32 * k) * 1e-3
+
+
+def msm_cells(msg: Any) -> list[tuple[int, int, int]]:
+    """(satellite index, satellite ID, signal ID) per cell, in cell order (Table 3.5-78).
+
+    Satellite mask DF394 (64 bits) and signal mask DF395 (32 bits) are read MSB first
+    (bit 1 = ID 1); the cell mask DF396 has NSat*NSig bits, satellite-major.
+    """
+    sats = [i + 1 for i in range(64) if (msg.DF394 >> (63 - i)) & 1]
+    sigs = [j + 1 for j in range(32) if (msg.DF395 >> (31 - j)) & 1]
+    n = len(sats) * len(sigs)
+    cells = []
+    for si, sat in enumerate(sats):
+        for gi, sig in enumerate(sigs):
+            if (msg.DF396 >> (n - 1 - (si * len(sigs) + gi))) & 1:
+                cells.append((si, sat, sig))
+    return cells
+
+
+@dataclass(slots=True)
+class _Cell:
+    level: int
+    pr_m: float
+    frac_pr_m: float
+    cn0_dbhz: float
+    doppler_hz: float
+    lock_s: float
+
+
+def ephemeris_from_1042(msg: Any) -> Ephemeris:
+    """Map a pyrtcm 1042 message to :class:`Ephemeris` (BDT week and seconds of week)."""
+    values: dict[str, Any] = {}
+    for name, df, factor in EPH_1042_FIELDS:
+        v = getattr(msg, df)
+        values[name] = int(v) if name in _INT_FIELDS else float(v) * factor
+    ura_index = int(msg.DF490)
+    return Ephemeris(
+        prn=prn_id(int(msg.DF488)),
+        ura_m=URA_M[ura_index] if 0 <= ura_index < len(URA_M) else math.nan,
+        source="rtcm",
+        **values,
+    )
+
+
+class RtcmMapper:
+    """Stateful mapper: RTCM3 frames in stream order -> events.
+
+    BDS MSM cells of one epoch are merged (e.g. 1126 and 1127 of the same time: the higher
+    MSM level wins a duplicate cell). The epoch is emitted when the stream's last MSM of
+    that time arrives (DF393 = 0 on any MSM), when a BDS MSM of another time arrives, or
+    on :meth:`flush`.
+    """
+
+    def __init__(
+        self,
+        counters: Counters | None = None,
+        week: WeekContext | None = None,
+        *,
+        source: str = "rtcm",
+    ) -> None:
+        self.counters = counters if counters is not None else Counters()
+        self.week = week if week is not None else WeekContext()
+        self.source = source
+        self._time: tuple[int, float] | None = None
+        self._cells: dict[str, _Cell] = {}
+
+    def on_frame(self, raw: bytes) -> list[Event]:
+        """Map one checksum-valid RTCM3 frame (library errors propagate to the caller)."""
+        number = message_number(raw)
+        self.counters[f"rtcm:{number}"] += 1
+        if number in USED_MESSAGES:
+            return self.on_message(RTCMReader.parse(raw))
+        self.counters["rtcm_ignored"] += 1
+        if number in MSM_RANGE and len(raw) > 10 and not msm_multiple_message_bit(raw):
+            return self.flush()
+        return []
+
+    def on_message(self, msg: Any) -> list[Event]:
+        """Map one parsed pyrtcm message."""
+        number = int(msg.identity)
+        if number == EPH_BDS:
+            return self._on_1042(msg)
+        if number in BDS_MSM:
+            return self._on_msm(msg, BDS_MSM[number])
+        return []
+
+    def flush(self) -> list[Event]:
+        """Emit the pending BDS epoch, if any."""
+        if self._time is None:
+            return []
+        (week, tow), cells = self._time, self._cells
+        self._time, self._cells = None, {}
+        if not cells:
+            return []
+        prns = sorted(cells)
+        col = {
+            name: np.array([getattr(cells[p], name) for p in prns], dtype=float)
+            for name in ("pr_m", "frac_pr_m", "cn0_dbhz", "doppler_hz", "lock_s")
+        }
+        self.counters["epochs_rtcm"] += 1
+        return [
+            MeasurementEpoch.from_columns(
+                week,
+                tow,
+                prns,
+                [B1I_CODE] * len(prns),
+                col["pr_m"],
+                frac_pr_m=col["frac_pr_m"],
+                period_s=1e-3,
+                cn0_dbhz=col["cn0_dbhz"],
+                doppler_hz=col["doppler_hz"],
+                lock_s=col["lock_s"],
+                source=self.source,
+            )
+        ]
+
+    # --- 1042 -----------------------------------------------------------------------------
+    def _on_1042(self, msg: Any) -> list[Event]:
+        if not 1 <= int(msg.DF488) <= 63:
+            self.counters["eph_bad_prn"] += 1
+            return []
+        eph = ephemeris_from_1042(msg)
+        gps_week, gps_tow = normalize(eph.week + BDT_GPS_WEEK_OFFSET, eph.toe_sow_s + 14.0)
+        self.week.set_approx(gps_week, gps_tow)
+        self.counters["ephemerides_rtcm"] += 1
+        return [eph]
+
+    # --- MSM ------------------------------------------------------------------------------
+    def _on_msm(self, msg: Any, level: int) -> list[Event]:
+        self.counters["msm_bds"] += 1
+        bdt_ms = int(msg.DF427)
+        if not 0 <= bdt_ms < WEEK_S * 1000:
+            self.counters["msm_bad_time"] += 1
+            return []
+        tow = (bdt_ms * 1e-3 + BDT_GPST_OFFSET_S) % WEEK_S
+        week = self.week.resolve(tow)
+        if week is None:
+            self.counters["msm_no_week"] += 1
+            return []
+        out: list[Event] = []
+        if self._time is not None and abs(diff_s(week, tow, *self._time)) > 1e-6:
+            out = self.flush()
+        self._time = (week, tow)
+        self._merge(msg, level)
+        if not int(msg.DF393):
+            out += self.flush()
+        return out
+
+    def _merge(self, msg: Any, level: int) -> None:
+        lay = MSM_LAYOUT[level]
+        for k, (si, sat_id, sig_id) in enumerate(msm_cells(msg), start=1):
+            if BDS_MSM_SIGNALS.get(sig_id) != B1I_CODE:
+                self.counters["msm_cells_other_signal"] += 1
+                continue
+            s = si + 1
+            int_ms = int(getattr(msg, f"DF397_{s:02d}"))
+            mod_ms = float(getattr(msg, f"DF398_{s:02d}"))
+            fine_ms = float(getattr(msg, f"{lay.fine_pr}_{k:02d}"))
+            if fine_ms == FINE_PR_INVALID_MS:
+                self.counters["msm_cells_invalid"] += 1
+                continue
+            if int_ms == ROUGH_INT_MS_UNKNOWN:
+                pr = math.nan
+                frac = MS_RANGE_M * ((mod_ms + fine_ms) % 1.0)
+                self.counters["msm_cells_fractional"] += 1
+            else:
+                pr = MS_RANGE_M * (int_ms + mod_ms + fine_ms)
+                frac = float(np.mod(pr, MS_RANGE_M))
+            cnr = float(getattr(msg, f"{lay.cnr}_{k:02d}"))
+            doppler = math.nan
+            if lay.rates:
+                rough = float(getattr(msg, f"DF399_{s:02d}"))
+                fine = float(getattr(msg, f"DF404_{k:02d}"))
+                if rough != ROUGH_RATE_INVALID_M_S and abs(fine - FINE_RATE_INVALID_M_S) > 1e-9:
+                    doppler = -(rough + fine) / B1I_WAVELENGTH_M
+            cell = _Cell(
+                level=level,
+                pr_m=pr,
+                frac_pr_m=frac,
+                cn0_dbhz=cnr if cnr > 0 else math.nan,
+                doppler_hz=doppler,
+                lock_s=msm_lock_time_s(level, int(getattr(msg, f"{lay.lock}_{k:02d}"))),
+            )
+            prn = prn_id(sat_id)
+            old = self._cells.get(prn)
+            if old is None:
+                self.counters["msm_cells_b1i"] += 1
+            else:
+                self.counters["msm_duplicate_cells"] += 1
+                if old.level >= level:
+                    continue
+            self._cells[prn] = cell

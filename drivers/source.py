@@ -1,0 +1,301 @@
+"""One entry point from a source spec to a stream of events, with protocol auto-detection.
+
+``open_source(spec)`` accepts a file path (RINEX 3 observation file or a binary capture),
+``-`` (standard input), ``serial:/dev/ttyX[:baud]`` or a bare ``/dev/...`` path, and
+``tcp:host:port``. RINEX is recognised by ``RINEX VERSION / TYPE`` in its first line;
+everything else goes through the binary framer, which takes UBX, RTCM3 and NMEA mixed in
+one stream. :class:`StreamDecoder` is the framer plus the UBX and RTCM mappers behind a
+``feed(bytes) -> events`` interface, for an asyncio daemon or any other byte pump.
+
+Counter keys added here: ``decode_errors_ubx``, ``decode_errors_rtcm`` (library parse
+failures of checksum-valid frames), ``map_errors_ubx``/``_rtcm`` (unexpected content),
+``nmea_ignored``, ``events``, ``nav_ephemerides``, ``idle_flushes``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from pyubx2 import UBX_MSGIDS, UBXReader
+
+from drivers.framing import DEFAULT_MAX_UBX_PAYLOAD, Counters, Event, Frame, Framer, WeekContext
+from drivers.rtcm import RtcmMapper
+from drivers.transport import (
+    FileTransport,
+    SerialTransport,
+    TcpClientTransport,
+    Transport,
+    pace,
+)
+from drivers.ubx import USED_MESSAGES as UBX_USED
+from drivers.ubx import UbxMapper
+from service.errors import ConfigError, DecodeError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "BinarySource",
+    "EventSource",
+    "RinexSource",
+    "StreamDecoder",
+    "is_rinex",
+    "open_source",
+    "pace",
+]
+
+DEFAULT_BAUD = 38400
+READ_SIZE = 4096
+
+
+class StreamDecoder:
+    """Framer + UBX/RTCM mappers: ``feed(data)`` returns the events the bytes complete.
+
+    ``gps_week`` seeds the week for messages that carry only a time of week (RTCM MSM)
+    until the stream itself gives one. ``measx_offset_m`` presets the RAWX-MEASX
+    calibration (see :mod:`drivers.ubx`). Library exceptions are caught here and counted;
+    they never stop the stream.
+    """
+
+    def __init__(
+        self,
+        *,
+        gps_week: int | None = None,
+        max_ubx_payload: int = DEFAULT_MAX_UBX_PAYLOAD,
+        measx_offset_m: float | None = None,
+        counters: Counters | None = None,
+    ) -> None:
+        self.counters = counters if counters is not None else Counters()
+        self.week = WeekContext(gps_week)
+        self.framer = Framer(self.counters, max_ubx_payload=max_ubx_payload)
+        self.ubx = UbxMapper(self.counters, self.week, measx_offset_m=measx_offset_m)
+        self.rtcm = RtcmMapper(self.counters, self.week)
+
+    def feed(self, data: bytes) -> list[Event]:
+        """Decode a chunk of bytes; returns complete events in stream order."""
+        return self._decode(self.framer.feed(data))
+
+    def flush(self) -> list[Event]:
+        """End of stream: held bytes, then pending epochs."""
+        events = self._decode(self.framer.flush())
+        return events + self.flush_pending()
+
+    def flush_pending(self) -> list[Event]:
+        """Emit epochs still waiting for messages (idle line); framing state is kept."""
+        events: list[Event] = [*self.ubx.flush(), *self.rtcm.flush()]
+        self.counters["events"] += len(events)
+        return events
+
+    def decode_frame(self, frame: Frame) -> list[Event]:
+        """Events from one frame; a library or mapping failure is counted, not raised."""
+        try:
+            if frame.protocol == "ubx":
+                return self._ubx_frame(frame.raw)
+            if frame.protocol == "rtcm":
+                return self.rtcm.on_frame(frame.raw)
+            self.counters["nmea_ignored"] += 1
+            return []
+        except DecodeError as err:
+            self.counters[f"map_errors_{frame.protocol}"] += 1
+            log.warning("%s frame at offset %d: %s", frame.protocol, frame.offset, err)
+        except Exception as err:  # library parse errors of any kind stop here
+            self.counters[f"decode_errors_{frame.protocol}"] += 1
+            log.debug(
+                "%s frame at offset %d not decoded: %s: %s",
+                frame.protocol,
+                frame.offset,
+                type(err).__name__,
+                err,
+            )
+        return []
+
+    def _decode(self, frames: list[Frame]) -> list[Event]:
+        events: list[Event] = []
+        for frame in frames:
+            events += self.decode_frame(frame)
+        self.counters["events"] += len(events)
+        return events
+
+    def _ubx_frame(self, raw: bytes) -> list[Event]:
+        name = UBX_MSGIDS.get(raw[2:4])
+        if name in UBX_USED:
+            return self.ubx.on_message(UBXReader.parse(raw))
+        label = name if name is not None else f"0x{raw[2]:02x}-0x{raw[3]:02x}"
+        self.counters[f"ubx:{label}"] += 1
+        self.counters["ubx_ignored"] += 1
+        return []
+
+
+class EventSource:
+    """Iterable of events with ``counters``; a context manager that closes its input."""
+
+    counters: Counters
+    name: str
+
+    def __iter__(self) -> Iterator[Event]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release the input."""
+
+    def __enter__(self) -> EventSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class BinarySource(EventSource):
+    """Any transport through a :class:`StreamDecoder`.
+
+    After ``idle_flush_s`` without bytes, epochs still waiting for a message are emitted,
+    so a receiver that stops mid-epoch does not hold its last epoch back.
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        decoder: StreamDecoder | None = None,
+        *,
+        prefix: Iterable[Event] = (),
+        idle_flush_s: float = 0.5,
+        read_size: int = READ_SIZE,
+    ) -> None:
+        self.transport = transport
+        self.decoder = decoder if decoder is not None else StreamDecoder()
+        self.counters = self.decoder.counters
+        self.counters.update(transport.counters)
+        transport.counters = self.counters  # one set of counters for the whole stream
+        self.name = transport.name
+        self._prefix = list(prefix)
+        self.idle_flush_s = idle_flush_s
+        self.read_size = read_size
+
+    def __iter__(self) -> Iterator[Event]:
+        yield from self._prefix
+        idle_since: float | None = None
+        while True:
+            data = self.transport.read(self.read_size)
+            if data:
+                idle_since = None
+                yield from self.decoder.feed(data)
+                continue
+            if self.transport.finished:
+                yield from self.decoder.flush()
+                return
+            now = time.monotonic()
+            if idle_since is None:
+                idle_since = now
+            elif now - idle_since >= self.idle_flush_s:
+                pending = self.decoder.flush_pending()
+                if pending:
+                    self.counters["idle_flushes"] += 1
+                    yield from pending
+                idle_since = now
+
+    def close(self) -> None:
+        self.transport.close()
+
+
+class RinexSource(EventSource):
+    """RINEX 3 observation file through :class:`drivers.rinex.RinexObsReader`."""
+
+    def __init__(self, path: str | Path, *, prefix: Iterable[Event] = ()) -> None:
+        from drivers.rinex import RinexObsReader
+
+        self.name = str(path)
+        self.counters = Counters()
+        self._reader: Any = RinexObsReader(path)
+        self._prefix = list(prefix)
+
+    def __iter__(self) -> Iterator[Event]:
+        yield from self._prefix
+        for epoch in self._reader:
+            self.counters["epochs_rinex"] += 1
+            self.counters["events"] += 1
+            yield epoch
+
+    def close(self) -> None:
+        closer: Callable[[], None] | None = getattr(self._reader, "close", None)
+        if closer is not None:
+            closer()
+
+
+def is_rinex(path: str | Path) -> bool:
+    """True when the file's first line carries the RINEX header label."""
+    with open(path, "rb") as f:
+        return b"RINEX VERSION / TYPE" in f.readline(200)
+
+
+def _nav_events(nav: str | Path | Iterable[str | Path] | None, counters: Counters) -> list[Event]:
+    if nav is None:
+        return []
+    from drivers.rinex import read_nav
+
+    paths = [nav] if isinstance(nav, str | Path) else list(nav)
+    events: list[Event] = []
+    for path in paths:
+        data = read_nav(path)
+        for ephs in data.ephemerides.values():
+            events.extend(ephs)
+            counters["nav_ephemerides"] += len(ephs)
+        for name in ("iono_bds", "iono_gps"):
+            params = getattr(data, name, None)
+            if params is not None:
+                events.append(params)
+    return events
+
+
+def open_source(
+    spec: str,
+    *,
+    nav: str | Path | Iterable[str | Path] | None = None,
+    gps_week: int | None = None,
+    baud: int = DEFAULT_BAUD,
+    measx_offset_m: float | None = None,
+    max_ubx_payload: int = DEFAULT_MAX_UBX_PAYLOAD,
+    idle_flush_s: float = 0.5,
+    reconnect_max_s: float = 2.0,
+) -> EventSource:
+    """Open ``spec`` and return an iterable of events with ``.counters``.
+
+    ``nav`` (RINEX nav file or files) puts its ephemerides and ionosphere parameters at the
+    head of the stream, as held ephemerides. Pace a replay with :func:`pace`.
+    """
+    counters = Counters()
+    prefix = _nav_events(nav, counters)
+    transport: Transport
+    if spec.startswith("tcp:"):
+        host, _, port = spec[4:].rpartition(":")
+        if not host or not port.isdigit():
+            raise ConfigError(f"bad TCP source {spec!r}: expected tcp:HOST:PORT")
+        transport = TcpClientTransport(host, int(port), backoff_max_s=reconnect_max_s)
+    elif spec.startswith("serial:") or spec.startswith("/dev/"):
+        rest = spec.removeprefix("serial:")
+        device, sep, rate = rest.rpartition(":")
+        if not sep or not rate.isdigit():
+            device, rate = rest, str(baud)
+        transport = SerialTransport(device, int(rate), backoff_max_s=reconnect_max_s)
+    elif spec == "-":
+        transport = FileTransport(sys.stdin.buffer, name="stdin")
+    else:
+        path = spec.removeprefix("file:")
+        if not os.path.isfile(path):
+            raise ConfigError(f"source {spec!r}: no such file")
+        if is_rinex(path):
+            src = RinexSource(path, prefix=prefix)
+            src.counters.update(counters)
+            return src
+        transport = FileTransport(path)
+    decoder = StreamDecoder(
+        gps_week=gps_week,
+        max_ubx_payload=max_ubx_payload,
+        measx_offset_m=measx_offset_m,
+        counters=counters,
+    )
+    return BinarySource(transport, decoder, prefix=prefix, idle_flush_s=idle_flush_s)

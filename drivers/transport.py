@@ -1,0 +1,312 @@
+"""Byte transports (file, serial, TCP client) behind one small interface, and replay pacing.
+
+A transport's ``read(max_bytes)`` returns the bytes available now, possibly ``b""`` after a
+short timeout; ``finished`` turns true only at the end of a file. ``close()`` releases the
+descriptor. Serial and TCP transports survive a vanished device or a closed connection: they
+log the disconnect, count it, close the descriptor and retry with exponential backoff capped
+at ``backoff_max_s`` (2 s by default), so reading resumes within that time of the device or
+server coming back. Transports know nothing about protocols.
+
+Counter keys: ``transport_bytes``, ``disconnects``, ``reconnects``, ``connects``,
+``open_failures``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import time
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import IO, Any, Protocol, TypeVar
+
+import serial
+
+from drivers.framing import Counters
+from service.errors import ConfigError
+from service.timebase import diff_s
+from service.types import MeasurementEpoch
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+class Transport(Protocol):
+    """What every transport offers."""
+
+    name: str
+    counters: Counters
+
+    @property
+    def finished(self) -> bool: ...
+
+    def read(self, max_bytes: int = 4096) -> bytes: ...
+
+    def close(self) -> None: ...
+
+
+class FileTransport:
+    """Chunks of a file (path or open binary file object such as ``sys.stdin.buffer``)."""
+
+    def __init__(
+        self, path: str | Path | IO[bytes], *, name: str | None = None, chunk_size: int = 65536
+    ) -> None:
+        if isinstance(path, str | Path):
+            self._file: IO[bytes] = open(path, "rb")  # noqa: SIM115 - closed in close()
+            self._owned = True
+            self.name = name or str(path)
+        else:
+            self._file = path
+            self._owned = False
+            self.name = name or str(getattr(path, "name", "file"))
+        self.chunk_size = chunk_size
+        self.counters = Counters()
+        self._finished = False
+        self._read: Callable[[int], bytes] = getattr(self._file, "read1", self._file.read)
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    def read(self, max_bytes: int = 4096) -> bytes:
+        if self._finished:
+            return b""
+        data = self._read(max(1, min(max_bytes, self.chunk_size)))
+        if not data:
+            self._finished = True
+        self.counters["transport_bytes"] += len(data)
+        return data
+
+    def close(self) -> None:
+        self._finished = True
+        if self._owned:
+            self._file.close()
+
+
+class _Reconnecting:
+    """Connect on demand; on failure, back off exponentially up to ``backoff_max_s``."""
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        timeout_s: float,
+        backoff_initial_s: float,
+        backoff_max_s: float,
+    ) -> None:
+        self.name = name
+        self.counters = Counters()
+        self.timeout_s = timeout_s
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
+        self._backoff_s = backoff_initial_s
+        self._next_try = 0.0
+        self._ever_connected = False
+        self._failures_logged = 0
+        self._closed = False
+
+    @property
+    def finished(self) -> bool:
+        return self._closed
+
+    @property
+    def connected(self) -> bool:
+        return self._handle() is not None
+
+    # subclass hooks
+    def _handle(self) -> Any:
+        raise NotImplementedError
+
+    def _connect(self) -> None:
+        raise NotImplementedError
+
+    def _read_now(self, max_bytes: int) -> bytes:
+        raise NotImplementedError
+
+    def _release(self) -> None:
+        raise NotImplementedError
+
+    def _ensure(self) -> bool:
+        if self._handle() is not None:
+            return True
+        now = time.monotonic()
+        if now < self._next_try:
+            time.sleep(min(self._next_try - now, self.timeout_s))
+            return False
+        try:
+            self._connect()
+        except (OSError, serial.SerialException, ValueError) as err:
+            self.counters["open_failures"] += 1
+            level = logging.WARNING if self._failures_logged == 0 else logging.DEBUG
+            self._failures_logged += 1
+            log.log(level, "%s: cannot open (%s); retry in %.1f s", self.name, err, self._backoff_s)
+            self._next_try = time.monotonic() + self._backoff_s
+            self._backoff_s = min(self._backoff_s * 2.0, self.backoff_max_s)
+            return False
+        self.counters["connects"] += 1
+        if self._ever_connected:
+            self.counters["reconnects"] += 1
+            log.warning("%s: reconnected", self.name)
+        else:
+            log.info("%s: connected", self.name)
+        self._ever_connected = True
+        self._failures_logged = 0
+        self._backoff_s = self.backoff_initial_s
+        return True
+
+    def _drop(self, reason: object) -> None:
+        self.counters["disconnects"] += 1
+        log.warning("%s: disconnected (%s); reconnecting", self.name, reason)
+        self._release()
+        self._next_try = time.monotonic() + self._backoff_s
+        self._backoff_s = min(self._backoff_s * 2.0, self.backoff_max_s)
+
+    def read(self, max_bytes: int = 4096) -> bytes:
+        """Bytes available within about ``timeout_s``; ``b""`` while disconnected."""
+        if self._closed or not self._ensure():
+            return b""
+        try:
+            data = self._read_now(max_bytes)
+        except (OSError, serial.SerialException) as err:
+            self._drop(err)
+            return b""
+        self.counters["transport_bytes"] += len(data)
+        return data
+
+    def close(self) -> None:
+        self._closed = True
+        self._release()
+
+
+class SerialTransport(_Reconnecting):
+    """A serial device via pyserial, reopened after it vanishes or errors."""
+
+    def __init__(
+        self,
+        device: str,
+        baud: int = 38400,
+        *,
+        timeout_s: float = 0.1,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 2.0,
+    ) -> None:
+        super().__init__(
+            f"serial:{device}:{baud}",
+            timeout_s=timeout_s,
+            backoff_initial_s=backoff_initial_s,
+            backoff_max_s=backoff_max_s,
+        )
+        self.device = device
+        self.baud = baud
+        self._ser: serial.Serial | None = None
+
+    def _handle(self) -> Any:
+        return self._ser
+
+    def _connect(self) -> None:
+        self._ser = serial.Serial(self.device, self.baud, timeout=self.timeout_s)
+
+    def _read_now(self, max_bytes: int) -> bytes:
+        if self._ser is None:
+            raise serial.SerialException("not open")
+        data = bytes(self._ser.read(1))  # waits up to timeout_s
+        if data and max_bytes > 1:
+            waiting = self._ser.in_waiting
+            if waiting:
+                data += bytes(self._ser.read(min(waiting, max_bytes - 1)))
+        return data
+
+    def _release(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except (OSError, serial.SerialException) as err:  # pragma: no cover - best effort
+                log.debug("%s: close failed: %s", self.name, err)
+
+
+class TcpClientTransport(_Reconnecting):
+    """A TCP client (e.g. a receiver's TCP port or ``str2str``), reconnecting on loss."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        timeout_s: float = 0.1,
+        connect_timeout_s: float = 2.0,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 2.0,
+    ) -> None:
+        super().__init__(
+            f"tcp:{host}:{port}",
+            timeout_s=timeout_s,
+            backoff_initial_s=backoff_initial_s,
+            backoff_max_s=backoff_max_s,
+        )
+        self.host = host
+        self.port = port
+        self.connect_timeout_s = connect_timeout_s
+        self._sock: socket.socket | None = None
+
+    def _handle(self) -> Any:
+        return self._sock
+
+    def _connect(self) -> None:
+        sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
+        sock.settimeout(self.timeout_s)
+        self._sock = sock
+
+    def _read_now(self, max_bytes: int) -> bytes:
+        if self._sock is None:
+            raise ConnectionResetError("not connected")
+        try:
+            data = self._sock.recv(max_bytes)
+        except TimeoutError:
+            return b""
+        if not data:
+            raise ConnectionResetError("connection closed by peer")
+        return data
+
+    def _release(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
+
+
+def pace(
+    events: Iterable[T],
+    speed: float | None,
+    *,
+    max_gap_s: float = 60.0,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> Iterator[T]:
+    """Yield ``events`` so that measurement-epoch times advance at ``speed`` x real time.
+
+    ``speed=None`` yields as fast as possible. Only :class:`MeasurementEpoch` times pace the
+    stream; other events pass at once. A time step backwards or a gap longer than
+    ``max_gap_s`` (data time) re-anchors instead of sleeping.
+    """
+    if speed is None:
+        yield from events
+        return
+    if not (speed > 0 and math.isfinite(speed)):
+        raise ConfigError(f"replay speed must be a positive number, got {speed}")
+    anchor: tuple[int, float, float] | None = None  # data week, tow, wall clock
+    last: tuple[int, float] | None = None
+    for ev in events:
+        if isinstance(ev, MeasurementEpoch):
+            t = (ev.gpst_week, ev.gpst_tow_s)
+            step = None if last is None else diff_s(*t, *last)
+            if anchor is None or step is None or step < 0 or step > max_gap_s:
+                anchor = (t[0], t[1], clock())
+            else:
+                target = anchor[2] + diff_s(*t, anchor[0], anchor[1]) / speed
+                delay = target - clock()
+                if delay > 0:
+                    sleep(delay)
+            last = t
+        yield ev

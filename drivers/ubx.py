@@ -1,0 +1,341 @@
+"""u-blox UBX messages (parsed by pyubx2) to bdsfix events.
+
+Sources: u-blox F9 HPG Interface Description, UBX-RXM-RAWX, UBX-RXM-MEASX, UBX-RXM-SFRBX,
+UBX-NAV-TIMEGPS, UBX-NAV-PVT. BDS B1I facts from BDS-SIS-ICD-B1I-3.0 (1 ms ranging code,
+section 3.2; D1/D2 navigation messages, section 5).
+
+- RXM-RAWX: BDS (gnssId 3) B1I (sigId 0 = B1I D1, 1 = B1I D2) give RINEX signal ``2I``.
+  ``prMes`` is a full pseudorange only when trkStat bit 0 (prValid) is set; otherwise NaN.
+  The time tag is (``week``, ``rcvTow``) on the GPST scale.
+- RXM-MEASX: the code phase (``codePhase`` in 2^-21 ms, ``intCodePhase`` in ms) is the
+  pseudorange modulo the code period, before the receiver knows time. On a ZED-F9P
+  (``ublox-zed-f9p_hpg1.11.log``, 2663 BDS pairs) ``mod(prMes, c*1ms) - c*codePhase`` is a
+  receiver constant (129.149 m for B1I there, 131.15 m for GPS L1C/A, per-channel values for
+  GLONASS), flat to within one codePhase LSB (2^-21 ms = 0.143 m) over 654 epochs and
+  independent of the receiver clock and of the satellite. No MEASX header field carries
+  it (gpsTOW - bdsTOW = 14 s exactly, TOW accuracies 0), so it is an internal delay
+  calibration applied to prMes only. The mapper therefore calibrates the MEASX fraction
+  against RAWX: the offset is the median over satellites with both a valid prMes and a code
+  phase in the same epoch, and is kept for later epochs.
+- One :class:`MeasurementEpoch` per receive epoch combines RAWX and MEASX: ``pr_m`` from a
+  valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
+  exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
+- RXM-SFRBX (BDS) becomes a :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
+  the latest measurement time.
+
+Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``rawx_meas_other_gnss``,
+``rawx_bds_other_signal``, ``rawx_pr_invalid``, ``measx_invalid``, ``measx_only_sats``,
+``measx_uncalibrated``, ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``,
+``epoch_no_week``, ``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
+``sfrbx_unmapped``, ``sfrbx_mapper_missing``, ``subframes``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.framing import Counters, Event, WeekContext
+from service.constants import C_M_S, WEEK_S, prn_id
+from service.timebase import diff_s, gpst_from_utc
+from service.types import MeasurementEpoch, NavSubframe
+
+log = logging.getLogger(__name__)
+
+GNSS_BDS = 3
+B1I_PERIOD_S = 1e-3
+B1I_RANGE_M = C_M_S * B1I_PERIOD_S
+
+# u-blox signal identifiers (gnssId 3) -> RINEX 3 observation code; only B1I is used.
+BDS_SIGNALS: dict[int, str] = {0: "2I", 1: "2I"}  # B1I D1, B1I D2
+
+# Messages the mapper reads; everything else is counted by name and ignored.
+RAWX, MEASX, SFRBX = "RXM-RAWX", "RXM-MEASX", "RXM-SFRBX"
+USED_MESSAGES = frozenset({RAWX, MEASX, SFRBX, "NAV-TIMEGPS", "NAV-PVT"})
+
+MEASX_INVALID_INT_MS = 255
+UNKNOWN_WEEK = -1
+MEASX_INVALID_CHIPS = 65535
+
+
+@dataclass(slots=True)
+class _Sat:
+    prn: str
+    pr_m: float = math.nan
+    raw_frac_m: float = math.nan  # MEASX code phase as a range, uncalibrated
+    cn0_dbhz: float = math.nan
+    doppler_hz: float = math.nan
+    lock_s: float = math.nan
+
+
+@dataclass(slots=True)
+class _Pending:
+    week: int
+    tow_s: float
+    kinds: set[str] = field(default_factory=set)
+    sats: dict[str, _Sat] = field(default_factory=dict)
+
+
+def _field(msg: Any, name: str, i: int) -> Any:
+    return getattr(msg, f"{name}_{i:02d}")
+
+
+class UbxMapper:
+    """Stateful mapper: pyubx2 messages in stream order -> events.
+
+    Epoch completion follows the stream's own message pattern: the set of measurement
+    messages (RAWX, MEASX) seen for the previous epoch is the set an epoch needs, so an
+    epoch is emitted the moment its last expected message arrives. Until a stream has shown
+    its pattern, RAWX alone completes an epoch. A change of time tag closes a pending epoch
+    too (e.g. when MEASX output stops), and :meth:`flush` closes it at end of stream.
+    """
+
+    def __init__(
+        self,
+        counters: Counters | None = None,
+        week: WeekContext | None = None,
+        *,
+        measx_offset_m: float | None = None,
+        pair_tolerance_s: float = 0.02,
+        source: str = "ubx",
+    ) -> None:
+        self.counters = counters if counters is not None else Counters()
+        self.week = week if week is not None else WeekContext()
+        self.measx_offset_m = measx_offset_m
+        self.pair_tolerance_s = pair_tolerance_s
+        self.source = source
+        self._expected: frozenset[str] = frozenset({RAWX})
+        self._pending: _Pending | None = None
+        self._last_emitted: tuple[int, float] | None = None
+        self._last_meas_time: tuple[int, float] | None = None
+        self._sfrbx_mapper: Callable[..., NavSubframe | None] | None = None
+        self._sfrbx_checked = False
+
+    # --- entry points ------------------------------------------------------------------------
+    def on_message(self, msg: Any) -> list[Event]:
+        """Map one parsed UBX message; returns the events it completes."""
+        name = str(msg.identity)
+        self.counters[f"ubx:{name}"] += 1
+        if name == RAWX:
+            return self._on_rawx(msg)
+        if name == MEASX:
+            return self._on_measx(msg)
+        if name == SFRBX:
+            return self._on_sfrbx(msg)
+        if name == "NAV-TIMEGPS":
+            tow = msg.iTOW * 1e-3 + msg.fTOW * 1e-9
+            if msg.weekValid and msg.towValid and 0.0 <= tow < WEEK_S:
+                self.week.set_exact(int(msg.week), tow)
+        elif name == "NAV-PVT":
+            self._on_nav_pvt(msg)
+        else:
+            self.counters["ubx_ignored"] += 1
+        return []
+
+    def flush(self) -> list[Event]:
+        """Emit a pending epoch (end of stream or idle line)."""
+        return self._close(learn=False)
+
+    # --- measurements -----------------------------------------------------------------------
+    def _on_rawx(self, msg: Any) -> list[Event]:
+        week, tow = int(msg.week), float(msg.rcvTow)
+        if not 0.0 <= tow < WEEK_S:
+            self.counters["ubx_bad_time"] += 1
+            return []
+        self.week.set_exact(week, tow)
+        out = self._open(RAWX, week, tow)
+        pending = self._pending
+        if pending is None:
+            return out
+        for i in range(1, int(msg.numMeas) + 1):
+            if _field(msg, "gnssId", i) != GNSS_BDS:
+                self.counters["rawx_meas_other_gnss"] += 1
+                continue
+            sig = BDS_SIGNALS.get(int(_field(msg, "sigId", i)))
+            if sig is None:
+                self.counters["rawx_bds_other_signal"] += 1
+                continue
+            sat = self._sat(pending, prn_id(int(_field(msg, "svId", i))))
+            if _field(msg, "prValid", i):
+                sat.pr_m = float(_field(msg, "prMes", i))
+            else:
+                self.counters["rawx_pr_invalid"] += 1
+            sat.cn0_dbhz = float(_field(msg, "cno", i))
+            sat.doppler_hz = float(_field(msg, "doMes", i))
+            sat.lock_s = float(_field(msg, "locktime", i)) * 1e-3
+        return out + self._maybe_complete()
+
+    def _on_measx(self, msg: Any) -> list[Event]:
+        tow = int(msg.gpsTOW) * 1e-3
+        if not 0.0 <= tow < WEEK_S:
+            self.counters["ubx_bad_time"] += 1
+            return []
+        week = self.week.resolve(tow)
+        out = self._open(MEASX, UNKNOWN_WEEK if week is None else week, tow)
+        pending = self._pending
+        if pending is None:
+            return out
+        for i in range(1, int(msg.numSv) + 1):
+            if _field(msg, "gnssId", i) != GNSS_BDS:
+                continue
+            int_ms = int(_field(msg, "intCodePhase", i))
+            chips = int(_field(msg, "wholeChips", i))
+            if int_ms == MEASX_INVALID_INT_MS or chips == MEASX_INVALID_CHIPS:
+                self.counters["measx_invalid"] += 1
+                continue
+            code_ms = int_ms + float(_field(msg, "codePhase", i))
+            sat = self._sat(pending, prn_id(int(_field(msg, "svId", i))))
+            sat.raw_frac_m = float(np.mod(C_M_S * code_ms * 1e-3, B1I_RANGE_M))
+            if math.isnan(sat.cn0_dbhz):
+                sat.cn0_dbhz = float(_field(msg, "cNo", i))
+            if math.isnan(sat.doppler_hz):
+                sat.doppler_hz = float(_field(msg, "dopplerHz", i))
+        return out + self._maybe_complete()
+
+    def _sat(self, pending: _Pending, prn: str) -> _Sat:
+        sat = pending.sats.get(prn)
+        if sat is None:
+            sat = pending.sats[prn] = _Sat(prn)
+        return sat
+
+    def _open(self, kind: str, week: int, tow: float) -> list[Event]:
+        """Make the pending epoch the one at (week, tow); closes a different one first."""
+        if week != UNKNOWN_WEEK:
+            self._last_meas_time = (week, tow)
+        out: list[Event] = []
+        p = self._pending
+        if p is not None and (kind in p.kinds or not self._same_time(week, tow, p.week, p.tow_s)):
+            out = self._close(learn=True)
+        last = self._last_emitted
+        if self._pending is None and last is not None and self._same_time(week, tow, *last):
+            # This epoch was already emitted without this message: learn it, drop it.
+            self.counters["epoch_late_message"] += 1
+            self._expected = self._expected | {kind}
+            return out
+        if self._pending is None:
+            self._pending = _Pending(week, tow)
+        self._pending.kinds.add(kind)
+        if kind == RAWX:  # RAWX carries the receiver's own time tag
+            self._pending.week, self._pending.tow_s = week, tow
+        return out
+
+    def _same_time(self, week_a: int, tow_a: float, week_b: int, tow_b: float) -> bool:
+        if UNKNOWN_WEEK in (week_a, week_b):  # compare times of week only
+            d = (tow_a - tow_b + WEEK_S / 2) % WEEK_S - WEEK_S / 2
+        else:
+            d = diff_s(week_a, tow_a, week_b, tow_b)
+        return abs(d) <= self.pair_tolerance_s
+
+    def _maybe_complete(self) -> list[Event]:
+        if self._pending is not None and self._expected <= self._pending.kinds:
+            return self._close(learn=False)
+        return []
+
+    def _close(self, *, learn: bool) -> list[Event]:
+        p, self._pending = self._pending, None
+        if p is None:
+            return []
+        self._expected = frozenset(p.kinds) if learn else self._expected | p.kinds
+        self._last_emitted = (p.week, p.tow_s)
+        if p.week == UNKNOWN_WEEK:
+            self.counters["epoch_no_week"] += 1
+            return []
+        epoch = self._build(p)
+        if epoch is None:
+            return []
+        self.counters["epochs_ubx"] += 1
+        return [epoch]
+
+    def _build(self, p: _Pending) -> MeasurementEpoch | None:
+        sats = sorted(p.sats.values(), key=lambda s: s.prn)
+        pr = np.array([s.pr_m for s in sats], dtype=float)
+        raw = np.array([s.raw_frac_m for s in sats], dtype=float)
+        both = np.isfinite(pr) & np.isfinite(raw)
+        if both.any():
+            d = np.mod(pr[both], B1I_RANGE_M) - raw[both]
+            d = np.mod(d + B1I_RANGE_M / 2, B1I_RANGE_M) - B1I_RANGE_M / 2
+            if np.ptp(d) < 30.0:
+                self.measx_offset_m = float(np.median(d))
+            else:
+                self.counters["measx_offset_rejected"] += 1
+                log.warning(
+                    "MEASX/RAWX offsets disagree by %.1f m at GPST %d %.3f; kept %s",
+                    float(np.ptp(d)),
+                    p.week,
+                    p.tow_s,
+                    self.measx_offset_m,
+                )
+        only = ~np.isfinite(pr) & np.isfinite(raw)
+        if only.any():
+            self.counters["measx_only_sats"] += int(only.sum())
+            if self.measx_offset_m is None:
+                self.counters["measx_uncalibrated"] += int(only.sum())
+        offset = self.measx_offset_m or 0.0
+        frac = np.where(np.isfinite(pr), np.mod(pr, B1I_RANGE_M), np.mod(raw + offset, B1I_RANGE_M))
+        keep = np.isfinite(frac)
+        if not keep.any():
+            return None
+        idx = np.flatnonzero(keep)
+        return MeasurementEpoch.from_columns(
+            p.week,
+            p.tow_s,
+            [sats[i].prn for i in idx],
+            ["2I"] * len(idx),
+            pr[idx],
+            frac_pr_m=frac[idx],
+            period_s=B1I_PERIOD_S,
+            cn0_dbhz=[sats[i].cn0_dbhz for i in idx],
+            doppler_hz=[sats[i].doppler_hz for i in idx],
+            lock_s=[sats[i].lock_s for i in idx],
+            source=self.source,
+        )
+
+    # --- time ----------------------------------------------------------------------------------
+    def _on_nav_pvt(self, msg: Any) -> None:
+        if not (msg.validDate and msg.validTime) or self.week.exact:
+            return
+        try:
+            utc = dt.datetime(msg.year, msg.month, msg.day, msg.hour, msg.min, msg.second)
+        except ValueError:
+            return
+        week, _ = gpst_from_utc(utc)
+        tow = int(msg.iTOW) * 1e-3
+        if 0.0 <= tow < WEEK_S:
+            self.week.set_approx(week, tow)
+
+    # --- navigation subframes ---------------------------------------------------------------
+    def _on_sfrbx(self, msg: Any) -> list[Event]:
+        if int(msg.gnssId) != GNSS_BDS:
+            self.counters["sfrbx_other_gnss"] += 1
+            return []
+        self.counters["sfrbx_bds"] += 1
+        if self._last_meas_time is None:
+            self.counters["sfrbx_no_time"] += 1
+            return []
+        mapper = self._subframe_mapper()
+        if mapper is None:
+            self.counters["sfrbx_mapper_missing"] += 1
+            return []
+        sub = mapper(msg, *self._last_meas_time)
+        if sub is None:
+            self.counters["sfrbx_unmapped"] += 1
+            return []
+        self.counters["subframes"] += 1
+        return [sub]
+
+    def _subframe_mapper(self) -> Callable[..., NavSubframe | None] | None:
+        if not self._sfrbx_checked:
+            self._sfrbx_checked = True
+            try:
+                mod = importlib.import_module("drivers.sfrbx")
+                self._sfrbx_mapper = mod.nav_subframe_from_sfrbx
+            except (ImportError, AttributeError):
+                log.warning("drivers.sfrbx not available: BDS RXM-SFRBX subframes are skipped")
+        return self._sfrbx_mapper
