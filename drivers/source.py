@@ -14,6 +14,7 @@ failures of checksum-valid frames), ``map_errors_ubx``/``_rtcm`` (unexpected con
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import os
 import sys
@@ -36,6 +37,7 @@ from drivers.transport import (
 from drivers.ubx import USED_MESSAGES as UBX_USED
 from drivers.ubx import UbxMapper
 from service.errors import ConfigError, DecodeError
+from service.timebase import gpst_from_utc
 
 log = logging.getLogger(__name__)
 
@@ -266,6 +268,11 @@ def open_source(
 
     ``nav`` (RINEX nav file or files) puts its ephemerides and ionosphere parameters at the
     head of the stream, as held ephemerides. Pace a replay with :func:`pace`.
+
+    The GPS week for RTCM MSM times of week comes from ``gps_week``, else from the stream
+    (UBX RAWX / NAV-TIMEGPS / NAV-PVT, RTCM 1042); live sources (serial, TCP) are seeded
+    from the system clock. BDS MSM epochs seen before any week is known are dropped and
+    counted (``msm_no_week``).
     """
     counters = Counters()
     prefix = _nav_events(nav, counters)
@@ -298,4 +305,8 @@ def open_source(
         measx_offset_m=measx_offset_m,
         counters=counters,
     )
+    if gps_week is None and not isinstance(transport, FileTransport):
+        # A live stream happens now: the system clock gives the week until the data does.
+        now = dt.datetime.now(dt.UTC).replace(tzinfo=None)
+        decoder.week.set_approx(*gpst_from_utc(now))
     return BinarySource(transport, decoder, prefix=prefix, idle_flush_s=idle_flush_s)
