@@ -6,7 +6,10 @@ section 3.2; D1/D2 navigation messages, section 5).
 
 - RXM-RAWX: BDS (gnssId 3) B1I (sigId 0 = B1I D1, 1 = B1I D2) give RINEX signal ``2I``.
   ``prMes`` is a full pseudorange only when trkStat bit 0 (prValid) is set; otherwise NaN.
-  The time tag is (``week``, ``rcvTow``) on the GPST scale.
+  The time tag is (``week``, ``rcvTow``) on the GPST scale. MEASX pairs with the RAWX whose
+  ``rcvTow`` is within ``pair_tolerance_s`` (20 ms) of its ``gpsTOW``; an epoch with MEASX
+  only is tagged ``gpsTOW`` (ms, GPST; 1-2 ms from rcvTow on the F9P) with the week of the
+  stream.
 - RXM-MEASX: the code phase (``codePhase`` in 2^-21 ms, ``intCodePhase`` in ms) is the
   pseudorange modulo the code period, before the receiver knows time. On a ZED-F9P
   (``ublox-zed-f9p_hpg1.11.log``, 2663 BDS pairs) ``mod(prMes, c*1ms) - c*codePhase`` is a
@@ -16,7 +19,11 @@ section 3.2; D1/D2 navigation messages, section 5).
   it (gpsTOW - bdsTOW = 14 s exactly, TOW accuracies 0), so it is an internal delay
   calibration applied to prMes only. The mapper therefore calibrates the MEASX fraction
   against RAWX: the offset is the median over satellites with both a valid prMes and a code
-  phase in the same epoch, and is kept for later epochs.
+  phase in the same epoch, and is kept for later epochs. With one satellite's prMes withheld
+  per epoch, its calibrated MEASX fraction matches mod(prMes, c*1ms) to 0.051 m RMS, 0.127 m
+  at most (654 epochs). Before any calibration (no satellite with both) the raw fraction is
+  used and counted (``measx_uncalibrated``): the offset is then common to all fractional
+  rows and goes into the receiver clock bias.
 - One :class:`MeasurementEpoch` per receive epoch combines RAWX and MEASX: ``pr_m`` from a
   valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
   exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
