@@ -698,6 +698,23 @@ def test_open_source_rinex_when_reader_exists():
     assert src.counters["epochs_rinex"] == 5
 
 
+def test_open_source_spec_forms():
+    with open_source("serial:/dev/ttyNOPE0:115200") as src:
+        assert isinstance(src, BinarySource)
+        assert isinstance(src.transport, SerialTransport)
+        assert (src.transport.device, src.transport.baud) == ("/dev/ttyNOPE0", 115200)
+        assert src.decoder.week.known  # live: seeded from the system clock
+    with open_source("/dev/ttyNOPE1") as src:
+        assert isinstance(src.transport, SerialTransport)
+        assert src.transport.device == "/dev/ttyNOPE1"
+    with open_source("tcp:127.0.0.1:10110") as src:
+        assert isinstance(src.transport, TcpClientTransport)
+        assert (src.transport.host, src.transport.port) == ("127.0.0.1", 10110)
+    with open_source(str(TINY_RAWX)) as src:
+        assert isinstance(src.transport, FileTransport)
+        assert not src.decoder.week.known  # a replay takes its week from the data
+
+
 def test_open_source_rejects_bad_specs(tmp_path: Path):
     with pytest.raises(ConfigError):
         open_source("tcp:localhost")
