@@ -692,10 +692,16 @@ def test_open_source_rinex_when_reader_exists():
         with pytest.raises(ImportError):
             open_source(str(obs))
         return
+    n_records = sum(1 for line in obs.read_text().splitlines() if line.startswith(">"))
     with open_source(str(obs)) as src:
         events = list(src)
-    assert len(events) == 5 and all(isinstance(e, MeasurementEpoch) for e in events)
-    assert src.counters["epochs_rinex"] == 5
+    assert n_records == 5
+    assert len(events) == n_records and all(isinstance(e, MeasurementEpoch) for e in events)
+    assert src.counters["epochs_rinex"] == n_records
+    nav = DATA / "hksc-2021" / "hksc1610.nav"
+    with open_source(str(DATA / "hksc-2021" / "hksc1610.obs"), nav=str(nav)) as src:
+        head = next(iter(src))
+    assert isinstance(head, Ephemeris) and src.counters["nav_ephemerides"] > 0
 
 
 def test_open_source_spec_forms():
