@@ -1,0 +1,158 @@
+"""The stream loop of ``bdsfix replay`` and ``bdsfix run``.
+
+A reader thread pulls events from a driver source (paced for replay) into a bounded queue;
+the main thread feeds them to the :class:`~service.pipeline.Pipeline` and hands results to
+the outputs, none of which may block. Between events the main thread keeps time for STATUS
+messages, the systemd watchdog and periodic saves of the ephemeris store, and it stops
+cleanly on request (SIGTERM) after saving the store.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from service.pipeline import EpochResult, Pipeline
+from service.tracker import TrackEvent
+from service.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+
+log = logging.getLogger(__name__)
+
+_END = object()
+
+
+class Outputs(Protocol):
+    """What the loop publishes to (see :mod:`service.publish`)."""
+
+    def epoch(self, result: EpochResult) -> None: ...
+    def track(self, event: TrackEvent) -> None: ...
+    def status(self, counters: Mapping[str, int | float]) -> None: ...
+    def reopen(self) -> None: ...
+    def close(self) -> None: ...
+
+
+@dataclass
+class Runner:
+    """Runs one source through the pipeline into the outputs."""
+
+    events: Iterable[Any]
+    pipeline: Pipeline
+    outputs: Outputs
+    source_counters: Mapping[str, int] = field(default_factory=dict)
+    status_interval_s: float = 10.0
+    store_path: Path | None = None
+    store_save_interval_s: float = 60.0
+    watchdog: Callable[[], Any] | None = None
+    watchdog_interval_s: float | None = None
+    on_result: Callable[[EpochResult], None] | None = None
+    queue_size: int = 4096
+    _stop: threading.Event = field(default_factory=threading.Event)
+    _reopen: threading.Event = field(default_factory=threading.Event)
+    _error: BaseException | None = None
+    _store_dirty: bool = False
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    def request_reopen(self) -> None:
+        self._reopen.set()
+
+    def counters(self) -> dict[str, int | float]:
+        out: dict[str, int | float] = {f"source_{k}": v for k, v in self.source_counters.items()}
+        out.update(self.pipeline.counters)
+        return out
+
+    def _reader(self, q: queue.Queue[Any]) -> None:
+        try:
+            for ev in self.events:
+                while not self._stop.is_set():
+                    try:
+                        q.put(ev, timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+                if self._stop.is_set():
+                    return
+        except BaseException as exc:  # reported by the main thread
+            self._error = exc
+        finally:
+            q.put(_END)
+
+    def run(self) -> int:
+        """Process until the source ends or a stop is requested; returns the epoch count."""
+        self.pipeline.on_track = self.outputs.track
+        q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
+        reader = threading.Thread(target=self._reader, args=(q,), name="bdsfix-reader", daemon=True)
+        reader.start()
+        now = time.monotonic()
+        next_status = now + self.status_interval_s
+        next_save = now + self.store_save_interval_s
+        next_dog = now + (self.watchdog_interval_s or 1e18)
+        n = 0
+        try:
+            while not self._stop.is_set():
+                try:
+                    ev = q.get(timeout=0.2)
+                except queue.Empty:
+                    ev = None
+                if ev is _END:
+                    break
+                if ev is not None:
+                    n += self._handle(ev)
+                if self._reopen.is_set():
+                    self._reopen.clear()
+                    log.info("reopening outputs")
+                    self.outputs.reopen()
+                now = time.monotonic()
+                if now >= next_status:
+                    self.outputs.status(self.counters())
+                    next_status = now + self.status_interval_s
+                if now >= next_save:
+                    self.save_store()
+                    next_save = now + self.store_save_interval_s
+                if self.watchdog is not None and now >= next_dog:
+                    self.watchdog()
+                    next_dog = now + (self.watchdog_interval_s or 1e18)
+        finally:
+            self._stop.set()
+            self.save_store()
+            self.outputs.status(self.counters())
+        if self._error is not None:
+            raise self._error
+        return n
+
+    def _handle(self, ev: Any) -> int:
+        if isinstance(ev, MeasurementEpoch):
+            result = self.pipeline.on_epoch(ev)
+            self.outputs.epoch(result)
+            if self.on_result is not None:
+                self.on_result(result)
+            return 1
+        if isinstance(ev, NavSubframe):
+            before = len(self.pipeline.store)
+            self.pipeline.on_subframe(ev)
+            self._store_dirty |= len(self.pipeline.store) != before
+        elif isinstance(ev, Ephemeris):
+            self.pipeline.add_ephemeris(ev)
+            self._store_dirty = True
+        elif isinstance(ev, KlobucharParams):
+            self.pipeline.set_iono(ev)
+        return 0
+
+    def save_store(self) -> None:
+        if self.store_path is None or not self._store_dirty:
+            return
+        try:
+            self.pipeline.store.save(self.store_path)
+            self._store_dirty = False
+            log.info(
+                "ephemeris store saved: %d entries in %s", len(self.pipeline.store), self.store_path
+            )
+        except OSError as exc:
+            log.error("cannot save ephemeris store %s: %s", self.store_path, exc)
