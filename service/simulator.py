@@ -21,10 +21,11 @@ import logging
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from service.constants import C_M_S, is_geo, prn_number
+from service.constants import C_M_S, WEEK_S, is_geo, prn_number
 from service.geometry import geodetic_to_ecef
 from service.orbit import EphemerisArrays
 from service.rangegen import true_ranges
@@ -191,6 +192,19 @@ class Simulator:
                 truth_x_ecef_m=self.x_ecef_m,
             )
 
+    def ubx_epochs(self) -> Iterator[tuple[SimEpoch, bytes]]:
+        """Each epoch with its UBX bytes: SFRBX for completed subframes, MEASX, then RAWX."""
+        geo_of = {p: is_geo(p) for p in self.prns}
+        eph_of = {e.prn: e for e in self.ephemerides}
+        for ep in self.epochs():
+            parts = [
+                _sfrbx(sf.prn, sf.nav_type, subframe_words(eph_of[sf.prn], sf, self.iono))
+                for sf in ep.subframes
+            ]
+            parts.append(_measx(ep))
+            parts.append(_rawx(ep, [geo_of[p] for p in ep.prn]))
+            yield ep, b"".join(parts)
+
     def _completed_subframes(
         self, st: _SatState, t0: float, t1: float, bdt_sow_rx: float, flight_s: float
     ) -> list[SimSubframe]:
@@ -217,5 +231,77 @@ class Simulator:
         return out
 
 
-def svid_of(prn: str) -> int:
-    return prn_number(prn)
+def subframe_words(eph: Ephemeris, sf: SimSubframe, iono: KlobucharParams | None) -> list[int]:
+    """The ten 30-bit words of a completed subframe (BCH-coded, interleaved; ICD 5.1.3)."""
+    from service import bds_nav
+
+    frame, fra_id = divmod(sf.index, 5)
+    if sf.nav_type == "D1":
+        sow = round(frame * 5 * D1_SUBFRAME_S)
+        return list(bds_nav.encode_d1_subframes(eph, sow, iono)[fra_id])
+    sow = round(frame * 5 * D2_SUBFRAME_S)
+    return list(bds_nav.encode_d2_frame(eph, sow, frame % 10 + 1, iono)[fra_id])
+
+
+def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
+    from pyubx2 import GET, UBXMessage
+
+    kw: dict[str, Any] = {
+        "rcvTow": ep.tag_gpst_tow_s,
+        "week": ep.tag_gpst_week,
+        "leapS": LEAP_S,
+        "numMeas": len(ep.prn),
+        "version": 1,
+    }
+    for i, prn in enumerate(ep.prn, start=1):
+        full = bool(ep.full[i - 1])
+        kw |= {
+            f"prMes_{i:02d}": float(ep.pr_m[i - 1]) if full else 0.0,
+            f"gnssId_{i:02d}": 3,
+            f"svId_{i:02d}": prn_number(prn),
+            f"sigId_{i:02d}": 1 if geo[i - 1] else 0,
+            f"locktime_{i:02d}": 1000,
+            f"cno_{i:02d}": int(ep.cn0_dbhz[i - 1]),
+            f"prStd_{i:02d}": 5,
+            f"prValid_{i:02d}": int(full),
+        }
+    return bytes(UBXMessage("RXM", "RXM-RAWX", GET, **kw).serialize())
+
+
+def _measx(ep: SimEpoch) -> bytes:
+    from pyubx2 import GET, UBXMessage
+
+    gps_tow_ms = round(ep.tag_gpst_tow_s * 1000.0)
+    kw: dict[str, Any] = {
+        "version": 1,
+        "gpsTOW": gps_tow_ms,
+        "bdsTOW": (gps_tow_ms - 14_000) % (WEEK_S * 1000),
+        "numSv": len(ep.prn),
+    }
+    for i, prn in enumerate(ep.prn, start=1):
+        units = round(float(ep.pr_m[i - 1]) / PR_LSB_M) % (1 << 21)  # code phase in 2^-21 ms
+        kw |= {
+            f"gnssId_{i:02d}": 3,
+            f"svId_{i:02d}": prn_number(prn),
+            f"cNo_{i:02d}": int(ep.cn0_dbhz[i - 1]),
+            f"wholeChips_{i:02d}": (units * 2046) >> 21,
+            f"fracChips_{i:02d}": 0,
+            f"codePhase_{i:02d}": units * CODE_PHASE_LSB_MS,  # exact binary fraction
+            f"intCodePhase_{i:02d}": 0,
+        }
+    return bytes(UBXMessage("RXM", "RXM-MEASX", GET, **kw).serialize())
+
+
+def _sfrbx(prn: str, nav_type: str, words: Sequence[int]) -> bytes:
+    from pyubx2 import GET, UBXMessage
+
+    kw: dict[str, Any] = {
+        "gnssId": 3,
+        "svId": prn_number(prn),
+        "sigId": 1 if nav_type == "D2" else 0,
+        "numWords": len(words),
+        "chn": 0,
+        "version": 2,
+    }
+    kw |= {f"dwrd_{i:02d}": int(w) for i, w in enumerate(words, start=1)}
+    return bytes(UBXMessage("RXM", "RXM-SFRBX", GET, **kw).serialize())
