@@ -266,7 +266,9 @@ def _iono(
     return None
 
 
-def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemeris:
+def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> tuple[Ephemeris, float]:
+    """The record's ephemeris and its transmission time (BDT seconds of week)."""
+    """The record's ephemeris and its transmission time (BDT seconds of week)."""
     first = rec[0]
     try:
         toc_t = _epoch_datetime(first[4:23].split())
@@ -304,13 +306,13 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
         sath1,
         tgd1,
         tgd2,
-        _tot,
+        tot,
         aodc,
     ) = v[:29]
     if any(math.isnan(x) for x in (sqrt_a, e, toe, m0, week)):
         raise FramingError(f"{path}:{lineno}: incomplete BDS navigation record for {prn}")
     _, toc_sow = gpst_from_datetime(toc_t)  # BDT calendar -> BDT seconds of week
-    return Ephemeris(
+    eph = Ephemeris(
         prn=prn,
         week=int(week),
         toe_sow_s=toe,
@@ -341,6 +343,7 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
         ura_m=0.0 if math.isnan(ura) else ura,
         source="rinex",
     )
+    return eph, (-math.inf if math.isnan(tot) else tot)
 
 
 def read_nav(path: str | Path) -> NavData:
@@ -361,6 +364,7 @@ def read_nav(path: str | Path) -> NavData:
             except ValueError:
                 leap = None
         ephs: dict[str, dict[tuple[int, float], Ephemeris]] = {}
+        tot_of: dict[tuple[str, tuple[int, float]], float] = {}
         for line in fh:
             lineno += 1
             if not line.strip():
@@ -381,8 +385,13 @@ def read_nav(path: str | Path) -> NavData:
             if sys_char != "C":
                 continue
             prn = _sat_id(line[:3])
-            eph = _bds_ephemeris(prn, rec, path, start)
-            ephs.setdefault(prn, {})[(eph.week, eph.toe_sow_s)] = eph  # repeats: keep one
+            eph, tot = _bds_ephemeris(prn, rec, path, start)
+            key = (eph.week, eph.toe_sow_s)
+            held = ephs.setdefault(prn, {})
+            # The same set may be repeated; the latest transmission (e.g. a health change) wins.
+            if key not in held or tot >= tot_of[(prn, key)]:
+                held[key] = eph
+                tot_of[(prn, key)] = tot
     return NavData(
         version=version,
         ephemerides={p: tuple(d.values()) for p, d in sorted(ephs.items())},
