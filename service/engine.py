@@ -114,6 +114,12 @@ def _geometry(
     return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
 
 
+def _full_cost(rows: _Rows, geo: _Geometry, b: float, full_idx: np.ndarray) -> float:
+    """Sum of squared residuals of the full rows (no corrections): the line-search merit."""
+    r = rows.z_m[full_idx] - geo.pred_m[full_idx] - b
+    return float(r @ r)
+
+
 def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     if w is not None:
         sw = np.sqrt(w)
@@ -188,9 +194,11 @@ def _solve_rows(
     b = 0.0
     n_int = np.zeros(len(rows.prn))
     frac_idx = np.flatnonzero(frac)
+    full_idx = np.flatnonzero(~frac)
     converged = False
     it = 0
     geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+    cost = _full_cost(rows, geo, b, full_idx)
     for it in range(1, cfg.max_iter + 1):
         dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b  # eqs. (7)-(8)
         h = _design(geo.los)
@@ -200,32 +208,50 @@ def _solve_rows(
             hn[frac_idx, np.arange(n_frac)] = -1.0
             h = np.concatenate([h, hn], axis=1)
         try:
-            step = _lsq(h, dz)
+            step = _lsq(h, dz)  # eq. (10)
         except np.linalg.LinAlgError:
             return replace(base, reason="singular geometry in the fast-fix iteration")
-        x = x + step[:3]
-        b += step[3]
-        dn = np.rint(step[4:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
-        n_int[frac_idx] += dn  # eq. (13)
-        geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
-        if np.linalg.norm(step[:4]) < cfg.theta_m and not np.any(dn):  # eq. (14)
+        # Backtracking: the float ambiguities absorb the fractional rows, so x and b move on
+        # the full rows alone; from the Earth's centre, near-equatorial GEOs make the plain
+        # step overshoot (beyond GEO altitude, then divergence). A step that increases the
+        # full-row residual is halved; where the plain step helps it is taken unchanged.
+        lam = 1.0
+        while True:
+            x_new = x + lam * step[:3]
+            b_new = b + lam * step[3]
+            dn = np.rint(lam * step[4:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
+            n_new = n_int.copy()
+            n_new[frac_idx] += dn  # eq. (13)
+            geo_new = _geometry(rows, bdt_week, bdt_sow, x_new, n_new)
+            cost_new = _full_cost(rows, geo_new, b_new, full_idx)
+            if cost_new <= cost or lam < 1e-3 or not np.isfinite(cost):
+                break
+            lam /= 2.0
+        x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
+        if np.linalg.norm(lam * step[:4]) < cfg.theta_m and not np.any(dn):  # eq. (14)
             converged = True
             break
-    if not np.all(np.isfinite(x)) or not converged:
+    if not np.all(np.isfinite(x)):
         return replace(base, iterations=it, reason=f"no convergence after {it} iterations")
 
-    # eq. (12), (20)-(21): GEO-GDOP gate over the full rows at the converged position
+    # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
+    # phase-1 position (or at the last iterate when the iteration did not settle)
     gd = float(gdop(geo.los[~frac]))
     beta = cfg.beta
     if beta is None:
         t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
+        settled = "" if converged else f" (no convergence after {it} iterations)"
         return replace(
             base,
             gdop_full=gd,
             iterations=it,
-            reason=f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}",
+            reason=f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}{settled}",
+        )
+    if not converged:
+        return replace(
+            base, gdop_full=gd, iterations=it, reason=f"no convergence after {it} iterations"
         )
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)

@@ -103,3 +103,57 @@ def ephemeris_from_kepler(
 def mean_motion_rad_s(a_m: float) -> float:
     """Two-body mean motion sqrt(GM / a^3) [rad/s] with the CGCS2000 GM."""
     return math.sqrt(GM_M3_S2 / a_m**3)
+
+
+# The paper's Table 1 (Zhao, Cui & Lu): BDS elements at UTC 2015-05-19 04:00:00.
+# a [km], e, i [deg], RAAN (inertial) [deg], argument of perigee [deg], true anomaly [deg].
+# G1..G6 are C01, C03, C04, C05, C02 (slots 140, 110.5, 160, 58.75 and 80 deg E);
+# I1..I5 are C06..C10; M3..M6 are C11..C14.
+TABLE1_EPOCH_UTC = (2015, 5, 19, 4, 0, 0)
+TABLE1: dict[str, tuple[float, float, float, float, float, float]] = {
+    "C01": (42_167.046, 0.000385, 1.660, 14.091, 166.081, 256.057),
+    "C03": (42_168.221, 0.000371, 1.580, 31.719, 312.433, 62.552),
+    "C04": (42_165.839, 0.000550, 0.787, 41.955, 155.089, 259.219),
+    "C05": (42_164.381, 0.000110, 1.158, 29.645, 72.196, 253.240),
+    "C02": (42_165.779, 0.000097, 0.216, 47.928, 22.396, 306.033),
+    "C06": (42_157.559, 0.004004, 54.293, 200.802, 210.089, 1.845),
+    "C07": (42_170.380, 0.003126, 53.938, 319.904, 196.870, 255.448),
+    "C08": (42_144.000, 0.002785, 57.010, 80.717, 193.820, 86.116),
+    "C09": (42_162.302, 0.003603, 54.608, 203.045, 203.863, 344.311),
+    "C10": (42_166.206, 0.002972, 54.031, 319.350, 195.436, 235.874),
+    "C11": (27_907.553, 0.002132, 55.838, 79.515, 207.483, 152.594),
+    "C12": (27_905.796, 0.002440, 55.773, 78.992, 199.825, 206.342),
+    "C13": (27_905.263, 0.003448, 54.728, 199.113, 170.282, 33.123),
+    "C14": (27_905.161, 0.001848, 54.831, 198.716, 214.969, 26.118),
+}
+
+
+def table1_ephemerides(offset_s: float = 0.0) -> list[Ephemeris]:
+    """Table 1 propagated two-body by ``offset_s`` from its epoch, as ephemerides (t_oe then)."""
+    import datetime as dt
+
+    from service.timebase import gmst_rad, gpst_from_utc, gpst_to_bdt
+
+    utc = dt.datetime(*TABLE1_EPOCH_UTC) + dt.timedelta(seconds=offset_s)
+    bdt_week, bdt_sow = gpst_to_bdt(*gpst_from_utc(utc))
+    gmst = gmst_rad(utc)
+    out = []
+    for prn, (a_km, e, inc, raan, argp, nu) in TABLE1.items():
+        a = a_km * 1e3
+        m = mean_from_true_anomaly(math.radians(nu), e) + mean_motion_rad_s(a) * offset_s
+        out.append(
+            ephemeris_from_kepler(
+                prn,
+                a,
+                e,
+                math.radians(inc),
+                math.radians(raan),
+                math.radians(argp),
+                m,
+                gmst,
+                bdt_week,
+                bdt_sow,
+                source="table1",
+            )
+        )
+    return out

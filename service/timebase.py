@@ -9,6 +9,7 @@ exact across week boundaries, which a single float since 1980 would not.
 from __future__ import annotations
 
 import datetime as dt
+import math
 
 from service.constants import WEEK_S
 
@@ -77,6 +78,18 @@ def utc_from_gpst(week: int, tow_s: float) -> dt.datetime:
     """GPST (week, tow) to naive UTC datetime."""
     t = datetime_from_gpst(week, tow_s)
     return t - dt.timedelta(seconds=leap_seconds(t - dt.timedelta(seconds=18)))
+
+
+def gmst_rad(utc: dt.datetime) -> float:
+    """Greenwich mean sidereal angle [rad] (IAU 1982, UT1 taken as UTC).
+
+    GMST = 67310.54841 s + (876600 h + 8640184.812866 s) T + 0.093104 s T^2 - 6.2e-6 s T^3,
+    T in Julian centuries of UT1 from J2000.0 (Aoki et al. 1982).
+    """
+    j2000 = dt.datetime(2000, 1, 1, 12)
+    t = (utc - j2000).total_seconds() / 86400.0 / 36525.0
+    sec = 67310.54841 + (876600.0 * 3600.0 + 8640184.812866) * t + 0.093104 * t**2 - 6.2e-6 * t**3
+    return (sec % 86400.0) / 86400.0 * 2.0 * math.pi
 
 
 def gpst_from_utc(utc: dt.datetime) -> tuple[int, float]:
