@@ -117,3 +117,31 @@ def test_vectorised_counts_match_a_per_point_loop():
                 g = np.concatenate([-los[vis], np.ones((int(vis.sum()), 1))], axis=1)
                 nu += math.sqrt(np.trace(np.linalg.inv(g.T @ g))) < 3000
         assert (res.n_geo4[k], res.n_usable[k]) == (n4, nu)
+
+
+def test_broadcast_constellation_from_a_nav_file(tmp_path):
+    out = tmp_path / "nav.json"
+    nav = str(__import__("tests._independent", fromlist=["DATA"]).DATA / "hksc-2021/hksc1610.nav")
+    rc = main(
+        [
+            "coverage",
+            "--nav",
+            nav,
+            "--epoch",
+            "2021-06-10T03:36:00",
+            "--days",
+            "0.1",
+            "--step-s",
+            "1800",
+            "--grid-deg",
+            "5",
+            "--json",
+            str(out),
+            "--no-progress",
+        ]
+    )
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    s = doc["altitudes"]["0"]
+    assert s["min_pct"] > 90.0  # the 2021 GEOs have GDOP far below 3000 (HKSC: 90-100)
+    assert 50 <= s["area"]["lon_min_deg"] <= 70 and 155 <= s["area"]["lon_max_deg"] <= 175

@@ -207,3 +207,12 @@ def test_not_rinex3_and_no_end_of_header(tmp_path):
         RinexObsReader(cut)
     with pytest.raises(FramingError, match="not a RINEX file"):
         read_nav(DATA / "tiny-ubx-rtcm/pygpsdata-RXMRAWX.log")
+
+
+def test_version_305_header_is_accepted(tmp_path):
+    src = (DATA / "hksc-2021/hksc1610.obs").read_text().splitlines(keepends=True)
+    src[0] = src[0].replace("3.04", "3.05", 1)
+    p = tmp_path / "v305.obs"
+    p.write_text("".join(src))
+    eps = list(RinexObsReader(p))
+    assert RinexObsReader(p).header.version == 3.05 and len(eps) == 205
