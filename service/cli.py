@@ -10,6 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from service import __version__
+from service.config import DEFAULT_CONFIG, add_config_flags
 from service.errors import BdsfixError
 
 log = logging.getLogger(__name__)
@@ -18,6 +19,9 @@ log = logging.getLogger(__name__)
 _HANDLERS: dict[str, str] = {
     "solve": "service.batch:main_solve",
     "coverage": "service.coverage:main_coverage",
+    "replay": "service.daemon:main_replay",
+    "run": "service.daemon:main_run",
+    "sub": "service.daemon:main_sub",
 }
 
 
@@ -70,6 +74,55 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", dest="json_out", help="write the result as JSON to FILE (- stdout)")
     c.add_argument("--plot", help="write a coverage map PNG (needs the plot extra)")
     c.add_argument("--no-progress", action="store_true")
+
+    r = sub.add_parser("replay", help="replay a capture (or the built-in scenario) as a receiver")
+    r.add_argument(
+        "files",
+        nargs="*",
+        help="UBX/RTCM/NMEA capture or RINEX 3 obs; none: the "
+        "built-in virtual receiver near Beijing",
+    )
+    r.add_argument("--nav", action="append", help="RINEX 3 nav file(s): held ephemerides")
+    r.add_argument(
+        "--restart-at",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="emulate a receiver restart this many data seconds into the stream",
+    )
+    pace = r.add_mutually_exclusive_group()
+    pace.add_argument(
+        "--speed",
+        type=float,
+        default=None,
+        help="pace by the data's timestamps at X times real time (files: 1)",
+    )
+    pace.add_argument("--max-speed", action="store_true", help="as fast as possible")
+    r.add_argument("--nmea-tcp", metavar="HOST:PORT", help="NMEA TCP server")
+    r.add_argument("--zmq", metavar="ENDPOINT", help="ZeroMQ PUB endpoint")
+    r.add_argument("--nmea-out", metavar="FILE|-", help="NMEA to a file or stdout")
+    r.add_argument("--jsonl-out", metavar="FILE|-", help="JSONL records to a file or stdout")
+    r.add_argument("--talker", choices=["GN", "GB", "BD", "GP"], default="GN")
+    r.add_argument("--elmask-deg", type=float, default=10.0)
+    r.add_argument("--beta", type=float, default=0.0, help="GDOP gate (0: derived)")
+    r.add_argument("--range-error-m", type=float, default=50.0)
+    r.add_argument("--iono", choices=["auto", "bds", "gps", "off"], default="auto")
+    r.add_argument("--tropo", choices=["saastamoinen", "off"], default="saastamoinen")
+    r.add_argument("--seed", type=int, default=0, help="seed of emulated sync delays")
+    r.add_argument("--gps-week", type=int, default=None, help="GPS week for RTCM-only files")
+    r.add_argument("--status-interval-s", type=float, default=10.0)
+
+    d = sub.add_parser("run", help="the daemon (config file; every key is also a flag)")
+    d.add_argument(
+        "--config", default=None, help=f"TOML config (default {DEFAULT_CONFIG} when it exists)"
+    )
+    add_config_flags(d)
+
+    z = sub.add_parser("sub", help="print ZeroMQ messages")
+    z.add_argument("endpoint", nargs="?", default="tcp://127.0.0.1:10111")
+    z.add_argument("--topic", action="append", help="FIX, SKY, TRACK or STATUS (default all)")
+    z.add_argument("--count", type=int, default=None, help="exit after N messages")
+    z.add_argument("--timeout-s", type=float, default=None, help="exit after this idle time")
     return p
 
 

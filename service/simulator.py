@@ -196,10 +196,18 @@ class Simulator:
         """Each epoch with its UBX bytes: SFRBX for completed subframes, MEASX, then RAWX."""
         geo_of = {p: is_geo(p) for p in self.prns}
         eph_of = {e.prn: e for e in self.ephemerides}
+        try:
+            from service import bds_nav  # noqa: F401
+        except ImportError:
+            with_subframes = False
+            log.warning("no B1I subframe encoder (service.bds_nav): RXM-SFRBX not emitted")
+        else:
+            with_subframes = True
         for ep in self.epochs():
             parts = [
                 _sfrbx(sf.prn, sf.nav_type, subframe_words(eph_of[sf.prn], sf, self.iono))
                 for sf in ep.subframes
+                if with_subframes
             ]
             parts.append(_measx(ep))
             parts.append(_rawx(ep, [geo_of[p] for p in ep.prn]))

@@ -1,0 +1,275 @@
+"""``bdsfix run`` (the daemon), ``bdsfix replay`` and ``bdsfix sub``.
+
+The daemon reads its TOML config (every key also a flag), loads the persisted ephemeris
+store (the warm start the method assumes) plus any RINEX nav files, opens the receiver
+source and the outputs, tells systemd it is ready and keeps the watchdog fed. SIGTERM stops
+it cleanly after saving the store; SIGHUP reopens file outputs. Only this module and the
+CLI entry configure logging.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, cast
+
+from service.config import DEFAULT_CONFIG, DaemonConfig, load_config, overrides_from_args
+from service.engine import IonoChoice, IonoSet, SolverConfig
+from service.ephemeris import EphemerisStore
+from service.errors import BdsfixError, ConfigError
+from service.pipeline import EpochResult, Pipeline
+from service.publish import (
+    LineSink,
+    NmeaTcpServer,
+    Publishers,
+    SerialSink,
+    ZmqPublisher,
+    parse_host_port,
+)
+from service.runner import Runner
+from service.sdnotify import Notifier
+
+log = logging.getLogger(__name__)
+STORE_NAME = "ephemeris.json"
+
+
+def build_publishers(
+    *,
+    nmea_tcp: str = "",
+    nmea_out: str = "",
+    nmea_serial: str = "",
+    zmq: str = "",
+    jsonl_out: str = "",
+    talker: str = "GN",
+    baud: int = 115200,
+) -> Publishers:
+    """Open the requested outputs; a bad one raises ConfigError after closing the others."""
+    opened: dict[str, Any] = {}
+    try:
+        if nmea_tcp:
+            opened["nmea_tcp"] = NmeaTcpServer(*parse_host_port(nmea_tcp, "--nmea-tcp"))
+        if nmea_out:
+            opened["nmea_lines"] = LineSink(nmea_out)
+        if nmea_serial:
+            opened["nmea_serial"] = SerialSink(nmea_serial, baud)
+        if zmq:
+            opened["zmq"] = ZmqPublisher(zmq)
+        if jsonl_out:
+            opened["jsonl"] = LineSink(jsonl_out)
+    except BdsfixError:
+        for part in opened.values():
+            part.close()
+        raise
+    return Publishers(talker=talker, **opened)
+
+
+def solver_config(
+    elmask_deg: float, beta: float, range_error_m: float, iono: str, tropo: bool
+) -> SolverConfig:
+    return SolverConfig(
+        elmask_deg=elmask_deg,
+        beta=beta or None,
+        range_error_m=range_error_m,
+        iono=cast(IonoChoice, iono),
+        tropo=tropo,
+    )
+
+
+def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
+    path = state_dir / STORE_NAME
+    if path.exists():
+        try:
+            store = EphemerisStore.load(path, max_age_s=max_age_s)
+            log.info("warm start: %d ephemerides from %s", len(store), path)
+            return store
+        except BdsfixError as exc:
+            log.error("%s; starting with an empty store", exc)
+    return EphemerisStore(max_age_s=max_age_s)
+
+
+def _install_signals(runner: Runner) -> None:
+    signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
+    signal.signal(signal.SIGINT, lambda *_: runner.request_stop())
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, lambda *_: runner.request_reopen())
+
+
+def main_run(args: argparse.Namespace) -> int:
+    from drivers.source import open_source
+
+    cfg_path = args.config
+    if cfg_path is None and Path(DEFAULT_CONFIG).exists():
+        cfg_path = DEFAULT_CONFIG
+    cfg: DaemonConfig = load_config(cfg_path, overrides_from_args(args))
+    logging.getLogger().setLevel(cfg.log_level.upper())
+    if not cfg.source:
+        raise ConfigError("no receiver source: set 'source' in the config or --source")
+    state_dir = cfg.resolved_state_dir()
+    store = load_store(state_dir, cfg.max_eph_age_s)
+    pipeline = Pipeline(
+        store,
+        IonoSet(bds=store.iono if store.iono and store.iono.system == "BDS" else None),
+        solver_config(cfg.elmask_deg, cfg.beta, cfg.range_error_m, cfg.iono, cfg.tropo),
+    )
+    source = open_source(cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud)
+    outputs = build_publishers(
+        nmea_tcp=cfg.nmea_tcp,
+        nmea_out=cfg.nmea_out,
+        nmea_serial=cfg.nmea_serial,
+        zmq=cfg.zmq,
+        jsonl_out=cfg.jsonl_out,
+        talker=cfg.talker,
+        baud=cfg.baud,
+    )
+    notifier = Notifier()
+    runner = Runner(
+        source,
+        pipeline,
+        outputs,
+        source_counters=source.counters,
+        status_interval_s=cfg.status_interval_s,
+        store_path=state_dir / STORE_NAME,
+        watchdog=notifier.watchdog,
+        watchdog_interval_s=notifier.watchdog_interval_s,
+    )
+    _install_signals(runner)
+    notifier.ready(f"reading {cfg.source}")
+    log.info(
+        "bdsfix running: source %s, NMEA %s, ZMQ %s",
+        cfg.source,
+        cfg.nmea_tcp or "-",
+        cfg.zmq or "-",
+    )
+    try:
+        n = runner.run()
+    finally:
+        notifier.stopping()
+        source.close()
+        outputs.close()
+    log.info("stopped after %d epochs; counters: %s", n, dict(runner.counters()))
+    return 0
+
+
+class Timeline:
+    """First events of a stream, for the human summary of a replay."""
+
+    def __init__(self) -> None:
+        self.first: dict[str, float] = {}
+
+    def mark(self, key: str, t_s: float) -> None:
+        self.first.setdefault(key, t_s)
+
+    def on_result(self, r: EpochResult) -> None:
+        for ev in r.track:
+            kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
+            self.mark(f"first {kind} SOW decoded", ev.since_start_s)
+        if r.fix.mode == "fast":
+            self.mark("first fast fix", r.since_start_s)
+        if r.fix.mode == "spp":
+            self.mark("first conventional fix", r.since_start_s)
+
+    def lines(self, offset_s: float = 0.0) -> list[str]:
+        order = [
+            "first GEO SOW decoded",
+            "first fast fix",
+            "first non-GEO SOW decoded",
+            "first conventional fix",
+        ]
+        return [
+            f"  {k:<28} t = {self.first[k] + offset_s:6.2f} s"
+            if k in self.first
+            else f"  {k:<28} (not reached)"
+            for k in order
+        ]
+
+
+def main_replay(args: argparse.Namespace) -> int:
+    from drivers.source import open_source
+    from drivers.transport import pace
+
+    outputs_asked = any([args.nmea_tcp, args.zmq, args.nmea_out, args.jsonl_out])
+    nmea_out = args.nmea_out if outputs_asked else "-"
+    cfg = solver_config(
+        args.elmask_deg, args.beta, args.range_error_m, args.iono, args.tropo != "off"
+    )
+    timeline = Timeline()
+    offset = 0.0
+    if not args.files:
+        from service.scenario import builtin_scenario
+
+        events: Iterable[Any]
+        events, store, iono, offset, info = builtin_scenario(seed=args.seed)
+        speed = args.speed if args.speed is not None else None
+        counters: dict[str, int] = {}
+        print(f"bdsfix replay: built-in scenario: {info}", file=sys.stderr)
+    else:
+        if len(args.files) > 1:
+            raise ConfigError("replay takes one capture at a time (or none for the scenario)")
+        store = EphemerisStore()
+        iono = IonoSet()
+        src = open_source(args.files[0], nav=args.nav or None, gps_week=args.gps_week)
+        events = src
+        counters = src.counters
+        speed = None if args.max_speed else (args.speed or 1.0)
+    pipeline = Pipeline(store, iono, cfg, restart_at_s=args.restart_at, sync_seed=args.seed)
+    outputs = build_publishers(
+        nmea_tcp=args.nmea_tcp or "",
+        nmea_out=nmea_out,
+        zmq=args.zmq or "",
+        jsonl_out=args.jsonl_out or "",
+        talker=args.talker,
+    )
+    runner = Runner(
+        pace(events, speed),
+        pipeline,
+        outputs,
+        source_counters=counters,
+        status_interval_s=args.status_interval_s,
+        on_result=timeline.on_result,
+    )
+    _install_signals(runner)
+    try:
+        n = runner.run()
+    finally:
+        outputs.close()
+    c = runner.counters()
+    print(
+        f"bdsfix replay: {n} epochs; fixes fast {c.get('fix_fast', 0)}, "
+        f"spp {c.get('fix_spp', 0)}, none {c.get('fix_none', 0)}; integrity checks "
+        f"{c.get('integrity_checks', 0)}, failures {c.get('integrity_failures', 0)}",
+        file=sys.stderr,
+    )
+    skipped = {
+        k: v for k, v in c.items() if any(w in k for w in ("bad_", "skipped", "error", "resync"))
+    }
+    if skipped:
+        print(f"  skipped: {skipped}", file=sys.stderr)
+    for line in timeline.lines(offset):
+        print(line, file=sys.stderr)
+    return 0
+
+
+def main_sub(args: argparse.Namespace) -> int:
+    import zmq
+
+    ctx: Any = zmq.Context.instance()
+    sock = ctx.socket(zmq.SUB)
+    sock.setsockopt(zmq.LINGER, 0)
+    for topic in args.topic or [""]:
+        sock.setsockopt_string(zmq.SUBSCRIBE, topic)
+    sock.connect(args.endpoint)
+    n = 0
+    try:
+        while args.count is None or n < args.count:
+            if not sock.poll(int(args.timeout_s * 1000) if args.timeout_s else None):
+                break
+            topic, body = sock.recv_multipart()
+            print(f"{topic.decode()} {body.decode()}", flush=True)
+            n += 1
+    finally:
+        sock.close()
+    return 0
