@@ -46,20 +46,24 @@ def build_publishers(
     jsonl_out: str = "",
     talker: str = "GN",
     baud: int = 115200,
+    append: bool = False,
 ) -> Publishers:
-    """Open the requested outputs; a bad one raises ConfigError after closing the others."""
+    """Open the requested outputs; a bad one raises ConfigError after closing the others.
+
+    File outputs are truncated unless ``append`` (the daemon appends, replay rewrites).
+    """
     opened: dict[str, Any] = {}
     try:
         if nmea_tcp:
             opened["nmea_tcp"] = NmeaTcpServer(*parse_host_port(nmea_tcp, "--nmea-tcp"))
         if nmea_out:
-            opened["nmea_lines"] = LineSink(nmea_out)
+            opened["nmea_lines"] = LineSink(nmea_out, append=append)
         if nmea_serial:
             opened["nmea_serial"] = SerialSink(nmea_serial, baud)
         if zmq:
             opened["zmq"] = ZmqPublisher(zmq)
         if jsonl_out:
-            opened["jsonl"] = LineSink(jsonl_out)
+            opened["jsonl"] = LineSink(jsonl_out, append=append)
     except BdsfixError:
         for part in opened.values():
             part.close()
@@ -124,6 +128,7 @@ def main_run(args: argparse.Namespace) -> int:
         jsonl_out=cfg.jsonl_out,
         talker=cfg.talker,
         baud=cfg.baud,
+        append=True,
     )
     notifier = Notifier()
     runner = Runner(

@@ -243,20 +243,23 @@ class ZmqPublisher:
 
 
 class LineSink:
-    """Lines to a file (appended) or ``-`` (stdout); :meth:`reopen` after log rotation."""
+    """Lines to a file or ``-`` (stdout); :meth:`reopen` appends to a (rotated) file anew."""
 
-    def __init__(self, target: str) -> None:
+    def __init__(self, target: str, append: bool = False) -> None:
         self.target = target
         self._fh: IO[str] | None = None
-        self.reopen()
+        self._open("a" if append else "w")
 
     def reopen(self) -> None:
+        self._open("a")
+
+    def _open(self, mode: str) -> None:
         if self.target == "-":
             self._fh = sys.stdout
             return
         old = self._fh
         try:
-            self._fh = open(self.target, "a", encoding="ascii", buffering=1)  # noqa: SIM115
+            self._fh = open(self.target, mode, encoding="ascii", buffering=1)  # noqa: SIM115
         except OSError as exc:
             raise ConfigError(f"cannot write {self.target}: {exc.strerror}") from exc
         if old is not None:
