@@ -17,6 +17,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import os
+import stat
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -253,6 +254,14 @@ def _nav_events(nav: str | Path | Iterable[str | Path] | None, counters: Counter
     return events
 
 
+def _is_char_device(path: str) -> bool:
+    """A serial device or pty given by any path (e.g. a udev or test symlink)."""
+    try:
+        return stat.S_ISCHR(os.stat(path).st_mode)
+    except OSError:
+        return False
+
+
 def open_source(
     spec: str,
     *,
@@ -282,7 +291,7 @@ def open_source(
         if not host or not port.isdigit():
             raise ConfigError(f"bad TCP source {spec!r}: expected tcp:HOST:PORT")
         transport = TcpClientTransport(host, int(port), backoff_max_s=reconnect_max_s)
-    elif spec.startswith("serial:") or spec.startswith("/dev/"):
+    elif spec.startswith(("serial:", "/dev/")) or _is_char_device(spec):
         rest = spec.removeprefix("serial:")
         device, sep, rate = rest.rpartition(":")
         if not sep or not rate.isdigit():
