@@ -154,10 +154,11 @@ def _get(data: int, start: int, length: int, signed: bool = False) -> int:
     return v
 
 
-def _put(data: int, start: int, length: int, value: int) -> int:
+def _put(data: int, start: int, length: int, value: int, signed: bool = False) -> int:
     mask = (1 << length) - 1
-    if not -(1 << length) <= value < (1 << length):
-        raise ValueError(f"{value} does not fit {length} bits")
+    lo, hi = (-(1 << (length - 1)), 1 << (length - 1)) if signed else (0, 1 << length)
+    if not lo <= value < hi:
+        raise ValueError(f"{value} does not fit {'signed ' if signed else ''}{length} bits")
     shift = DATA_BITS - start - length
     return (data & ~(mask << shift)) | ((value & mask) << shift)
 
@@ -253,9 +254,9 @@ def decode_d1_fields(data: int, fra_id: int) -> dict[str, float]:
 
 
 def encode_d1_fields(data: int, fra_id: int, values: dict[str, float]) -> int:
-    for name, (start, length, _signed, scale, semi) in D1_FIELDS[fra_id].items():
+    for name, (start, length, signed, scale, semi) in D1_FIELDS[fra_id].items():
         v = values.get(name, 0.0)
-        data = _put(data, start, length, round((v / ICD_PI if semi else v) / scale))
+        data = _put(data, start, length, round((v / ICD_PI if semi else v) / scale), signed)
     return data
 
 
