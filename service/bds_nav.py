@@ -244,6 +244,9 @@ D1_FIELDS: dict[int, dict[str, tuple[int, int, bool, float, bool]]] = {
 }
 
 
+_ANGLES = frozenset({"m0", "i0", "omega0", "omega"})
+
+
 def decode_d1_fields(data: int, fra_id: int) -> dict[str, float]:
     """Physical values of a D1 subframe 1-3 (angles in radians, times in seconds)."""
     out: dict[str, float] = {}
@@ -256,7 +259,11 @@ def decode_d1_fields(data: int, fra_id: int) -> dict[str, float]:
 def encode_d1_fields(data: int, fra_id: int, values: dict[str, float]) -> int:
     for name, (start, length, signed, scale, semi) in D1_FIELDS[fra_id].items():
         v = values.get(name, 0.0)
-        data = _put(data, start, length, round((v / ICD_PI if semi else v) / scale), signed)
+        if semi:
+            v /= ICD_PI
+            if name in _ANGLES:  # angles wrap into [-1, 1) semicircles
+                v = (v + 1.0) % 2.0 - 1.0
+        data = _put(data, start, length, round(v / scale), signed)
     return data
 
 

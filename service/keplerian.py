@@ -85,7 +85,7 @@ def ephemeris_from_kepler(
         e=e,
         i0_rad=inc_rad,
         omega0_rad=omega0,
-        omega_rad=argp_rad,
+        omega_rad=math.remainder(argp_rad, 2 * math.pi),
         m0_rad=math.remainder(mean_anomaly_rad, 2 * math.pi),
         delta_n_rad_s=0.0,
         omega_dot_rad_s=0.0,

@@ -55,8 +55,9 @@ class SimConfig:
     noise_m: float = 1.3
     seed: int = 0
     elmask_deg: float = 5.0
-    acq_delay_s: tuple[float, float] = (0.05, 0.3)
-    sync_delay_s: tuple[float, float] = (0.1, 0.5)
+    acq_delay_s: tuple[float, float] = (0.02, 0.10)  # warm start: Doppler and code known
+    d2_sync_delay_s: tuple[float, float] = (0.01, 0.04)  # 2 ms bits, no NH code
+    d1_sync_delay_s: tuple[float, float] = (0.1, 0.5)  # 20 ms bits behind the NH code
     tropo: bool = True
 
 
@@ -138,7 +139,8 @@ class Simulator:
             for e in self.ephemerides
         }
         for s in self._sats.values():
-            s.sync_s = s.acq_s + float(rng.uniform(*self.cfg.sync_delay_s))
+            span = self.cfg.d2_sync_delay_s if is_geo(s.prn) else self.cfg.d1_sync_delay_s
+            s.sync_s = s.acq_s + float(rng.uniform(*span))
 
     @property
     def prns(self) -> list[str]:
