@@ -307,3 +307,67 @@ def test_daemon_reads_ubx_from_a_pty_and_survives_the_writer_going_away(tmp_path
     assert t_back is not None and t_seen is not None
     print(f"fixes resumed {t_seen - t_back:.2f} s after the device came back")
     assert t_seen - t_back < 2.0
+
+
+def test_daemon_sighup_reopens_outputs_and_sigterm_saves_the_store(tmp_path):
+    """logrotate-style: rename the JSONL, SIGHUP, and records continue in a new file;
+    SIGTERM ends with exit 0 and an intact ephemeris store."""
+    import signal
+
+    from service.ephemeris import EphemerisStore
+    from service.keplerian import table1_ephemerides
+    from service.scenario import scenario_config
+    from service.simulator import Simulator
+
+    state = tmp_path / "state"
+    state.mkdir()
+    _write_store(state)
+    jsonl = tmp_path / "fixes.jsonl"
+    rotated = tmp_path / "fixes.jsonl.1"
+    chunks = [
+        d
+        for _e, d in Simulator(
+            table1_ephemerides(0.0), scenario_config(duration_s=8.0)
+        ).ubx_epochs()
+    ]
+    master, slave = os.openpty()
+    proc = subprocess.Popen(
+        [
+            *BDSFIX,
+            "run",
+            "--source",
+            os.ttyname(slave),
+            "--state-dir",
+            str(state),
+            "--nmea-tcp",
+            "",
+            "--zmq",
+            "",
+            "--jsonl-out",
+            str(jsonl),
+        ],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        time.sleep(1.5)
+        for i, data in enumerate(chunks):
+            os.write(master, data)
+            time.sleep(0.03)
+            if i == 40:
+                jsonl.rename(rotated)
+                proc.send_signal(signal.SIGHUP)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(master)
+        os.close(slave)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    old = rotated.read_text().splitlines()
+    new = jsonl.read_text().splitlines()
+    assert len(old) > 10 and len(new) > 10
+    assert json.loads(new[-1])["gpst_tow_s"] > json.loads(old[-1])["gpst_tow_s"]
+    assert len(EphemerisStore.load(state / "ephemeris.json")) == 14
