@@ -14,7 +14,9 @@ BDS-SIS-ICD-B1I-3.0:
 - 5.2.4: D1 subframes 1-3 carry clock, TGD, ionosphere (Klobuchar alpha/beta) and ephemeris;
   scale factors per Table 5-9/5-10; angles in semicircles (pi = 3.1415926535898 as the ICD).
 - D2 (GEOs): page number Pnum, 4 bits at 43-46 of subframe 1 (7 bits after a Rev bit in
-  subframe 5). D2 SOW: see :func:`service.tracker.subframe_start_sow_s`.
+  subframe 5); subframe 1 pages 1-10 (one per 3 s frame, 30 s in all) carry the same
+  clock/ephemeris parameters as D1 subframes 1-3, split differently (:data:`D2_PAGES`).
+  D2 SOW: see :func:`service.tracker.subframe_start_sow_s`.
 """
 
 from __future__ import annotations
@@ -246,6 +248,40 @@ D1_FIELDS: dict[int, dict[str, tuple[int, int, bool, float, bool]]] = {
 
 _ANGLES = frozenset({"m0", "i0", "omega0", "omega"})
 
+# D2 subframe 1, pages 1-10 (ICD 5.3.2, one page per 3 s frame): (field, start, length) in
+# the 224-bit stream; fields split across pages are listed MSBs first. Words 6-10 are spare.
+D2_PAGES: dict[int, tuple[tuple[str, int, int], ...]] = {
+    1: (
+        ("sath1", 42, 1),
+        ("aodc", 43, 5),
+        ("urai", 48, 4),
+        ("wn", 52, 13),
+        ("toc", 65, 17),
+        ("tgd1", 82, 10),
+        ("tgd2", 92, 10),
+    ),
+    2: (
+        ("alpha0", 42, 8),
+        ("alpha1", 50, 8),
+        ("alpha2", 58, 8),
+        ("alpha3", 66, 8),
+        ("beta0", 74, 8),
+        ("beta1", 82, 8),
+        ("beta2", 90, 8),
+        ("beta3", 98, 8),
+    ),
+    3: (("af0", 80, 24), ("af1", 104, 4)),
+    4: (("af1", 42, 18), ("af2", 60, 11), ("aode", 71, 5), ("deltan", 76, 16), ("cuc", 92, 14)),
+    5: (("cuc", 42, 4), ("m0", 46, 32), ("cus", 78, 18), ("e", 96, 10)),
+    6: (("e", 42, 22), ("sqrta", 64, 32), ("cic", 96, 10)),
+    7: (("cic", 42, 8), ("cis", 50, 18), ("toe", 68, 17), ("i0", 85, 21)),
+    8: (("i0", 42, 11), ("crc", 53, 18), ("crs", 71, 18), ("omegadot", 89, 19)),
+    9: (("omegadot", 42, 5), ("omega0", 47, 32), ("omega", 79, 27)),
+    10: (("omega", 42, 5), ("idot", 47, 14)),
+}
+_D1_ATTR = {k: v for table in D1_FIELDS.values() for k, v in table.items()}
+_D1_ATTR["toe"] = (0, 17, False, 8.0, False)
+
 
 def decode_d1_fields(data: int, fra_id: int) -> dict[str, float]:
     """Physical values of a D1 subframe 1-3 (angles in radians, times in seconds)."""
@@ -265,6 +301,65 @@ def encode_d1_fields(data: int, fra_id: int, values: dict[str, float]) -> int:
                 v = (v + 1.0) % 2.0 - 1.0
         data = _put(data, start, length, round(v / scale), signed)
     return data
+
+
+def _scaled_int(name: str, value: float) -> tuple[int, int]:
+    """(integer, total width) of a field value, with the D1 scale and signedness."""
+    _s, length, signed, scale, semi = _D1_ATTR[name]
+    if name == "toe":
+        length = 17
+    v = value
+    if semi:
+        v /= ICD_PI
+        if name in _ANGLES:
+            v = (v + 1.0) % 2.0 - 1.0
+    n = round(v / scale)
+    lo, hi = (-(1 << (length - 1)), 1 << (length - 1)) if signed else (0, 1 << length)
+    if not lo <= n < hi:
+        raise ValueError(f"{name}={value} does not fit {length} bits")
+    return n & ((1 << length) - 1), length
+
+
+def _d2_widths() -> dict[str, int]:
+    widths: dict[str, int] = {}
+    for parts in D2_PAGES.values():
+        for name, _start, length in parts:
+            widths[name] = widths.get(name, 0) + length
+    return widths
+
+
+D2_WIDTHS = _d2_widths()
+
+
+def encode_d2_page(data: int, page: int, values: dict[str, float]) -> int:
+    """Put the page-``page`` parts of D2 subframe 1 into a data stream (ICD 5.3.2)."""
+    done: dict[str, int] = {}
+    for pg in range(1, page + 1):
+        for name, _start, length in D2_PAGES[pg]:
+            done[name] = done.get(name, 0) + (length if pg < page else 0)
+    for name, start, length in D2_PAGES[page]:
+        n, width = _scaled_int(name, values.get(name, 0.0))
+        used = done[name]  # bits of this field sent on earlier pages
+        part = (n >> (width - used - length)) & ((1 << length) - 1)
+        data = _put(data, start, length, part)
+    return data
+
+
+def decode_d2_pages(pages: dict[int, int]) -> dict[str, float]:
+    """Physical values from the data streams of D2 subframe 1 pages 1-10."""
+    raw: dict[str, int] = {}
+    for pg in range(1, 11):
+        for name, start, length in D2_PAGES[pg]:
+            raw[name] = raw.get(name, 0) << length | _get(pages[pg], start, length)
+    out: dict[str, float] = {}
+    for name, n in raw.items():
+        _s, _l, signed, scale, semi = _D1_ATTR[name]
+        width = D2_WIDTHS[name]
+        if signed and n >> (width - 1):
+            n -= 1 << width
+        v = n * scale
+        out[name] = v * ICD_PI if semi else v
+    return out
 
 
 def _ura_index(ura_m: float) -> int:
@@ -338,15 +433,16 @@ def encode_d2_frame(
 ) -> list[list[int]]:
     """Subframes 1-5 of one D2 frame (3 s) starting at ``frame_sow_s`` (ICD 5.3.2).
 
-    Every subframe carries the frame's SOW; subframe 1 carries page ``page`` (1-10) and
-    subframe 5 page ((frame count) mod 120) + 1. The ephemeris pages' payload is not yet
-    encoded (zeros with valid parity): the stream serves time, not GEO ephemerides.
+    Every subframe carries the frame's SOW; subframe 1 carries ephemeris page ``page``
+    (1-10) and subframe 5 page ((frame count) mod 120) + 1 (its almanac payload is zero).
     """
+    values = ephemeris_values(eph, iono)
+    values["toe"] = eph.toe_sow_s
     out = []
     for fra in range(1, 6):
         data = _header_data(fra, int(frame_sow_s))
         if fra == 1:
-            data = _put(data, 38, 4, page)
+            data = encode_d2_page(_put(data, 38, 4, page), page, values)
         elif fra == 5:
             data = _put(data, 39, 7, (int(frame_sow_s) // 3) % 120 + 1)
         out.append(subframe_words(data))
@@ -354,7 +450,7 @@ def encode_d2_frame(
 
 
 class EphemerisAssembler:
-    """Collects D1 subframes 1-3 per satellite into ephemerides (ICD 5.2.4.9-12).
+    """Collects D1 subframes 1-3, or D2 subframe 1 pages 1-10, into ephemerides.
 
     A set is complete when subframes 1, 2 and 3 were received with one toe (split across 2
     and 3) and the SOWs of one frame; each new (prn, toe) is returned once, with the
@@ -365,13 +461,14 @@ class EphemerisAssembler:
         self._parts: dict[str, dict[int, tuple[int, dict[str, float]]]] = {}
         self._done: set[tuple[str, int, float]] = set()
         self._iono: KlobucharParams | None = None
+        self._d2: dict[str, dict[int, tuple[int, int]]] = {}
         self.unsupported = 0
         self.errors = 0
 
     def feed(
         self, prn: str, nav_type: str, words: Sequence[int]
     ) -> list[Ephemeris | KlobucharParams]:
-        if nav_type != "D1":
+        if nav_type not in ("D1", "D2"):
             self.unsupported += 1
             return []
         try:
@@ -380,6 +477,8 @@ class EphemerisAssembler:
             self.errors += 1
             return []
         fra = _get(data, *HEADER["fra_id"])
+        if nav_type == "D2":
+            return self._feed_d2(prn, fra, data) if fra == 1 else []
         if fra not in (1, 2, 3):
             return []
         sow = _get(data, *HEADER["sow"])
@@ -404,6 +503,28 @@ class EphemerisAssembler:
                     self._done.add(key)
                     out.append(eph)
         return out
+
+    def _feed_d2(self, prn: str, fra: int, data: int) -> list[Ephemeris | KlobucharParams]:
+        """D2 subframe 1: pages 1-10 of ten consecutive frames make one set."""
+        page = _get(data, 38, 4)
+        if not 1 <= page <= 10:
+            return []
+        sow = _get(data, *HEADER["sow"])
+        pages = self._d2.setdefault(prn, {})
+        pages[page] = (sow, data)
+        if page != 10 or len(pages) < 10:
+            return []
+        if any(pages[k][0] != sow - 3 * (10 - k) for k in range(1, 11)):
+            return []
+        v = decode_d2_pages({k: d for k, (_s, d) in pages.items()})
+        units = round(v["toe"] / 8.0)
+        v["toe_msb"], v["toe_lsb"] = units >> 15, units & 0x7FFF
+        eph = self._ephemeris(prn, v, v, v)
+        key = (prn, eph.week, eph.toe_sow_s)
+        if key in self._done:
+            return []
+        self._done.add(key)
+        return [eph]
 
     @staticmethod
     def _ephemeris(

@@ -276,3 +276,32 @@ def test_corrupted_word_is_corrected_or_rejected():
     no_preamble = [sf[0] ^ (1 << 29), *sf[1:]]
     with pytest.raises(bn.DecodeError):
         bn.subframe_data(no_preamble)
+
+
+@pytest.mark.parametrize("prn", ["C01", "C02", "C03", "C04", "C05"])
+def test_d2_ephemeris_pages_round_trip(prn):
+    """D2 subframe 1 pages 1-10 over ten frames give back the GEO ephemeris (quantised)."""
+    eph = read_nav(DATA / "hksc-2021/hksc1610.nav").ephemerides[prn][0]
+    asm = bn.EphemerisAssembler()
+    out = []
+    for frame in range(200, 215):  # starts mid-cycle: the set completes at the next page 10
+        out += asm.feed(prn, "D2", bn.encode_d2_frame(eph, frame * 3, frame % 10 + 1)[0])
+    (got,) = out
+    assert (got.week, got.toe_sow_s, got.toc_sow_s, got.aode) == (
+        eph.week,
+        eph.toe_sow_s,
+        eph.toc_sow_s,
+        eph.aode,
+    )
+    assert abs(got.sqrt_a_sqrt_m - eph.sqrt_a_sqrt_m) <= 2**-20
+    for f in ("m0_rad", "omega_rad", "omega0_rad", "i0_rad"):
+        assert abs(math.remainder(getattr(got, f) - getattr(eph, f), 2 * math.pi)) <= 2**-31 * 4
+    for f, q in (
+        ("af0_s", 2**-33),
+        ("af1_s_s", 2**-50),
+        ("crc_m", 2**-6),
+        ("cuc_rad", 2**-31),
+        ("omega_dot_rad_s", 4 * 2**-43),
+        ("idot_rad_s", 4 * 2**-43),
+    ):
+        assert abs(getattr(got, f) - getattr(eph, f)) <= q, f
