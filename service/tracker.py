@@ -52,9 +52,14 @@ def nav_type_of(prn: str) -> str:
 def subframe_start_sow_s(nav_type: str, sow_s: float, fra_id: int) -> float:
     """BDT seconds of week at which a subframe's first bit left the satellite.
 
-    D1: the SOW counts the leading edge of the subframe it is in (ICD 5.2.4.1).
-    D2: the SOW is that of the frame's first subframe, and subframes follow 0.6 s apart, so
-    subframe k starts at SOW + 0.6 (k - 1) (ICD 5.3.3.1; METHOD.md working reading).
+    D1: the SOW counts the leading edge of the subframe it is in (ICD 5.2.4.1); checked on
+    the PolyU F9P capture, where each SFRBX arrives at SOW + 14 s + 6 s GPST.
+    D2: the SOW is an integer count of seconds while D2 subframes are 0.6 s apart, so it
+    cannot mark each subframe; it is that of the frame's first subframe and subframe k
+    starts at SOW + 0.6 (k - 1) (ICD B1I 5.3.3.1 "SOW", METHOD.md's working reading). The ICD
+    text itself could not be retrieved here; an independent signal generator (Racelogic
+    SatGen, NavigationDataB1ID2) writes 3 x frame count into every subframe of a frame, which
+    agrees. No public capture with D2 subframes exists to check it on.
     """
     if nav_type == "D2":
         return sow_s + D2_SUBFRAME_S * (fra_id - 1)
