@@ -13,10 +13,10 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
+from service.bds_nav import EphemerisAssembler
 from service.constants import C_M_S
 from service.engine import IonoSet, SolverConfig, solve
 from service.ephemeris import EphemerisStore
@@ -74,7 +74,7 @@ class Pipeline:
     _first: tuple[int, float] | None = None
     _restarted: bool = False
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
-    _assembler: Any = None
+    _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
 
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
@@ -96,12 +96,6 @@ class Pipeline:
         return events
 
     def _feed_assembler(self, sf: NavSubframe) -> None:
-        try:
-            from service.bds_nav import EphemerisAssembler
-        except ImportError:  # pragma: no cover - codec not installed
-            return
-        if self._assembler is None:
-            self._assembler = EphemerisAssembler()
         for item in self._assembler.feed(sf.prn, sf.nav_type, sf.words):
             if isinstance(item, Ephemeris):
                 self.add_ephemeris(item)

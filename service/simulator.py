@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from service.bds_nav import encode_d1_subframes, encode_d2_frame
 from service.constants import C_M_S, WEEK_S, is_geo, prn_number
 from service.geometry import geodetic_to_ecef
 from service.orbit import EphemerisArrays
@@ -198,18 +199,10 @@ class Simulator:
         """Each epoch with its UBX bytes: SFRBX for completed subframes, MEASX, then RAWX."""
         geo_of = {p: is_geo(p) for p in self.prns}
         eph_of = {e.prn: e for e in self.ephemerides}
-        try:
-            from service import bds_nav  # noqa: F401
-        except ImportError:
-            with_subframes = False
-            log.warning("no B1I subframe encoder (service.bds_nav): RXM-SFRBX not emitted")
-        else:
-            with_subframes = True
         for ep in self.epochs():
             parts = [
                 _sfrbx(sf.prn, sf.nav_type, subframe_words(eph_of[sf.prn], sf, self.iono))
                 for sf in ep.subframes
-                if with_subframes
             ]
             parts.append(_measx(ep))
             parts.append(_rawx(ep, [geo_of[p] for p in ep.prn]))
@@ -243,14 +236,12 @@ class Simulator:
 
 def subframe_words(eph: Ephemeris, sf: SimSubframe, iono: KlobucharParams | None) -> list[int]:
     """The ten 30-bit words of a completed subframe (BCH-coded, interleaved; ICD 5.1.3)."""
-    from service import bds_nav
-
     frame, fra_id = divmod(sf.index, 5)
     if sf.nav_type == "D1":
         sow = round(frame * 5 * D1_SUBFRAME_S)
-        return list(bds_nav.encode_d1_subframes(eph, sow, iono)[fra_id])
+        return list(encode_d1_subframes(eph, sow, iono)[fra_id])
     sow = round(frame * 5 * D2_SUBFRAME_S)
-    return list(bds_nav.encode_d2_frame(eph, sow, frame % 10 + 1, iono)[fra_id])
+    return list(encode_d2_frame(eph, sow, frame % 10 + 1, iono)[fra_id])
 
 
 def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
