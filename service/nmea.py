@@ -62,61 +62,25 @@ def sentences_for_fix(
     if talker not in TALKERS:
         raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {talker!r}")
     t = _time(utc)
-    if not fix.ok or fix.lat_deg is None or fix.lon_deg is None or fix.alt_m is None:
-        return [
-            _msg(
-                talker,
-                "GGA",
-                time=t,
-                lat="",
-                NS="",
-                lon="",
-                EW="",
-                quality=0,
-                numSV=0,
-                HDOP="",
-                alt="",
-                altUnit="M",
-                sep="",
-                sepUnit="M",
-                diffAge="",
-                diffStation="",
-            ),
-            _msg(
-                talker,
-                "RMC",
-                time=t,
-                status="V",
-                lat="",
-                NS="",
-                lon="",
-                EW="",
-                spd="",
-                cog="",
-                date=utc.date(),
-                mv="",
-                mvEW="",
-                posMode="N",
-                navStatus="V",
-            ),
-        ]
-    lat, ns, lon, ew = _hemis(fix.lat_deg, fix.lon_deg)
-    hdop = round(fix.hdop, 2) if fix.hdop is not None else ""
+    has_fix = fix.ok and None not in (fix.lat_deg, fix.lon_deg, fix.alt_m)
+    pos: dict[str, object] = {"lat": "", "NS": "", "lon": "", "EW": ""}
+    hdop: object = ""
+    if has_fix:
+        lat, ns, lon, ew = _hemis(float(fix.lat_deg or 0.0), float(fix.lon_deg or 0.0))
+        pos = {"lat": lat, "NS": ns, "lon": lon, "EW": ew}
+        hdop = round(fix.hdop, 2) if fix.hdop is not None else ""
     out = [
         _msg(
             talker,
             "GGA",
             time=t,
-            lat=lat,
-            NS=ns,
-            lon=lon,
-            EW=ew,
-            quality=1,
+            **pos,
+            quality=1 if has_fix else 0,
             numSV=len(fix.used),
             HDOP=hdop,
-            alt=round(fix.alt_m, 3),
+            alt=round(float(fix.alt_m or 0.0), 3) if has_fix else "",
             altUnit="M",
-            sep=0.0,
+            sep=0.0 if has_fix else "",
             sepUnit="M",
             diffAge="",
             diffStation="",
@@ -125,20 +89,19 @@ def sentences_for_fix(
             talker,
             "RMC",
             time=t,
-            status="A",
-            lat=lat,
-            NS=ns,
-            lon=lon,
-            EW=ew,
+            status="A" if has_fix else "V",
+            **pos,
             spd="",
             cog="",
             date=utc.date(),
             mv="",
             mvEW="",
-            posMode="A",
+            posMode="A" if has_fix else "N",
             navStatus="V",
         ),
     ]
+    if not has_fix:
+        return out
     gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
     used = sorted(fix.used, key=prn_number)[:12]
     for j in range(12):
