@@ -22,6 +22,7 @@ _HANDLERS: dict[str, str] = {
     "replay": "service.daemon:main_replay",
     "run": "service.daemon:main_run",
     "sub": "service.daemon:main_sub",
+    "simulate": "service.simulate_cmd:main_simulate",
 }
 
 
@@ -117,6 +118,23 @@ def build_parser() -> argparse.ArgumentParser:
         "--config", default=None, help=f"TOML config (default {DEFAULT_CONFIG} when it exists)"
     )
     add_config_flags(d)
+
+    m = sub.add_parser("simulate", help="virtual BDS receiver: UBX out")
+    m.add_argument("--nav", help="RINEX 3 nav file (default: the paper's Table 1 set)")
+    m.add_argument("--lat-deg", type=float, default=39.9)
+    m.add_argument("--lon-deg", type=float, default=116.4)
+    m.add_argument("--alt-m", type=float, default=50.0)
+    m.add_argument("--start", help="ISO UTC start (default: first toe, or Table 1's epoch)")
+    m.add_argument("--duration-s", type=float, default=60.0)
+    m.add_argument("--rate-hz", type=float, default=10.0)
+    m.add_argument("--clock-offset-s", type=float, default=0.0123)
+    m.add_argument("--noise-m", type=float, default=1.3)
+    m.add_argument("--seed", type=int, default=0)
+    dest = m.add_mutually_exclusive_group()
+    dest.add_argument("--out", help="file, - for stdout (default)")
+    dest.add_argument("--pty", action="store_true", help="write to a new pty (path on stderr)")
+    m.add_argument("--realtime", action="store_true", help="pace file/stdout output in real time")
+    m.add_argument("--max-speed", action="store_true", help="do not pace the pty")
 
     z = sub.add_parser("sub", help="print ZeroMQ messages")
     z.add_argument("endpoint", nargs="?", default="tcp://127.0.0.1:10111")
