@@ -23,6 +23,7 @@ _HANDLERS: dict[str, str] = {
     "run": "service.daemon:main_run",
     "sub": "service.daemon:main_sub",
     "simulate": "service.simulate_cmd:main_simulate",
+    "ttff": "service.ttff:main_ttff",
 }
 
 
@@ -135,6 +136,16 @@ def build_parser() -> argparse.ArgumentParser:
     dest.add_argument("--pty", action="store_true", help="write to a new pty (path on stderr)")
     m.add_argument("--realtime", action="store_true", help="pace file/stdout output in real time")
     m.add_argument("--max-speed", action="store_true", help="do not pace the pty")
+
+    t = sub.add_parser("ttff", help="time to first fix: fast vs conventional on restarts")
+    t.add_argument("obs", nargs="?")
+    t.add_argument("nav", nargs="*")
+    t.add_argument("--trials", type=int, default=100)
+    t.add_argument("--seed", type=int, default=1)
+    t.add_argument("--elmask-deg", type=float, default=10.0)
+    t.add_argument("--json", action="store_true", help="print the result as JSON")
+    t.add_argument("--plot", help="TTFF histograms PNG")
+    t.add_argument("--simulate", action="store_true", help="simulated streams (not yet)")
 
     z = sub.add_parser("sub", help="print ZeroMQ messages")
     z.add_argument("endpoint", nargs="?", default="tcp://127.0.0.1:10111")
