@@ -1,11 +1,28 @@
 """NMEA 0183 sentences for a fix, built with pynmeagps (output sentences, msgmode GET).
 
-GGA, RMC, GSA, GSV (NMEA 4.11: signal ID field, BDS B1I = 1; GSA system ID 4 = BeiDou), GST
-and ZDA once time is known. The talker of GGA/RMC/GSA/GST/ZDA is configurable (GN by default,
-GB, BD or GP); GSV names its constellation, so it uses GB (BD when BD was asked for).
-Latitude and longitude carry 7 decimals of minutes (pynmeagps high-precision mode, 0.2 mm),
-times keep hundredths of a second for 10 Hz output. A fix with ``mode == "none"`` gives a GGA
-with quality 0 and RMC status V, as receivers do before they have a position.
+Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
+
+- Talker: GGA/RMC/GSA/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD``
+  or ``GP``). GSV describes one constellation, so it always uses BeiDou's ``GB`` (``BD``
+  when ``BD`` was asked for).
+- NMEA 4.11 fields: GSA ends with the GNSS system ID, 4 = BeiDou; GSV ends with the signal
+  ID, 1 = B1I (D1 and D2 alike, as u-blox NMEA 4.11 output and gpsd's tables have it).
+  Satellite IDs are BDS PRNs 1-63.
+- Precision: latitude/longitude carry 7 decimals of minutes (pynmeagps ``hpnmeamode``:
+  1e-7 min = 0.19 mm); times carry hundredths of a second (hhmmss.ss), so 10 Hz output
+  keeps distinct stamps; the altitude carries millimetres.
+- Length: NMEA 0183 caps a sentence at 82 characters including ``$`` and CRLF. GGA is 80
+  for typical values; when the altitude has five digits or HDOP reaches 10 it is rebuilt
+  with centimetre altitude and then 0.1 HDOP; latitude/longitude precision is never cut,
+  so in extreme cases GGA may still exceed 82 (gpsd accepts longer sentences). GST
+  values switch from millimetres to decimetres at 100 m and to metres at 10 km.
+- Altitude: GGA carries the ellipsoidal height as altitude with geoid separation 0.0, so
+  altitude + separation is the height above the CGCS2000 ellipsoid as gpsd computes it.
+- Fix quality: fast and SPP fixes are both GGA quality 1 (autonomous) with GSA mode 3, so
+  gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only GGA with quality 0 and an
+  empty position and RMC with status V (gpsd: no fix); pynmeagps fills the hemisphere
+  fields with N/E even then. Its time is the receiver's unsolved tag, so no ZDA follows.
+- ZDA only with ``time_known`` (the caller knows UTC, e.g. after a first fix).
 """
 
 from __future__ import annotations
@@ -22,69 +39,141 @@ from service.types import Fix, SatView
 TALKERS = ("GN", "GB", "BD", "GP")
 BDS_SYSTEM_ID = "4"
 B1I_SIGNAL_ID = "1"
+NMEA_MAX_LEN = 82
+GSA_MAX_SV = 12
+GSV_SATS_PER_SENTENCE = 4
 
 
 def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
     return bytes(NMEAMessage(talker, msg_id, GET, hpnmeamode=True, **fields).serialize())
 
 
-def _hemis(lat: float, lon: float) -> tuple[float, str, float, str]:
-    return abs(lat), "N" if lat >= 0 else "S", abs(lon), "E" if lon >= 0 else "W"
-
-
-def _time(utc: dt.datetime) -> dt.time:
-    # hundredths of a second, as NMEA carries them
+def nmea_time(utc: dt.datetime) -> dt.datetime:
+    """``utc`` rounded to the hundredth of a second NMEA carries (date included)."""
     cs = round(utc.microsecond / 10_000)
-    base = utc.replace(microsecond=0) + dt.timedelta(milliseconds=10 * cs)
-    return base.time()
+    return utc.replace(microsecond=0) + dt.timedelta(milliseconds=10 * cs)
 
 
-def _gsv(sky: Sequence[SatView], talker: str) -> list[bytes]:
+def _deg_for_dmm(deg: float) -> float:
+    """``deg`` nudged so that pynmeagps' ddmm.mmmmmmm never shows 60.0000000 minutes.
+
+    pynmeagps splits |deg|*60 with divmod and formats the minutes to 7 decimals; minutes
+    that round up to 60 are returned as the next whole degree, which is exact in floats.
+    """
+    whole, minutes = divmod(abs(deg) * 60.0, 60.0)
+    if round(minutes, 7) >= 60.0:
+        return math.copysign(whole + 1.0, deg)
+    return deg
+
+
+def _dop(value: float | None, ndigits: int = 2) -> object:
+    return round(value, ndigits) if value is not None and math.isfinite(value) else ""
+
+
+def _metres(value: float) -> float | int:
+    """A GST standard deviation with mm, dm or m resolution by size (keeps GST short)."""
+    if not math.isfinite(value):
+        return 0.0
+    if abs(value) < 100.0:
+        return round(value, 3)
+    if abs(value) < 10_000.0:
+        return round(value, 1)
+    return round(value)
+
+
+def _int_or_empty(value: float) -> object:
+    return round(value) if math.isfinite(value) else ""
+
+
+def gsv_sentences(sky: Sequence[SatView], talker: str = "GB") -> list[bytes]:
+    """GSV sentences (4 satellites each, sorted by PRN) with the B1I signal ID."""
     sats = sorted(sky, key=lambda s: prn_number(s.prn))
-    n_msg = max(1, math.ceil(len(sats) / 4))
+    n_msg = max(1, math.ceil(len(sats) / GSV_SATS_PER_SENTENCE))
     out = []
     for k in range(n_msg):
         fields: dict[str, object] = {"numMsg": n_msg, "msgNum": k + 1, "numSV": len(sats)}
-        for j, s in enumerate(sats[4 * k : 4 * k + 4], start=1):
+        group = sats[GSV_SATS_PER_SENTENCE * k : GSV_SATS_PER_SENTENCE * (k + 1)]
+        for j, s in enumerate(group, start=1):
             fields[f"svid_{j:02d}"] = prn_number(s.prn)
-            fields[f"elv_{j:02d}"] = round(s.el_deg)
-            fields[f"az_{j:02d}"] = round(s.az_deg) % 360
-            fields[f"cno_{j:02d}"] = round(s.cn0_dbhz) if math.isfinite(s.cn0_dbhz) else ""
+            fields[f"elv_{j:02d}"] = _int_or_empty(s.el_deg)
+            az = _int_or_empty(s.az_deg)
+            fields[f"az_{j:02d}"] = az % 360 if isinstance(az, int) else az
+            fields[f"cno_{j:02d}"] = _int_or_empty(s.cn0_dbhz)
         fields["signalID"] = B1I_SIGNAL_ID
         out.append(_msg(talker, "GSV", **fields))
     return out
 
 
-def sentences_for_fix(
-    fix: Fix, *, utc: dt.datetime, talker: str = "GN", time_known: bool = True
-) -> list[bytes]:
-    """Sentences for one epoch's fix, in the order GGA, RMC, GSA, GSV, GST, ZDA."""
-    if talker not in TALKERS:
-        raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {talker!r}")
-    t = _time(utc)
-    has_fix = fix.ok and None not in (fix.lat_deg, fix.lon_deg, fix.alt_m)
-    pos: dict[str, object] = {"lat": "", "NS": "", "lon": "", "EW": ""}
-    hdop: object = ""
-    if has_fix:
-        lat, ns, lon, ew = _hemis(float(fix.lat_deg or 0.0), float(fix.lon_deg or 0.0))
-        pos = {"lat": lat, "NS": ns, "lon": lon, "EW": ew}
-        hdop = round(fix.hdop, 2) if fix.hdop is not None else ""
-    out = [
-        _msg(
+def _gga(talker: str, t: dt.time, fix: Fix, has_fix: bool) -> bytes:
+    if not has_fix:
+        return _msg(
             talker,
             "GGA",
             time=t,
-            **pos,
-            quality=1 if has_fix else 0,
+            lat="",
+            lon="",
+            quality=0,
             numSV=len(fix.used),
-            HDOP=hdop,
-            alt=round(float(fix.alt_m or 0.0), 3) if has_fix else "",
+            HDOP="",
+            alt="",
             altUnit="M",
-            sep=0.0 if has_fix else "",
+            sep="",
             sepUnit="M",
             diffAge="",
             diffStation="",
-        ),
+        )
+    alt_m = float(fix.alt_m)  # type: ignore[arg-type]
+    sentence = b""
+    # millimetre altitude and 0.01 HDOP first; shorter forms only to stay within 82 chars
+    for alt_nd, hdop_nd in ((3, 2), (2, 2), (2, 1)):
+        sentence = _msg(
+            talker,
+            "GGA",
+            time=t,
+            lat=_deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
+            lon=_deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
+            quality=1,
+            numSV=len(fix.used),
+            HDOP=_dop(fix.hdop, hdop_nd),
+            alt=round(alt_m, alt_nd),
+            altUnit="M",
+            sep=0.0,
+            sepUnit="M",
+            diffAge="",
+            diffStation="",
+        )
+        if len(sentence) <= NMEA_MAX_LEN:
+            break
+    return sentence
+
+
+def sentences_for_fix(
+    fix: Fix, *, utc: dt.datetime, talker: str = "GN", time_known: bool = True
+) -> list[bytes]:
+    """Sentences for one epoch's fix, in the order GGA, RMC, GSA, GSV, GST, ZDA.
+
+    ``utc`` is the fix's own time (naive UTC); ``time_known`` allows ZDA.
+    """
+    if talker not in TALKERS:
+        raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {talker!r}")
+    when = nmea_time(utc)
+    t = when.time()
+    has_fix = (
+        fix.ok
+        and fix.lat_deg is not None
+        and fix.lon_deg is not None
+        and fix.alt_m is not None
+        and all(math.isfinite(v) for v in (fix.lat_deg, fix.lon_deg, fix.alt_m))
+    )
+    pos: dict[str, object] = {"lat": "", "lon": ""}
+    if has_fix:
+        # signed degrees: pynmeagps derives N/S and E/W from the sign
+        pos = {
+            "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
+            "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
+        }
+    out = [
+        _gga(talker, t, fix, has_fix),
         _msg(
             talker,
             "RMC",
@@ -93,7 +182,7 @@ def sentences_for_fix(
             **pos,
             spd="",
             cog="",
-            date=utc.date(),
+            date=when.date(),
             mv="",
             mvEW="",
             posMode="A" if has_fix else "N",
@@ -103,18 +192,18 @@ def sentences_for_fix(
     if not has_fix:
         return out
     gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
-    used = sorted(fix.used, key=prn_number)[:12]
-    for j in range(12):
+    used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]
+    for j in range(GSA_MAX_SV):
         gsa[f"svid_{j + 1:02d}"] = prn_number(used[j]) if j < len(used) else ""
     gsa |= {
-        "PDOP": round(fix.pdop, 2) if fix.pdop is not None else "",
-        "HDOP": hdop,
-        "VDOP": round(fix.vdop, 2) if fix.vdop is not None else "",
+        "PDOP": _dop(fix.pdop),
+        "HDOP": _dop(fix.hdop),
+        "VDOP": _dop(fix.vdop),
         "systemId": BDS_SYSTEM_ID,
     }
     out.append(_msg(talker, "GSA", **gsa))
     if fix.sky:
-        out.extend(_gsv(fix.sky, "BD" if talker == "BD" else "GB"))
+        out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
     if fix.std_enu_m is not None:
         se, sn, su = fix.std_enu_m
         out.append(
@@ -122,13 +211,14 @@ def sentences_for_fix(
                 talker,
                 "GST",
                 time=t,
-                rangeRms=round(fix.resid_rms_m or 0.0, 3),
-                stdMajor=round(max(se, sn), 3),
-                stdMinor=round(min(se, sn), 3),
+                rangeRms=_metres(fix.resid_rms_m or 0.0),
+                stdMajor=_metres(max(se, sn)),
+                stdMinor=_metres(min(se, sn)),
+                # axes taken along north/east (the E-N correlation is not carried in Fix)
                 orient=0.0 if sn >= se else 90.0,
-                stdLat=round(sn, 3),
-                stdLong=round(se, 3),
-                stdAlt=round(su, 3),
+                stdLat=_metres(sn),
+                stdLong=_metres(se),
+                stdAlt=_metres(su),
             )
         )
     if time_known:
@@ -137,9 +227,9 @@ def sentences_for_fix(
                 talker,
                 "ZDA",
                 time=t,
-                day=utc.day,
-                month=utc.month,
-                year=utc.year,
+                day=when.day,
+                month=when.month,
+                year=when.year,
                 ltzh="00",
                 ltzn="00",
             )
