@@ -2,12 +2,23 @@
 
 - :class:`NmeaTcpServer`: a multi-client TCP server in its own thread (selectors). Each
   client has a bounded output buffer; a client that does not read until its buffer
-  overflows is dropped and counted, as gpsd does with slow clients.
-- :class:`ZmqPublisher`: a PUB socket; each message is two frames, topic (``FIX``, ``SKY``,
-  ``TRACK``, ``STATUS``) and a JSON object. Sends use ``NOBLOCK`` with a send high-water
-  mark, so a full queue drops (and counts) instead of waiting.
-- :class:`LineSink`: a file or stdout, line-buffered, reopened on SIGHUP (log rotation).
-- :class:`SerialSink`: a serial device or pty, with a zero write timeout.
+  overflows is dropped and counted (``nmea_clients_dropped_slow``), as gpsd does with
+  slow clients. Whatever clients send (gpsd's ``?WATCH`` etc.) is read and ignored.
+- :class:`ZmqPublisher`: a PUB socket. Framing: each message is two frames,
+  ``[topic, body]``: the topic is the record's class in ASCII (``FIX``, ``SKY``,
+  ``TRACK``, ``STATUS``), so a SUB socket filters with ``setsockopt(SUBSCRIBE, b"FIX")``;
+  the body is the record as compact UTF-8 JSON (see :mod:`service.records`). Sends use
+  ``NOBLOCK``; a send the socket refuses (EAGAIN) is dropped and counted
+  (``zmq_dropped``). Note that libzmq's PUB itself drops, silently and per subscriber,
+  messages for a subscriber whose queue has reached the high-water mark (``sndhwm``); the
+  sender never sees those drops, so they are not in the counters.
+- :class:`LineSink`: a file or ``-`` (stdout), line-buffered; :meth:`LineSink.reopen`
+  opens the path anew after logrotate renamed the file (SIGHUP).
+- :class:`SerialSink`: a serial device or pty, written by its own thread; the caller only
+  queues bytes, and whole payloads that would overflow the bounded queue are dropped and
+  counted, so a stalled port never blocks the caller nor receives half a sentence.
+- :class:`Publishers`: the fan-out the receiver loop talks to.
+
 Binding to anything but loopback logs a warning: listening elsewhere must be asked for.
 """
 
@@ -22,21 +33,22 @@ import socket
 import sys
 import threading
 from collections import Counter, deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import IO, Any
 
 from service.constants import C_M_S
 from service.errors import ConfigError
 from service.nmea import sentences_for_fix
-from service.records import dumps, fix_record, sky_record, status_record
+from service.records import dumps, fix_record, sky_record, status_record, track_record_of
 from service.timebase import utc_from_gpst
+from service.types import Fix, SatView
 
 log = logging.getLogger(__name__)
 
 
 def _is_loopback(host: str) -> bool:
-    if host in ("localhost", ""):
-        return host == "localhost"
+    if host == "localhost":
+        return True
     try:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
@@ -44,20 +56,45 @@ def _is_loopback(host: str) -> bool:
 
 
 def parse_host_port(text: str, what: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[v6]:PORT`` too; empty host = 127.0.0.1) or ConfigError."""
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
         raise ConfigError(f"{what} {text!r}: expected HOST:PORT")
     return host.strip("[]") or "127.0.0.1", int(port)
 
 
+class _Counters:
+    """A Counter shared by two threads."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._c: Counter[str] = Counter()
+
+    def add(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self._c[key] += n
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._c)
+
+    def __getitem__(self, key: str) -> int:
+        with self._lock:
+            return self._c[key]
+
+
 class NmeaTcpServer:
-    """NMEA to any number of TCP clients; slow clients are dropped, never waited for."""
+    """NMEA to any number of TCP clients; slow clients are dropped, never waited for.
+
+    ``publish`` only appends to per-client queues under a lock and wakes the I/O thread,
+    which accepts, writes whatever each socket takes and closes dropped clients.
+    """
 
     def __init__(
         self, host: str = "127.0.0.1", port: int = 10110, max_buffer_bytes: int = 256 * 1024
     ) -> None:
         self.max_buffer_bytes = max_buffer_bytes
-        self.counters: Counter[str] = Counter()
+        self._counters = _Counters()
         if not _is_loopback(host):
             log.warning("NMEA TCP server listens on %s:%d, not loopback", host, port)
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
@@ -65,15 +102,15 @@ class NmeaTcpServer:
         self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             self._srv.bind((host, port))
+            self._srv.listen(16)
         except OSError as exc:
             self._srv.close()
             why = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror
             raise ConfigError(f"NMEA TCP {host}:{port}: {why}") from exc
-        self._srv.listen(16)
         self._srv.setblocking(False)
         self.address: tuple[str, int] = self._srv.getsockname()[:2]
         self._sel = selectors.DefaultSelector()
-        self._sel.register(self._srv, selectors.EVENT_READ, None)
+        self._sel.register(self._srv, selectors.EVENT_READ, "listen")
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
@@ -81,9 +118,14 @@ class NmeaTcpServer:
         self._lock = threading.Lock()
         self._clients: dict[socket.socket, deque[bytes]] = {}
         self._sizes: dict[socket.socket, int] = {}
+        self._doomed: list[socket.socket] = []
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="bdsfix-nmea-tcp", daemon=True)
         self._thread.start()
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return self._counters.snapshot()
 
     @property
     def n_clients(self) -> int:
@@ -91,29 +133,27 @@ class NmeaTcpServer:
             return len(self._clients)
 
     def publish(self, data: bytes) -> None:
-        """Queue ``data`` for every client (never blocks)."""
-        drop = []
+        """Queue ``data`` for every client; a client whose queue would overflow is dropped."""
         with self._lock:
-            for sock, q in self._clients.items():
+            for sock in list(self._clients):
                 if self._sizes[sock] + len(data) > self.max_buffer_bytes:
-                    drop.append(sock)
+                    self._doom(sock)
+                    self._counters.add("nmea_clients_dropped_slow")
+                    log.warning("NMEA client %s too slow: dropped", _peer(sock))
                     continue
-                q.append(data)
+                self._clients[sock].append(data)
                 self._sizes[sock] += len(data)
-        for sock in drop:
-            self.counters["nmea_clients_dropped_slow"] += 1
-            log.warning("NMEA client %s too slow: dropped", _peer(sock))
-            self._drop(sock)
-        with contextlib.suppress(BlockingIOError, OSError):
-            self._wake_w.send(b"\0")
+        self._wake()
 
-    def _drop(self, sock: socket.socket) -> None:
-        with self._lock:
-            self._clients.pop(sock, None)
-            self._sizes.pop(sock, None)
-        with contextlib.suppress(KeyError, ValueError):
-            self._sel.unregister(sock)
-        sock.close()
+    def _doom(self, sock: socket.socket) -> None:
+        """Forget a client (lock held); the I/O thread closes it."""
+        self._clients.pop(sock, None)
+        self._sizes.pop(sock, None)
+        self._doomed.append(sock)
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):  # a full wake pipe already means "wake up"
+            self._wake_w.send(b"\0")
 
     def _loop(self) -> None:
         while not self._closed.is_set():
@@ -121,14 +161,15 @@ class NmeaTcpServer:
                 events = self._sel.select(timeout=0.5)
             except (OSError, ValueError):
                 return
-            for key, _mask in events:
+            for key, mask in events:
                 if key.data == "wake":
-                    with contextlib.suppress(BlockingIOError, OSError):
+                    with contextlib.suppress(OSError):
                         self._wake_r.recv(4096)
-                elif key.fileobj is self._srv:
+                elif key.data == "listen":
                     self._accept()
-                else:
+                elif mask & selectors.EVENT_READ:
                     self._readable(key.fileobj)  # type: ignore[arg-type]
+            self._reap()
             self._flush()
 
     def _accept(self) -> None:
@@ -141,18 +182,28 @@ class NmeaTcpServer:
             self._clients[sock] = deque()
             self._sizes[sock] = 0
         self._sel.register(sock, selectors.EVENT_READ, "client")
-        self.counters["nmea_clients_accepted"] += 1
+        self._counters.add("nmea_clients_accepted")
         log.info("NMEA client %s connected", addr)
 
     def _readable(self, sock: socket.socket) -> None:
         try:
-            data = sock.recv(4096)  # clients may send ?WATCH etc.: read and ignore
+            data = sock.recv(4096)
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
             data = b""
-        if not data:
-            self._drop(sock)
+        if not data:  # the client closed (or reset) its end
+            with self._lock:
+                if sock in self._clients:
+                    self._doom(sock)
+
+    def _reap(self) -> None:
+        with self._lock:
+            doomed, self._doomed = self._doomed, []
+        for sock in doomed:
+            with contextlib.suppress(KeyError, ValueError):
+                self._sel.unregister(sock)
+            sock.close()
 
     def _flush(self) -> None:
         with self._lock:
@@ -165,24 +216,37 @@ class NmeaTcpServer:
                 except (BlockingIOError, InterruptedError):
                     break
                 except OSError:
-                    self._drop(sock)
+                    with self._lock:
+                        if sock in self._clients:
+                            self._doom(sock)
                     break
                 with self._lock:
-                    self._sizes[sock] = self._sizes.get(sock, 0) - n
-                if n < len(chunk):
-                    q[0] = chunk[n:]
-                    break
-                q.popleft()
+                    if sock not in self._clients:
+                        break
+                    self._sizes[sock] -= n
+                    if n < len(chunk):
+                        q[0] = chunk[n:]
+                        break
+                    q.popleft()
+            # ask for write readiness only while bytes wait, so the loop sleeps otherwise
+            with self._lock:
+                if sock not in self._clients:
+                    continue
+                want = selectors.EVENT_READ | (selectors.EVENT_WRITE if q else 0)
+            with contextlib.suppress(KeyError, ValueError):
+                if self._sel.get_key(sock).events != want:
+                    self._sel.modify(sock, want, "client")
+        self._reap()
 
     def close(self) -> None:
+        """Stop the thread and close every socket."""
         self._closed.set()
-        with contextlib.suppress(OSError):
-            self._wake_w.send(b"\0")
+        self._wake()
         self._thread.join(timeout=2)
         with self._lock:
-            socks = list(self._clients)
-        for s in socks:
-            self._drop(s)
+            for sock in list(self._clients):
+                self._doom(sock)
+        self._reap()
         self._sel.close()
         for s in (self._srv, self._wake_r, self._wake_w):
             s.close()
@@ -196,12 +260,13 @@ def _peer(sock: socket.socket) -> str:
 
 
 class ZmqPublisher:
-    """ZeroMQ PUB socket: [topic, JSON] messages, dropped (and counted) when queues are full."""
+    """ZeroMQ PUB socket sending ``[topic, JSON]`` messages without ever waiting."""
 
     def __init__(
         self,
         endpoint: str = "tcp://127.0.0.1:10111",
         sndhwm: int = 1000,
+        linger_ms: int = 100,
         curve_secret_key: bytes | None = None,
         curve_public_key: bytes | None = None,
     ) -> None:
@@ -215,7 +280,8 @@ class ZmqPublisher:
         self._ctx: Any = zmq.Context.instance()
         self._sock = self._ctx.socket(zmq.PUB)
         self._sock.setsockopt(zmq.SNDHWM, sndhwm)
-        self._sock.setsockopt(zmq.LINGER, 100)
+        self._sock.setsockopt(zmq.LINGER, linger_ms)
+        self._linger_ms = linger_ms
         if curve_secret_key is not None:
             self._sock.curve_secretkey = curve_secret_key
             self._sock.curve_publickey = curve_public_key
@@ -225,29 +291,41 @@ class ZmqPublisher:
         except zmq.ZMQError as exc:
             self._sock.close(0)
             raise ConfigError(f"ZeroMQ {endpoint}: {exc}") from exc
-        self.endpoint = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
 
     def send(self, topic: str, record: Mapping[str, Any]) -> bool:
+        """Send ``[topic, JSON]``; False (and counted) when the socket refuses it."""
         try:
             self._sock.send_multipart(
-                [topic.encode(), dumps(record).encode()], flags=self._zmq.NOBLOCK
+                [topic.encode("ascii"), dumps(record).encode("utf-8")], flags=self._zmq.NOBLOCK
             )
         except self._zmq.Again:
             self.counters["zmq_dropped"] += 1
+            return False
+        except self._zmq.ZMQError as exc:
+            self.counters["zmq_errors"] += 1
+            log.warning("ZeroMQ send failed: %s", exc)
             return False
         self.counters[f"zmq_{topic}"] += 1
         return True
 
     def close(self) -> None:
-        self._sock.close(linger=100)
+        self._sock.close(linger=self._linger_ms)
 
 
 class LineSink:
-    """Lines to a file or ``-`` (stdout); :meth:`reopen` appends to a (rotated) file anew."""
+    """Text lines to a file or ``-`` (stdout), line-buffered.
+
+    :meth:`reopen` opens the path again in append mode, so after logrotate renamed the
+    file, new lines go to a fresh file at the configured path. Write errors (disk full)
+    are counted and logged once, never raised into the receiver loop.
+    """
 
     def __init__(self, target: str, append: bool = False) -> None:
         self.target = target
+        self.counters: Counter[str] = Counter()
         self._fh: IO[str] | None = None
+        self._failing = False
         self._open("a" if append else "w")
 
     def reopen(self) -> None:
@@ -259,51 +337,122 @@ class LineSink:
             return
         old = self._fh
         try:
-            self._fh = open(self.target, mode, encoding="ascii", buffering=1)  # noqa: SIM115
+            self._fh = open(self.target, mode, encoding="utf-8", buffering=1)  # noqa: SIM115
         except OSError as exc:
             raise ConfigError(f"cannot write {self.target}: {exc.strerror}") from exc
         if old is not None:
-            old.close()
+            with contextlib.suppress(OSError):
+                old.close()
+        self._failing = False
 
     def write(self, text: str) -> None:
-        if self._fh is not None:
+        if self._fh is None:
+            return
+        try:
             self._fh.write(text)
+        except OSError as exc:
+            self.counters["line_write_errors"] += 1
+            if not self._failing:
+                log.warning("cannot write %s: %s", self.target, exc.strerror)
+            self._failing = True
+        else:
+            self._failing = False
 
     def close(self) -> None:
         if self._fh is not None and self._fh is not sys.stdout:
-            self._fh.close()
+            with contextlib.suppress(OSError):
+                self._fh.close()
         self._fh = None
 
 
 class SerialSink:
-    """NMEA to a serial device or pty; bytes that cannot go out at once are dropped."""
+    """NMEA to a serial device or pty through a writer thread and a bounded queue.
 
-    def __init__(self, device: str, baud: int = 115200) -> None:
+    ``write`` never blocks: a payload that does not fit in ``max_pending_bytes`` is dropped
+    whole (``nmea_serial_dropped``), so the port only ever carries complete sentences.
+    A port that fails (device unplugged) is counted and logged; later payloads are dropped.
+    """
+
+    def __init__(self, device: str, baud: int = 115200, max_pending_bytes: int = 16 * 1024):
         import serial
 
-        self.counters: Counter[str] = Counter()
+        self._serial = serial
+        self.device = device
+        self.max_pending_bytes = max_pending_bytes
+        self._counters = _Counters()
         try:
-            self._port = serial.Serial(device, baud, write_timeout=0)
-        except serial.SerialException as exc:
+            self._port = serial.Serial(device, baud, write_timeout=None)
+        except (serial.SerialException, OSError) as exc:
             raise ConfigError(f"NMEA serial {device}: {exc}") from exc
+        self._cond = threading.Condition()
+        self._queue: deque[bytes] = deque()
+        self._pending = 0
+        self._closed = False
+        self._failed = False
+        self._thread = threading.Thread(target=self._writer, name="bdsfix-nmea-serial", daemon=True)
+        self._thread.start()
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return self._counters.snapshot()
+
+    @property
+    def pending_bytes(self) -> int:
+        with self._cond:
+            return self._pending
 
     def write(self, data: bytes) -> None:
-        import serial
+        with self._cond:
+            if self._closed or self._failed or self._pending + len(data) > self.max_pending_bytes:
+                self._counters.add("nmea_serial_dropped")
+                return
+            self._queue.append(data)
+            self._pending += len(data)
+            self._cond.notify()
 
-        try:
-            self._port.write(data)
-        except serial.SerialTimeoutException:
-            self.counters["nmea_serial_dropped"] += 1
-        except serial.SerialException as exc:
-            self.counters["nmea_serial_errors"] += 1
-            log.warning("NMEA serial write failed: %s", exc)
+    def _writer(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._closed:
+                    self._cond.wait()
+                if self._closed:
+                    return
+                chunk = self._queue[0]
+            try:
+                self._port.write(chunk)  # blocks this thread only; close() cancels it
+            except (self._serial.SerialException, OSError) as exc:
+                with self._cond:
+                    if self._closed:
+                        return
+                    self._failed = True
+                    self._queue.clear()
+                    self._pending = 0
+                self._counters.add("nmea_serial_errors")
+                log.warning("NMEA serial %s failed: %s", self.device, exc)
+                return
+            with self._cond:
+                if self._queue and self._queue[0] is chunk:
+                    self._queue.popleft()
+                    self._pending -= len(chunk)
 
     def close(self) -> None:
-        self._port.close()
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        with contextlib.suppress(Exception):
+            self._port.cancel_write()
+        self._thread.join(timeout=2)
+        with contextlib.suppress(Exception):
+            self._port.close()
 
 
 class Publishers:
-    """Fan-out of epoch results, TRACK and STATUS to the configured outputs."""
+    """Fan-out of fixes, SKY, TRACK and STATUS to the configured outputs.
+
+    FIX goes to JSONL, ZeroMQ and NMEA (all NMEA sinks); SKY to ZeroMQ (and to the NMEA
+    GSV of the fix carrying it); TRACK to ZeroMQ and JSONL; STATUS to ZeroMQ. NMEA time is
+    the fix's own time: the receiver's time tag minus the solved clock bias.
+    """
 
     def __init__(
         self,
@@ -324,20 +473,17 @@ class Publishers:
         self.counters: Counter[str] = Counter()
         self._time_known = False
 
-    def epoch(self, result: Any) -> None:
-        fix = result.fix
+    def fix(self, fix: Fix, since_start_s: float | None = None) -> None:
+        """Publish one solver's result for one epoch (FIX record and NMEA)."""
         self.counters[f"published_{fix.mode}"] += 1
         if fix.ok:
             self._time_known = True
-        rec = fix_record(fix, result.since_start_s)
+        rec = fix_record(fix, since_start_s)
         if self.jsonl is not None:
             self.jsonl.write(dumps(rec) + "\n")
         if self.zmq is not None:
             self.zmq.send("FIX", rec)
-            if fix.sky:
-                self.zmq.send("SKY", sky_record(fix.gpst_week, fix.gpst_tow_s, fix.sky))
         if self.nmea_tcp or self.nmea_lines or self.nmea_serial:
-            # the fix's own time: receiver time tag minus the solved clock bias
             tow = fix.gpst_tow_s - (fix.clock_bias_m or 0.0) / C_M_S
             utc = utc_from_gpst(fix.gpst_week, tow)
             data = b"".join(
@@ -350,36 +496,45 @@ class Publishers:
             if self.nmea_serial is not None:
                 self.nmea_serial.write(data)
 
+    def sky(self, gpst_week: int, gpst_tow_s: float, sats: Sequence[SatView]) -> None:
+        """Publish the satellites in view (ZeroMQ ``SKY``)."""
+        if self.zmq is not None:
+            self.zmq.send("SKY", sky_record(gpst_week, gpst_tow_s, sats))
+
+    def epoch(self, result: Any) -> None:
+        """A :class:`service.pipeline.EpochResult`: its fix, then its sky when it has one."""
+        fix = result.fix
+        self.fix(fix, result.since_start_s)
+        if fix.sky:
+            self.sky(fix.gpst_week, fix.gpst_tow_s, fix.sky)
+
     def track(self, event: Any) -> None:
-        rec = {
-            "class": "TRACK",
-            "prn": event.prn,
-            "event": event.event,
-            "nav_type": event.nav_type,
-            "gpst_week": event.gpst_week,
-            "gpst_tow_s": round(event.gpst_tow_s, 6),
-            "since_start_s": round(event.since_start_s, 6),
-        }
-        if event.sow_s is not None:
-            rec["sow_s"] = event.sow_s
+        """A :class:`service.tracker.TrackEvent` as a ``TRACK`` record (ZeroMQ and JSONL)."""
+        rec = track_record_of(event)
         if self.zmq is not None:
             self.zmq.send("TRACK", rec)
         if self.jsonl is not None:
             self.jsonl.write(dumps(rec) + "\n")
 
-    def status(self, counters: Mapping[str, int | float]) -> None:
+    def all_counters(self, counters: Mapping[str, int | float] | None = None) -> Counter[str]:
+        """``counters`` merged with those of the fan-out and of every output."""
         merged: Counter[str] = Counter()
-        merged.update(dict(counters))
+        merged.update(dict(counters or {}))
         merged.update(self.counters)
-        for part in (self.nmea_tcp, self.zmq, self.nmea_serial):
+        for part in (self.nmea_tcp, self.zmq, self.nmea_serial, self.nmea_lines, self.jsonl):
             if part is not None:
-                merged.update(part.counters)
+                merged.update(dict(part.counters))
         if self.nmea_tcp is not None:
             merged["nmea_clients"] = self.nmea_tcp.n_clients
+        return merged
+
+    def status(self, counters: Mapping[str, int | float], **extra: Any) -> None:
+        """Publish a ``STATUS`` record of all counters (ZeroMQ)."""
         if self.zmq is not None:
-            self.zmq.send("STATUS", status_record(merged))
+            self.zmq.send("STATUS", status_record(self.all_counters(counters), **extra))
 
     def reopen(self) -> None:
+        """Reopen file outputs (SIGHUP after log rotation)."""
         for sink in (self.nmea_lines, self.jsonl):
             if sink is not None:
                 sink.reopen()
