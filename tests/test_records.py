@@ -1,0 +1,380 @@
+"""JSON/CSV records: the contract of ARCHITECTURE.md, strict JSON, and the schema validator
+checked against hand-written bad records and against every golden replay record."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.records import (
+    CSV_COLUMNS,
+    SCHEMAS,
+    csv_header,
+    fix_csv_row,
+    fix_json_line,
+    fix_record,
+    sky_record,
+    status_record,
+    track_record,
+    validate,
+)
+from service.types import Fix, SatView
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+
+# HKSC (Hong Kong SatRef) survey coordinates, CGCS2000/ITRF ECEF in metres
+HKSC_ECEF_M = (-2414266.9197, 5386768.9868, 2407460.0314)
+A_M, F = 6378137.0, 1.0 / 298.257222101  # CGCS2000 ellipsoid
+
+# The FIX fields of ARCHITECTURE.md, written out here, plus the stream field since_start_s.
+CONTRACT_FIX_FIELDS = {
+    "class",
+    "solver",
+    "mode",
+    "gpst_week",
+    "gpst_tow_s",
+    "x_ecef_m",
+    "lat_deg",
+    "lon_deg",
+    "alt_m",
+    "clock_bias_m",
+    "gdop_full",
+    "pdop",
+    "n_full",
+    "n_frac",
+    "ambiguity",
+    "resid_rms_m",
+    "reason",
+    "since_start_s",
+}
+
+
+def geodetic_deg_m(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """ECEF to latitude/longitude [deg] and ellipsoidal height [m], fixed-point iteration on
+    the latitude (Hofmann-Wellenhof et al., GNSS, eq. 2.14-2.16); written for these tests."""
+    e2 = F * (2.0 - F)
+    p = math.hypot(x, y)
+    lat = math.atan2(z, p * (1.0 - e2))
+    h = 0.0
+    for _ in range(20):
+        n = A_M / math.sqrt(1.0 - e2 * math.sin(lat) ** 2)
+        h = p / math.cos(lat) - n
+        lat = math.atan2(z, p * (1.0 - e2 * n / (n + h)))
+    return math.degrees(lat), math.degrees(math.atan2(y, x)), h
+
+
+def ecef_m(lat_deg: float, lon_deg: float, h_m: float) -> tuple[float, float, float]:
+    """Geodetic to ECEF (closed form), for fixes built at other places."""
+    e2 = F * (2.0 - F)
+    la, lo = math.radians(lat_deg), math.radians(lon_deg)
+    n = A_M / math.sqrt(1.0 - e2 * math.sin(la) ** 2)
+    return (
+        (n + h_m) * math.cos(la) * math.cos(lo),
+        (n + h_m) * math.cos(la) * math.sin(lo),
+        (n * (1.0 - e2) + h_m) * math.sin(la),
+    )
+
+
+SKY = (
+    SatView("C01", 47.3, 123.4, 47.0, True, True),
+    SatView("C06", 58.1, 316.2, 39.0, True, False),
+    SatView("C09", 54.4, 294.0, 41.0, True, False),
+    SatView("C16", 59.2, 333.7, 41.0, True, False),
+    SatView("C23", 82.0, 321.0, 46.0, True, True),
+    SatView("C32", 42.1, 331.0, 44.0, True, True),
+    SatView("C37", 35.0, 229.6, 41.0, True, True),
+    SatView("C38", 53.0, 180.2, 42.0, True, True),
+    SatView("C39", 56.0, 349.0, float("nan"), False, True),
+)
+
+
+def hksc_fix(
+    solver: str = "fast",
+    gpst_week: int = 2161,
+    gpst_tow_s: float = 444954.0,
+    x_ecef_m: tuple[float, float, float] = HKSC_ECEF_M,
+    **changes: object,
+) -> Fix:
+    """A fast fix at HKSC with realistic values (lat/lon/alt by the formula above)."""
+    lat, lon, alt = geodetic_deg_m(*x_ecef_m)
+    fields: dict[str, object] = {
+        "solver": solver,
+        "mode": solver,
+        "gpst_week": gpst_week,
+        "gpst_tow_s": gpst_tow_s,
+        "x_ecef_m": x_ecef_m,
+        "lat_deg": lat,
+        "lon_deg": lon,
+        "alt_m": alt,
+        "clock_bias_m": 123456.789012,
+        "gdop_full": 2.4567 if solver == "fast" else None,
+        "pdop": 1.4612,
+        "hdop": 0.8437,
+        "vdop": 1.1926,
+        "std_enu_m": (0.338, 0.341, 0.792),
+        "used": tuple(s.prn for s in SKY if s.used),
+        "full": ("C01", "C23", "C32", "C37", "C38"),
+        "fractional": ("C06", "C09", "C16") if solver == "fast" else (),
+        "ambiguity": {"C16": 71, "C06": 69, "C09": 74} if solver == "fast" else {},
+        "resid_rms_m": 1.0321,
+        "sky": SKY,
+    }
+    fields.update(changes)
+    return Fix(**fields)  # type: ignore[arg-type]
+
+
+def declined_fix(**changes: object) -> Fix:
+    fields: dict[str, object] = {
+        "solver": "fast",
+        "mode": "none",
+        "gpst_week": 2161,
+        "gpst_tow_s": 444955.0,
+        "full": ("C01", "C23", "C32"),
+        "fractional": ("C06", "C09"),
+        "gdop_full": 4812.3,
+        "reason": "GDOP gate failed: GDOP_full 4812.3 >= beta 3000",
+    }
+    fields.update(changes)
+    return Fix(**fields)  # type: ignore[arg-type]
+
+
+def strict_loads(line: str) -> object:
+    def no_constants(name: str) -> object:
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    return json.loads(line, parse_constant=no_constants)
+
+
+def test_hksc_geodetic_helper_is_sane():
+    lat, lon, h = geodetic_deg_m(*HKSC_ECEF_M)
+    assert abs(lat - 22.3222) < 1e-3 and abs(lon - 114.1412) < 1e-3 and 0 < h < 60
+    back = ecef_m(lat, lon, h)
+    assert max(abs(a - b) for a, b in zip(back, HKSC_ECEF_M, strict=True)) < 1e-6
+
+
+def test_fast_fix_record_follows_the_contract():
+    fix = hksc_fix()
+    rec = fix_record(fix, since_start_s=1.2)
+    assert set(rec) == CONTRACT_FIX_FIELDS - {"reason"}
+    assert rec["class"] == "FIX" and rec["solver"] == rec["mode"] == "fast"
+    assert rec["gpst_week"] == 2161 and isinstance(rec["gpst_week"], int)
+    assert rec["gpst_tow_s"] == 444954.0 and rec["since_start_s"] == 1.2
+    assert all(abs(a - b) <= 5e-5 for a, b in zip(rec["x_ecef_m"], HKSC_ECEF_M, strict=True))
+    assert abs(rec["lat_deg"] - fix.lat_deg) <= 1e-9 and abs(rec["lon_deg"] - fix.lon_deg) <= 1e-9
+    assert abs(rec["alt_m"] - fix.alt_m) <= 1e-4
+    assert rec["n_full"] == 5 and rec["n_frac"] == 3
+    assert rec["ambiguity"] == {"C06": 69, "C09": 74, "C16": 71}
+    assert list(rec["ambiguity"]) == ["C06", "C09", "C16"]
+    assert validate(rec) == []
+    line = fix_json_line(fix, since_start_s=1.2)
+    assert "\n" not in line and " " not in line
+    assert strict_loads(line) == rec
+
+
+def test_spp_fix_omits_what_does_not_apply_and_since_start_when_not_given():
+    rec = fix_record(hksc_fix("spp"))
+    assert set(rec) == CONTRACT_FIX_FIELDS - {"reason", "gdop_full", "ambiguity", "since_start_s"}
+    assert rec["n_frac"] == 0
+    assert validate(rec) == []
+
+
+def test_declined_fix_has_reason_and_no_position():
+    rec = fix_record(declined_fix(), since_start_s=0.0)
+    assert rec["mode"] == "none" and rec["reason"].startswith("GDOP gate failed")
+    assert rec["gdop_full"] == 4812.3 and rec["since_start_s"] == 0.0
+    for key in ("x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m", "pdop"):
+        assert key not in rec
+    assert None not in rec.values()
+    assert validate(rec) == []
+    # a declined Fix must still say why, even when the solver forgot to
+    rec = fix_record(declined_fix(reason=None, gdop_full=None))
+    assert rec["reason"] and validate(rec) == []
+
+
+def test_non_finite_values_are_omitted_and_numpy_scalars_serialise():
+    fix = hksc_fix(
+        resid_rms_m=float("nan"),
+        pdop=float("inf"),
+        gdop_full=np.float64(2.5),
+        ambiguity={"C06": np.int64(69)},
+    )
+    rec = fix_record(fix, since_start_s=float("nan"))
+    assert "resid_rms_m" not in rec and "pdop" not in rec and "since_start_s" not in rec
+    assert type(rec["ambiguity"]["C06"]) is int and type(rec["gdop_full"]) is float
+    assert strict_loads(fix_json_line(fix)) == fix_record(fix)
+    broken = replace(hksc_fix(), x_ecef_m=(1.0, math.nan, 2.0))
+    assert "x_ecef_m" not in fix_record(broken)
+    strict_loads(fix_json_line(broken))
+
+
+def test_csv_round_trips_through_the_csv_module():
+    fixes = [
+        hksc_fix(),
+        hksc_fix("spp"),
+        declined_fix(reason='too few "full" measurements: 3 full, 2 fractional'),
+    ]
+    text = csv_header() + "\n" + "".join(fix_csv_row(f) + "\n" for f in fixes)
+    rows = list(csv.DictReader(io.StringIO(text)))
+    assert tuple(rows[0]) == CSV_COLUMNS
+    fast, spp, none = rows
+    assert [float(fast[c]) for c in ("x_ecef_m", "y_ecef_m", "z_ecef_m")] == pytest.approx(
+        HKSC_ECEF_M, abs=1e-4
+    )
+    assert float(fast["lat_deg"]) == pytest.approx(fixes[0].lat_deg, abs=1e-9)
+    assert fast["reason"] == "" and int(fast["n_frac"]) == 3
+    assert spp["gdop_full"] == "" and spp["mode"] == "spp"
+    assert none["x_ecef_m"] == none["lat_deg"] == none["pdop"] == ""
+    assert none["reason"] == 'too few "full" measurements: 3 full, 2 fractional'
+    assert none["gdop_full"] == "4812.3"
+
+
+def test_sky_track_status_records_validate():
+    sky = sky_record(2161, 444954.0, SKY)
+    assert validate(sky) == []
+    assert [s["prn"] for s in sky["satellites"]] == [s.prn for s in SKY]
+    c39 = sky["satellites"][-1]
+    assert "cn0_dbhz" not in c39 and c39["used"] is False and c39["full"] is True
+    wrap = sky_record(2161, 1.0, [SatView("C05", 30.0, 359.999, 40.0, False, False)])
+    assert wrap["satellites"][0]["az_deg"] == 0.0 and validate(wrap) == []
+
+    sow = track_record("C06", "sow", 2161, 444954.0, 3.0, "D1", sow_s=444936.0)
+    full = track_record("C06", "full", 2161, 444954.1, 3.1, "D1", full_since_s=3.1)
+    assert sow["sow_s"] == 444936.0 and "full_since_s" not in sow
+    assert full["full_since_s"] == 3.1 and "sow_s" not in full
+    assert validate(sow) == [] and validate(full) == []
+
+    st = status_record({"frames_ubx": 10, "fixes": np.int64(3), "bad": float("nan")}, uptime_s=2.5)
+    assert st == {
+        "class": "STATUS",
+        "uptime_s": 2.5,
+        "counters": {"fixes": 3, "frames_ubx": 10},
+    }
+    assert validate(st) == []
+    strict_loads(json.dumps(st, allow_nan=False))
+
+
+def test_schema_fields_are_the_contract():
+    assert set(SCHEMAS) == {"FIX", "SKY", "TRACK", "STATUS"}
+    assert set(SCHEMAS["FIX"]["properties"]) == CONTRACT_FIX_FIELDS
+    for cls, schema in SCHEMAS.items():
+        assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+        assert schema["properties"]["class"] == {"const": cls}
+        json.dumps(schema)  # plain JSON data, publishable as a .json file
+
+
+GOOD_FIX = {
+    "class": "FIX",
+    "solver": "fast",
+    "mode": "fast",
+    "gpst_week": 2161,
+    "gpst_tow_s": 444954.0,
+    "x_ecef_m": [-2414266.9197, 5386768.9868, 2407460.0314],
+    "lat_deg": 22.32,
+    "lon_deg": 114.14,
+    "alt_m": 20.0,
+    "clock_bias_m": 1.0,
+    "n_full": 5,
+    "n_frac": 3,
+    "ambiguity": {"C06": 69},
+}
+GOOD_NONE = {
+    "class": "FIX",
+    "solver": "spp",
+    "mode": "none",
+    "gpst_week": 2161,
+    "gpst_tow_s": 1.0,
+    "n_full": 3,
+    "n_frac": 0,
+    "reason": "too few full measurements",
+}
+GOOD_TRACK = {
+    "class": "TRACK",
+    "prn": "C06",
+    "event": "sow",
+    "nav_type": "D1",
+    "gpst_week": 2161,
+    "gpst_tow_s": 1.0,
+    "since_start_s": 0.5,
+    "sow_s": 444936.0,
+}
+GOOD_SKY = {
+    "class": "SKY",
+    "gpst_week": 2161,
+    "gpst_tow_s": 1.0,
+    "satellites": [{"prn": "C01", "el_deg": 47.3, "az_deg": 123.4, "used": True, "full": True}],
+}
+
+# (record, the validator's message must contain this)
+BAD = [
+    ({k: v for k, v in GOOD_FIX.items() if k != "n_full"}, "missing 'n_full'"),
+    ({**GOOD_FIX, "pdop": None}, "$.pdop: expected number"),
+    ({**GOOD_FIX, "speed_mps": 1.0}, "unexpected property 'speed_mps'"),
+    ({**GOOD_FIX, "gpst_week": "2161"}, "$.gpst_week: expected integer"),
+    ({**GOOD_FIX, "gpst_week": 2161.5}, "$.gpst_week: expected integer"),
+    ({**GOOD_FIX, "n_frac": True}, "$.n_frac: expected integer"),
+    ({**GOOD_FIX, "n_frac": -1}, "violates minimum"),
+    ({**GOOD_FIX, "mode": "rtk"}, "'rtk' not one of"),
+    ({**GOOD_FIX, "solver": "none"}, "'none' not one of"),
+    ({**GOOD_FIX, "lat_deg": 91.0}, "violates maximum"),
+    ({**GOOD_FIX, "gpst_tow_s": 604800.0}, "violates exclusiveMaximum"),
+    ({**GOOD_FIX, "alt_m": float("nan")}, "$.alt_m: expected number"),
+    ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0]}, "fewer than 3 items"),
+    ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0, "3"]}, "$.x_ecef_m[2]: expected number"),
+    ({**GOOD_FIX, "ambiguity": {"G05": 1}}, "unexpected property 'G05'"),
+    ({**GOOD_FIX, "ambiguity": {"C05": 1.5}}, "$.ambiguity.C05: expected integer"),
+    ({**GOOD_FIX, "ambiguity": {}}, "fewer than 1 properties"),
+    ({**GOOD_FIX, "reason": "x"}, "forbidden"),
+    ({k: v for k, v in GOOD_FIX.items() if k != "lat_deg"}, "missing 'lat_deg'"),
+    ({**GOOD_NONE, "lat_deg": 22.0}, "forbidden"),
+    ({k: v for k, v in GOOD_NONE.items() if k != "reason"}, "missing 'reason'"),
+    ({**GOOD_NONE, "reason": ""}, "shorter than 1"),
+    ({**GOOD_TRACK, "event": "lost"}, "'lost' not one of"),
+    ({k: v for k, v in GOOD_TRACK.items() if k != "sow_s"}, "missing 'sow_s'"),
+    ({**GOOD_TRACK, "prn": "G06"}, "does not match"),
+    ({**GOOD_TRACK, "nav_type": "D3"}, "'D3' not one of"),
+    ({**GOOD_SKY, "satellites": [{"prn": "C01", "used": 1, "full": True}]}, "expected boolean"),
+    (
+        {**GOOD_SKY, "satellites": [{"prn": "C01", "az_deg": 360.0, "used": True, "full": True}]},
+        "$.satellites[0].az_deg",
+    ),
+    ({"class": "STATUS", "counters": {"frames": "7"}}, "$.counters.frames: expected number"),
+    ({"class": "STATUS", "counters": {}, "extra": [1]}, "$.extra: expected"),
+    ({"class": "STATUS"}, "missing 'counters'"),
+    ({"class": "TPV"}, "not one of"),
+    ([GOOD_FIX], "expected object"),
+]
+
+
+@pytest.mark.parametrize("good", [GOOD_FIX, GOOD_NONE, GOOD_TRACK, GOOD_SKY])
+def test_validator_accepts_hand_written_good_records(good):
+    assert validate(good) == []
+    # JSON Schema: 1.0 is an integer (draft 2020-12, section 6.1.1)
+    assert validate({**good, "gpst_week": 2161.0}) == []
+
+
+@pytest.mark.parametrize(("record", "message"), BAD, ids=[m for _, m in BAD])
+def test_validator_rejects_hand_written_bad_records(record, message):
+    errors = validate(record)
+    assert errors, record
+    assert any(message in e for e in errors), errors
+
+
+def test_every_golden_replay_record_validates():
+    files = sorted(GOLDEN.glob("*.jsonl"))
+    assert files
+    n = 0
+    classes = set()
+    for path in files:
+        for line in path.read_text().splitlines():
+            rec = strict_loads(line)
+            assert validate(rec) == [], (path.name, rec, validate(rec))
+            classes.add(rec["class"])
+            n += 1
+    assert n > 1000 and classes == {"FIX", "TRACK"}
