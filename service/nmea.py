@@ -4,7 +4,10 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
 
 - Talker: GGA/RMC/GSA/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD``
   or ``GP``). GSV describes one constellation, so it always uses BeiDou's ``GB`` (``BD``
-  when ``BD`` was asked for).
+  when ``BD`` was asked for). ``gsa_talker`` overrides GSA's talker: gpsd (3.22 and later)
+  takes the constellation of GSA satellite IDs from the talker, not from the system-ID
+  field, so it reads the PRNs of a ``GNGSA`` (u-blox 9 style, the default) as GPS/SBAS and
+  those of a ``GBGSA`` as BeiDou; gpsd 3.22 also maps any ID 33-64 to SBAS.
 - NMEA 4.11 fields: GSA ends with the GNSS system ID, 4 = BeiDou; GSV ends with the signal
   ID, 1 = B1I (D1 and D2 alike, as u-blox NMEA 4.11 output and gpsd's tables have it).
   Satellite IDs are BDS PRNs 1-63.
@@ -148,14 +151,21 @@ def _gga(talker: str, t: dt.time, fix: Fix, has_fix: bool) -> bytes:
 
 
 def sentences_for_fix(
-    fix: Fix, *, utc: dt.datetime, talker: str = "GN", time_known: bool = True
+    fix: Fix,
+    *,
+    utc: dt.datetime,
+    talker: str = "GN",
+    time_known: bool = True,
+    gsa_talker: str | None = None,
 ) -> list[bytes]:
     """Sentences for one epoch's fix, in the order GGA, RMC, GSA, GSV, GST, ZDA.
 
-    ``utc`` is the fix's own time (naive UTC); ``time_known`` allows ZDA.
+    ``utc`` is the fix's own time (naive UTC); ``time_known`` allows ZDA; ``gsa_talker``
+    (default: ``talker``) is GSA's talker.
     """
-    if talker not in TALKERS:
-        raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {talker!r}")
+    for name in (talker, gsa_talker or talker):
+        if name not in TALKERS:
+            raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {name!r}")
     when = nmea_time(utc)
     t = when.time()
     has_fix = (
@@ -201,7 +211,7 @@ def sentences_for_fix(
         "VDOP": _dop(fix.vdop),
         "systemId": BDS_SYSTEM_ID,
     }
-    out.append(_msg(talker, "GSA", **gsa))
+    out.append(_msg(gsa_talker or talker, "GSA", **gsa))
     if fix.sky:
         out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
     if fix.std_enu_m is not None:

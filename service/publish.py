@@ -463,6 +463,7 @@ class Publishers:
         zmq: ZmqPublisher | None = None,
         jsonl: LineSink | None = None,
         talker: str = "GN",
+        gsa_talker: str | None = None,
     ) -> None:
         self.nmea_tcp = nmea_tcp
         self.nmea_lines = nmea_lines
@@ -470,6 +471,7 @@ class Publishers:
         self.zmq = zmq
         self.jsonl = jsonl
         self.talker = talker
+        self.gsa_talker = gsa_talker
         self.counters: Counter[str] = Counter()
         self._time_known = False
 
@@ -487,7 +489,13 @@ class Publishers:
             tow = fix.gpst_tow_s - (fix.clock_bias_m or 0.0) / C_M_S
             utc = utc_from_gpst(fix.gpst_week, tow)
             data = b"".join(
-                sentences_for_fix(fix, utc=utc, talker=self.talker, time_known=self._time_known)
+                sentences_for_fix(
+                    fix,
+                    utc=utc,
+                    talker=self.talker,
+                    time_known=self._time_known,
+                    gsa_talker=self.gsa_talker,
+                )
             )
             if self.nmea_tcp is not None:
                 self.nmea_tcp.publish(data)

@@ -268,3 +268,13 @@ def test_gsv_leaves_unknown_angles_empty():
     fix = hksc_fix(sky=sky)
     f = by_address(sentences_for_fix(fix, utc=fix_time(fix)))
     assert f["GBGSV"] == [["1", "1", "1", "3", "", "", "33", "1"]]
+
+
+def test_gsa_talker_can_name_the_constellation():
+    fix = hksc_fix()
+    sentences = sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GB")
+    addresses = [hand_parse(s)[0] for s in sentences]
+    assert addresses[:3] == ["GNGGA", "GNRMC", "GBGSA"]
+    assert hand_parse(sentences[2])[1][-1] == "4"
+    with pytest.raises(ValueError, match="talker"):
+        sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GA")
