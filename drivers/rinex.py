@@ -1,17 +1,41 @@
 """Streaming RINEX 3 readers (observation and navigation), versions 3.02-3.05.
 
-Follows the RINEX 3.04/3.05 format description (IGS/RTCM-SC104):
-- header labels in columns 61-80 (section 5.2, Table A2 / A14); ``SYS / # / OBS TYPES`` may
-  continue on further lines, and the BDS B1I code is ``C1I`` in 3.02 and ``C2I`` from 3.03
-  on (section 5.12, Table 10). Fields are indexed by the header's type list, so a leading
-  Septentrio ``X1`` channel column is simply another type.
-- observation epochs start with ``>`` (Table A3): flags 0/1 carry observations, 2-5 are
-  followed by that many header/event lines, 6 by that many cycle-slip records. Each
-  observation is 16 characters (F14.3 value, LLI, signal strength).
-- BDS navigation records (Table A14) are 8 lines of four 19-character fields after the
-  4-character indent; GLONASS and SBAS records are 4 lines; the toc epoch of a BDS record is
-  BDT. Satellite IDs written with a space (``C 1``) are normalised to ``C01``.
-A malformed file raises :class:`~service.errors.FramingError` naming the file and line.
+Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RTCM-SC104,
+2018) and 3.05 (2020). What this module relies on, by section:
+
+- Header records (Appendix, "GNSS observation data file - header section description" and
+  "GNSS navigation message file - header section description"): labels in columns 61-80,
+  the first record is ``RINEX VERSION / TYPE`` (F9.2 version, file type in column 21,
+  satellite system in column 41), the last ``END OF HEADER``.
+- ``SYS / # / OBS TYPES`` (section 5.2, "Satellite system-dependent list of observables"):
+  A1,2X,I3 then 13 types of 1X,A3 per line, continued on lines that start blank. Each
+  observation field is indexed by its position in this list, so a receiver-specific leading
+  type (e.g. Septentrio's ``X1`` channel) is simply one more column.
+- BDS observation codes (section 5.1, Table 9 in 3.04): B1I is band 2 (``C2I``) from 3.03
+  on; RINEX 3.02 called it band 1 (``C1I``). The reader takes whatever the header lists for
+  system C, preferring ``C2I`` then ``C1I``.
+- Satellite numbers (section 3.5): ``snn``; writers that print ``C 1`` are read as ``C01``.
+- ``TIME OF FIRST OBS`` time system (section 3.1): GPS, GLO, GAL, QZS, BDT or IRN; the
+  default follows the file's satellite system. BDT epochs become GPST by +14 s
+  (BDS-SIS-ICD-B1I-3.0 section 4.2 via :mod:`service.timebase`); GLO (UTC(SU) + 3 h)
+  via the leap-second table.
+- Observation data records (Appendix, "GNSS observation data file - data record
+  description"; event flags, section 5.3.x of 3.05 / "Event flag records"): an epoch line
+  ``> yyyy mm dd hh mm ss.sssssss  f nnn``. Flags 0 and 1 are followed by ``nnn``
+  observation records, one line per satellite, 16 characters per observation (F14.3 value,
+  LLI, signal strength). Flags 2-5 are followed by ``nnn`` special records (header lines,
+  new site occupation, external event; the epoch time may be blank for 2-4); flag 6 by
+  ``nnn`` cycle-slip records. Header records after flag 4 may redefine the type lists.
+- Navigation data records (Appendix, one table per system; BDS is Table A14 in 3.04):
+  ``A1,I2.2,1X,I4,5(1X,I2.2),3D19.12`` then lines of ``4X,4D19.12``. GPS, Galileo, QZSS,
+  BDS and IRNSS records have 8 lines; SBAS 4; GLONASS 4, and 5 from 3.05 on (the 3.05
+  status/health line). Fields are cut at fixed columns, so numbers that run together and
+  Fortran ``D`` exponents are read correctly. The toc of a BDS record is BDT.
+- ``IONOSPHERIC CORR`` (A4,1X,4D12.4): ``BDSA``/``BDSB`` and ``GPSA``/``GPSB``;
+  ``LEAP SECONDS`` (4I6,A3; identifier ``BDS`` or blank).
+
+A malformed file raises :class:`~service.errors.FramingError` whose message starts with
+``<file>:<1-based line>:``.
 """
 
 from __future__ import annotations
@@ -19,46 +43,188 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
-from collections.abc import Iterator
+import weakref
+from collections import Counter
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import IO, Literal
 
 import numpy as np
 
 from service.errors import FramingError
-from service.timebase import BDT_GPST_OFFSET_S, gpst_from_datetime, normalize
+from service.timebase import (
+    BDT_GPS_WEEK_OFFSET,
+    BDT_GPST_OFFSET_S,
+    bdt_to_gpst,
+    gpst_from_utc,
+)
 from service.types import Ephemeris, KlobucharParams, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
-_NAV_LINES = {"G": 8, "E": 8, "J": 8, "C": 8, "I": 8, "R": 4, "S": 4}
-_B1I_CODES = ("2I", "1I")  # 3.03+ name first, then the 3.02 one
+_GPS_EPOCH_ORDINAL = dt.date(1980, 1, 6).toordinal()
+_BDT_EPOCH_ORDINAL = dt.date(2006, 1, 1).toordinal()
+
+_B1I_CODES = ("2I", "1I")
+"""B1I code suffixes in order of preference: the 3.03+ name, then the 3.02 one."""
+
+_DEFAULT_TIME_SYSTEM = {"G": "GPS", "R": "GLO", "E": "GAL", "J": "QZS", "C": "BDT", "I": "IRN"}
+_GPS_ALIGNED = frozenset({"GPS", "GAL", "QZS", "IRN"})
+"""Time systems whose RINEX calendar epochs read directly as GPST (section 3.1)."""
+
+_NAV_RECORD_LINES = {"G": 8, "E": 8, "J": 8, "C": 8, "I": 8, "S": 4, "R": 4}
+"""Lines per navigation record by system (GLONASS: 5 from RINEX 3.05 on)."""
+
+_BDS_RECORD: tuple[tuple[str | None, ...], ...] = (
+    ("af0_s", "af1_s_s", "af2_s_s2"),  # SV / EPOCH / SV CLK (after the BDT toc epoch)
+    ("aode", "crs_m", "delta_n_rad_s", "m0_rad"),  # BROADCAST ORBIT - 1
+    ("cuc_rad", "e", "cus_rad", "sqrt_a_sqrt_m"),  # BROADCAST ORBIT - 2
+    ("toe_sow_s", "cic_rad", "omega0_rad", "cis_rad"),  # BROADCAST ORBIT - 3 (toe: BDT sow)
+    ("i0_rad", "crc_m", "omega_rad", "omega_dot_rad_s"),  # BROADCAST ORBIT - 4
+    ("idot_rad_s", None, "week", None),  # BROADCAST ORBIT - 5 (spare, BDT week, spare)
+    ("ura_m", "health", "tgd1_s", "tgd2_s"),  # BROADCAST ORBIT - 6 (SatH1, TGD1 B1/B3, TGD2)
+    ("tot_sow_s", "aodc", None, None),  # BROADCAST ORBIT - 7 (transmission time, AODC)
+)
+"""BDS navigation data record (RINEX 3.04 Table A14), one tuple per line; None = spare."""
+
+_BDS_INT_FIELDS = frozenset({"aode", "aodc", "health", "week"})
+_BDS_OPTIONAL = {"tgd1_s": 0.0, "tgd2_s": 0.0, "ura_m": 0.0, "aode": 0, "aodc": 0, "health": 0}
+"""Fields a writer may leave blank, with the value used then; every other one is required."""
 
 
 def _sat_id(text: str) -> str:
-    """``C 1``/``C01``/``C1`` -> ``C01``."""
-    sys_char = text[0]
+    """``C 1``/``C01``/``C1`` -> ``C01`` (section 3.5)."""
     num = text[1:].strip()
-    return f"{sys_char}{int(num):02d}" if num.isdigit() else text.strip()
+    return f"{text[0]}{int(num):02d}" if num.isdigit() else text.strip()
 
 
 def _float(text: str) -> float:
+    """A Fortran F/E/D field; blank is NaN."""
     t = text.strip()
-    return float(t.replace("D", "E").replace("d", "e")) if t else math.nan
+    if not t:
+        return math.nan
+    return float(t.replace("D", "E").replace("d", "e"))
 
 
-def _epoch_datetime(fields: list[str]) -> dt.datetime:
-    sec = float(fields[5])
-    whole = int(sec)
-    return dt.datetime(
-        int(fields[0]), int(fields[1]), int(fields[2]), int(fields[3]), int(fields[4]), whole
-    ) + dt.timedelta(microseconds=round((sec - whole) * 1e6))
+class _Lines:
+    """A text file read line by line with a 1-based line counter and one line of push-back."""
+
+    def __init__(self, fh: IO[str], path: Path) -> None:
+        self._fh = fh
+        self.path = path
+        self.n = 0
+        self._back: str | None = None
+
+    def next(self) -> str | None:
+        if self._back is not None:
+            line, self._back = self._back, None
+        else:
+            line = self._fh.readline()
+            if not line:
+                return None
+        self.n += 1
+        return line
+
+    def push_back(self, line: str) -> None:
+        self._back = line
+        self.n -= 1
+
+    def error(self, message: str, lineno: int | None = None) -> FramingError:
+        return FramingError(f"{self.path}:{self.n if lineno is None else lineno}: {message}")
+
+
+def _open(path: Path) -> IO[str]:
+    try:
+        return path.open("r", encoding="ascii", errors="replace")
+    except OSError as exc:
+        raise FramingError(f"{path}: cannot read: {exc.strerror}") from exc
+
+
+@dataclass(frozen=True, slots=True)
+class _Header:
+    version: float
+    file_type: str
+    system: str
+    records: dict[str, list[tuple[int, str]]]  # label -> [(line number, text)]
+
+    def first(self, label: str) -> str | None:
+        got = self.records.get(label)
+        return got[0][1] if got else None
+
+
+def _read_header(lines: _Lines, kind: str) -> _Header:
+    """Header records grouped by label (columns 61-80), up to ``END OF HEADER``."""
+    records: dict[str, list[tuple[int, str]]] = {}
+    first = lines.next()
+    if first is None:
+        raise lines.error("empty file, not RINEX", 1)
+    if first.startswith("CRINEX") or "CRINEX VERS" in first[60:80]:
+        raise lines.error("Hatanaka-compressed RINEX (CRINEX): decompress it with crx2rnx first")
+    if first[60:80].strip() != "RINEX VERSION / TYPE":
+        raise lines.error("not a RINEX file (first record is not RINEX VERSION / TYPE)")
+    try:
+        version = float(first[:9])
+    except ValueError as exc:
+        raise lines.error(f"bad RINEX version {first[:9].strip()!r}") from exc
+    if not 3.0 <= version < 4.0:
+        raise lines.error(
+            f"RINEX version {version:.2f} is not 3.xx (this reader reads RINEX 3.02-3.05)"
+        )
+    file_type = first[20:21]
+    if file_type != kind:
+        raise lines.error(f"file type {file_type!r}, expected {kind!r}")
+    records["RINEX VERSION / TYPE"] = [(1, first)]
+    while (line := lines.next()) is not None:
+        label = line[60:80].strip()
+        records.setdefault(label, []).append((lines.n, line.rstrip("\r\n")))
+        if label == "END OF HEADER":
+            return _Header(version, file_type, first[40:41].strip() or "G", records)
+    raise lines.error("no END OF HEADER")
+
+
+def _obs_types(
+    lines: list[tuple[int, str]], path: Path, into: dict[str, tuple[str, ...]] | None = None
+) -> dict[str, tuple[str, ...]]:
+    """Parse ``SYS / # / OBS TYPES`` records (with continuation lines) per system."""
+    out: dict[str, tuple[str, ...]] = dict(into or {})
+    current = ""
+    count = 0
+    got: list[str] = []
+    start = 0
+
+    def close() -> None:
+        if current:
+            if len(got) != count:
+                raise FramingError(
+                    f"{path}:{start}: SYS / # / OBS TYPES for {current} announces {count} "
+                    f"types, lists {len(got)}"
+                )
+            out[current] = tuple(got)
+
+    for lineno, text in lines:
+        if text[:1].strip():
+            close()
+            current, start, got = text[0], lineno, []
+            try:
+                count = int(text[3:6])
+            except ValueError as exc:
+                raise FramingError(f"{path}:{lineno}: bad SYS / # / OBS TYPES count") from exc
+        elif not current:
+            raise FramingError(f"{path}:{lineno}: SYS / # / OBS TYPES continuation first")
+        got.extend(text[7:60].split())
+    close()
+    return out
 
 
 @dataclass(frozen=True, slots=True)
 class ObsHeader:
-    """What a RINEX 3 observation header says."""
+    """What a RINEX 3 observation header says.
+
+    ``approx_xyz_m`` is None when absent or written as zeros (an unknown position);
+    ``time_system`` is the epochs' time scale; ``bds_code`` the B1I code suffix (``"2I"`` or
+    ``"1I"``) chosen from ``obs_types["C"]``, None when the file has no B1I pseudorange.
+    """
 
     version: float
     marker_name: str = ""
@@ -68,166 +234,252 @@ class ObsHeader:
     obs_types: dict[str, tuple[str, ...]] = field(default_factory=dict)
     bds_code: str | None = None
     interval_s: float | None = None
+    satellite_system: str = "M"
 
 
-def _read_header(fh: Iterator[str], path: Path, kind: str) -> tuple[dict[str, list[str]], int]:
-    """Header lines grouped by label; returns (groups, line count)."""
-    groups: dict[str, list[str]] = {}
-    n = 0
-    for line in fh:
-        n += 1
-        label = line[60:80].strip()
-        if n == 1:
-            if label != "RINEX VERSION / TYPE":
-                raise FramingError(f"{path}:1: not a RINEX file (no RINEX VERSION / TYPE)")
-            try:
-                version = float(line[:9])
-            except ValueError as exc:
-                raise FramingError(f"{path}:1: bad RINEX version {line[:9]!r}") from exc
-            if not 3.0 <= version < 4.0:
-                raise FramingError(f"{path}:1: RINEX version {version} is not 3.xx")
-            if line[20:21] != kind:
-                raise FramingError(f"{path}:1: file type {line[20:21]!r}, expected {kind!r}")
-        groups.setdefault(label, []).append(line.rstrip("\n"))
-        if label == "END OF HEADER":
-            return groups, n
-    raise FramingError(f"{path}:{n}: no END OF HEADER")
+def _choose_bds_code(types: tuple[str, ...]) -> str | None:
+    return next((c for c in _B1I_CODES if f"C{c}" in types), None)
+
+
+def _parse_obs_header(h: _Header, path: Path) -> ObsHeader:
+    types = _obs_types(h.records.get("SYS / # / OBS TYPES", []), path)
+    xyz = None
+    if (line := h.first("APPROX POSITION XYZ")) is not None:
+        try:
+            x, y, z = (float(line[14 * i : 14 * i + 14]) for i in range(3))
+        except ValueError:
+            log.warning("%s: unreadable APPROX POSITION XYZ %r", path, line[:42])
+        else:
+            xyz = None if x == y == z == 0.0 else (x, y, z)
+    tsys = _DEFAULT_TIME_SYSTEM.get(h.system, "GPS")
+    if (line := h.first("TIME OF FIRST OBS")) is not None:
+        tsys = line[48:51].strip() or tsys
+    else:
+        log.warning("%s: no TIME OF FIRST OBS; epochs read as %s", path, tsys)
+    if tsys not in _GPS_ALIGNED | {"BDT", "GLO"}:
+        lineno = h.records["TIME OF FIRST OBS"][0][0]
+        raise FramingError(f"{path}:{lineno}: unknown time system {tsys!r}")
+    interval = None
+    if (line := h.first("INTERVAL")) is not None:
+        interval = _float(line[:10])
+        interval = None if math.isnan(interval) else interval
+    bds = types.get("C", ())
+    code = _choose_bds_code(bds)
+    if code is None and bds:
+        log.warning("%s: no B1I code (C2I/C1I) among the BDS types %s", path, " ".join(bds))
+    rec = h.first("REC # / TYPE / VERS") or ""
+    return ObsHeader(
+        version=h.version,
+        marker_name=(h.first("MARKER NAME") or "")[:60].strip(),
+        receiver_type=rec[20:40].strip(),
+        approx_xyz_m=xyz,
+        time_system=tsys,
+        obs_types=types,
+        bds_code=code,
+        interval_s=interval,
+        satellite_system=h.system,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class _BdsColumns:
+    """Character offsets of the B1I fields in a system-C observation record."""
+
+    code: str | None
+    pr: int | None
+    cn0: int | None
+    doppler: int | None
+
+    @classmethod
+    def from_types(cls, types: tuple[str, ...]) -> _BdsColumns:
+        code = _choose_bds_code(types)
+        if code is None:
+            return cls(None, None, None, None)
+        idx = {t: 3 + 16 * i for i, t in enumerate(types)}
+        return cls(code, idx[f"C{code}"], idx.get(f"S{code}"), idx.get(f"D{code}"))
 
 
 class RinexObsReader:
-    """Iterates the BDS B1I measurements of a RINEX 3 observation file, epoch by epoch."""
+    """The BDS B1I measurements of a RINEX 3 observation file, epoch by epoch.
+
+    The header is read on construction (:attr:`header`); iterating streams the data
+    section, one :class:`~service.types.MeasurementEpoch` per observation epoch (flags 0
+    and 1), with the BDS satellites that carry a non-zero B1I pseudorange. Epochs without
+    any are yielded empty. Times are GPST. :attr:`counters` counts what was read and
+    skipped; a malformed record raises :class:`~service.errors.FramingError`.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        try:
-            with self.path.open("r", encoding="ascii", errors="replace") as fh:
-                groups, self._header_lines = _read_header(fh, self.path, "O")
-        except OSError as exc:
-            raise FramingError(f"{self.path}: cannot read: {exc.strerror}") from exc
-        self.header = self._parse_header(groups)
-
-    def _parse_header(self, g: dict[str, list[str]]) -> ObsHeader:
-        version = float(g["RINEX VERSION / TYPE"][0][:9])
-        types: dict[str, list[str]] = {}
-        current = ""
-        for line in g.get("SYS / # / OBS TYPES", []):
-            if line[0] != " ":
-                current = line[0]
-                types[current] = []
-            types[current].extend(line[7:60].split())
-        xyz = None
-        if "APPROX POSITION XYZ" in g:
-            vals = g["APPROX POSITION XYZ"][0][:42].split()
-            if len(vals) == 3:
-                xyz = (float(vals[0]), float(vals[1]), float(vals[2]))
-        tsys = "GPS"
-        if "TIME OF FIRST OBS" in g:
-            tsys = g["TIME OF FIRST OBS"][0][48:51].strip() or "GPS"
-        interval = None
-        if "INTERVAL" in g:
-            interval = _float(g["INTERVAL"][0][:10])
-        bds = types.get("C", [])
-        code = next((c for c in _B1I_CODES if f"C{c}" in bds), None)
-        if code is None and bds:
-            log.warning("%s: no B1I code (C2I/C1I) among BDS types %s", self.path, bds)
-        return ObsHeader(
-            version=version,
-            marker_name=g.get("MARKER NAME", [""])[0][:60].strip(),
-            receiver_type=g.get("REC # / TYPE / VERS", [" " * 40])[0][20:40].strip(),
-            approx_xyz_m=xyz,
-            time_system=tsys,
-            obs_types={k: tuple(v) for k, v in types.items()},
-            bds_code=code,
-            interval_s=interval,
-        )
+        with _open(self.path) as fh:
+            lines = _Lines(fh, self.path)
+            raw = _read_header(lines, "O")
+            self._data_offset = fh.tell()
+        self._header_lines = lines.n
+        self.header = _parse_obs_header(raw, self.path)
+        self.counters: Counter[str] = Counter()
+        self._live: weakref.WeakSet[Generator[MeasurementEpoch, None, None]] = weakref.WeakSet()
 
     def __iter__(self) -> Iterator[MeasurementEpoch]:
-        h = self.header
-        types = h.obs_types.get("C", ())
-        code = h.bds_code
-        idx = {t: i for i, t in enumerate(types)}
-        i_pr = idx.get(f"C{code}") if code else None
-        i_cn0 = idx.get(f"S{code}") if code else None
-        i_dop = idx.get(f"D{code}") if code else None
-        shift_s = BDT_GPST_OFFSET_S if h.time_system == "BDT" else 0.0
-        if h.time_system not in ("GPS", "BDT", "MIXED", ""):
-            log.warning("%s: time system %s read as GPST", self.path, h.time_system)
-        with self.path.open("r", encoding="ascii", errors="replace") as fh:
-            lineno = 0
-            for _ in range(self._header_lines):
-                next(fh)
-                lineno += 1
-            for line in fh:
-                lineno += 1
+        gen = self._epochs()
+        self._live.add(gen)
+        return gen
+
+    def close(self) -> None:
+        """Close the file of any iteration still open."""
+        for gen in list(self._live):
+            gen.close()
+
+    def __enter__(self) -> RinexObsReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _to_gpst(self, days: int, sod_s: float) -> tuple[int, float]:
+        """Calendar (days since 1980-01-06, seconds of day) on the file's scale -> GPST."""
+        tsys = self.header.time_system
+        week, dow = divmod(days, 7)
+        sow = dow * 86400 + sod_s
+        if tsys in _GPS_ALIGNED:
+            return week, sow
+        if tsys == "BDT":
+            return bdt_to_gpst(week - BDT_GPS_WEEK_OFFSET, sow)
+        # GLO: UTC(SU) + 3 h
+        whole = math.floor(sod_s)
+        utc = dt.datetime.fromordinal(_GPS_EPOCH_ORDINAL + days) + dt.timedelta(
+            seconds=whole - 3 * 3600
+        )
+        week, tow = gpst_from_utc(utc)
+        return week, tow + (sod_s - whole)
+
+    def _epochs(self) -> Generator[MeasurementEpoch, None, None]:
+        cols = _BdsColumns.from_types(self.header.obs_types.get("C", ()))
+        types = dict(self.header.obs_types)
+        counters = self.counters
+        with _open(self.path) as fh:
+            fh.seek(self._data_offset)
+            lines = _Lines(fh, self.path)
+            lines.n = self._header_lines
+            while (line := lines.next()) is not None:
                 if not line.strip():
+                    counters["blank_lines"] += 1
                     continue
                 if line[0] != ">":
-                    raise FramingError(
-                        f"{self.path}:{lineno}: expected an epoch line ('>'), "
-                        f"got {line.rstrip()[:40]!r}"
+                    raise lines.error(
+                        f"expected an epoch line ('>'), got {line.rstrip()[:40]!r} "
+                        "(more records than the previous epoch line announced?)"
                     )
-                try:
-                    parts = line[1:].split()
-                    t = _epoch_datetime(parts[:6])
-                    flag = int(line[31:32])
-                    nsat = int(line[32:35])
-                except (ValueError, IndexError) as exc:
-                    raise FramingError(
-                        f"{self.path}:{lineno}: bad epoch line {line.rstrip()!r}: {exc}"
-                    ) from exc
-                body: list[str] = []
-                for _ in range(nsat):
-                    nxt = fh.readline()
-                    lineno += 1
-                    if not nxt:
-                        raise FramingError(f"{self.path}:{lineno}: file ends inside an epoch")
-                    body.append(nxt)
-                if flag > 1:
-                    continue  # 2-5: header/event lines; 6: cycle-slip records
-                week, tow = gpst_from_datetime(t)
-                week, tow = normalize(week, tow + shift_s)
-                yield self._epoch(week, tow, body, i_pr, i_cn0, i_dop, lineno - nsat)
+                flag, count, when = self._epoch_line(line, lines)
+                body_start = lines.n + 1
+                body = []
+                for _ in range(count):
+                    rec = lines.next()
+                    if rec is None:
+                        raise lines.error(
+                            f"file ends inside the epoch of line {body_start - 1} "
+                            f"({count} records announced)"
+                        )
+                    body.append(rec)
+                if flag >= 2:
+                    self._special(flag, body, body_start, types, counters)
+                    if flag == 4 and "C" in types:
+                        cols = _BdsColumns.from_types(types["C"])
+                    continue
+                if when is None:  # only flags 2-4 may leave the time blank
+                    raise lines.error("observation epoch without a time", body_start - 1)
+                counters["epochs"] += 1
+                counters["epochs_power_failure"] += flag == 1
+                yield self._epoch(when, body, body_start, cols, lines)
+
+    def _epoch_line(self, line: str, lines: _Lines) -> tuple[int, int, tuple[int, float] | None]:
+        """(flag, record count, GPST (week, tow) or None for a blank event time)."""
+        try:
+            flag = int(line[31:32])
+            count = int(line[32:35])
+            if flag > 6 or count < 0:
+                raise ValueError(f"flag {flag}, count {count}")
+            if flag in (2, 3, 4) and not line[2:29].strip():
+                return flag, count, None
+            day = dt.date(int(line[2:6]), int(line[7:9]), int(line[10:12]))
+            sod = int(line[13:15]) * 3600 + int(line[16:18]) * 60 + float(line[18:29])
+            if not 0.0 <= sod < 86401.0:
+                raise ValueError(f"time of day {sod} s")
+        except ValueError as exc:
+            raise lines.error(f"bad epoch line {line.rstrip()!r}: {exc}") from exc
+        return flag, count, self._to_gpst(day.toordinal() - _GPS_EPOCH_ORDINAL, sod)
+
+    def _special(
+        self,
+        flag: int,
+        body: list[str],
+        first: int,
+        types: dict[str, tuple[str, ...]],
+        counters: Counter[str],
+    ) -> None:
+        """Event flags 2-5 (special records) and 6 (cycle-slip records)."""
+        if flag == 6:
+            counters["cycle_slip_records"] += len(body)
+            return
+        counters[f"event_flag_{flag}"] += 1
+        counters["special_records"] += len(body)
+        if flag == 4:
+            redefined = [
+                (first + k, rec.rstrip("\r\n"))
+                for k, rec in enumerate(body)
+                if rec[60:80].strip() == "SYS / # / OBS TYPES"
+            ]
+            if redefined:
+                types.update(_obs_types(redefined, self.path))
+                log.info("%s:%d: observation types redefined in the data", self.path, first)
 
     def _epoch(
         self,
-        week: int,
-        tow: float,
+        when: tuple[int, float],
         body: list[str],
-        i_pr: int | None,
-        i_cn0: int | None,
-        i_dop: int | None,
-        first_line: int,
+        first: int,
+        cols: _BdsColumns,
+        lines: _Lines,
     ) -> MeasurementEpoch:
         prn: list[str] = []
         pr: list[float] = []
         cn0: list[float] = []
         dop: list[float] = []
-
-        def obs(rec: str, i: int | None) -> float:
-            if i is None:
-                return math.nan
-            return _float(rec[3 + 16 * i : 3 + 16 * i + 14])
-
+        i_pr, i_cn0, i_dop = cols.pr, cols.cn0, cols.doppler
         for k, rec in enumerate(body):
-            if rec[0] != "C" or i_pr is None:
+            head = rec[:1]
+            if head != "C":
+                if head == ">" or not head.strip():
+                    raise lines.error(
+                        f"expected an observation record, got {rec.rstrip()[:40]!r} "
+                        "(fewer records than the epoch line announced?)",
+                        first + k,
+                    )
+                continue
+            if i_pr is None:
+                self.counters["bds_without_b1i"] += 1
                 continue
             try:
-                value = obs(rec, i_pr)
-                if not value > 0:
+                value = _float(rec[i_pr : i_pr + 14])
+                if not value > 0.0:  # blank (NaN) or zero: no B1I pseudorange
+                    self.counters["bds_without_b1i"] += 1
                     continue
-                prn.append(_sat_id(rec[:3]))
-                pr.append(value)
-                cn0.append(obs(rec, i_cn0))
-                dop.append(obs(rec, i_dop))
+                sat = _sat_id(rec[:3])
+                c = math.nan if i_cn0 is None else _float(rec[i_cn0 : i_cn0 + 14])
+                d = math.nan if i_dop is None else _float(rec[i_dop : i_dop + 14])
             except ValueError as exc:
-                raise FramingError(f"{self.path}:{first_line + k}: bad observation: {exc}") from exc
-        code = self.header.bds_code or "2I"
+                raise lines.error(f"bad observation record {rec[:3]!r}: {exc}", first + k) from exc
+            prn.append(sat)
+            pr.append(value)
+            cn0.append(c)
+            dop.append(d)
+        self.counters["bds_measurements"] += len(prn)
         return MeasurementEpoch.from_columns(
-            week,
-            tow,
+            when[0],
+            when[1],
             prn,
-            [code] * len(prn),
-            np.array(pr),
+            [cols.code or "2I"] * len(prn),
+            np.array(pr, dtype=float),
             cn0_dbhz=cn0,
             doppler_hz=dop,
             source="rinex",
@@ -235,183 +487,200 @@ class RinexObsReader:
 
 
 def iter_obs(path: str | Path) -> Iterator[MeasurementEpoch]:
-    """BDS B1I epochs of a RINEX 3 observation file."""
+    """BDS B1I epochs of a RINEX 3 observation file (a generator; see RinexObsReader)."""
     return iter(RinexObsReader(path))
 
 
 @dataclass(frozen=True, slots=True)
 class NavData:
-    """BDS content of one or more RINEX 3 navigation files."""
+    """BDS content of one or more RINEX 3 navigation files.
+
+    ``ephemerides`` maps ``"C06"`` to its sets sorted by (week, toe); ``leap_seconds`` is
+    GPST - UTC [s] (a BDS ``LEAP SECONDS`` record, BDT - UTC, is converted by +14 s);
+    ``counters`` counts records read and skipped per system.
+    """
 
     version: float
     ephemerides: dict[str, tuple[Ephemeris, ...]]
     iono_bds: KlobucharParams | None = None
     iono_gps: KlobucharParams | None = None
     leap_seconds: int | None = None
+    counters: dict[str, int] = field(default_factory=dict)
 
 
 def _iono(
-    lines: list[str], a: str, b: str, system: Literal["BDS", "GPS"]
+    lines: list[tuple[int, str]], a: str, b: str, system: Literal["BDS", "GPS"], path: Path
 ) -> KlobucharParams | None:
-    vals: dict[str, tuple[float, ...]] = {}
-    for line in lines:
-        key = line[:4].strip()
-        if key in (a, b):
-            vals[key] = tuple(_float(line[5 + 12 * i : 17 + 12 * i]) for i in range(4))
+    """Klobuchar alpha/beta from ``IONOSPHERIC CORR`` records (A4,1X,4D12.4)."""
+    vals: dict[str, tuple[float, float, float, float]] = {}
+    for lineno, text in lines:
+        key = text[:4].strip()
+        if key in (a, b) and key not in vals:
+            try:
+                v = [_float(text[5 + 12 * i : 17 + 12 * i]) for i in range(4)]
+            except ValueError as exc:
+                raise FramingError(f"{path}:{lineno}: bad IONOSPHERIC CORR: {exc}") from exc
+            if any(math.isnan(x) for x in v):
+                raise FramingError(f"{path}:{lineno}: IONOSPHERIC CORR {key} has blank fields")
+            vals[key] = (v[0], v[1], v[2], v[3])
     if a in vals and b in vals:
-        al, be = vals[a], vals[b]
-        return KlobucharParams(
-            alpha=(al[0], al[1], al[2], al[3]), beta=(be[0], be[1], be[2], be[3]), system=system
-        )
+        return KlobucharParams(alpha=vals[a], beta=vals[b], system=system)
     return None
 
 
-def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> tuple[Ephemeris, float]:
-    """The record's ephemeris and its transmission time (BDT seconds of week)."""
-    """The record's ephemeris and its transmission time (BDT seconds of week)."""
-    first = rec[0]
+def _leap_seconds(h: _Header, path: Path) -> int | None:
+    """GPST - UTC from ``LEAP SECONDS`` (4I6,A3). A BDS record (identifier ``BDS``, or blank
+    in a BDS-only file, as 3.02 writers do) holds BDT - UTC."""
+    line = h.first("LEAP SECONDS")
+    if line is None:
+        return None
     try:
-        toc_t = _epoch_datetime(first[4:23].split())
-        vals = [_float(first[23 + 19 * i : 42 + 19 * i]) for i in range(3)]
-        for line in rec[1:]:
-            vals.extend(_float(line[4 + 19 * i : 23 + 19 * i]) for i in range(4))
-    except (ValueError, IndexError) as exc:
-        raise FramingError(f"{path}:{lineno}: bad BDS navigation record: {exc}") from exc
-    v = vals + [math.nan] * (31 - len(vals))
-    (
-        af0,
-        af1,
-        af2,
-        aode,
-        crs,
-        dn,
-        m0,
-        cuc,
-        e,
-        cus,
-        sqrt_a,
-        toe,
-        cic,
-        om0,
-        cis,
-        i0,
-        crc,
-        om,
-        omdot,
-        idot,
-        _s1,
-        week,
-        _s2,
-        ura,
-        sath1,
-        tgd1,
-        tgd2,
-        tot,
-        aodc,
-    ) = v[:29]
-    if any(math.isnan(x) for x in (sqrt_a, e, toe, m0, week)):
-        raise FramingError(f"{path}:{lineno}: incomplete BDS navigation record for {prn}")
-    _, toc_sow = gpst_from_datetime(toc_t)  # BDT calendar -> BDT seconds of week
-    eph = Ephemeris(
-        prn=prn,
-        week=int(week),
-        toe_sow_s=toe,
-        toc_sow_s=toc_sow,
-        af0_s=af0,
-        af1_s_s=af1,
-        af2_s_s2=af2,
-        sqrt_a_sqrt_m=sqrt_a,
-        e=e,
-        i0_rad=i0,
-        omega0_rad=om0,
-        omega_rad=om,
-        m0_rad=m0,
-        delta_n_rad_s=dn,
-        omega_dot_rad_s=omdot,
-        idot_rad_s=idot,
-        cuc_rad=cuc,
-        cus_rad=cus,
-        crc_m=crc,
-        crs_m=crs,
-        cic_rad=cic,
-        cis_rad=cis,
-        tgd1_s=0.0 if math.isnan(tgd1) else tgd1,
-        tgd2_s=0.0 if math.isnan(tgd2) else tgd2,
-        health=0 if math.isnan(sath1) else int(sath1),
-        aode=0 if math.isnan(aode) else int(aode),
-        aodc=0 if math.isnan(aodc) else int(aodc),
-        ura_m=0.0 if math.isnan(ura) else ura,
-        source="rinex",
-    )
-    return eph, (-math.inf if math.isnan(tot) else tot)
+        value = int(line[:6])
+    except ValueError:
+        log.warning("%s: unreadable LEAP SECONDS %r", path, line[:24])
+        return None
+    ident = line[24:27].strip()
+    if ident == "BDS" or (not ident and h.system == "C"):
+        return value + round(BDT_GPST_OFFSET_S)
+    return value
+
+
+def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemeris:
+    """One BDS navigation record (``_BDS_RECORD`` layout) as an Ephemeris; toc -> BDT sow."""
+    first = rec[0]
+    values: dict[str, float] = {}
+    k = 0
+    try:
+        day = dt.date(int(first[4:8]), int(first[9:11]), int(first[12:14]))
+        toc_sow = (
+            (day.toordinal() - _BDT_EPOCH_ORDINAL) % 7 * 86400
+            + int(first[15:17]) * 3600
+            + int(first[18:20]) * 60
+            + int(first[21:23])
+        )
+        for k, names in enumerate(_BDS_RECORD):
+            start = 23 if k == 0 else 4
+            for j, name in enumerate(names):
+                if name is not None:
+                    values[name] = _float(rec[k][start + 19 * j : start + 19 * (j + 1)])
+    except ValueError as exc:
+        raise FramingError(f"{path}:{lineno + k}: bad BDS record for {prn}: {exc}") from exc
+    kwargs: dict[str, float | int] = {}
+    for name, value in values.items():
+        if math.isnan(value):
+            if name not in _BDS_OPTIONAL and name != "tot_sow_s":
+                raise FramingError(f"{path}:{lineno}: BDS record for {prn} lacks {name}")
+            if name == "tot_sow_s":
+                continue
+            value = _BDS_OPTIONAL[name]
+        kwargs[name] = int(value) if name in _BDS_INT_FIELDS else value
+    kwargs.pop("tot_sow_s", None)
+    return Ephemeris(prn=prn, toc_sow_s=float(toc_sow), source="rinex", **kwargs)  # type: ignore[arg-type]
 
 
 def read_nav(path: str | Path) -> NavData:
-    """BDS ephemerides and ionosphere coefficients of a RINEX 3 nav file (mixed or BDS-only)."""
+    """BDS ephemerides and ionosphere coefficients of a RINEX 3 nav file (mixed or BDS-only).
+
+    Records of other systems are skipped (counted in ``counters``). When the same set
+    (PRN, week, toe) appears more than once, the latest transmission time wins, so a
+    health change broadcast later is kept.
+    """
     path = Path(path)
-    try:
-        fh = path.open("r", encoding="ascii", errors="replace")
-    except OSError as exc:
-        raise FramingError(f"{path}: cannot read: {exc.strerror}") from exc
-    with fh:
-        groups, lineno = _read_header(fh, path, "N")
-        version = float(groups["RINEX VERSION / TYPE"][0][:9])
-        iono_lines = groups.get("IONOSPHERIC CORR", [])
-        leap = None
-        if "LEAP SECONDS" in groups:
-            try:
-                leap = int(groups["LEAP SECONDS"][0][:6])
-            except ValueError:
-                leap = None
-        ephs: dict[str, dict[tuple[int, float], Ephemeris]] = {}
-        tot_of: dict[tuple[str, tuple[int, float]], float] = {}
-        for line in fh:
-            lineno += 1
+    counters: Counter[str] = Counter()
+    with _open(path) as fh:
+        lines = _Lines(fh, path)
+        h = _read_header(lines, "N")
+        record_lines = dict(_NAV_RECORD_LINES)
+        if h.version >= 3.05:
+            record_lines["R"] = 5
+        held: dict[str, dict[tuple[int, float], tuple[float, Ephemeris]]] = {}
+        while (line := lines.next()) is not None:
             if not line.strip():
+                counters["blank_lines"] += 1
                 continue
             sys_char = line[0]
-            if sys_char not in _NAV_LINES:
-                raise FramingError(
-                    f"{path}:{lineno}: expected a navigation record, got {line.rstrip()[:40]!r}"
-                )
-            start = lineno
+            if sys_char not in record_lines:
+                raise lines.error(f"expected a navigation record, got {line.rstrip()[:40]!r}")
+            start = lines.n
             rec = [line]
-            for _ in range(_NAV_LINES[sys_char] - 1):
-                nxt = fh.readline()
-                lineno += 1
-                if not nxt:
-                    raise FramingError(f"{path}:{lineno}: file ends inside a navigation record")
+            while (nxt := lines.next()) is not None:
+                if nxt[:1] not in (" ", "\n", "\r"):
+                    lines.push_back(nxt)
+                    break
                 rec.append(nxt)
+            while len(rec) > 1 and not rec[-1].strip():
+                rec.pop()  # trailing blank lines belong to no record
+            want = record_lines[sys_char]
+            if len(rec) != want:
+                if sys_char == "C":
+                    raise FramingError(
+                        f"{path}:{start}: BDS record {line[:3]!r} has {len(rec)} lines, "
+                        f"expected {want}"
+                    )
+                counters[f"records_{sys_char}_odd_length"] += 1
+                log.warning(
+                    "%s:%d: %s record has %d lines, expected %d",
+                    path,
+                    start,
+                    sys_char,
+                    len(rec),
+                    want,
+                )
+            counters[f"records_{sys_char}"] += 1
             if sys_char != "C":
                 continue
             prn = _sat_id(line[:3])
-            eph, tot = _bds_ephemeris(prn, rec, path, start)
+            eph = _bds_ephemeris(prn, rec, path, start)
+            tot = _float(rec[7][4:23])
+            tot = -math.inf if math.isnan(tot) else tot
             key = (eph.week, eph.toe_sow_s)
-            held = ephs.setdefault(prn, {})
-            # The same set may be repeated; the latest transmission (e.g. a health change) wins.
-            if key not in held or tot >= tot_of[(prn, key)]:
-                held[key] = eph
-                tot_of[(prn, key)] = tot
+            sets = held.setdefault(prn, {})
+            if key in sets:
+                counters["bds_repeated_sets"] += 1
+            if key not in sets or tot >= sets[key][0]:
+                sets[key] = (tot, eph)
     return NavData(
-        version=version,
-        ephemerides={p: tuple(d.values()) for p, d in sorted(ephs.items())},
-        iono_bds=_iono(iono_lines, "BDSA", "BDSB", "BDS"),
-        iono_gps=_iono(iono_lines, "GPSA", "GPSB", "GPS"),
-        leap_seconds=leap,
+        version=h.version,
+        ephemerides={
+            p: tuple(e for _, (_, e) in sorted(d.items())) for p, d in sorted(held.items())
+        },
+        iono_bds=_iono(h.records.get("IONOSPHERIC CORR", []), "BDSA", "BDSB", "BDS", path),
+        iono_gps=_iono(h.records.get("IONOSPHERIC CORR", []), "GPSA", "GPSB", "GPS", path),
+        leap_seconds=_leap_seconds(h, path),
+        counters=dict(counters),
     )
 
 
 def merge_nav(*navs: NavData) -> NavData:
-    """Union of several nav files; the first file's ionosphere coefficients win."""
+    """Union of several nav files' BDS content.
+
+    A set (PRN, week, toe) present in several files is taken from the first file that has
+    it; ionosphere coefficients and leap seconds come from the first file that has them.
+    """
+    if not navs:
+        raise ValueError("merge_nav needs at least one NavData")
     ephs: dict[str, dict[tuple[int, float], Ephemeris]] = {}
+    counters: Counter[str] = Counter()
     for nav in navs:
+        counters.update(nav.counters)
         for prn, items in nav.ephemerides.items():
             for e in items:
                 ephs.setdefault(prn, {}).setdefault((e.week, e.toe_sow_s), e)
     return NavData(
         version=max(n.version for n in navs),
-        ephemerides={p: tuple(d.values()) for p, d in sorted(ephs.items())},
+        ephemerides={p: tuple(e for _, e in sorted(d.items())) for p, d in sorted(ephs.items())},
         iono_bds=next((n.iono_bds for n in navs if n.iono_bds), None),
         iono_gps=next((n.iono_gps for n in navs if n.iono_gps), None),
         leap_seconds=next((n.leap_seconds for n in navs if n.leap_seconds is not None), None),
+        counters=dict(counters),
     )
+
+
+__all__ = [
+    "NavData",
+    "ObsHeader",
+    "RinexObsReader",
+    "iter_obs",
+    "merge_nav",
+    "read_nav",
+]
