@@ -1,9 +1,16 @@
-"""u-blox RXM-SFRBX (BDS B1I) to :class:`~service.types.NavSubframe`.
+"""u-blox RXM-SFRBX (BDS B1I D1/D2) to :class:`~service.types.NavSubframe`.
 
-u-blox delivers each BDS word in the low 30 bits of a 32-bit dword, deinterleaved, info bits
-first and parity last (u-blox F9 Interface Description, RXM-SFRBX; checked on the PolyU F9P
-capture, where every word of all 230 B1I subframes passes BCH(15,11)). sigId 0 is B1I D1,
-sigId 1 B1I D2 (GEO); other BDS signals (B2I, B1C, ...) are not mapped.
+u-blox delivers a BDS D1/D2 subframe as 10 dwords, one 30-bit word each in bits 29-0 (bits
+31-30 are padding), in the ICD bit numbering: de-interleaved, parity included, information
+bits first (BDS-SIS-ICD-B1I-3.0 5.1.3). Checked on every real capture under ``shared/data``:
+all BDS words pass BCH(15,11,1) in that form with no correction, bits 31-30 are zero, and
+word 1 opens with the preamble.
+
+u-blox sigId for gnssId 3: 0 B1I D1, 1 B1I D2, 2/3 B2I D1/D2, 4/10 B3I D1/D2 (others are
+B1C/B2a, different messages). B2I and B3I carry the same D1/D2 format (the codec decodes
+them, see the tests) but the service works on B1I, so only sigId 0 and 1 are mapped. The
+message type follows the satellite (ICD 5.1: GEOs C01-C05/C59-C63 broadcast D2), which
+also covers receivers that report sigId 0 for every BDS subframe.
 """
 
 from __future__ import annotations
@@ -12,30 +19,47 @@ import logging
 from typing import Any, Literal
 
 from service.bds_nav import parse_header
+from service.constants import is_geo, prn_id
 from service.errors import DecodeError
 from service.types import NavSubframe
 
 log = logging.getLogger(__name__)
 
 GNSS_BDS = 3
-B1I_SIGNALS: dict[int, Literal["D1", "D2"]] = {0: "D1", 1: "D2"}
+B1I_SIGIDS = {0: "D1", 1: "D2"}
+"""u-blox sigId -> the message type u-blox names for B1I."""
+WORD_MASK = (1 << 30) - 1
 
 
 def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavSubframe | None:
-    """The subframe of a BDS B1I RXM-SFRBX, or None (other GNSS/signal, bad parity)."""
+    """The subframe of a BDS B1I RXM-SFRBX, time-tagged with the receive time (GPST).
+
+    None for other GNSS or signals, a word count other than 10, or a subframe that fails
+    the preamble/header checks (:func:`service.bds_nav.parse_header`).
+    """
     if int(msg.gnssId) != GNSS_BDS or int(msg.numWords) != 10:
         return None
-    nav_type = B1I_SIGNALS.get(int(msg.sigId))
-    if nav_type is None:
+    sig_type = B1I_SIGIDS.get(int(msg.sigId))
+    if sig_type is None:
         return None
-    words = tuple(int(getattr(msg, f"dwrd_{i:02d}")) & 0x3FFFFFFF for i in range(1, 11))
+    svid = int(msg.svId)
+    nav_type: Literal["D1", "D2"] = "D2" if is_geo(svid) else "D1"
+    if sig_type != nav_type:
+        log.debug(
+            "C%02d: sigId %d says %s, the satellite broadcasts %s",
+            svid,
+            int(msg.sigId),
+            sig_type,
+            nav_type,
+        )
+    words = tuple(int(getattr(msg, f"dwrd_{i:02d}")) & WORD_MASK for i in range(1, 11))
     try:
         head = parse_header(words, nav_type)
     except DecodeError as exc:
-        log.debug("C%02d SFRBX rejected: %s", int(msg.svId), exc)
+        log.debug("C%02d SFRBX rejected: %s", svid, exc)
         return None
     return NavSubframe(
-        prn=f"C{int(msg.svId):02d}",
+        prn=prn_id(svid),
         nav_type=nav_type,
         fra_id=head.fra_id,
         sow_s=head.sow_s,
