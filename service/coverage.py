@@ -331,7 +331,7 @@ def _candidates(
     Visibility is sampled at most every 3600 s over the whole study (last epoch included)
     with the mask lowered by the largest angle a GEO's line of sight can turn in half a
     sample interval (its Earth-fixed speed times the interval over the shortest range) plus
-    0.1 deg. For Table 1 that is 0.26 deg, and the candidates are 23 % of the grid.
+    0.1 deg. For Table 1 that is 0.26 deg, and the candidates are about 22 % of the grid.
     """
     every = max(1, math.floor(3600.0 / step_s))
     ks = np.unique(np.append(np.arange(0, len(sats), every), len(sats) - 1))
