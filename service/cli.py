@@ -152,6 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     z.add_argument("--topic", action="append", help="FIX, SKY, TRACK or STATUS (default all)")
     z.add_argument("--count", type=int, default=None, help="exit after N messages")
     z.add_argument("--timeout-s", type=float, default=None, help="exit after this idle time")
+    z.add_argument("--curve-server-key", metavar="FILE", help="CURVE: server public certificate")
+    z.add_argument("--curve-key", metavar="FILE", help="CURVE: this client's secret certificate")
     return p
 
 

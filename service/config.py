@@ -32,6 +32,8 @@ class DaemonConfig:
     nmea_serial: str = ""
     talker: str = "GN"
     zmq: str = "tcp://127.0.0.1:10111"
+    zmq_curve_secret_key: str = ""
+    zmq_curve_clients: str = ""
     jsonl_out: str = ""
     elmask_deg: float = 10.0
     beta: float = 0.0
@@ -56,6 +58,9 @@ HELP: dict[str, str] = {
     "nmea_serial": "NMEA to a serial device or pty",
     "talker": "NMEA talker: GN, GB, BD or GP",
     "zmq": "ZeroMQ PUB endpoint ('' disables)",
+    "zmq_curve_secret_key": "ZeroMQ CURVE: server secret certificate file ('' = no CURVE)",
+    "zmq_curve_clients": "ZeroMQ CURVE: directory of allowed client public certificates "
+    "('' = any client that knows the server key)",
     "jsonl_out": "JSONL records to a file or - for stdout",
     "elmask_deg": "elevation mask [deg]",
     "beta": "GDOP gate (0: derive from T and range_error_m)",

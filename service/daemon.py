@@ -47,6 +47,8 @@ def build_publishers(
     talker: str = "GN",
     baud: int = 115200,
     append: bool = False,
+    zmq_curve_secret_key: str = "",
+    zmq_curve_clients: str = "",
 ) -> Publishers:
     """Open the requested outputs; a bad one raises ConfigError after closing the others.
 
@@ -61,7 +63,11 @@ def build_publishers(
         if nmea_serial:
             opened["nmea_serial"] = SerialSink(nmea_serial, baud)
         if zmq:
-            opened["zmq"] = ZmqPublisher(zmq)
+            opened["zmq"] = ZmqPublisher(
+                zmq,
+                curve_secret_key_file=zmq_curve_secret_key,
+                curve_clients_dir=zmq_curve_clients,
+            )
         if jsonl_out:
             opened["jsonl"] = LineSink(jsonl_out, append=append)
     except BdsfixError:
@@ -129,6 +135,8 @@ def main_run(args: argparse.Namespace) -> int:
         talker=cfg.talker,
         baud=cfg.baud,
         append=True,
+        zmq_curve_secret_key=cfg.zmq_curve_secret_key,
+        zmq_curve_clients=cfg.zmq_curve_clients,
     )
     notifier = Notifier()
     runner = Runner(
@@ -266,6 +274,7 @@ def main_sub(args: argparse.Namespace) -> int:
     sock.setsockopt(zmq.LINGER, 0)
     for topic in args.topic or [""]:
         sock.setsockopt_string(zmq.SUBSCRIBE, topic)
+    _curve_client(sock, getattr(args, "curve_server_key", None), getattr(args, "curve_key", None))
     sock.connect(args.endpoint)
     n = 0
     try:
@@ -278,3 +287,27 @@ def main_sub(args: argparse.Namespace) -> int:
     finally:
         sock.close()
     return 0
+
+
+def _curve_client(sock: Any, server_key: str | None, client_key: str | None) -> None:
+    """CURVE on a SUB socket: the server's public certificate and our own secret one."""
+    if not server_key:
+        if client_key:
+            raise ConfigError("--curve-key needs --curve-server-key")
+        return
+    import zmq
+    import zmq.auth
+
+    try:
+        server_public, _ = zmq.auth.load_certificate(server_key)
+        if client_key:
+            public, secret = zmq.auth.load_certificate(client_key)
+        else:
+            public, secret = zmq.curve_keypair()
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"ZeroMQ CURVE certificate: {exc}") from exc
+    if not secret:
+        raise ConfigError(f"--curve-key {client_key}: no secret-key in file")
+    sock.curve_serverkey = server_public
+    sock.curve_publickey = public
+    sock.curve_secretkey = secret

@@ -34,6 +34,7 @@ import sys
 import threading
 from collections import Counter, deque
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import IO, Any
 
 from service.constants import C_M_S
@@ -260,15 +261,22 @@ def _peer(sock: socket.socket) -> str:
 
 
 class ZmqPublisher:
-    """ZeroMQ PUB socket sending ``[topic, JSON]`` messages without ever waiting."""
+    """ZeroMQ PUB socket sending ``[topic, JSON]`` messages without ever waiting.
+
+    CURVE (optional): ``curve_secret_key_file`` is the server's secret certificate
+    (``zmq.auth.create_certificates`` format); subscribers must then know the server's
+    public key. ``curve_clients_dir`` holds the public certificates of the subscribers
+    allowed in; without it any client that knows the server key may connect. Clients
+    refused by the handshake or the ZAP authenticator receive nothing.
+    """
 
     def __init__(
         self,
         endpoint: str = "tcp://127.0.0.1:10111",
         sndhwm: int = 1000,
         linger_ms: int = 100,
-        curve_secret_key: bytes | None = None,
-        curve_public_key: bytes | None = None,
+        curve_secret_key_file: str = "",
+        curve_clients_dir: str = "",
     ) -> None:
         import zmq
 
@@ -277,21 +285,49 @@ class ZmqPublisher:
         host = endpoint.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]")
         if endpoint.startswith("tcp://") and not _is_loopback(host):
             log.warning("ZeroMQ PUB binds %s, not loopback", endpoint)
-        self._ctx: Any = zmq.Context.instance()
+        self._auth: Any = None
+        self._own_ctx = bool(curve_secret_key_file)
+        # CURVE: a context of our own, so its ZAP authenticator serves this socket only
+        self._ctx: Any = zmq.Context() if self._own_ctx else zmq.Context.instance()
         self._sock = self._ctx.socket(zmq.PUB)
         self._sock.setsockopt(zmq.SNDHWM, sndhwm)
         self._sock.setsockopt(zmq.LINGER, linger_ms)
         self._linger_ms = linger_ms
-        if curve_secret_key is not None:
-            self._sock.curve_secretkey = curve_secret_key
-            self._sock.curve_publickey = curve_public_key
-            self._sock.curve_server = True
         try:
+            if curve_secret_key_file:
+                self._setup_curve(curve_secret_key_file, curve_clients_dir)
             self._sock.bind(endpoint)
         except zmq.ZMQError as exc:
-            self._sock.close(0)
+            self.close(linger_ms=0)
             raise ConfigError(f"ZeroMQ {endpoint}: {exc}") from exc
+        except ConfigError:
+            self.close(linger_ms=0)
+            raise
         self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
+
+    def _setup_curve(self, secret_file: str, clients_dir: str) -> None:
+        import zmq.auth
+        from zmq.auth.thread import ThreadAuthenticator
+
+        try:
+            public, secret = zmq.auth.load_certificate(secret_file)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"ZeroMQ CURVE secret key {secret_file}: {exc}") from exc
+        if not secret:
+            raise ConfigError(f"ZeroMQ CURVE secret key {secret_file}: no secret-key in file")
+        if clients_dir and not Path(clients_dir).is_dir():
+            raise ConfigError(f"ZeroMQ CURVE clients {clients_dir}: not a directory")
+        self._auth = ThreadAuthenticator(self._ctx, log=log)
+        self._auth.start()
+        if clients_dir:
+            self._auth.configure_curve(domain="*", location=clients_dir)
+            log.info("ZeroMQ CURVE: clients allowed from %s", clients_dir)
+        else:
+            self._auth.configure_curve(domain="*", location=self._zmq.auth.CURVE_ALLOW_ANY)
+            log.info("ZeroMQ CURVE: any client that knows the server key")
+        self._sock.curve_secretkey = secret
+        self._sock.curve_publickey = public
+        self._sock.curve_server = True
 
     def send(self, topic: str, record: Mapping[str, Any]) -> bool:
         """Send ``[topic, JSON]``; False (and counted) when the socket refuses it."""
@@ -309,8 +345,14 @@ class ZmqPublisher:
         self.counters[f"zmq_{topic}"] += 1
         return True
 
-    def close(self) -> None:
-        self._sock.close(linger=self._linger_ms)
+    def close(self, linger_ms: int | None = None) -> None:
+        self._sock.close(linger=self._linger_ms if linger_ms is None else linger_ms)
+        if self._auth is not None:
+            self._auth.stop()
+            self._auth = None
+        if self._own_ctx:
+            self._ctx.term()
+            self._own_ctx = False
 
 
 class LineSink:
