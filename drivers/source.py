@@ -36,7 +36,7 @@ from drivers.transport import (
     pace,
 )
 from drivers.ubx import USED_MESSAGES as UBX_USED
-from drivers.ubx import UbxMapper
+from drivers.ubx import UbxMapper, parse_rxm
 from service.errors import ConfigError, DecodeError
 from service.timebase import gpst_from_utc
 
@@ -127,7 +127,7 @@ class StreamDecoder:
     def _ubx_frame(self, raw: bytes) -> list[Event]:
         name = UBX_MSGIDS.get(raw[2:4])
         if name in UBX_USED:
-            return self.ubx.on_message(UBXReader.parse(raw))
+            return self.ubx.on_message(parse_rxm(raw) or UBXReader.parse(raw))
         label = name if name is not None else f"0x{raw[2]:02x}-0x{raw[3]:02x}"
         self.counters[f"ubx:{label}"] += 1
         self.counters["ubx_ignored"] += 1

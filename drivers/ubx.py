@@ -43,13 +43,14 @@ import datetime as dt
 import importlib
 import logging
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from drivers.framing import Counters, Event, WeekContext
+from drivers.framing import Counters, Event, WeekContext, fletcher8
 from service.constants import C_M_S, WEEK_S, prn_id
 from service.timebase import diff_s, gpst_from_utc
 from service.types import MeasurementEpoch, NavSubframe
@@ -92,6 +93,178 @@ class _Pending:
 
 def _field(msg: Any, name: str, i: int) -> Any:
     return getattr(msg, f"{name}_{i:02d}")
+
+
+# --- RXM-RAWX / RXM-MEASX as data: the two messages of every measurement epoch -------------
+# Layouts from the u-blox F9 HPG Interface Description (UBX-RXM-RAWX: 16-byte header and
+# 32-byte blocks; UBX-RXM-MEASX: 44-byte header and 24-byte blocks), the same fields and
+# scales as pyubx2's UBX_PAYLOADS_GET tables (tests compare the two on every real capture).
+# pyubx2 builds a Python attribute per field and bit (~2-4 ms for a 30-satellite RAWX);
+# these two hot messages are unpacked with one struct call per block instead. Everything
+# else, and any payload whose length does not match its count, goes through pyubx2.
+_UBX_CLASS_RXM = 0x02
+_ID_RAWX, _ID_MEASX = 0x15, 0x14
+_RAWX_HEAD = struct.Struct("<dHbBBB2x")  # rcvTow week leapS numMeas recStat version
+_RAWX_MEAS = struct.Struct("<ddfBBBBHBBBBBx")  # prMes cpMes doMes gnssId..trkStat
+_MEASX_HEAD = struct.Struct("<B3xIII4xIHHH2xHBB8x")  # version gpsTOW..numSv flags
+_MEASX_SV = struct.Struct("<BBBBiiHHIBB2x")  # gnssId svId cNo mpathIndic .. pseuRangeRMSErr
+MEASX_CODE_PHASE_LSB_MS = 2.0**-21
+MEASX_DOPPLER_HZ_LSB = 0.2
+MEASX_DOPPLER_MS_LSB = 0.04
+
+
+class RxmMessage:
+    """RXM-RAWX or RXM-MEASX unpacked with :mod:`struct`, with pyubx2's attribute names
+    (``identity``, header fields, ``<field>_<nn>`` per block) so :class:`UbxMapper` reads
+    either kind of message the same way."""
+
+    def __init__(self, identity: str, fields: dict[str, Any]) -> None:
+        self.identity = identity
+        self.__dict__.update(fields)
+
+
+def parse_rxm(raw: bytes) -> RxmMessage | None:
+    """Unpack a whole UBX frame (sync..checksum, checksum already verified) if it is a
+    RXM-RAWX or RXM-MEASX of consistent length; ``None`` otherwise."""
+    if len(raw) < 8 or raw[2] != _UBX_CLASS_RXM:
+        return None
+    payload = memoryview(raw)[6:-2]
+    fields: dict[str, Any] = {}
+    if raw[3] == _ID_RAWX:
+        if len(payload) < _RAWX_HEAD.size:
+            return None
+        rcv_tow, week, leap_s, n, rec_stat, _version = _RAWX_HEAD.unpack_from(payload)
+        if len(payload) != _RAWX_HEAD.size + n * _RAWX_MEAS.size:
+            return None
+        fields.update(rcvTow=rcv_tow, week=week, leapS=leap_s, numMeas=n)
+        fields.update(leapSec=rec_stat & 1, clkReset=(rec_stat >> 1) & 1)
+        for i in range(n):
+            v = _RAWX_MEAS.unpack_from(payload, _RAWX_HEAD.size + i * _RAWX_MEAS.size)
+            k = f"_{i + 1:02d}"
+            fields.update(
+                {
+                    "prMes" + k: v[0],
+                    "cpMes" + k: v[1],
+                    "doMes" + k: v[2],
+                    "gnssId" + k: v[3],
+                    "svId" + k: v[4],
+                    "sigId" + k: v[5],
+                    "freqId" + k: v[6],
+                    "locktime" + k: v[7],
+                    "cno" + k: v[8],
+                    "prStd" + k: v[9] & 0x0F,
+                    "prValid" + k: v[12] & 1,
+                    "cpValid" + k: (v[12] >> 1) & 1,
+                }
+            )
+        return RxmMessage(RAWX, fields)
+    if raw[3] == _ID_MEASX:
+        if len(payload) < _MEASX_HEAD.size:
+            return None
+        head = _MEASX_HEAD.unpack_from(payload)
+        n = head[9]
+        if len(payload) != _MEASX_HEAD.size + n * _MEASX_SV.size:
+            return None
+        fields.update(version=head[0], gpsTOW=head[1], gloTOW=head[2], bdsTOW=head[3])
+        fields.update(qzssTOW=head[4], numSv=n, towSet=head[10] & 3)
+        for i in range(n):
+            v = _MEASX_SV.unpack_from(payload, _MEASX_HEAD.size + i * _MEASX_SV.size)
+            k = f"_{i + 1:02d}"
+            fields.update(
+                {
+                    "gnssId" + k: v[0],
+                    "svId" + k: v[1],
+                    "cNo" + k: v[2],
+                    "mpathIndic" + k: v[3],
+                    "dopplerMS" + k: v[4] * MEASX_DOPPLER_MS_LSB,
+                    "dopplerHz" + k: v[5] * MEASX_DOPPLER_HZ_LSB,
+                    "wholeChips" + k: v[6],
+                    "fracChips" + k: v[7],
+                    "codePhase" + k: v[8] * MEASX_CODE_PHASE_LSB_MS,
+                    "intCodePhase" + k: v[9],
+                    "pseuRangeRMSErr" + k: v[10],
+                }
+            )
+        return RxmMessage(MEASX, fields)
+    return None
+
+
+def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
+    """A complete UBX frame: sync chars, class, id, length, payload, Fletcher checksum."""
+    body = bytes((msg_class, msg_id)) + struct.pack("<H", len(payload)) + payload
+    return b"\xb5\x62" + body + fletcher8(body)
+
+
+@dataclass(frozen=True, slots=True)
+class RawxMeas:
+    """One RXM-RAWX block as the virtual receiver writes it."""
+
+    pr_m: float
+    gnss_id: int
+    sv_id: int
+    sig_id: int
+    locktime_ms: int
+    cn0_dbhz: int
+    pr_std_index: int
+    pr_valid: bool
+
+
+def rawx_frame(rcv_tow_s: float, week: int, leap_s: int, meas: list[RawxMeas]) -> bytes:
+    """Encode RXM-RAWX (version 1, leap seconds known)."""
+    parts = [_RAWX_HEAD.pack(rcv_tow_s, week, leap_s, len(meas), 1, 1)]
+    for m in meas:
+        parts.append(
+            _RAWX_MEAS.pack(
+                m.pr_m if m.pr_valid else 0.0,
+                0.0,
+                0.0,
+                m.gnss_id,
+                m.sv_id,
+                m.sig_id,
+                0,
+                m.locktime_ms,
+                m.cn0_dbhz,
+                m.pr_std_index & 0x0F,
+                0,
+                0,
+                int(m.pr_valid),
+            )
+        )
+    return ubx_frame(_UBX_CLASS_RXM, _ID_RAWX, b"".join(parts))
+
+
+@dataclass(frozen=True, slots=True)
+class MeasxSv:
+    """One RXM-MEASX block as the virtual receiver writes it (code phase in 2^-21 ms)."""
+
+    gnss_id: int
+    sv_id: int
+    cn0_dbhz: int
+    whole_chips: int
+    code_phase_units: int
+    int_code_phase_ms: int = 0
+
+
+def measx_frame(gps_tow_ms: int, bds_tow_ms: int, svs: list[MeasxSv]) -> bytes:
+    """Encode RXM-MEASX (version 1; TOW accuracies 0; towSet 2 = TOW known)."""
+    parts = [_MEASX_HEAD.pack(1, gps_tow_ms, 0, bds_tow_ms, 0, 0, 0, 0, 0, len(svs), 2)]
+    for sv in svs:
+        parts.append(
+            _MEASX_SV.pack(
+                sv.gnss_id,
+                sv.sv_id,
+                sv.cn0_dbhz,
+                0,
+                0,
+                0,
+                sv.whole_chips,
+                0,
+                sv.code_phase_units,
+                sv.int_code_phase_ms,
+                0,
+            )
+        )
+    return ubx_frame(_UBX_CLASS_RXM, _ID_MEASX, b"".join(parts))
 
 
 class UbxMapper:

@@ -25,13 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from service.bds_nav import encode_d1_subframes, encode_d2_frame
+from drivers.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
+from service.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, encode_d1_subframes, encode_d2_frame
 from service.constants import C_M_S, WEEK_S, is_geo, prn_number
 from service.geometry import geodetic_to_ecef
 from service.orbit import EphemerisArrays
 from service.rangegen import true_ranges
 from service.timebase import diff_s, gpst_to_bdt, normalize
-from service.tracker import D1_SUBFRAME_S, D2_SUBFRAME_S
 from service.types import Ephemeris, KlobucharParams
 
 log = logging.getLogger(__name__)
@@ -235,7 +235,7 @@ class Simulator:
 
 
 def subframe_words(eph: Ephemeris, sf: SimSubframe, iono: KlobucharParams | None) -> list[int]:
-    """The ten 30-bit words of a completed subframe (BCH-coded, interleaved; ICD 5.1.3)."""
+    """The ten BCH-coded 30-bit words of a completed subframe, in ICD word order (5.1.3)."""
     frame, fra_id = divmod(sf.index, 5)
     if sf.nav_type == "D1":
         sow = round(frame * 5 * D1_SUBFRAME_S)
@@ -245,52 +245,39 @@ def subframe_words(eph: Ephemeris, sf: SimSubframe, iono: KlobucharParams | None
 
 
 def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
-    from pyubx2 import GET, UBXMessage
-
-    kw: dict[str, Any] = {
-        "rcvTow": ep.tag_gpst_tow_s,
-        "week": ep.tag_gpst_week,
-        "leapS": LEAP_S,
-        "numMeas": len(ep.prn),
-        "version": 1,
-    }
-    for i, prn in enumerate(ep.prn, start=1):
-        full = bool(ep.full[i - 1])
-        kw |= {
-            f"prMes_{i:02d}": float(ep.pr_m[i - 1]) if full else 0.0,
-            f"gnssId_{i:02d}": 3,
-            f"svId_{i:02d}": prn_number(prn),
-            f"sigId_{i:02d}": 1 if geo[i - 1] else 0,
-            f"locktime_{i:02d}": 1000,
-            f"cno_{i:02d}": int(ep.cn0_dbhz[i - 1]),
-            f"prStd_{i:02d}": 5,
-            f"prValid_{i:02d}": int(full),
-        }
-    return bytes(UBXMessage("RXM", "RXM-RAWX", GET, **kw).serialize())
+    """RXM-RAWX: prMes valid only for full satellites (B1I sigId 0 = D1, 1 = D2)."""
+    meas = [
+        RawxMeas(
+            pr_m=float(ep.pr_m[i]),
+            gnss_id=3,
+            sv_id=prn_number(prn),
+            sig_id=1 if geo[i] else 0,
+            locktime_ms=1000,
+            cn0_dbhz=int(ep.cn0_dbhz[i]),
+            pr_std_index=5,
+            pr_valid=bool(ep.full[i]),
+        )
+        for i, prn in enumerate(ep.prn)
+    ]
+    return rawx_frame(ep.tag_gpst_tow_s, ep.tag_gpst_week, LEAP_S, meas)
 
 
 def _measx(ep: SimEpoch) -> bytes:
-    from pyubx2 import GET, UBXMessage
-
+    """RXM-MEASX: the code phase (pseudorange modulo 1 ms) of every tracked satellite."""
     gps_tow_ms = round(ep.tag_gpst_tow_s * 1000.0)
-    kw: dict[str, Any] = {
-        "version": 1,
-        "gpsTOW": gps_tow_ms,
-        "bdsTOW": (gps_tow_ms - 14_000) % (WEEK_S * 1000),
-        "numSv": len(ep.prn),
-    }
-    for i, prn in enumerate(ep.prn, start=1):
-        units = round(float(ep.pr_m[i - 1]) / PR_LSB_M) % (1 << 21)  # code phase in 2^-21 ms
-        kw |= {
-            f"gnssId_{i:02d}": 3,
-            f"svId_{i:02d}": prn_number(prn),
-            f"cNo_{i:02d}": int(ep.cn0_dbhz[i - 1]),
-            f"wholeChips_{i:02d}": (units * 2046) >> 21,
-            f"fracChips_{i:02d}": 0,
-            f"codePhase_{i:02d}": units * CODE_PHASE_LSB_MS,  # exact binary fraction
-            f"intCodePhase_{i:02d}": 0,
-        }
-    return bytes(UBXMessage("RXM", "RXM-MEASX", GET, **kw).serialize())
+    svs = []
+    for i, prn in enumerate(ep.prn):
+        units = round(float(ep.pr_m[i]) / PR_LSB_M) % (1 << 21)  # code phase in 2^-21 ms
+        svs.append(
+            MeasxSv(
+                gnss_id=3,
+                sv_id=prn_number(prn),
+                cn0_dbhz=int(ep.cn0_dbhz[i]),
+                whole_chips=(units * 2046) >> 21,
+                code_phase_units=units,
+            )
+        )
+    return measx_frame(gps_tow_ms, (gps_tow_ms - 14_000) % (WEEK_S * 1000), svs)
 
 
 def _sfrbx(prn: str, nav_type: str, words: Sequence[int]) -> bytes:

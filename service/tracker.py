@@ -21,14 +21,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from service.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, SubframeHeader, subframe_start_sow_s
 from service.constants import C_M_S, is_geo
 from service.timebase import diff_s, gpst_to_bdt
 from service.types import MeasurementEpoch, NavSubframe
 
 log = logging.getLogger(__name__)
-
-D1_SUBFRAME_S = 6.0
-D2_SUBFRAME_S = 0.6
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,23 +45,6 @@ class TrackEvent:
 def nav_type_of(prn: str) -> str:
     """D2 for GEOs (C01-C05, C59-C63), D1 otherwise (ICD 5.1)."""
     return "D2" if is_geo(prn) else "D1"
-
-
-def subframe_start_sow_s(nav_type: str, sow_s: float, fra_id: int) -> float:
-    """BDT seconds of week at which a subframe's first bit left the satellite.
-
-    D1: the SOW counts the leading edge of the subframe it is in (ICD 5.2.4.1); checked on
-    the PolyU F9P capture, where each SFRBX arrives at SOW + 14 s + 6 s GPST.
-    D2: the SOW is an integer count of seconds while D2 subframes are 0.6 s apart, so it
-    cannot mark each subframe; it is that of the frame's first subframe and subframe k
-    starts at SOW + 0.6 (k - 1) (ICD B1I 5.3.3.1 "SOW", METHOD.md's working reading). The ICD
-    text itself could not be retrieved here; an independent signal generator (Racelogic
-    SatGen, NavigationDataB1ID2) writes 3 x frame count into every subframe of a frame, which
-    agrees. No public capture with D2 subframes exists to check it on.
-    """
-    if nav_type == "D2":
-        return sow_s + D2_SUBFRAME_S * (fra_id - 1)
-    return sow_s
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,6 +111,7 @@ class FrameSyncTracker:
             self._start = (sf.gpst_week, sf.gpst_tow_s)
         self._sow_after_restart.add(sf.prn)
         since = self.since_start_s(sf.gpst_week, sf.gpst_tow_s)
+        header = SubframeHeader(sf.fra_id, int(sf.sow_s), sf.page)
         return [
             TrackEvent(
                 prn=sf.prn,
@@ -138,7 +120,7 @@ class FrameSyncTracker:
                 gpst_tow_s=sf.gpst_tow_s,
                 since_start_s=since,
                 nav_type=sf.nav_type,
-                sow_s=subframe_start_sow_s(sf.nav_type, sf.sow_s, sf.fra_id),
+                sow_s=subframe_start_sow_s(header, sf.nav_type),
             )
         ]
 
