@@ -3,9 +3,13 @@
 A transport's ``read(max_bytes)`` returns the bytes available now, possibly ``b""`` after a
 short timeout; ``finished`` turns true only at the end of a file. ``close()`` releases the
 descriptor. Serial and TCP transports survive a vanished device or a closed connection: they
-log the disconnect, count it, close the descriptor and retry with exponential backoff capped
-at ``backoff_max_s`` (2 s by default), so reading resumes within that time of the device or
-server coming back. Transports know nothing about protocols.
+log the disconnect, count it, close the descriptor and retry with exponential backoff
+(``backoff_initial_s`` doubling up to ``backoff_max_s``, :data:`RECONNECT_MAX_S` = 0.5 s by
+default), so reading resumes within that time (plus one read timeout) of the device or server
+coming back: well inside the 2 s the daemon promises. Only the first failed attempt of an
+outage is logged as a warning, the rest at debug level; the reconnection is logged with the
+outage's length. A transport never holds more than its one descriptor, whatever the number of
+disconnections. Transports know nothing about protocols.
 
 Counter keys: ``transport_bytes``, ``disconnects``, ``reconnects``, ``connects``,
 ``open_failures``.
@@ -15,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import socket
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -24,13 +29,16 @@ from typing import IO, Any, Protocol, TypeVar
 import serial
 
 from drivers.framing import Counters
-from service.errors import ConfigError
+from service.errors import ConfigError, InputError
 from service.timebase import diff_s
 from service.types import MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+RECONNECT_MAX_S = 0.5
+"""Longest wait between two attempts to reopen a lost device or connection [s]."""
 
 
 class Transport(Protocol):
@@ -106,6 +114,7 @@ class _Reconnecting:
         self._ever_connected = False
         self._failures_logged = 0
         self._closed = False
+        self._down_since: float | None = None
 
     @property
     def finished(self) -> bool:
@@ -128,6 +137,19 @@ class _Reconnecting:
     def _release(self) -> None:
         raise NotImplementedError
 
+    def open_now(self) -> None:
+        """Open at once, as a start-up check: a failure raises InputError naming the device."""
+        if self._handle() is not None:
+            return
+        try:
+            self._connect()
+        except (OSError, serial.SerialException, ValueError) as err:
+            self.counters["open_failures"] += 1
+            raise InputError(f"{self.name}: cannot open: {_why(err)}") from err
+        self.counters["connects"] += 1
+        self._ever_connected = True
+        log.info("%s: connected", self.name)
+
     def _ensure(self) -> bool:
         if self._handle() is not None:
             return True
@@ -141,25 +163,37 @@ class _Reconnecting:
             self.counters["open_failures"] += 1
             level = logging.WARNING if self._failures_logged == 0 else logging.DEBUG
             self._failures_logged += 1
-            log.log(level, "%s: cannot open (%s); retry in %.1f s", self.name, err, self._backoff_s)
+            log.log(
+                level,
+                "%s: cannot open (%s); retry in %.1f s",
+                self.name,
+                _why(err),
+                self._backoff_s,
+            )
             self._next_try = time.monotonic() + self._backoff_s
             self._backoff_s = min(self._backoff_s * 2.0, self.backoff_max_s)
+            return False
+        if self._closed:  # close() ran while we were connecting (reader thread)
+            self._release()
             return False
         self.counters["connects"] += 1
         if self._ever_connected:
             self.counters["reconnects"] += 1
-            log.warning("%s: reconnected", self.name)
+            down_s = time.monotonic() - (self._down_since or time.monotonic())
+            log.warning("%s: reconnected after %.1f s", self.name, down_s)
         else:
             log.info("%s: connected", self.name)
         self._ever_connected = True
+        self._down_since = None
         self._failures_logged = 0
         self._backoff_s = self.backoff_initial_s
         return True
 
     def _drop(self, reason: object) -> None:
         self.counters["disconnects"] += 1
-        log.warning("%s: disconnected (%s); reconnecting", self.name, reason)
+        log.warning("%s: disconnected (%s); reconnecting", self.name, _why(reason))
         self._release()
+        self._down_since = time.monotonic()
         self._next_try = time.monotonic() + self._backoff_s
         self._backoff_s = min(self._backoff_s * 2.0, self.backoff_max_s)
 
@@ -180,6 +214,14 @@ class _Reconnecting:
         self._release()
 
 
+def _why(err: object) -> str:
+    """An OS error as its strerror (pyserial wraps errno errors in long messages)."""
+    code = getattr(err, "errno", None)
+    if isinstance(code, int) and code > 0:
+        return os.strerror(code)
+    return str(err)
+
+
 class SerialTransport(_Reconnecting):
     """A serial device via pyserial, reopened after it vanishes or errors."""
 
@@ -190,7 +232,7 @@ class SerialTransport(_Reconnecting):
         *,
         timeout_s: float = 0.1,
         backoff_initial_s: float = 0.1,
-        backoff_max_s: float = 2.0,
+        backoff_max_s: float = RECONNECT_MAX_S,
     ) -> None:
         super().__init__(
             f"serial:{device}:{baud}",
@@ -238,7 +280,7 @@ class TcpClientTransport(_Reconnecting):
         timeout_s: float = 0.1,
         connect_timeout_s: float = 2.0,
         backoff_initial_s: float = 0.1,
-        backoff_max_s: float = 2.0,
+        backoff_max_s: float = RECONNECT_MAX_S,
     ) -> None:
         super().__init__(
             f"tcp:{host}:{port}",

@@ -7,11 +7,13 @@ import argparse
 import importlib
 import logging
 import sys
+import traceback
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 from service import __version__
 from service.config import DEFAULT_CONFIG, add_config_flags
-from service.errors import BdsfixError
+from service.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, BdsfixError
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +36,17 @@ def _float_list(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line on stderr (exit 2), not a usage dump.
+
+    Subcommand parsers inherit the class (``add_subparsers`` uses ``type(self)``)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="bdsfix", description=__doc__)
+    p = _Parser(prog="bdsfix", description=__doc__)
     p.add_argument("--version", action="version", version=f"bdsfix {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = p.add_subparsers(dest="command", required=True)
@@ -173,12 +184,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _resolve(_HANDLERS[args.command])(args)
     except BdsfixError as exc:
-        print(f"bdsfix {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        # exit codes: service/errors.py (EXIT_*) and the README's "Exit codes"
+        print(f"bdsfix {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return exc.exit_code
     except BrokenPipeError:
-        return 0
+        return EXIT_OK
     except KeyboardInterrupt:
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # a bug: still one line; the traceback only with -v
+        if args.verbose:
+            traceback.print_exc()
+        print(
+            f"bdsfix {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)}"
+            + ("" if args.verbose else " (-v shows the traceback)"),
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).splitlines()) or type(exc).__name__
 
 
 if __name__ == "__main__":

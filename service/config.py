@@ -8,6 +8,7 @@ values raise :class:`~service.errors.ConfigError` with one line naming the file 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import tomllib
 from dataclasses import dataclass, fields
@@ -78,6 +79,24 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "log_level": ("debug", "info", "warning", "error"),
 }
 
+# Numeric keys and the (low, high, what) they must satisfy; NaN never passes.
+LIMITS: dict[str, tuple[float, float, str]] = {
+    "baud": (1, 4_000_000, "a baud rate in 1..4000000"),
+    "elmask_deg": (0.0, 90.0, "in [0, 90)"),
+    "beta": (0.0, math.inf, ">= 0"),
+    "range_error_m": (1e-9, math.inf, "> 0"),
+    "max_eph_age_s": (1e-9, math.inf, "> 0"),
+    "status_interval_s": (1e-3, 86400.0, "between 0.001 and 86400"),
+}
+
+
+def _within(name: str, value: Any) -> bool:
+    low, high, _ = LIMITS[name]
+    if name == "elmask_deg":
+        return low <= value < high
+    return low <= value <= high  # False for NaN
+
+
 _TYPES: dict[str, type] = {"str": str, "int": int, "float": float, "bool": bool}
 
 
@@ -104,6 +123,8 @@ def _coerce(name: str, value: Any, where: str) -> Any:
         )
     if name in CHOICES and value not in CHOICES[name]:
         raise ConfigError(f"{where}: key '{name}' must be one of {', '.join(CHOICES[name])}")
+    if name in LIMITS and not _within(name, value):
+        raise ConfigError(f"{where}: key '{name}' must be {LIMITS[name][2]}, got {value!r}")
     return value
 
 

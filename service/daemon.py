@@ -10,7 +10,9 @@ CLI entry configure logging.
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
+import os
 import signal
 import sys
 from collections.abc import Iterable
@@ -20,7 +22,7 @@ from typing import Any, cast
 from service.config import DEFAULT_CONFIG, DaemonConfig, load_config, overrides_from_args
 from service.engine import IonoChoice, IonoSet, SolverConfig
 from service.ephemeris import EphemerisStore
-from service.errors import BdsfixError, ConfigError
+from service.errors import BdsfixError, BindError, ConfigError, InputError
 from service.pipeline import EpochResult, Pipeline
 from service.publish import (
     LineSink,
@@ -70,11 +72,50 @@ def build_publishers(
             )
         if jsonl_out:
             opened["jsonl"] = LineSink(jsonl_out, append=append)
-    except BdsfixError:
+    except BdsfixError as exc:
         for part in opened.values():
             part.close()
-        raise
+        asked = {"nmea_tcp": nmea_tcp, "nmea_lines": nmea_out, "nmea_serial": nmea_serial}
+        asked.update(zmq=zmq, jsonl=jsonl_out)
+        failed = next((k for k, v in asked.items() if v and k not in opened), "")
+        raise _output_error(exc, failed) from exc
     return Publishers(talker=talker, **opened)
+
+
+_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
+
+
+def _output_error(exc: BdsfixError, failed: str) -> BdsfixError:
+    """The error of an output that failed to open, as the class giving its exit code:
+    a listener that cannot bind is a BindError, a file or device an InputError."""
+    if type(exc) is not ConfigError or not isinstance(exc.__cause__, Exception):
+        return exc
+    code = getattr(exc.__cause__, "errno", None)
+    if failed in ("nmea_tcp", "zmq") and code in _BIND_ERRNOS:
+        return BindError(str(exc))
+    if failed in ("nmea_lines", "nmea_serial", "jsonl") and isinstance(exc.__cause__, OSError):
+        return InputError(str(exc))
+    return exc
+
+
+def _check_source(spec: str) -> None:
+    """A capture file given as the source must be there and readable (one-line error).
+
+    Serial devices are opened at start by the caller (a device that vanishes later is
+    waited for); TCP sources are retried, since the server may start after the daemon."""
+    if spec == "-" or spec.startswith(("tcp:", "serial:", "/dev/")):
+        return
+    path = spec.removeprefix("file:")
+    if not os.path.exists(path):
+        raise InputError(f"source {spec!r}: no such file or device")
+    if os.path.isdir(path):
+        raise InputError(f"source {spec!r}: is a directory")
+    if os.path.isfile(path):
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
 def solver_config(
@@ -110,6 +151,7 @@ def _install_signals(runner: Runner) -> None:
 
 def main_run(args: argparse.Namespace) -> int:
     from drivers.source import open_source
+    from drivers.transport import RECONNECT_MAX_S, SerialTransport
 
     cfg_path = args.config
     if cfg_path is None and Path(DEFAULT_CONFIG).exists():
@@ -118,14 +160,14 @@ def main_run(args: argparse.Namespace) -> int:
     logging.getLogger().setLevel(cfg.log_level.upper())
     if not cfg.source:
         raise ConfigError("no receiver source: set 'source' in the config or --source")
-    state_dir = cfg.resolved_state_dir()
-    store = load_store(state_dir, cfg.max_eph_age_s)
-    pipeline = Pipeline(
-        store,
-        IonoSet(bds=store.iono if store.iono and store.iono.system == "BDS" else None),
-        solver_config(cfg.elmask_deg, cfg.beta, cfg.range_error_m, cfg.iono, cfg.tropo),
+    # What can refuse to start (source, nav files, outputs) does so first, with one line.
+    _check_source(cfg.source)
+    source = open_source(
+        cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
     )
-    source = open_source(cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud)
+    transport = getattr(source, "transport", None)
+    if isinstance(transport, SerialTransport):
+        transport.open_now()  # a missing device at start is an error (exit 3)
     outputs = build_publishers(
         nmea_tcp=cfg.nmea_tcp,
         nmea_out=cfg.nmea_out,
@@ -137,6 +179,13 @@ def main_run(args: argparse.Namespace) -> int:
         append=True,
         zmq_curve_secret_key=cfg.zmq_curve_secret_key,
         zmq_curve_clients=cfg.zmq_curve_clients,
+    )
+    state_dir = cfg.resolved_state_dir()
+    store = load_store(state_dir, cfg.max_eph_age_s)
+    pipeline = Pipeline(
+        store,
+        IonoSet(bds=store.iono if store.iono and store.iono.system == "BDS" else None),
+        solver_config(cfg.elmask_deg, cfg.beta, cfg.range_error_m, cfg.iono, cfg.tropo),
     )
     notifier = Notifier()
     runner = Runner(
@@ -224,6 +273,7 @@ def main_replay(args: argparse.Namespace) -> int:
             raise ConfigError("replay takes one capture at a time (or none for the scenario)")
         store = EphemerisStore()
         iono = IonoSet()
+        _check_source(args.files[0])
         src = open_source(args.files[0], nav=args.nav or None, gps_week=args.gps_week)
         events = src
         counters = src.counters
