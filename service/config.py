@@ -43,6 +43,7 @@ class DaemonConfig:
     tropo: bool = True
     max_eph_age_s: float = 7200.0
     status_interval_s: float = 10.0
+    store_save_interval_s: float = 60.0
     log_level: str = "info"
 
     def resolved_state_dir(self) -> Path:
@@ -70,6 +71,7 @@ HELP: dict[str, str] = {
     "tropo": "Saastamoinen troposphere",
     "max_eph_age_s": "oldest usable ephemeris, |t - toe| [s]",
     "status_interval_s": "period of STATUS messages [s]",
+    "store_save_interval_s": "shortest period between saves of a changed ephemeris store [s]",
     "log_level": "debug, info, warning or error",
 }
 
@@ -87,6 +89,7 @@ LIMITS: dict[str, tuple[float, float, str]] = {
     "range_error_m": (1e-9, math.inf, "> 0"),
     "max_eph_age_s": (1e-9, math.inf, "> 0"),
     "status_interval_s": (1e-3, 86400.0, "between 0.001 and 86400"),
+    "store_save_interval_s": (0.0, 86400.0, "between 0 and 86400"),
 }
 
 

@@ -195,6 +195,7 @@ def main_run(args: argparse.Namespace) -> int:
         source_counters=source.counters,
         status_interval_s=cfg.status_interval_s,
         store_path=state_dir / STORE_NAME,
+        store_save_interval_s=cfg.store_save_interval_s,
         watchdog=notifier.watchdog,
         watchdog_interval_s=notifier.watchdog_interval_s,
     )

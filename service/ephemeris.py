@@ -87,7 +87,9 @@ class EphemerisStore:
 
     # --- persistence -------------------------------------------------------------------
     def save(self, path: str | Path) -> None:
-        """Write the store atomically: temp file in the same directory, fsync, rename."""
+        """Write the store atomically: temp file in the same directory, fsync, rename, fsync
+        of the directory. A crash (even SIGKILL or power loss) leaves either the old or the
+        new store, never a torn one; temp files a crash left behind are removed here."""
         path = Path(path)
         doc = {
             "version": STORE_VERSION,
@@ -95,6 +97,8 @@ class EphemerisStore:
             "iono": None if self.iono is None else dataclasses.asdict(self.iono),
         }
         path.parent.mkdir(parents=True, exist_ok=True)
+        for stale in path.parent.glob(f".{path.name}.*"):  # one writer: these are crash debris
+            stale.unlink(missing_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
         try:
             with os.fdopen(fd, "w", encoding="utf-8") as fh:
