@@ -1,9 +1,10 @@
 """Publishers: NMEA 0183 over TCP/serial/file, ZeroMQ PUB JSON, JSONL. None of them blocks.
 
 - :class:`NmeaTcpServer`: a multi-client TCP server in its own thread (selectors). Each
-  client has a bounded output buffer; a client that does not read until its buffer
-  overflows is dropped and counted (``nmea_clients_dropped_slow``), as gpsd does with
-  slow clients. Whatever clients send (gpsd's ``?WATCH`` etc.) is read and ignored.
+  client has a bounded output buffer (and a 64 KiB kernel send buffer); a client that
+  does not read until its buffer overflows is dropped and counted
+  (``nmea_clients_dropped_slow``), as gpsd does with slow clients. Whatever clients
+  send (gpsd's ``?WATCH`` etc.) is read and ignored.
 - :class:`ZmqPublisher`: a PUB socket. Framing: each message is two frames,
   ``[topic, body]``: the topic is the record's class in ASCII (``FIX``, ``SKY``,
   ``TRACK``, ``STATUS``), so a SUB socket filters with ``setsockopt(SUBSCRIBE, b"FIX")``;
@@ -95,6 +96,7 @@ class NmeaTcpServer:
         self, host: str = "127.0.0.1", port: int = 10110, max_buffer_bytes: int = 256 * 1024
     ) -> None:
         self.max_buffer_bytes = max_buffer_bytes
+        self.kernel_sndbuf_bytes = 64 * 1024
         self._counters = _Counters()
         if not _is_loopback(host):
             log.warning("NMEA TCP server listens on %s:%d, not loopback", host, port)
@@ -179,6 +181,10 @@ class NmeaTcpServer:
         except OSError:
             return
         sock.setblocking(False)
+        # a bounded kernel send buffer, so a client that never reads is found (and dropped)
+        # once our own max_buffer_bytes fills, instead of after megabytes of autotuning
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.kernel_sndbuf_bytes)
         with self._lock:
             self._clients[sock] = deque()
             self._sizes[sock] = 0
