@@ -35,7 +35,17 @@ Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RT
   ``LEAP SECONDS`` (4I6,A3; identifier ``BDS`` or blank).
 
 A malformed file raises :class:`~service.errors.FramingError` whose message starts with
-``<file>:<1-based line>:``.
+``<file>:<1-based line>:``. A *lenient* observation reader (``RinexObsReader(path,
+lenient=True)``, used by stream replay) raises only for a malformed header; in the data
+section it logs the same message, counts what it drops and resynchronises at the next epoch
+line (the ``>`` record identifier of the RINEX 3 data record description):
+
+- a broken epoch line, an epoch whose records run into the next ``>`` line or past the end
+  of the file, or a flag 4 header record that does not parse: the epoch is skipped
+  (``epochs_skipped``);
+- an unreadable observation record: that record is skipped, the rest of the epoch is kept
+  (``records_skipped``);
+- lines that belong to no epoch (before the next ``>``): ``lines_skipped``.
 """
 
 from __future__ import annotations
@@ -306,11 +316,14 @@ class RinexObsReader:
     section, one :class:`~service.types.MeasurementEpoch` per observation epoch (flags 0
     and 1), with the BDS satellites that carry a non-zero B1I pseudorange. Epochs without
     any are yielded empty. Times are GPST. :attr:`counters` counts what was read and
-    skipped; a malformed record raises :class:`~service.errors.FramingError`.
+    skipped; a malformed record raises :class:`~service.errors.FramingError`, or with
+    ``lenient`` is logged (``file:line``), counted and skipped (see the module docstring).
+    A malformed header raises in both modes.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, lenient: bool = False) -> None:
         self.path = Path(path)
+        self.lenient = lenient
         with _open(self.path) as fh:
             lines = _Lines(fh, self.path)
             raw = _read_header(lines, "O")
@@ -361,36 +374,69 @@ class RinexObsReader:
             fh.seek(self._data_offset)
             lines = _Lines(fh, self.path)
             lines.n = self._header_lines
+            stray = 0  # lines outside any epoch since the last one (lenient mode)
             while (line := lines.next()) is not None:
                 if not line.strip():
                     counters["blank_lines"] += 1
                     continue
                 if line[0] != ">":
-                    raise lines.error(
+                    err = lines.error(
                         f"expected an epoch line ('>'), got {line.rstrip()[:40]!r} "
                         "(more records than the previous epoch line announced?)"
                     )
-                flag, count, when = self._epoch_line(line, lines)
-                body_start = lines.n + 1
-                body = []
-                for _ in range(count):
-                    rec = lines.next()
-                    if rec is None:
-                        raise lines.error(
-                            f"file ends inside the epoch of line {body_start - 1} "
-                            f"({count} records announced)"
-                        )
-                    body.append(rec)
-                if flag >= 2:
-                    self._special(flag, body, body_start, types, counters)
-                    if flag == 4 and "C" in types:
-                        cols = _BdsColumns.from_types(types["C"])
+                    if not self.lenient:
+                        raise err
+                    if not stray:
+                        log.warning("%s; skipping to the next epoch line", err)
+                    stray += 1
+                    counters["lines_skipped"] += 1
                     continue
-                if when is None:  # only flags 2-4 may leave the time blank
-                    raise lines.error("observation epoch without a time", body_start - 1)
+                stray = 0
+                try:
+                    flag, count, when = self._epoch_line(line, lines)
+                    body_start = lines.n + 1
+                    body = self._body(count, body_start, lines)
+                    if flag >= 2:
+                        self._special(flag, body, body_start, types, counters)
+                        if flag == 4 and "C" in types:
+                            cols = _BdsColumns.from_types(types["C"])
+                        continue
+                    if when is None:  # only flags 2-4 may leave the time blank
+                        raise lines.error("observation epoch without a time", body_start - 1)
+                    epoch = self._epoch(when, body, body_start, cols, lines)
+                except FramingError as exc:
+                    if not self.lenient:
+                        raise
+                    counters["epochs_skipped"] += 1
+                    log.warning("%s; epoch skipped", exc)
+                    stray = 1  # its records follow: skipped without another warning
+                    continue
                 counters["epochs"] += 1
                 counters["epochs_power_failure"] += flag == 1
-                yield self._epoch(when, body, body_start, cols, lines)
+                yield epoch
+
+    def _body(self, count: int, first: int, lines: _Lines) -> list[str]:
+        """The ``count`` records after an epoch line (first at line ``first``).
+
+        A lenient reader stops at a ``>`` line, which no record starts with, and hands it
+        back to the epoch loop, so a wrong count costs one epoch, not the ones after it.
+        """
+        body: list[str] = []
+        for _ in range(count):
+            rec = lines.next()
+            if rec is None:
+                raise lines.error(
+                    f"file ends inside the epoch of line {first - 1} ({count} records announced)"
+                )
+            if self.lenient and rec[:1] == ">":
+                lines.push_back(rec)
+                raise lines.error(
+                    f"epoch line announces {count} records, the next epoch line (line "
+                    f"{first + len(body)}) follows after {len(body)}",
+                    first - 1,
+                )
+            body.append(rec)
+        return body
 
     def _epoch_line(self, line: str, lines: _Lines) -> tuple[int, int, tuple[int, float] | None]:
         """(flag, record count, GPST (week, tow) or None for a blank event time)."""
@@ -405,9 +451,10 @@ class RinexObsReader:
             sod = int(line[13:15]) * 3600 + int(line[16:18]) * 60 + float(line[18:29])
             if not 0.0 <= sod < 86401.0:
                 raise ValueError(f"time of day {sod} s")
-        except ValueError as exc:
+            when = self._to_gpst(day.toordinal() - _GPS_EPOCH_ORDINAL, sod)
+        except (ValueError, OverflowError) as exc:  # OverflowError: GLO time near year 1
             raise lines.error(f"bad epoch line {line.rstrip()!r}: {exc}") from exc
-        return flag, count, self._to_gpst(day.toordinal() - _GPS_EPOCH_ORDINAL, sod)
+        return flag, count, when
 
     def _special(
         self,
@@ -464,11 +511,18 @@ class RinexObsReader:
                 if not value > 0.0:  # blank (NaN) or zero: no B1I pseudorange
                     self.counters["bds_without_b1i"] += 1
                     continue
+                if not math.isfinite(value):
+                    raise ValueError(f"pseudorange {value}")
                 sat = _sat_id(rec[:3])
                 c = math.nan if i_cn0 is None else _float(rec[i_cn0 : i_cn0 + 14])
                 d = math.nan if i_dop is None else _float(rec[i_dop : i_dop + 14])
             except ValueError as exc:
-                raise lines.error(f"bad observation record {rec[:3]!r}: {exc}", first + k) from exc
+                err = lines.error(f"bad observation record {rec[:3]!r}: {exc}", first + k)
+                if not self.lenient:
+                    raise err from exc
+                self.counters["records_skipped"] += 1
+                log.warning("%s; record skipped", err)
+                continue
             prn.append(sat)
             pr.append(value)
             cn0.append(c)
@@ -567,6 +621,8 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
         raise FramingError(f"{path}:{lineno + k}: bad BDS record for {prn}: {exc}") from exc
     kwargs: dict[str, float | int] = {}
     for name, value in values.items():
+        if math.isinf(value):  # e.g. an exponent beyond the double range
+            raise FramingError(f"{path}:{lineno}: BDS record for {prn}: {name} is {value}")
         if math.isnan(value):
             if name not in _BDS_OPTIONAL and name != "tot_sow_s":
                 raise FramingError(f"{path}:{lineno}: BDS record for {prn} lacks {name}")

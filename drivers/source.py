@@ -206,14 +206,23 @@ class BinarySource(EventSource):
 
 
 class RinexSource(EventSource):
-    """RINEX 3 observation file through :class:`drivers.rinex.RinexObsReader`."""
+    """RINEX 3 observation file through :class:`drivers.rinex.RinexObsReader`.
 
-    def __init__(self, path: str | Path, *, prefix: Iterable[Event] = ()) -> None:
+    A stream is ``lenient`` by default: a broken epoch is logged with file:line, counted
+    (``epochs_skipped``, ``records_skipped``, ``lines_skipped``) and skipped, as the framer
+    does with bad bytes; ``bdsfix solve`` keeps the strict reader and its error.
+    """
+
+    def __init__(
+        self, path: str | Path, *, prefix: Iterable[Event] = (), lenient: bool = True
+    ) -> None:
         from drivers.rinex import RinexObsReader
 
         self.name = str(path)
         self.counters = Counters()
-        self._reader: Any = RinexObsReader(path)
+        self._reader: Any = RinexObsReader(path, lenient=lenient)
+        # one set of counters: the reader's skipped epochs/records/lines reach STATUS
+        self._reader.counters = self.counters
         self._prefix = list(prefix)
 
     def __iter__(self) -> Iterator[Event]:

@@ -30,7 +30,7 @@ section 3.2; D1/D2 navigation messages, section 5).
 - RXM-SFRBX (BDS) becomes a :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
   the latest measurement time.
 
-Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``rawx_meas_other_gnss``,
+Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``, ``rawx_meas_other_gnss``,
 ``rawx_bds_other_signal``, ``rawx_pr_invalid``, ``measx_invalid``, ``measx_only_sats``,
 ``measx_uncalibrated``, ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``,
 ``epoch_no_week``, ``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
@@ -303,6 +303,11 @@ class UbxMapper:
         """Map one parsed UBX message; returns the events it completes."""
         name = str(msg.identity)
         self.counters[f"ubx:{name}"] += 1
+        if getattr(msg, "payload", None) == b"":
+            # An empty payload is the poll form of an output message (UBX frame structure):
+            # pyubx2 parses it without fields. Found by fuzzing (AttributeError before).
+            self.counters["ubx_poll"] += 1
+            return []
         if name == RAWX:
             return self._on_rawx(msg)
         if name == MEASX:

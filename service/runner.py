@@ -27,6 +27,11 @@ from service.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubfr
 log = logging.getLogger(__name__)
 
 _END = object()
+SKIP_KEYS = frozenset({"resyncs"})
+SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
+"""Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
+:mod:`drivers.rinex`) that count damaged input; with ``*_skipped`` they make the shutdown
+line of :meth:`Runner.log_skipped`."""
 
 
 class Outputs(Protocol):
@@ -127,6 +132,7 @@ class Runner:
             self._stop.set()
             self.save_store()
             self.outputs.status(self.counters())
+            self.log_skipped()
         if self._error is not None:
             raise self._error
         return n
@@ -151,6 +157,22 @@ class Runner:
         elif isinstance(ev, KlobucharParams):
             self.pipeline.set_iono(ev)
         return 0
+
+    def skipped(self) -> dict[str, int]:
+        """Source counters of input that was dropped (bad bytes, frames, RINEX lines/epochs)."""
+        return {
+            k: int(v)
+            for k, v in sorted(self.source_counters.items())
+            if v and (k in SKIP_KEYS or k.startswith(SKIP_PREFIXES) or k.endswith("_skipped"))
+        }
+
+    def log_skipped(self) -> None:
+        """The shutdown line with what the source skipped (also in every STATUS record)."""
+        skipped = self.skipped()
+        if skipped:
+            log.warning("input skipped: %s", ", ".join(f"{k}={v}" for k, v in skipped.items()))
+        else:
+            log.info("input skipped: nothing")
 
     def save_store(self) -> None:
         if self.store_path is None or not self._store_dirty:
