@@ -148,7 +148,7 @@ class _Reconnecting:
             raise InputError(f"{self.name}: cannot open: {_why(err)}") from err
         self.counters["connects"] += 1
         self._ever_connected = True
-        log.info("%s: connected", self.name)
+        log.debug("%s: connected", self.name)  # the caller reports its start-up in one line
 
     def _ensure(self) -> bool:
         if self._handle() is not None:

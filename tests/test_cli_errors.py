@@ -153,6 +153,21 @@ def test_nmea_port_in_use_exits_4(tmp_path, capture):
         _one_clear_line(tmp_path, BIND, argv, f"127.0.0.1:{port}", "in use")
 
 
+def test_port_in_use_with_a_live_serial_source_is_still_one_line(tmp_path):
+    """The device opens fine (a pty), then the NMEA port is taken: one line, exit 4."""
+    master, slave = os.openpty()
+    try:
+        with socket.socket() as held:
+            held.bind(("127.0.0.1", 0))
+            held.listen()
+            port = held.getsockname()[1]
+            argv = ["run", "--source", os.ttyname(slave), *QUIET, "--nmea-tcp", f":{port}"]
+            _one_clear_line(tmp_path, BIND, argv, f"127.0.0.1:{port}", "in use")
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 def test_zmq_port_in_use_exits_4(tmp_path, capture):
     ctx = zmq.Context.instance()
     held = ctx.socket(zmq.PUB)

@@ -111,6 +111,9 @@ class Daemon:
     def holds(self, device: str) -> bool:
         return device in self.fds()
 
+    def logged(self, text: str, start: int = 0) -> bool:
+        return any(text in line for line in self.err[start:])
+
     def stop(self) -> tuple[int, str]:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
@@ -275,12 +278,14 @@ def test_writer_vanishes_in_the_middle_of_a_frame(tmp_path, epochs):
         cut = epochs[30][1]
         os.write(pty.master, cut[: len(cut) // 2 + 7])  # mid-frame (RAWX or MEASX)
         time.sleep(0.05)
+        n_err = len(daemon.err)
         pty.unplug()
         time.sleep(0.6)
         dev = pty.plug()
         t_back = time.monotonic()
-        _wait(lambda: daemon.holds(dev), RESUME_LIMIT_S, "the daemon to reopen the pty")
-        time.sleep(0.1)  # pyserial flushes the input queue as it opens
+        # logged once open (pyserial has flushed the input queue): what follows is read
+        _wait(lambda: daemon.logged("reconnected after", n_err), 5, "the daemon to reopen")
+        assert daemon.holds(dev)
         tow_first = epochs[31][0]
         for tow, data in epochs[31:45]:
             os.write(pty.master, data)
@@ -332,11 +337,12 @@ def test_line_speed_changes(tmp_path, epochs):
         _wait(lambda: daemon.fix_at_or_after(tow_after) is not None, 5, "fixes after garbage")
         after = [r for _t, r in daemon.fixes if abs(r["gpst_tow_s"] - tow_after) < 1e-6]
         assert any(r["mode"] != "none" for r in after), after  # the next valid frame decodes
+        n_err = len(daemon.err)
         pty.unplug()  # the device returns with the kernel's default speed ...
         dev = pty.plug()
         assert _speed(pty.master) != (termios.B115200, termios.B115200)
-        _wait(lambda: daemon.holds(dev), RESUME_LIMIT_S, "the daemon to reopen the pty")
-        time.sleep(0.1)
+        _wait(lambda: daemon.logged("reconnected after", n_err), 5, "the daemon to reopen")
+        assert daemon.holds(dev)
         assert _speed(pty.master) == (termios.B115200, termios.B115200)  # ... and gets ours
         tow_back = epochs[41][0]
         for _tow, data in epochs[41:55]:
