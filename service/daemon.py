@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import errno
 import logging
+import math
 import os
 import signal
 import sys
@@ -118,6 +119,18 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
+def _check_state_dir(state_dir: Path) -> None:
+    """The ephemeris store's directory must be (or become) a writable directory."""
+    if state_dir.exists() and not state_dir.is_dir():
+        raise InputError(f"state directory {state_dir}: not a directory")
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"state directory {state_dir}: {exc.strerror}") from exc
+    if not os.access(state_dir, os.W_OK | os.X_OK):
+        raise InputError(f"state directory {state_dir}: not writable")
+
+
 def solver_config(
     elmask_deg: float, beta: float, range_error_m: float, iono: str, tropo: bool
 ) -> SolverConfig:
@@ -162,6 +175,7 @@ def main_run(args: argparse.Namespace) -> int:
         raise ConfigError("no receiver source: set 'source' in the config or --source")
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
+    _check_state_dir(cfg.resolved_state_dir())
     source = open_source(
         cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
     )
@@ -254,6 +268,8 @@ def main_replay(args: argparse.Namespace) -> int:
     from drivers.source import open_source
     from drivers.transport import pace
 
+    if args.speed is not None and not (args.speed > 0 and math.isfinite(args.speed)):
+        raise ConfigError(f"--speed must be a positive number, got {args.speed}")
     outputs_asked = any([args.nmea_tcp, args.zmq, args.nmea_out, args.jsonl_out])
     nmea_out = args.nmea_out if outputs_asked else "-"
     cfg = solver_config(
@@ -326,7 +342,11 @@ def main_sub(args: argparse.Namespace) -> int:
     for topic in args.topic or [""]:
         sock.setsockopt_string(zmq.SUBSCRIBE, topic)
     _curve_client(sock, getattr(args, "curve_server_key", None), getattr(args, "curve_key", None))
-    sock.connect(args.endpoint)
+    try:
+        sock.connect(args.endpoint)
+    except zmq.ZMQError as exc:
+        sock.close()
+        raise ConfigError(f"endpoint {args.endpoint!r}: {exc.strerror}") from exc
     n = 0
     try:
         while args.count is None or n < args.count:

@@ -14,7 +14,7 @@ import os
 import sys
 import time
 
-from service.errors import ConfigError
+from service.errors import ConfigError, InputError
 from service.keplerian import TABLE1_EPOCH_UTC, table1_ephemerides
 from service.simulator import SimConfig, Simulator
 from service.timebase import bdt_to_gpst, gpst_from_utc
@@ -34,6 +34,9 @@ def _ephemerides(nav: str | None) -> tuple[list[Ephemeris], KlobucharParams | No
 
 
 def main_simulate(args: argparse.Namespace) -> int:
+    for flag, value in (("--rate-hz", args.rate_hz), ("--duration-s", args.duration_s)):
+        if not (value > 0 and value < float("inf")):
+            raise ConfigError(f"{flag} must be a positive number, got {value}")
     ephs, iono = _ephemerides(args.nav)
     if args.start:
         try:
@@ -68,7 +71,10 @@ def main_simulate(args: argparse.Namespace) -> int:
     elif args.out in (None, "-"):
         write = sys.stdout.buffer.write
     else:
-        fh = open(args.out, "wb")  # noqa: SIM115
+        try:
+            fh = open(args.out, "wb")  # noqa: SIM115
+        except OSError as exc:
+            raise InputError(f"cannot write {args.out}: {exc.strerror}") from exc
         write = fh.write
     t0 = time.monotonic()
     try:

@@ -102,6 +102,9 @@ def test_missing_and_unreadable_config_file_exit_2(tmp_path):
         (["frobnicate"], ["invalid choice"]),
         (["solve", "--mode", "slow", "a.obs", "b.nav"], ["--mode"]),
         (["replay", "--speed", "fast"], ["--speed"]),
+        (["replay", "--speed", "-1"], ["--speed must be a positive number"]),
+        (["simulate", "--rate-hz", "0", "--out", "x.ubx"], ["--rate-hz"]),
+        (["sub", "not-an-endpoint", "--count", "1"], ["not-an-endpoint"]),
     ],
 )
 def test_bad_arguments_exit_2(tmp_path, capture, argv, needles):
@@ -139,9 +142,13 @@ def test_unreadable_or_malformed_nav_file_exits_3(tmp_path, capture):
     _one_clear_line(tmp_path, INPUT, ["solve", "missing.obs", "missing.nav"], "missing")
 
 
-def test_unwritable_output_exits_3(tmp_path, capture):
+def test_unwritable_output_or_state_dir_exits_3(tmp_path, capture):
     argv = ["run", "--source", str(capture), *QUIET, "--jsonl-out", "no/such/dir/fixes.jsonl"]
     _one_clear_line(tmp_path, INPUT, argv, "fixes.jsonl")
+    argv = ["run", "--source", str(capture), *QUIET, "--state-dir", str(capture)]
+    _one_clear_line(tmp_path, INPUT, argv, "state directory", "not a directory")
+    argv = ["simulate", "--duration-s", "1", "--out", "no/such/dir/x.ubx"]
+    _one_clear_line(tmp_path, INPUT, argv, "x.ubx")
 
 
 def test_nmea_port_in_use_exits_4(tmp_path, capture):
