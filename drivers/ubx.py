@@ -30,10 +30,11 @@ section 3.2; D1/D2 navigation messages, section 5).
 - RXM-SFRBX (BDS) becomes a :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
   the latest measurement time.
 
-Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``, ``rawx_meas_other_gnss``,
-``rawx_bds_other_signal``, ``rawx_pr_invalid``, ``measx_invalid``, ``measx_only_sats``,
-``measx_uncalibrated``, ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``,
-``epoch_no_week``, ``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
+Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
+``rawx_meas_other_gnss``, ``rawx_bds_other_signal``, ``rawx_pr_invalid``,
+``rawx_pr_implausible``, ``measx_invalid``, ``measx_only_sats``, ``measx_uncalibrated``,
+``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``, ``epoch_no_week``,
+``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
 ``sfrbx_unmapped``, ``sfrbx_mapper_missing``, ``subframes``.
 """
 
@@ -68,6 +69,11 @@ BDS_SIGNALS: dict[int, str] = {0: "2I", 1: "2I"}  # B1I D1, B1I D2
 RAWX, MEASX, SFRBX = "RXM-RAWX", "RXM-MEASX", "RXM-SFRBX"
 USED_MESSAGES = frozenset({RAWX, MEASX, SFRBX, "NAV-TIMEGPS", "NAV-PVT"})
 
+PR_MAX_M = 1e8
+"""Upper bound of a plausible pseudorange [m]: a BDS GEO/IGSO (35,786 km altitude,
+BDS-SIS-ICD-B1I-3.0 section 3, space constellation) is at most ~42,000 km from a user on
+the Earth, and u-blox keeps its receiver clock within 1 ms (300 km). A prMes flagged valid
+but NaN, infinite or outside (0, PR_MAX_M) is counted (``rawx_pr_implausible``), not used."""
 MEASX_INVALID_INT_MS = 255
 UNKNOWN_WEEK = -1
 MEASX_INVALID_CHIPS = 65535
@@ -348,10 +354,13 @@ class UbxMapper:
                 self.counters["rawx_bds_other_signal"] += 1
                 continue
             sat = self._sat(pending, prn_id(int(_field(msg, "svId", i))))
-            if _field(msg, "prValid", i):
-                sat.pr_m = float(_field(msg, "prMes", i))
-            else:
+            pr_m = float(_field(msg, "prMes", i))
+            if not _field(msg, "prValid", i):
                 self.counters["rawx_pr_invalid"] += 1
+            elif not 0.0 < pr_m < PR_MAX_M:  # NaN/inf/negative reached the solver before
+                self.counters["rawx_pr_implausible"] += 1
+            else:
+                sat.pr_m = pr_m
             sat.cn0_dbhz = float(_field(msg, "cno", i))
             sat.doppler_hz = float(_field(msg, "doMes", i))
             sat.lock_s = float(_field(msg, "locktime", i)) * 1e-3

@@ -24,12 +24,16 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
+import os
 import signal
+import struct
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -52,7 +56,7 @@ from tests._independent import DATA
 HANG_S = 20.0
 """Per-call wall bound: a hang detector only, far above any normal call."""
 FUZZ = settings(
-    max_examples=120,
+    max_examples=int(os.environ.get("BDSFIX_FUZZ_EXAMPLES", "120")),  # more for a long hunt
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
@@ -205,6 +209,11 @@ def test_stream_decoder_feed_and_flush_never_raise(data, cuts, week):
     dec = StreamDecoder(gps_week=week)
     events = feed_in_chunks(dec, data, cuts)
     assert all(isinstance(e, EVENT_TYPES) for e in events)
+    for e in events:
+        if isinstance(e, MeasurementEpoch):  # a full pseudorange is a range or NaN
+            pr = np.asarray(e.pr_m, dtype=float)
+            assert np.all(np.isnan(pr) | ((pr > 0) & (pr < 1e8)))
+            assert np.all(np.isfinite(e.frac_pr_m))
     with hang_guard():
         assert dec.flush() == []  # a second flush has nothing left
 
@@ -493,3 +502,30 @@ def test_ubx_poll_form_of_a_used_message_is_counted():
     dec = StreamDecoder()
     dec.feed(reseal_ubx(b"\x01\x20") + reseal_ubx(b"\x02\x13"))
     assert dec.counters["ubx_poll"] == 2 and dec.counters["decode_errors_ubx"] == 0
+
+
+@pytest.mark.parametrize("bad_pr_m", [math.inf, math.nan, -2.0e7, 1.0e300])
+def test_rawx_valid_flag_with_impossible_pseudorange_is_counted_not_used(bad_pr_m):
+    # A checksum-valid RAWX whose prMes is flagged valid but is no range reached the solver.
+    raw = next(f for f in frames_of("RXM-RAWX") if len(f) > 400)
+    clean = UBXReader.parse(raw)
+    payload = bytearray(raw[6:-2])
+    k = next(i for i in range(clean.numMeas) if getattr(clean, f"gnssId_{i + 1:02d}") == 3)
+    payload[16 + 32 * k : 24 + 32 * k] = struct.pack("<d", bad_pr_m)
+    bad = reseal_ubx(raw[2:4] + bytes(payload))
+    dec = StreamDecoder()
+    (epoch,) = [e for e in dec.feed(bad) + dec.flush() if isinstance(e, MeasurementEpoch)]
+    assert dec.counters["rawx_pr_implausible"] == 1
+    want = {
+        f"C{getattr(clean, f'svId_{i + 1:02d}'):02d}": getattr(clean, f"prMes_{i + 1:02d}")
+        for i in range(clean.numMeas)
+        if getattr(clean, f"gnssId_{i + 1:02d}") == 3
+        and getattr(clean, f"sigId_{i + 1:02d}") in (0, 1)
+        and getattr(clean, f"prValid_{i + 1:02d}")
+    }
+    bad_prn = f"C{getattr(clean, f'svId_{k + 1:02d}'):02d}"
+    for prn, pr in zip(epoch.prn, epoch.pr_m, strict=True):
+        if prn == bad_prn:
+            assert math.isnan(pr)
+        else:
+            assert pr == want[prn]
