@@ -24,8 +24,8 @@ from tests._independent import DATA
 
 NAV = DATA / "hksc-2021" / "hksc1610.nav"
 BDSFIX = str(Path(sys.executable).parent / "bdsfix")
-KILLS_CHILD = 80
-KILLS_DAEMON = 20
+KILLS_CHILD = 85
+KILLS_DAEMON = 15
 
 
 def _keys(store: EphemerisStore) -> set[tuple[str, int, float]]:
