@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -56,6 +56,9 @@ class SolverConfig:
     resid_max_m: float = 1000.0
     sigma_a_m: float = 0.3
     sigma_b_m: float = 0.3
+    # Start of the phase-1 iteration; None is the paper's (the Earth's centre, eq. 3).
+    # Reference solutions in studies may start at a known position to save iterations.
+    x0_ecef_m: tuple[float, float, float] | None = None
 
 
 def derive_beta(period_s: float, range_error_m: float) -> float:
@@ -75,6 +78,9 @@ class _Rows:
     ct_m: np.ndarray  # c*T for fractional rows, 0 for full rows
     cn0_dbhz: np.ndarray
     eph: EphemerisArrays
+    # satellite positions and clocks by transmit times: they depend on z + N cT only (eqs.
+    # 4-5), not on the receiver state, so iterations that keep N reuse them
+    orbit_cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @property
     def frac(self) -> np.ndarray:
@@ -106,7 +112,13 @@ def _geometry(
     t1 = bdt_sow_s - pr_m / C_M_S
     dtc = t1 - eph.toc_sow_s
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * dtc)
-    sat, clk_s = sat_pos_clock(eph, bdt_week, t_tx)
+    key = t_tx.tobytes() + bdt_week.to_bytes(4, "little", signed=True)
+    cached = rows.orbit_cache.get(key)
+    if cached is None:
+        if len(rows.orbit_cache) > 64:
+            rows.orbit_cache.clear()
+        cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
+    sat, clk_s = cached
     rho = np.linalg.norm(sat - x, axis=1)
     sat = sagnac_rotate(sat, rho / C_M_S)
     d = sat - x
@@ -190,7 +202,7 @@ def _solve_rows(
         return replace(base, reason=reason)
 
     # ---- phase 1: paper eqs. (3)-(14), from the Earth's centre, no corrections ----------
-    x = np.zeros(3)
+    x = np.zeros(3) if cfg.x0_ecef_m is None else np.array(cfg.x0_ecef_m, dtype=float)
     b = 0.0
     n_int = np.zeros(len(rows.prn))
     frac_idx = np.flatnonzero(frac)
