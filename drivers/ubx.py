@@ -95,6 +95,7 @@ class _Pending:
     tow_s: float
     kinds: set[str] = field(default_factory=set)
     sats: dict[str, _Sat] = field(default_factory=dict)
+    week_exact: bool = True  # False: week from a hint (system clock), not from the data
 
 
 def _field(msg: Any, name: str, i: int) -> Any:
@@ -372,7 +373,7 @@ class UbxMapper:
             self.counters["ubx_bad_time"] += 1
             return []
         week = self.week.resolve(tow)
-        out = self._open(MEASX, UNKNOWN_WEEK if week is None else week, tow)
+        out = self._open(MEASX, UNKNOWN_WEEK if week is None else week, tow, self.week.exact)
         pending = self._pending
         if pending is None:
             return out
@@ -399,14 +400,23 @@ class UbxMapper:
             sat = pending.sats[prn] = _Sat(prn)
         return sat
 
-    def _open(self, kind: str, week: int, tow: float) -> list[Event]:
-        """Make the pending epoch the one at (week, tow); closes a different one first."""
+    def _open(self, kind: str, week: int, tow: float, week_exact: bool = True) -> list[Event]:
+        """Make the pending epoch the one at (week, tow); closes a different one first.
+
+        A week that is only a hint (the system clock of a live stream, before the first
+        RAWX) is not compared: the RAWX at the same time of week joins that epoch and
+        gives it the receiver's own week."""
         if week != UNKNOWN_WEEK:
             self._last_meas_time = (week, tow)
         out: list[Event] = []
         p = self._pending
-        if p is not None and (kind in p.kinds or not self._same_time(week, tow, p.week, p.tow_s)):
-            out = self._close(learn=True)
+        if p is not None:
+            hinted = not (week_exact and p.week_exact)
+            same = self._same_time(
+                UNKNOWN_WEEK if hinted else week, tow, UNKNOWN_WEEK if hinted else p.week, p.tow_s
+            )
+            if kind in p.kinds or not same:
+                out = self._close(learn=True)
         last = self._last_emitted
         if self._pending is None and last is not None and self._same_time(week, tow, *last):
             # This epoch was already emitted without this message: learn it, drop it.
@@ -414,10 +424,11 @@ class UbxMapper:
             self._expected = self._expected | {kind}
             return out
         if self._pending is None:
-            self._pending = _Pending(week, tow)
+            self._pending = _Pending(week, tow, week_exact=week_exact)
         self._pending.kinds.add(kind)
         if kind == RAWX:  # RAWX carries the receiver's own time tag
             self._pending.week, self._pending.tow_s = week, tow
+            self._pending.week_exact = True
         return out
 
     def _same_time(self, week_a: int, tow_a: float, week_b: int, tow_b: float) -> bool:
