@@ -156,7 +156,26 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--elmask-deg", type=float, default=10.0)
     t.add_argument("--json", action="store_true", help="print the result as JSON")
     t.add_argument("--plot", help="TTFF histograms PNG")
-    t.add_argument("--simulate", action="store_true", help="simulated streams (not yet)")
+    t.add_argument(
+        "--simulate",
+        action="store_true",
+        help="restarts of a virtual receiver streamed through a pty into 'bdsfix run' "
+        "(NAV optional: Table 1 ephemerides by default)",
+    )
+    t.add_argument("--lat-deg", type=float, default=39.9, help="--simulate: true latitude")
+    t.add_argument("--lon-deg", type=float, default=116.4, help="--simulate: true longitude")
+    t.add_argument("--alt-m", type=float, default=50.0, help="--simulate: true height")
+    t.add_argument("--rate-hz", type=float, default=10.0, help="--simulate: measurement rate")
+    t.add_argument("--noise-m", type=float, default=1.3, help="--simulate: range noise sigma")
+    t.add_argument("--trial-s", type=float, default=13.0, help="--simulate: stream per trial")
+    t.add_argument("--start-utc", help="--simulate: ISO UTC of the first restart")
+    t.add_argument(
+        "--max-eph-age-s",
+        type=float,
+        default=7200.0,
+        help="--simulate: satellites whose ephemeris is older are not simulated; the daemon "
+        "gets the same limit",
+    )
 
     z = sub.add_parser("sub", help="print ZeroMQ messages")
     z.add_argument("endpoint", nargs="?", default="tcp://127.0.0.1:10111")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -105,7 +106,7 @@ def run_trial(
     return Trial(r, fast, conv, geo, geo_err, diff)
 
 
-def _stats(values: list[float | None], n: int) -> dict[str, Any]:
+def stats(values: list[float | None], n: int) -> dict[str, Any]:
     ok = [v for v in values if v is not None]
     out: dict[str, Any] = {"success_pct": round(100.0 * len(ok) / max(n, 1), 2)}
     if ok:
@@ -118,9 +119,9 @@ def summarize(trials: list[Trial]) -> dict[str, Any]:
     n = len(trials)
     doc: dict[str, Any] = {
         "trials": n,
-        "fast": _stats([t.fast_s for t in trials], n),
-        "conventional": _stats([t.conventional_s for t in trials], n),
-        "geo_only": _stats([t.geo_only_s for t in trials], n),
+        "fast": stats([t.fast_s for t in trials], n),
+        "conventional": stats([t.conventional_s for t in trials], n),
+        "geo_only": stats([t.geo_only_s for t in trials], n),
     }
     errs = [t.geo_only_err_m for t in trials if t.geo_only_err_m is not None]
     if errs:
@@ -136,7 +137,13 @@ def main_ttff(args: argparse.Namespace) -> int:
     from service.batch import load_navigation
 
     if args.simulate:
-        raise ConfigError("ttff --simulate is not implemented yet (issue: simulated TTFF)")
+        from service.ttff_sim import run_simulated
+
+        doc, sim_trials = run_simulated(args)
+        _print(doc, args.json)
+        if args.plot:
+            _plot(sim_trials, args.plot)
+        return 0
     if not args.obs or not args.nav:
         raise ConfigError("ttff needs OBS and NAV (or --simulate)")
     store, iono = load_navigation(list(args.nav))
@@ -151,22 +158,27 @@ def main_ttff(args: argparse.Namespace) -> int:
         for _ in range(args.trials)
     ]
     doc = summarize(trials)
-    if args.json:
-        print(json.dumps(doc))
-    else:
-        for key in ("fast", "conventional", "geo_only"):
-            v = doc[key]
-            print(
-                f"{key:>12}: median {v.get('median_s', math.nan):5.1f} s, p95 "
-                f"{v.get('p95_s', math.nan):5.1f} s, success {v['success_pct']:.0f} %"
-                + (f", median error {v['median_err_m']:.1f} m" if "median_err_m" in v else "")
-            )
+    _print(doc, args.json)
     if args.plot:
         _plot(trials, args.plot)
     return 0
 
 
-def _plot(trials: list[Trial], path: str) -> None:
+def _print(doc: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(doc))
+        return
+    for key in ("fast", "conventional", "geo_only"):
+        v = doc[key]
+        print(
+            f"{key:>12}: median {v.get('median_s', math.nan):5.1f} s, p95 "
+            f"{v.get('p95_s', math.nan):5.1f} s, success {v['success_pct']:.0f} %"
+            + (f", median error {v['median_err_m']:.1f} m" if "median_err_m" in v else "")
+        )
+
+
+def _plot(trials: Sequence[Any], path: str) -> None:
+    """Histograms of the trials' TTFFs (anything with fast_s/conventional_s/geo_only_s)."""
     try:
         import matplotlib
 
