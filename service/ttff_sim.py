@@ -404,6 +404,10 @@ def summarize_sim(trials: list[SimTrial], location: dict[str, float]) -> dict[st
     for t in trials:
         declined.update(t.declined)
     doc["fast"]["declined_before_first_fix"] = dict(declined)
+    doc["per_trial"] = [
+        {"fast_s": t.fast_s, "conventional_s": t.conventional_s, "geo_only_s": t.geo_only_s}
+        for t in trials
+    ]
     return doc
 
 
