@@ -19,7 +19,7 @@ import pytest
 
 HARNESS = Path(__file__).with_name("fuzz_atheris.py")
 TARGETS = ("framer", "decoder", "ubx", "rtcm", "sfrbx", "rinex_obs", "rinex_nav")
-MAX_TIME_S = 4
+MAX_TIME_S = 3
 MAX_RUNS = 200_000
 HANG_S = 10
 
