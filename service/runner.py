@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import sys
 import threading
 import time
 from collections import Counter
@@ -27,6 +28,7 @@ from service.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubfr
 log = logging.getLogger(__name__)
 
 _END = object()
+SWITCH_INTERVAL_S = 0.0005
 SKIP_KEYS = frozenset({"resyncs"})
 SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
 """Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
@@ -96,6 +98,9 @@ class Runner:
     def run(self) -> int:
         """Process until the source ends or a stop is requested; returns the epoch count."""
         self.pipeline.on_track = self.outputs.track
+        # The reader, the loop and the publishers' I/O threads hand each epoch on: with the
+        # interpreter's default 5 ms switch interval every hand-off may wait that long.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
         reader = threading.Thread(target=self._reader, args=(q,), name="bdsfix-reader", daemon=True)
         reader.start()
