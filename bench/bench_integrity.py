@@ -60,6 +60,7 @@ class Tally:
     availability_lost: int = 0  # clean fixed, outlier refused
     max_err_clean_m: float = 0.0
     max_err_outlier_m: float = 0.0
+    err_outlier_m: list[float] = field(default_factory=list)
     by_bin: Counter[str] = field(default_factory=Counter)
     reasons: Counter[str] = field(default_factory=Counter)
     wrong: list[str] = field(default_factory=list)
@@ -108,10 +109,11 @@ def run_trials(
     n: int,
     seed: int = 1,
     nav: tuple[list[Ephemeris], EphemerisStore, KlobucharParams | None] | None = None,
+    cfg: SolverConfig | None = None,
 ) -> Tally:
     ephs, store, iono = nav or load_nav()
     ionoset = IonoSet(bds=iono)
-    cfg = SolverConfig()  # the daemon's defaults: 10 deg mask, derived beta, corrections
+    cfg = cfg or SolverConfig()  # the daemon's defaults: 10 deg mask, derived beta, corrections
     rng = np.random.default_rng(seed)
     t = Tally()
     for k in range(n):
@@ -159,6 +161,7 @@ def run_trials(
             t.by_bin[f"fix {kind} {_bin(d)}"] += 1
             err = float(np.linalg.norm(np.subtract(fix.x_ecef_m, truth)))
             t.max_err_outlier_m = max(t.max_err_outlier_m, err)
+            t.err_outlier_m.append(err)
             bad = _wrong(fix, pr_true, np.mod(pr, CT_M), prn)
             if bad:
                 t.outlier_wrong_ambiguity += 1
@@ -175,10 +178,54 @@ def run_trials(
     return t
 
 
+def hksc_restarts(instants_s: list[float], jobs: int = 2) -> list[tuple[float, int, int, int]]:
+    """`bdsfix replay` of the real HKSC capture restarted at each instant (seed = index):
+    (instant, fast fixes, D1 SOW integrity checks, failures) from the run's counters."""
+    import re
+    import subprocess
+    from concurrent.futures import ThreadPoolExecutor
+
+    hk = NAV.parent
+
+    def one(item: tuple[int, float]) -> tuple[float, int, int, int]:
+        seed, t_s = item
+        res = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "service.cli",
+                "replay",
+                str(hk / "hksc1610.obs"),
+                "--nav",
+                str(NAV),
+                "--restart-at",
+                str(t_s),
+                "--seed",
+                str(seed),
+                "--max-speed",
+                "--nmea-out",
+                "/dev/null",
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        m = re.search(r"fixes fast (\d+).*integrity checks (\d+), failures (\d+)", res.stderr)
+        if m is None:
+            raise RuntimeError(res.stderr)
+        fast, checks, failures = map(int, m.groups())
+        return t_s, fast, checks, failures
+
+    with ThreadPoolExecutor(jobs) as pool:
+        return list(pool.map(one, enumerate(instants_s)))
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=20000)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-hksc", action="store_true", help="skip the HKSC restart replays")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     t = run_trials(a.trials, a.seed)
@@ -194,12 +241,33 @@ def main(argv: list[str] | None = None) -> None:
         f"{t.availability_lost} ({100 * t.availability_lost / max(t.clean_fixes, 1):.1f} % of "
         f"clean fixes), max error of published fixes {t.max_err_outlier_m:.1f} m"
     )
+    e = np.asarray(t.err_outlier_m)
+    if e.size:
+        print(
+            f"  position error of fixes published with an outlier: p50 {np.median(e):.1f} m, "
+            f"p99 {np.percentile(e, 99):.1f} m; > 100 m: {int((e > 100).sum())}, "
+            f"> 1 km: {int((e > 1000).sum())}"
+        )
     print("  by outlier magnitude (satellite full or fractional):")
     for key in sorted(t.by_bin, key=lambda s: (s.split()[1], float(s.split()[2].split("-")[0]))):
         print(f"    {key:<28} {t.by_bin[key]}")
     print(f"  refusal reasons: {dict(t.reasons)}")
     for line in t.wrong[:20]:
         print("  WRONG " + line)
+    if a.no_hksc:
+        return
+    runs = hksc_restarts([5.0 + 10.0 * i for i in range(19)])
+    print(f"HKSC 2021 replay, restarts at {runs[0][0]:g}..{runs[-1][0]:g} s ({len(runs)} runs):")
+    for t_s, fast, checks, failures in runs:
+        print(
+            f"  restart {t_s:5.0f} s: fast fixes {fast:3d}, D1 SOW checks {checks:3d}, "
+            f"mismatches {failures}"
+        )
+    print(
+        f"  total: fast fixes {sum(r[1] for r in runs)}, recovered integers confirmed "
+        f"{sum(r[2] - r[3] for r in runs)} of {sum(r[2] for r in runs)}, mismatches "
+        f"{sum(r[3] for r in runs)}"
+    )
 
 
 if __name__ == "__main__":

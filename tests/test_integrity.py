@@ -18,17 +18,24 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import zmq
 
 from bench.bench_integrity import load_nav, run_trials
+from service.engine import SolverConfig
 from tests._independent import DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 HK = DATA / "hksc-2021"
 
 
-def test_monte_carlo_outliers_never_publish_a_wrong_ambiguity():
-    t = run_trials(400, seed=3, nav=load_nav())
+@pytest.fixture(scope="module")
+def nav():
+    return load_nav()
+
+
+def test_monte_carlo_outliers_never_publish_a_wrong_ambiguity(nav):
+    t = run_trials(400, seed=3, nav=nav)
     assert t.trials == 400
     assert t.clean_fixes >= 0.95 * t.trials  # the scenario is one where the fast fix works
     assert t.clean_wrong_ambiguity == 0
@@ -40,6 +47,13 @@ def test_monte_carlo_outliers_never_publish_a_wrong_ambiguity():
         assert t.by_bin[f"fix {kind} 50-300 m"] > 0
         assert t.by_bin[f"refused {kind} 30000-150000 m"] > 0
     assert t.outlier_fixes + t.outlier_refusals == t.trials
+
+
+def test_monte_carlo_counts_wrong_ambiguities_when_the_residual_check_is_off(nav):
+    """The counter is live: without the residual check, outliers do yield wrong integers."""
+    t = run_trials(300, seed=11, nav=nav, cfg=SolverConfig(resid_max_m=1e12))
+    assert t.outlier_refusals < 0.05 * t.trials
+    assert t.outlier_wrong_ambiguity >= 3, t.wrong
 
 
 def _free_port() -> int:
