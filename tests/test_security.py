@@ -16,10 +16,12 @@ import time
 import tomllib
 from pathlib import Path
 
+import pytest
 import zmq
 import zmq.auth
 
 from service.ephemeris import EphemerisStore
+from service.errors import ConfigError
 from service.keplerian import table1_ephemerides
 from service.publish import ZmqPublisher
 from service.records import fix_record
@@ -103,8 +105,6 @@ def test_curve_lets_in_only_the_allowed_key(tmp_path):
 
 def test_curve_bad_secret_file_is_a_config_error(tmp_path):
     c = _certs(tmp_path)
-    from service.errors import ConfigError
-
     for bad in (tmp_path / "missing.key_secret", c["server"]):  # absent; public only
         try:
             ZmqPublisher("tcp://127.0.0.1:*", curve_secret_key_file=str(bad))
@@ -223,3 +223,21 @@ def test_ruff_security_rules_are_on_and_no_shell_pickle_eval():
         env=env,
     )
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_curve_keys_from_toml_and_flags(tmp_path):
+    import argparse
+
+    from service.config import add_config_flags, load_config, overrides_from_args
+
+    p = tmp_path / "bdsfix.toml"
+    p.write_text('zmq_curve_secret_key = "/etc/k/server.key_secret"\nzmq_curve_clients = "/c"\n')
+    cfg = load_config(p)
+    assert (cfg.zmq_curve_secret_key, cfg.zmq_curve_clients) == ("/etc/k/server.key_secret", "/c")
+    parser = argparse.ArgumentParser()
+    add_config_flags(parser)
+    args = parser.parse_args(["--zmq-curve-clients", "/d"])
+    assert load_config(p, overrides_from_args(args)).zmq_curve_clients == "/d"
+    p.write_text("zmq_curve_clients = 3\n")
+    with pytest.raises(ConfigError, match="zmq_curve_clients"):
+        load_config(p)
