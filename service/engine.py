@@ -441,7 +441,7 @@ def _sky(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatV
             idx.append(i)
     if not ephs:
         return ()
-    arr = EphemerisArrays.from_ephemerides(ephs)
+    arr = store.arrays(ephs)
     pos, _ = sat_pos_clock(arr, bdt_week, np.full(len(ephs), bdt_sow - 0.075))
     el, az = look_angles(np.asarray(fix.x_ecef_m), pos)
     used = set(fix.used)
@@ -490,7 +490,7 @@ def select_rows(
         z_m=z,
         ct_m=ct,
         cn0_dbhz=epoch.cn0_dbhz[ii],
-        eph=EphemerisArrays.from_ephemerides(ephs),
+        eph=store.arrays(ephs),
     )
     return rows, missing
 

@@ -12,16 +12,18 @@ import json
 import logging
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from service.errors import EphemerisError
+from service.orbit import EphemerisArrays
 from service.timebase import diff_s
 from service.types import Ephemeris, KlobucharParams
 
 log = logging.getLogger(__name__)
 
 STORE_VERSION = 1
+ARRAYS_CACHE_SIZE = 256
 
 
 class EphemerisStore:
@@ -32,6 +34,9 @@ class EphemerisStore:
         self._by_prn: dict[str, dict[tuple[int, float], Ephemeris]] = {}
         self.iono: KlobucharParams | None = None
         self.refused = 0
+        # column form of recently used ephemeris sets (the same set serves many epochs);
+        # keyed by object identity, the entry holds the objects so identities stay unique
+        self._arrays: dict[tuple[int, ...], tuple[tuple[Ephemeris, ...], EphemerisArrays]] = {}
 
     def __len__(self) -> int:
         return sum(len(v) for v in self._by_prn.values())
@@ -54,6 +59,18 @@ class EphemerisStore:
             return False
         self._by_prn.setdefault(eph.prn, {})[(eph.week, eph.toe_sow_s)] = eph
         return True
+
+    def arrays(self, ephs: Sequence[Ephemeris]) -> EphemerisArrays:
+        """``EphemerisArrays.from_ephemerides(ephs)``, memoised for repeated sets."""
+        key = tuple(map(id, ephs))
+        hit = self._arrays.get(key)
+        if hit is not None:
+            return hit[1]
+        if len(self._arrays) >= ARRAYS_CACHE_SIZE:
+            self._arrays.clear()
+        arr = EphemerisArrays.from_ephemerides(ephs)
+        self._arrays[key] = (tuple(ephs), arr)
+        return arr
 
     def add_all(self, ephs: Iterable[Ephemeris]) -> int:
         return sum(self.add(e) for e in ephs)
