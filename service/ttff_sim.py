@@ -34,6 +34,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -185,7 +186,13 @@ def run_daemon_on_pty(
     """Feed the stream to ``bdsfix run`` through a pty; the records of its JSONL output."""
     master, slave = os.openpty()
     tty.setraw(slave)  # binary from the first byte, before the daemon configures the port
-    device = os.ttyname(slave)
+    # A private name for the device: a daemon elsewhere that retries a vanished /dev/pts/N
+    # must not open this run's pty when the kernel hands out the same number.
+    device = str(state_dir / "ttyBDS")
+    os.symlink(os.ttyname(slave), device)
+    ready = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    ready.bind(str(state_dir / "notify"))
+    ready.settimeout(1.0)
     cmd = [
         sys.executable,
         "-m",
@@ -212,8 +219,10 @@ def run_daemon_on_pty(
     ]
     for path in nav:
         cmd += ["--nav", str(path)]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)  # noqa: S603 (argv, no shell)
-    _wait_until_open(proc, device, time.monotonic() + 60.0)
+    env = dict(os.environ, NOTIFY_SOCKET=str(state_dir / "notify"))
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)  # noqa: S603
+    _wait_until_ready(proc, ready, time.monotonic() + 60.0)
+    ready.close()
     stop = threading.Event()
     writer = threading.Thread(target=_write_all, args=(master, stream.chunks(), stop), daemon=True)
     writer.start()
@@ -227,7 +236,7 @@ def run_daemon_on_pty(
             raise BdsfixError(f"stream not consumed within {timeout_s:g} s")
         # the daemon has read everything; wait until its last epoch is in the JSONL
         last = stream.last_key
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and proc.poll() is None:
             if last is not None and _has_fix_at(jsonl, last):
                 break
             time.sleep(0.2)
@@ -246,18 +255,16 @@ def run_daemon_on_pty(
     return [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
 
 
-def _wait_until_open(proc: subprocess.Popen[str], device: str, deadline: float) -> None:
-    """Block until the daemon holds ``device`` open (a restart is measured from the
-    receiver's first byte, not from the daemon's start-up)."""
-    fd_dir = Path(f"/proc/{proc.pid}/fd")
+def _wait_until_ready(proc: subprocess.Popen[str], sock: socket.socket, deadline: float) -> None:
+    """Block until the daemon reports READY=1 (sd_notify): its port is open and configured,
+    so the first byte written is read (a restart is timed from the receiver's first byte)."""
     while time.monotonic() < deadline and proc.poll() is None:
         try:
-            if any(os.readlink(fd) == device for fd in fd_dir.iterdir()):
+            if b"READY=1" in sock.recv(4096):
                 return
-        except OSError:
-            pass  # an fd closed while listing
-        time.sleep(0.05)
-    raise BdsfixError(f"bdsfix run did not open {device}")
+        except TimeoutError:
+            continue
+    raise BdsfixError("bdsfix run did not report READY")
 
 
 def _has_fix_at(jsonl: Path, key: tuple[int, int]) -> bool:
