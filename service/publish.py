@@ -136,17 +136,38 @@ class NmeaTcpServer:
             return len(self._clients)
 
     def publish(self, data: bytes) -> None:
-        """Queue ``data`` for every client; a client whose queue would overflow is dropped."""
+        """Send ``data`` to every client; a client whose queue would overflow is dropped.
+
+        A client with nothing queued gets the bytes at once with a non-blocking send from
+        the caller's thread (no hand-off to the I/O thread on the latency path); whatever
+        the kernel does not take is queued for the I/O thread, behind which later data
+        waits, so the order is kept."""
+        queued = False
         with self._lock:
             for sock in list(self._clients):
-                if self._sizes[sock] + len(data) > self.max_buffer_bytes:
+                q = self._clients[sock]
+                rest = data
+                if not q:
+                    try:
+                        rest = data[sock.send(data) :]
+                    except (BlockingIOError, InterruptedError):
+                        pass
+                    except OSError:
+                        self._doom(sock)
+                        continue
+                    if not rest:
+                        continue
+                if self._sizes[sock] + len(rest) > self.max_buffer_bytes:
                     self._doom(sock)
                     self._counters.add("nmea_clients_dropped_slow")
                     log.warning("NMEA client %s too slow: dropped", _peer(sock))
                     continue
-                self._clients[sock].append(data)
-                self._sizes[sock] += len(data)
-        self._wake()
+                q.append(rest)
+                self._sizes[sock] += len(rest)
+                queued = True
+            queued = queued or bool(self._doomed)
+        if queued:
+            self._wake()
 
     def _doom(self, sock: socket.socket) -> None:
         """Forget a client (lock held); the I/O thread closes it."""
