@@ -221,28 +221,32 @@ def run_daemon_on_pty(
         cmd += ["--nav", str(path)]
     env = dict(os.environ, NOTIFY_SOCKET=str(state_dir / "notify"))
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)  # noqa: S603
-    _wait_until_ready(proc, ready, time.monotonic() + 60.0)
-    ready.close()
     stop = threading.Event()
-    writer = threading.Thread(target=_write_all, args=(master, stream.chunks(), stop), daemon=True)
-    writer.start()
-    deadline = time.monotonic() + timeout_s
+    problem = ""
     try:
+        _wait_until_ready(proc, ready, time.monotonic() + 60.0)
+        writer = threading.Thread(
+            target=_write_all, args=(master, stream.chunks(), stop), daemon=True
+        )
+        writer.start()
+        deadline = time.monotonic() + timeout_s
         while writer.is_alive() and time.monotonic() < deadline and proc.poll() is None:
             writer.join(0.5)
-        if proc.poll() is not None:
-            raise BdsfixError(f"bdsfix run stopped early: {proc.communicate()[1].strip()[-400:]}")
-        if writer.is_alive():
-            raise BdsfixError(f"stream not consumed within {timeout_s:g} s")
+        if writer.is_alive() and proc.poll() is None:
+            problem = f"stream not consumed within {timeout_s:g} s"
         # the daemon has read everything; wait until its last epoch is in the JSONL
         last = stream.last_key
-        while time.monotonic() < deadline and proc.poll() is None:
+        while not problem and time.monotonic() < deadline and proc.poll() is None:
             if last is not None and _has_fix_at(jsonl, last):
                 break
             time.sleep(0.2)
+        if proc.poll() is not None:
+            problem = "bdsfix run stopped early"
     finally:
         stop.set()
-        proc.send_signal(signal.SIGTERM)
+        ready.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
         try:
             _, err = proc.communicate(timeout=30)
         except subprocess.TimeoutExpired:
@@ -250,6 +254,8 @@ def run_daemon_on_pty(
             _, err = proc.communicate()
         os.close(master)
         os.close(slave)
+    if problem:
+        raise BdsfixError(f"{problem}: {err.strip()[-400:]}")
     if proc.returncode != 0:
         raise BdsfixError(f"bdsfix run exited {proc.returncode}: {err.strip()[-400:]}")
     return [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
