@@ -130,70 +130,113 @@ class RxmMessage:
         self.__dict__.update(fields)
 
 
+def _bits(shift: int, mask: int) -> Callable[[int], int]:
+    return lambda v: (v >> shift) & mask
+
+
+# attribute, index in the unpacked tuple, and None (as is), a scale, or a bit extractor
+_Field = tuple[str, int, float | Callable[[int], int] | None]
+
+
+@dataclass(frozen=True, slots=True)
+class _RxmLayout:
+    identity: str
+    head: struct.Struct
+    head_fields: tuple[_Field, ...]
+    count_index: int  # header element holding the number of blocks
+    block: struct.Struct
+    block_fields: tuple[_Field, ...]
+
+
+_RXM_LAYOUTS: dict[int, _RxmLayout] = {
+    _ID_RAWX: _RxmLayout(
+        RAWX,
+        _RAWX_HEAD,
+        (
+            ("rcvTow", 0, None),
+            ("week", 1, None),
+            ("leapS", 2, None),
+            ("numMeas", 3, None),
+            ("leapSec", 4, _bits(0, 1)),
+            ("clkReset", 4, _bits(1, 1)),
+        ),
+        3,
+        _RAWX_MEAS,
+        (
+            ("prMes", 0, None),
+            ("cpMes", 1, None),
+            ("doMes", 2, None),
+            ("gnssId", 3, None),
+            ("svId", 4, None),
+            ("sigId", 5, None),
+            ("freqId", 6, None),
+            ("locktime", 7, None),
+            ("cno", 8, None),
+            ("prStd", 9, _bits(0, 0x0F)),
+            ("prValid", 12, _bits(0, 1)),
+            ("cpValid", 12, _bits(1, 1)),
+        ),
+    ),
+    _ID_MEASX: _RxmLayout(
+        MEASX,
+        _MEASX_HEAD,
+        (
+            ("version", 0, None),
+            ("gpsTOW", 1, None),
+            ("gloTOW", 2, None),
+            ("bdsTOW", 3, None),
+            ("qzssTOW", 4, None),
+            ("numSv", 9, None),
+            ("towSet", 10, _bits(0, 3)),
+        ),
+        9,
+        _MEASX_SV,
+        (
+            ("gnssId", 0, None),
+            ("svId", 1, None),
+            ("cNo", 2, None),
+            ("mpathIndic", 3, None),
+            ("dopplerMS", 4, MEASX_DOPPLER_MS_LSB),
+            ("dopplerHz", 5, MEASX_DOPPLER_HZ_LSB),
+            ("wholeChips", 6, None),
+            ("fracChips", 7, None),
+            ("codePhase", 8, MEASX_CODE_PHASE_LSB_MS),
+            ("intCodePhase", 9, None),
+            ("pseuRangeRMSErr", 10, None),
+        ),
+    ),
+}
+
+
+def _value(raw: Any, how: float | Callable[[int], int] | None) -> Any:
+    if how is None:
+        return raw
+    if isinstance(how, float):
+        return raw * how
+    return how(raw)
+
+
 def parse_rxm(raw: bytes) -> RxmMessage | None:
     """Unpack a whole UBX frame (sync..checksum, checksum already verified) if it is a
     RXM-RAWX or RXM-MEASX of consistent length; ``None`` otherwise."""
     if len(raw) < 8 or raw[2] != _UBX_CLASS_RXM:
         return None
+    layout = _RXM_LAYOUTS.get(raw[3])
+    if layout is None:
+        return None
     payload = memoryview(raw)[6:-2]
-    fields: dict[str, Any] = {}
-    if raw[3] == _ID_RAWX:
-        if len(payload) < _RAWX_HEAD.size:
-            return None
-        rcv_tow, week, leap_s, n, rec_stat, _version = _RAWX_HEAD.unpack_from(payload)
-        if len(payload) != _RAWX_HEAD.size + n * _RAWX_MEAS.size:
-            return None
-        fields.update(rcvTow=rcv_tow, week=week, leapS=leap_s, numMeas=n)
-        fields.update(leapSec=rec_stat & 1, clkReset=(rec_stat >> 1) & 1)
-        for i in range(n):
-            v = _RAWX_MEAS.unpack_from(payload, _RAWX_HEAD.size + i * _RAWX_MEAS.size)
-            k = f"_{i + 1:02d}"
-            fields.update(
-                {
-                    "prMes" + k: v[0],
-                    "cpMes" + k: v[1],
-                    "doMes" + k: v[2],
-                    "gnssId" + k: v[3],
-                    "svId" + k: v[4],
-                    "sigId" + k: v[5],
-                    "freqId" + k: v[6],
-                    "locktime" + k: v[7],
-                    "cno" + k: v[8],
-                    "prStd" + k: v[9] & 0x0F,
-                    "prValid" + k: v[12] & 1,
-                    "cpValid" + k: (v[12] >> 1) & 1,
-                }
-            )
-        return RxmMessage(RAWX, fields)
-    if raw[3] == _ID_MEASX:
-        if len(payload) < _MEASX_HEAD.size:
-            return None
-        head = _MEASX_HEAD.unpack_from(payload)
-        n = head[9]
-        if len(payload) != _MEASX_HEAD.size + n * _MEASX_SV.size:
-            return None
-        fields.update(version=head[0], gpsTOW=head[1], gloTOW=head[2], bdsTOW=head[3])
-        fields.update(qzssTOW=head[4], numSv=n, towSet=head[10] & 3)
-        for i in range(n):
-            v = _MEASX_SV.unpack_from(payload, _MEASX_HEAD.size + i * _MEASX_SV.size)
-            k = f"_{i + 1:02d}"
-            fields.update(
-                {
-                    "gnssId" + k: v[0],
-                    "svId" + k: v[1],
-                    "cNo" + k: v[2],
-                    "mpathIndic" + k: v[3],
-                    "dopplerMS" + k: v[4] * MEASX_DOPPLER_MS_LSB,
-                    "dopplerHz" + k: v[5] * MEASX_DOPPLER_HZ_LSB,
-                    "wholeChips" + k: v[6],
-                    "fracChips" + k: v[7],
-                    "codePhase" + k: v[8] * MEASX_CODE_PHASE_LSB_MS,
-                    "intCodePhase" + k: v[9],
-                    "pseuRangeRMSErr" + k: v[10],
-                }
-            )
-        return RxmMessage(MEASX, fields)
-    return None
+    if len(payload) < layout.head.size:
+        return None
+    head = layout.head.unpack_from(payload)
+    n = head[layout.count_index]
+    if len(payload) != layout.head.size + n * layout.block.size:
+        return None
+    fields = {name: _value(head[i], how) for name, i, how in layout.head_fields}
+    for k in range(n):
+        v = layout.block.unpack_from(payload, layout.head.size + k * layout.block.size)
+        sfx = f"_{k + 1:02d}"
+        fields.update({name + sfx: _value(v[i], how) for name, i, how in layout.block_fields})
+    return RxmMessage(layout.identity, fields)
 
 
 def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
