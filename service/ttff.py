@@ -19,7 +19,7 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -106,7 +106,7 @@ def run_trial(
     return Trial(r, fast, conv, geo, geo_err, diff)
 
 
-def stats(values: list[float | None], n: int) -> dict[str, Any]:
+def _stats(values: list[float | None], n: int) -> dict[str, Any]:
     ok = [v for v in values if v is not None]
     out: dict[str, Any] = {"success_pct": round(100.0 * len(ok) / max(n, 1), 2)}
     if ok:
@@ -115,13 +115,29 @@ def stats(values: list[float | None], n: int) -> dict[str, Any]:
     return out
 
 
-def summarize(trials: list[Trial]) -> dict[str, Any]:
+class TrialTimes(Protocol):
+    """What a TTFF summary reads from a trial (RINEX :class:`Trial` or simulated)."""
+
+    @property
+    def fast_s(self) -> float | None: ...
+    @property
+    def conventional_s(self) -> float | None: ...
+    @property
+    def geo_only_s(self) -> float | None: ...
+    @property
+    def geo_only_err_m(self) -> float | None: ...
+    @property
+    def fast_vs_spp_m(self) -> float | None: ...
+
+
+def summarize(trials: Sequence[TrialTimes]) -> dict[str, Any]:
+    """The ``ttff --json`` document (ARCHITECTURE.md)."""
     n = len(trials)
     doc: dict[str, Any] = {
         "trials": n,
-        "fast": stats([t.fast_s for t in trials], n),
-        "conventional": stats([t.conventional_s for t in trials], n),
-        "geo_only": stats([t.geo_only_s for t in trials], n),
+        "fast": _stats([t.fast_s for t in trials], n),
+        "conventional": _stats([t.conventional_s for t in trials], n),
+        "geo_only": _stats([t.geo_only_s for t in trials], n),
     }
     errs = [t.geo_only_err_m for t in trials if t.geo_only_err_m is not None]
     if errs:
@@ -177,8 +193,8 @@ def _print(doc: dict[str, Any], as_json: bool) -> None:
         )
 
 
-def _plot(trials: Sequence[Any], path: str) -> None:
-    """Histograms of the trials' TTFFs (anything with fast_s/conventional_s/geo_only_s)."""
+def _plot(trials: Sequence[TrialTimes], path: str) -> None:
+    """Histograms of the trials' TTFFs."""
     try:
         import matplotlib
 

@@ -85,7 +85,7 @@ class SimTrial:
     geo_only_s: float | None
     geo_only_err_m: float | None
     fast_fixes: int
-    max_fast_vs_spp_m: float | None
+    fast_vs_spp_m: float | None  # the largest |fast - SPP| of the trial's fast fixes
     max_err_ratio: float | None  # 3D error / (sigma * PDOP), over the trial's fast fixes
     declined: dict[str, int] = field(default_factory=dict)  # reasons before the first fix
 
@@ -389,27 +389,15 @@ def analyse(
 
 def summarize_sim(trials: list[SimTrial], location: dict[str, float]) -> dict[str, Any]:
     """The ``ttff --json`` document (ARCHITECTURE.md), with the stream checks added."""
-    from service.ttff import stats
+    from service.ttff import summarize
 
-    n = len(trials)
-    doc: dict[str, Any] = {
-        "trials": n,
-        "fast": stats([t.fast_s for t in trials], n),
-        "conventional": stats([t.conventional_s for t in trials], n),
-        "geo_only": stats([t.geo_only_s for t in trials], n),
-        "simulated": True,
-        "location": location,
-    }
-    diffs = [t.max_fast_vs_spp_m for t in trials if t.max_fast_vs_spp_m is not None]
-    ratios = [t.max_err_ratio for t in trials if t.max_err_ratio is not None]
+    doc = summarize(trials)
+    doc["simulated"] = True
+    doc["location"] = location
     doc["fast"]["fixes"] = sum(t.fast_fixes for t in trials)
-    if diffs:
-        doc["fast"]["max_diff_to_spp_m"] = max(diffs)
+    ratios = [t.max_err_ratio for t in trials if t.max_err_ratio is not None]
     if ratios:
         doc["fast"]["max_err_over_sigma_pdop"] = round(max(ratios), 3)
-    errs = [t.geo_only_err_m for t in trials if t.geo_only_err_m is not None]
-    if errs:
-        doc["geo_only"]["median_err_m"] = round(float(np.median(errs)), 3)
     med_f, med_c = doc["fast"].get("median_s"), doc["conventional"].get("median_s")
     if med_f and med_c:
         doc["conventional_over_fast"] = round(med_c / med_f, 2)
