@@ -149,6 +149,9 @@ def replay(path: Path, extra: list[str], workdir: Path) -> Run:
     ctx = zmq.Context.instance()
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
+    # The daemon binds only once it starts; retry the connection every 5 ms (default
+    # 100 ms) so the subscription is in place before a short replay's final STATUS.
+    sub.setsockopt(zmq.RECONNECT_IVL, 5)
     sub.setsockopt(zmq.SUBSCRIBE, b"STATUS")
     sub.connect(endpoint)
     try:
