@@ -298,7 +298,8 @@ def _spp(
     iono: IonoSet,
     cfg: SolverConfig,
 ) -> Any:
-    idx = [i for i, p in enumerate(ep.prn) if p in set(prns)]
+    wanted = set(prns)
+    idx = [i for i, p in enumerate(ep.prn) if p in wanted]
     m = MeasurementEpoch.from_columns(
         ep.tag_gpst_week,
         ep.tag_gpst_tow_s,

@@ -237,12 +237,10 @@ def library_parse(reader: Any, raw: bytes) -> Any:
         return None
 
 
-@FUZZ
-@given(st.lists(ubx_content, min_size=1, max_size=6))
-def test_ubx_mapper_on_library_parsed_messages(frames):
-    mapper = UbxMapper(week=WeekContext(2300))
+def _map_library_parsed(mapper, reader, frames) -> None:
+    """Feed the messages the library parses to a mapper: only events or DecodeError, no hang."""
     for raw in frames:
-        msg = library_parse(UBXReader, raw)
+        msg = library_parse(reader, raw)
         if msg is None:  # the library refused it: StreamDecoder counts that case
             continue
         with hang_guard(), contextlib.suppress(DecodeError):
@@ -250,21 +248,18 @@ def test_ubx_mapper_on_library_parsed_messages(frames):
             assert all(isinstance(e, EVENT_TYPES) for e in events)
     with hang_guard():
         mapper.flush()
+
+
+@FUZZ
+@given(st.lists(ubx_content, min_size=1, max_size=6))
+def test_ubx_mapper_on_library_parsed_messages(frames):
+    _map_library_parsed(UbxMapper(week=WeekContext(2300)), UBXReader, frames)
 
 
 @FUZZ
 @given(st.lists(rtcm_content, min_size=1, max_size=6), st.none() | st.integers(0, 4000))
 def test_rtcm_mapper_on_library_parsed_messages(frames, week):
-    mapper = RtcmMapper(week=WeekContext(week))
-    for raw in frames:
-        msg = library_parse(RTCMReader, raw)
-        if msg is None:  # the library refused it: StreamDecoder counts that case
-            continue
-        with hang_guard(), contextlib.suppress(DecodeError):
-            events = mapper.on_message(msg)
-            assert all(isinstance(e, EVENT_TYPES) for e in events)
-    with hang_guard():
-        mapper.flush()
+    _map_library_parsed(RtcmMapper(week=WeekContext(week)), RTCMReader, frames)
 
 
 # --- B1I subframes ----------------------------------------------------------------------------
