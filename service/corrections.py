@@ -25,8 +25,17 @@ def sagnac_rotate(sat_ecef_m: np.ndarray, travel_time_s: np.ndarray) -> np.ndarr
     """Rotate satellite positions (n, 3) by Omega_e * travel time into the receive-time frame."""
     ang = OMEGA_E_RAD_S * np.asarray(travel_time_s, dtype=float)
     c, s = np.cos(ang), np.sin(ang)
-    x, y, z = sat_ecef_m[..., 0], sat_ecef_m[..., 1], sat_ecef_m[..., 2]
-    return np.stack([c * x + s * y, -s * x + c * y, z], axis=-1)
+    x, y = sat_ecef_m[..., 0], sat_ecef_m[..., 1]
+    out = np.array(sat_ecef_m, dtype=float)  # z unchanged
+    out[..., 0] = c * x + s * y
+    out[..., 1] = c * y - s * x
+    return out
+
+
+def _cubic(coeffs: tuple[float, ...] | list[float], x: np.ndarray) -> np.ndarray:
+    """c0 + c1 x + c2 x^2 + c3 x^3 by Horner's rule (the Klobuchar amplitude and period)."""
+    c0, c1, c2, c3 = (float(c) for c in coeffs)
+    return ((c3 * x + c2) * x + c1) * x + c0
 
 
 def klobuchar_bds_m(
@@ -51,9 +60,8 @@ def klobuchar_bds_m(
     lat_m = np.arcsin(np.sin(lat_rad) * np.cos(psi) + np.cos(lat_rad) * np.sin(psi) * np.cos(az))
     lon_m = lon_rad + np.arcsin(np.sin(psi) * np.sin(az) / np.cos(lat_m))
     phi = np.abs(lat_m / _SEMI)
-    pw = np.stack([np.ones_like(phi), phi, phi**2, phi**3])
-    a2 = np.maximum(np.tensordot(np.asarray(params.alpha), pw, axes=1), 0.0)
-    a4 = np.clip(np.tensordot(np.asarray(params.beta), pw, axes=1), 72000.0, 172800.0)
+    a2 = np.maximum(_cubic(params.alpha, phi), 0.0)
+    a4 = np.clip(_cubic(params.beta, phi), 72000.0, 172800.0)
     t = np.mod(bdt_sow_s + lon_m * 43200.0 / np.pi, 86400.0)
     day = np.abs(t - 50400.0) < a4 / 4.0
     iz = 5e-9 + np.where(day, a2 * np.cos(2 * np.pi * (t - 50400.0) / a4), 0.0)
@@ -81,9 +89,8 @@ def klobuchar_gps_m(
     lat_m = lat_i + 0.064 * np.cos((lon_i - 1.617) * _SEMI)
     t = np.mod(43200.0 * lon_i + gpst_tow_s, 86400.0)
     f = 1.0 + 16.0 * (0.53 - el_sc) ** 3
-    pw = np.stack([np.ones_like(lat_m), lat_m, lat_m**2, lat_m**3])
-    amp = np.maximum(np.tensordot(np.asarray(params.alpha), pw, axes=1), 0.0)
-    per = np.maximum(np.tensordot(np.asarray(params.beta), pw, axes=1), 72000.0)
+    amp = np.maximum(_cubic(params.alpha, lat_m), 0.0)
+    per = np.maximum(_cubic(params.beta, lat_m), 72000.0)
     x = 2 * np.pi * (t - 50400.0) / per
     night = np.abs(x) >= 1.57
     delay = f * (5e-9 + np.where(night, 0.0, amp * (1 - x**2 / 2 + x**4 / 24)))

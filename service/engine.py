@@ -87,13 +87,24 @@ class _Rows:
         return self.ct_m > 0
 
     def take(self, idx: np.ndarray) -> _Rows:
+        """Rows ``idx``; the cached satellite states come along (same transmit times)."""
+        cache = {
+            _orbit_key(np.frombuffer(key[:-4])[idx], key[-4:]): (sat[idx], clk[idx])
+            for key, (sat, clk) in self.orbit_cache.items()
+        }
         return _Rows(
             tuple(self.prn[i] for i in idx),
             self.z_m[idx],
             self.ct_m[idx],
             self.cn0_dbhz[idx],
             self.eph.take(idx),
+            cache,
         )
+
+
+def _orbit_key(t_tx: np.ndarray, week: bytes) -> bytes:
+    """Key of :attr:`_Rows.orbit_cache`: the transmit times' bytes, then the BDT week's."""
+    return t_tx.tobytes() + week
 
 
 @dataclass(slots=True)
@@ -112,17 +123,17 @@ def _geometry(
     t1 = bdt_sow_s - pr_m / C_M_S
     dtc = t1 - eph.toc_sow_s
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * dtc)
-    key = t_tx.tobytes() + bdt_week.to_bytes(4, "little", signed=True)
+    key = _orbit_key(t_tx, bdt_week.to_bytes(4, "little", signed=True))
     cached = rows.orbit_cache.get(key)
     if cached is None:
         if len(rows.orbit_cache) > 64:
             rows.orbit_cache.clear()
         cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
     sat, clk_s = cached
-    rho = np.linalg.norm(sat - x, axis=1)
-    sat = sagnac_rotate(sat, rho / C_M_S)
     d = sat - x
-    rho = np.linalg.norm(d, axis=1)
+    sat = sagnac_rotate(sat, np.sqrt(np.einsum("ij,ij->i", d, d)) / C_M_S)
+    d = sat - x
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
 
 
@@ -133,11 +144,20 @@ def _full_cost(rows: _Rows, geo: _Geometry, b: float, full_idx: np.ndarray) -> f
 
 
 def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-    if w is not None:
-        sw = np.sqrt(w)
-        h, dz = h * sw[:, None], dz * sw
-    step, *_ = np.linalg.lstsq(h, dz, rcond=None)
-    return np.asarray(step)
+    """The (weighted) least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and 16).
+
+    Solved through the normal equations: a handful of unknowns, where an SVD per iteration
+    costs more than the rest of the iteration; a singular system falls back to numpy's
+    minimum-norm least squares (raising LinAlgError only where that fails too)."""
+    ht = h.T if w is None else h.T * w
+    try:
+        return np.linalg.solve(ht @ h, ht @ dz)
+    except np.linalg.LinAlgError:
+        if w is not None:
+            sw = np.sqrt(w)
+            h, dz = h * sw[:, None], dz * sw
+        step, *_ = np.linalg.lstsq(h, dz, rcond=None)
+        return np.asarray(step)
 
 
 def _design(los: np.ndarray) -> np.ndarray:
