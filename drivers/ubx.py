@@ -35,13 +35,12 @@ Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``rawx_pr_implausible``, ``measx_invalid``, ``measx_only_sats``, ``measx_uncalibrated``,
 ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``, ``epoch_no_week``,
 ``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
-``sfrbx_unmapped``, ``sfrbx_mapper_missing``, ``subframes``.
+``sfrbx_unmapped``, ``subframes``.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-import importlib
 import logging
 import math
 import struct
@@ -52,9 +51,10 @@ from typing import Any
 import numpy as np
 
 from drivers.framing import Counters, Event, WeekContext, fletcher8
+from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.constants import C_M_S, WEEK_S, prn_id
 from service.timebase import diff_s, gpst_from_utc
-from service.types import MeasurementEpoch, NavSubframe
+from service.types import MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -102,19 +102,23 @@ def _field(msg: Any, name: str, i: int) -> Any:
     return getattr(msg, f"{name}_{i:02d}")
 
 
-# --- RXM-RAWX / RXM-MEASX as data: the two messages of every measurement epoch -------------
+# --- RXM-RAWX / RXM-MEASX / RXM-SFRBX as data: the messages of every measurement epoch -----
 # Layouts from the u-blox F9 HPG Interface Description (UBX-RXM-RAWX: 16-byte header and
-# 32-byte blocks; UBX-RXM-MEASX: 44-byte header and 24-byte blocks), the same fields and
-# scales as pyubx2's UBX_PAYLOADS_GET tables (tests compare the two on every real capture).
-# pyubx2 builds a Python attribute per field and bit (~2-4 ms for a 30-satellite RAWX);
-# these two hot messages are unpacked with one struct call per block instead. Everything
-# else, and any payload whose length does not match its count, goes through pyubx2.
+# 32-byte blocks; UBX-RXM-MEASX: 44-byte header and 24-byte blocks; UBX-RXM-SFRBX: 8-byte
+# header and 4-byte data words), the same fields and scales as pyubx2's UBX_PAYLOADS_GET
+# tables (tests compare the two on every real capture). pyubx2 builds a Python attribute
+# per field and bit (~2-4 ms for a 30-satellite RAWX, ~0.1 ms per SFRBX, five of which
+# arrive together at every D2 subframe boundary); these hot messages are unpacked with one
+# struct call per block instead. Everything else, and any payload whose length does not
+# match its count, goes through pyubx2.
 _UBX_CLASS_RXM = 0x02
-_ID_RAWX, _ID_MEASX = 0x15, 0x14
+_ID_RAWX, _ID_MEASX, _ID_SFRBX = 0x15, 0x14, 0x13
 _RAWX_HEAD = struct.Struct("<dHbBBB2x")  # rcvTow week leapS numMeas recStat version
 _RAWX_MEAS = struct.Struct("<ddfBBBBHBBBBBx")  # prMes cpMes doMes gnssId..trkStat
 _MEASX_HEAD = struct.Struct("<B3xIII4xIHHH2xHBB8x")  # version gpsTOW..numSv flags
 _MEASX_SV = struct.Struct("<BBBBiiHHIBB2x")  # gnssId svId cNo mpathIndic .. pseuRangeRMSErr
+_SFRBX_HEAD = struct.Struct("<BBBBBBBx")  # gnssId svId sigId freqId numWords chn version
+_SFRBX_WORD = struct.Struct("<I")  # dwrd
 MEASX_CODE_PHASE_LSB_MS = 2.0**-21
 MEASX_DOPPLER_HZ_LSB = 0.2
 MEASX_DOPPLER_MS_LSB = 0.04
@@ -205,6 +209,22 @@ _RXM_LAYOUTS: dict[int, _RxmLayout] = {
             ("pseuRangeRMSErr", 10, None),
         ),
     ),
+    _ID_SFRBX: _RxmLayout(
+        SFRBX,
+        _SFRBX_HEAD,
+        (
+            ("gnssId", 0, None),
+            ("svId", 1, None),
+            ("sigId", 2, None),
+            ("freqId", 3, None),
+            ("numWords", 4, None),
+            ("chn", 5, None),
+            ("version", 6, None),
+        ),
+        4,
+        _SFRBX_WORD,
+        (("dwrd", 0, None),),
+    ),
 }
 
 
@@ -218,7 +238,7 @@ def _value(raw: Any, how: float | Callable[[int], int] | None) -> Any:
 
 def parse_rxm(raw: bytes) -> RxmMessage | None:
     """Unpack a whole UBX frame (sync..checksum, checksum already verified) if it is a
-    RXM-RAWX or RXM-MEASX of consistent length; ``None`` otherwise."""
+    RXM-RAWX, RXM-MEASX or RXM-SFRBX of consistent length; ``None`` otherwise."""
     if len(raw) < 8 or raw[2] != _UBX_CLASS_RXM:
         return None
     layout = _RXM_LAYOUTS.get(raw[3])
@@ -345,8 +365,6 @@ class UbxMapper:
         self._pending: _Pending | None = None
         self._last_emitted: tuple[int, float] | None = None
         self._last_meas_time: tuple[int, float] | None = None
-        self._sfrbx_mapper: Callable[..., NavSubframe | None] | None = None
-        self._sfrbx_checked = False
 
     # --- entry points ------------------------------------------------------------------------
     def on_message(self, msg: Any) -> list[Event]:
@@ -567,23 +585,9 @@ class UbxMapper:
         if self._last_meas_time is None:
             self.counters["sfrbx_no_time"] += 1
             return []
-        mapper = self._subframe_mapper()
-        if mapper is None:
-            self.counters["sfrbx_mapper_missing"] += 1
-            return []
-        sub = mapper(msg, *self._last_meas_time)
+        sub = nav_subframe_from_sfrbx(msg, *self._last_meas_time)
         if sub is None:
             self.counters["sfrbx_unmapped"] += 1
             return []
         self.counters["subframes"] += 1
         return [sub]
-
-    def _subframe_mapper(self) -> Callable[..., NavSubframe | None] | None:
-        if not self._sfrbx_checked:
-            self._sfrbx_checked = True
-            try:
-                mod = importlib.import_module("drivers.sfrbx")
-                self._sfrbx_mapper = mod.nav_subframe_from_sfrbx
-            except (ImportError, AttributeError):
-                log.warning("drivers.sfrbx not available: BDS RXM-SFRBX subframes are skipped")
-        return self._sfrbx_mapper

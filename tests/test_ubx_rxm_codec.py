@@ -1,6 +1,6 @@
-"""The struct fast path for RXM-RAWX / RXM-MEASX against pyubx2, an independent decoder.
+"""The struct fast path for RXM-RAWX / MEASX / SFRBX against pyubx2, an independent decoder.
 
-Every RAWX and MEASX frame of every real capture is unpacked both ways and every field the
+Every RAWX, MEASX and SFRBX frame of every real capture is unpacked both ways and every field the
 fast path exposes must equal pyubx2's attribute of the same name. Frames the simulator
 writes with :func:`drivers.ubx.rawx_frame` / :func:`drivers.ubx.measx_frame` are parsed by
 pyubx2 and must carry the values put in (hypothesis over the field ranges).
@@ -29,7 +29,7 @@ def _rxm_frames(path: Path) -> list[bytes]:
         return [
             raw
             for raw, _ in UBXReader(stream, protfilter=2, quitonerror=0)
-            if raw[2] == 0x02 and raw[3] in (0x14, 0x15)
+            if raw[2] == 0x02 and raw[3] in (0x13, 0x14, 0x15)
         ]
 
 
@@ -60,7 +60,7 @@ def test_fast_path_equals_pyubx2_on_real_captures(path: Path):
 
 def test_real_captures_hold_both_messages():
     kinds = {raw[3] for p in CAPTURES for raw in _rxm_frames(p)}
-    assert kinds == {0x14, 0x15}
+    assert kinds == {0x13, 0x14, 0x15}
 
 
 def test_inconsistent_lengths_fall_back():
