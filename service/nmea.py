@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from pynmeagps import GET, NMEAMessage
 
@@ -163,6 +163,22 @@ def sentences_for_fix(
     ``utc`` is the fix's own time (naive UTC); ``time_known`` allows ZDA; ``gsa_talker``
     (default: ``talker``) is GSA's talker.
     """
+    return list(
+        iter_sentences(fix, utc=utc, talker=talker, time_known=time_known, gsa_talker=gsa_talker)
+    )
+
+
+def iter_sentences(
+    fix: Fix,
+    *,
+    utc: dt.datetime,
+    talker: str = "GN",
+    time_known: bool = True,
+    gsa_talker: str | None = None,
+) -> Iterator[bytes]:
+    """:func:`sentences_for_fix`, each sentence built when it is asked for: a publisher can
+    put GGA on the wire before the others are built. A bad talker raises at the first
+    ``next``."""
     for name in (talker, gsa_talker or talker):
         if name not in TALKERS:
             raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {name!r}")
@@ -182,25 +198,23 @@ def sentences_for_fix(
             "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
             "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
         }
-    out = [
-        _gga(talker, t, fix, has_fix),
-        _msg(
-            talker,
-            "RMC",
-            time=t,
-            status="A" if has_fix else "V",
-            **pos,
-            spd="",
-            cog="",
-            date=when.date(),
-            mv="",
-            mvEW="",
-            posMode="A" if has_fix else "N",
-            navStatus="V",
-        ),
-    ]
+    yield _gga(talker, t, fix, has_fix)
+    yield _msg(
+        talker,
+        "RMC",
+        time=t,
+        status="A" if has_fix else "V",
+        **pos,
+        spd="",
+        cog="",
+        date=when.date(),
+        mv="",
+        mvEW="",
+        posMode="A" if has_fix else "N",
+        navStatus="V",
+    )
     if not has_fix:
-        return out
+        return
     gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
     used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]
     for j in range(GSA_MAX_SV):
@@ -211,37 +225,32 @@ def sentences_for_fix(
         "VDOP": _dop(fix.vdop),
         "systemId": BDS_SYSTEM_ID,
     }
-    out.append(_msg(gsa_talker or talker, "GSA", **gsa))
+    yield _msg(gsa_talker or talker, "GSA", **gsa)
     if fix.sky:
-        out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
+        yield from gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB")
     if fix.std_enu_m is not None:
         se, sn, su = fix.std_enu_m
-        out.append(
-            _msg(
-                talker,
-                "GST",
-                time=t,
-                rangeRms=_metres(fix.resid_rms_m or 0.0),
-                stdMajor=_metres(max(se, sn)),
-                stdMinor=_metres(min(se, sn)),
-                # axes taken along north/east (the E-N correlation is not carried in Fix)
-                orient=0.0 if sn >= se else 90.0,
-                stdLat=_metres(sn),
-                stdLong=_metres(se),
-                stdAlt=_metres(su),
-            )
+        yield _msg(
+            talker,
+            "GST",
+            time=t,
+            rangeRms=_metres(fix.resid_rms_m or 0.0),
+            stdMajor=_metres(max(se, sn)),
+            stdMinor=_metres(min(se, sn)),
+            # axes taken along north/east (the E-N correlation is not carried in Fix)
+            orient=0.0 if sn >= se else 90.0,
+            stdLat=_metres(sn),
+            stdLong=_metres(se),
+            stdAlt=_metres(su),
         )
     if time_known:
-        out.append(
-            _msg(
-                talker,
-                "ZDA",
-                time=t,
-                day=when.day,
-                month=when.month,
-                year=when.year,
-                ltzh="00",
-                ltzn="00",
-            )
+        yield _msg(
+            talker,
+            "ZDA",
+            time=t,
+            day=when.day,
+            month=when.month,
+            year=when.year,
+            ltzh="00",
+            ltzn="00",
         )
-    return out

@@ -40,7 +40,7 @@ from typing import IO, Any
 
 from service.constants import C_M_S
 from service.errors import ConfigError
-from service.nmea import sentences_for_fix
+from service.nmea import iter_sentences
 from service.records import dumps, fix_record, sky_record, status_record, track_record_of
 from service.timebase import utc_from_gpst
 from service.types import Fix, SatView
@@ -545,33 +545,44 @@ class Publishers:
         self._time_known = False
 
     def fix(self, fix: Fix, since_start_s: float | None = None) -> None:
-        """Publish one solver's result for one epoch (FIX record and NMEA)."""
+        """Publish one solver's result for one epoch (FIX record and NMEA).
+
+        The latency path goes first: GGA to the NMEA TCP and serial outputs as soon as it is
+        built, then the ZeroMQ FIX, then JSONL and the other sentences. NMEA files and
+        stdout get the epoch's sentences as one block after its JSONL line, as before."""
         self.counters[f"published_{fix.mode}"] += 1
         if fix.ok:
             self._time_known = True
+        nmea_live = self.nmea_tcp is not None or self.nmea_serial is not None
+        sentences = None
+        first = b""
+        if nmea_live or self.nmea_lines is not None:
+            tow = fix.gpst_tow_s - (fix.clock_bias_m or 0.0) / C_M_S
+            sentences = iter_sentences(
+                fix,
+                utc=utc_from_gpst(fix.gpst_week, tow),
+                talker=self.talker,
+                time_known=self._time_known,
+                gsa_talker=self.gsa_talker,
+            )
+            first = next(sentences)  # GGA
+            self._nmea_live(first)
         rec = fix_record(fix, since_start_s)
-        if self.jsonl is not None:
-            self.jsonl.write(dumps(rec) + "\n")
         if self.zmq is not None:
             self.zmq.send("FIX", rec)
-        if self.nmea_tcp or self.nmea_lines or self.nmea_serial:
-            tow = fix.gpst_tow_s - (fix.clock_bias_m or 0.0) / C_M_S
-            utc = utc_from_gpst(fix.gpst_week, tow)
-            data = b"".join(
-                sentences_for_fix(
-                    fix,
-                    utc=utc,
-                    talker=self.talker,
-                    time_known=self._time_known,
-                    gsa_talker=self.gsa_talker,
-                )
-            )
-            if self.nmea_tcp is not None:
-                self.nmea_tcp.publish(data)
+        if self.jsonl is not None:
+            self.jsonl.write(dumps(rec) + "\n")
+        if sentences is not None:
+            rest = b"".join(sentences)
+            self._nmea_live(rest)
             if self.nmea_lines is not None:
-                self.nmea_lines.write(data.decode("ascii"))
-            if self.nmea_serial is not None:
-                self.nmea_serial.write(data)
+                self.nmea_lines.write((first + rest).decode("ascii"))
+
+    def _nmea_live(self, data: bytes) -> None:
+        if self.nmea_tcp is not None:
+            self.nmea_tcp.publish(data)
+        if self.nmea_serial is not None:
+            self.nmea_serial.write(data)
 
     def sky(self, gpst_week: int, gpst_tow_s: float, sats: Sequence[SatView]) -> None:
         """Publish the satellites in view (ZeroMQ ``SKY``)."""
