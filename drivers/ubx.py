@@ -43,6 +43,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
+import statistics
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -528,7 +529,9 @@ class UbxMapper:
             d = np.mod(pr[both], B1I_RANGE_M) - raw[both]
             d = np.mod(d + B1I_RANGE_M / 2, B1I_RANGE_M) - B1I_RANGE_M / 2
             if np.ptp(d) < 30.0:
-                self.measx_offset_m = float(np.median(d))
+                # statistics.median: numpy's first median call imports on the spot (~15 ms,
+                # on the first epoch with a full satellite: a receiver loop's worst stall)
+                self.measx_offset_m = float(statistics.median(d.tolist()))
             else:
                 self.counters["measx_offset_rejected"] += 1
                 log.warning(

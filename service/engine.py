@@ -113,6 +113,9 @@ class _Geometry:
     pred_m: np.ndarray  # predicted pseudorange without the receiver clock and N terms
     sat_ecef_m: np.ndarray
 
+    def take(self, idx: np.ndarray) -> _Geometry:
+        return _Geometry(self.los[idx], self.pred_m[idx], self.sat_ecef_m[idx])
+
 
 def _geometry(
     rows: _Rows, bdt_week: int, bdt_sow_s: float, x: np.ndarray, n_int: np.ndarray
@@ -287,7 +290,7 @@ def _solve_rows(
         )
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
-    x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, cfg, None, False)
+    x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, geo, cfg, None, False)
     it += it2
 
     # ---- phase 2: mask, corrections, weights ---------------------------------------------
@@ -311,7 +314,7 @@ def _solve_rows(
         )
     model = _iono_model(iono.bds, iono.gps, cfg.iono) if meaningful else None
     x, b, geo, it3 = _fixed_iterations(
-        kept, bdt_week, bdt_sow, x, b, n_int_k, cfg, model, meaningful
+        kept, bdt_week, bdt_sow, x, b, n_int_k, geo.take(keep), cfg, model, meaningful
     )
     it += it3
     if not np.all(np.isfinite(x)):
@@ -423,15 +426,16 @@ def _fixed_iterations(
     x: np.ndarray,
     b: float,
     n_int: np.ndarray,
+    geo: _Geometry,
     cfg: SolverConfig,
     model: KlobucharParams | None,
     meaningful: bool,
 ) -> tuple[np.ndarray, float, _Geometry, int]:
-    """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated.
+    """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated
+    from ``x`` and its geometry ``geo``.
 
     When the position is ``meaningful`` the rows get elevation weights and the delays.
     """
-    geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
     it = 0
     for it in range(1, cfg.max_iter + 1):
         dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b
