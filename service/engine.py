@@ -21,6 +21,7 @@ Two phases, so that fast and SPP share one fixed point:
 from __future__ import annotations
 
 import logging
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -78,8 +79,9 @@ class _Rows:
     ct_m: np.ndarray  # c*T for fractional rows, 0 for full rows
     cn0_dbhz: np.ndarray
     eph: EphemerisArrays
-    # satellite positions and clocks by transmit times: they depend on z + N cT only (eqs.
-    # 4-5), not on the receiver state, so iterations that keep N reuse them
+    # satellite positions and clocks at the transmit times of eqs. (4)-(5): those depend on
+    # the receive time and z + N cT only, not on the receiver state, so iterations that keep
+    # N reuse them (key: :func:`_orbit_key`)
     orbit_cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @property
@@ -87,11 +89,11 @@ class _Rows:
         return self.ct_m > 0
 
     def take(self, idx: np.ndarray) -> _Rows:
-        """Rows ``idx``; the cached satellite states come along (same transmit times)."""
-        cache = {
-            _orbit_key(np.frombuffer(key[:-4])[idx], key[-4:]): (sat[idx], clk[idx])
-            for key, (sat, clk) in self.orbit_cache.items()
-        }
+        """Rows ``idx``; the cached satellite states come along."""
+        cache = {}
+        for key, (sat, clk) in self.orbit_cache.items():
+            n_int, when = np.frombuffer(key[: -_TIME_KEY.size]), key[-_TIME_KEY.size :]
+            cache[n_int[idx].tobytes() + when] = (sat[idx], clk[idx])
         return _Rows(
             tuple(self.prn[i] for i in idx),
             self.z_m[idx],
@@ -102,9 +104,12 @@ class _Rows:
         )
 
 
-def _orbit_key(t_tx: np.ndarray, week: bytes) -> bytes:
-    """Key of :attr:`_Rows.orbit_cache`: the transmit times' bytes, then the BDT week's."""
-    return t_tx.tobytes() + week
+_TIME_KEY = struct.Struct("<id")
+
+
+def _orbit_key(n_int: np.ndarray, bdt_week: int, bdt_sow_s: float) -> bytes:
+    """Key of :attr:`_Rows.orbit_cache`: the integers' bytes, then the receive time's."""
+    return n_int.tobytes() + _TIME_KEY.pack(bdt_week, bdt_sow_s)
 
 
 @dataclass(slots=True)
@@ -121,16 +126,14 @@ def _geometry(
     rows: _Rows, bdt_week: int, bdt_sow_s: float, x: np.ndarray, n_int: np.ndarray
 ) -> _Geometry:
     """Satellite positions at transmit time (paper eqs. 4-5) and geometric ranges."""
-    pr_m = rows.z_m + n_int * rows.ct_m
-    eph = rows.eph
-    t1 = bdt_sow_s - pr_m / C_M_S
-    dtc = t1 - eph.toc_sow_s
-    t_tx = t1 - (eph.af0_s + eph.af1_s_s * dtc)
-    key = _orbit_key(t_tx, bdt_week.to_bytes(4, "little", signed=True))
+    key = _orbit_key(n_int, bdt_week, bdt_sow_s)
     cached = rows.orbit_cache.get(key)
     if cached is None:
         if len(rows.orbit_cache) > 64:
             rows.orbit_cache.clear()
+        eph = rows.eph
+        t1 = bdt_sow_s - (rows.z_m + n_int * rows.ct_m) / C_M_S
+        t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
         cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
     sat, clk_s = cached
     d = sat - x
@@ -299,7 +302,7 @@ def _solve_rows(
         keep = np.flatnonzero(_local(x, geo.sat_ecef_m).el_rad >= np.radians(cfg.elmask_deg))
     else:
         keep = np.arange(len(rows.prn))
-    kept = rows.take(keep)
+    kept = rows if len(keep) == len(rows.prn) else rows.take(keep)
     n_int_k = n_int[keep]
     kfrac = kept.frac
     if int((~kfrac).sum()) < 4:
@@ -314,7 +317,16 @@ def _solve_rows(
         )
     model = _iono_model(iono.bds, iono.gps, cfg.iono) if meaningful else None
     x, b, geo, it3 = _fixed_iterations(
-        kept, bdt_week, bdt_sow, x, b, n_int_k, geo.take(keep), cfg, model, meaningful
+        kept,
+        bdt_week,
+        bdt_sow,
+        x,
+        b,
+        n_int_k,
+        geo if kept is rows else geo.take(keep),
+        cfg,
+        model,
+        meaningful,
     )
     it += it3
     if not np.all(np.isfinite(x)):
@@ -453,7 +465,8 @@ def _fixed_iterations(
     return x, b, geo, it
 
 
-def _sky(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
+def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
+    """Satellites of ``epoch`` with an ephemeris, seen from the fix (empty without one)."""
     if fix.x_ecef_m is None:
         return ()
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
@@ -542,7 +555,7 @@ def solve(
         )
     fix = _solve_rows(rows, epoch.gpst_week, epoch.gpst_tow_s, iono, cfg, solver)
     if with_sky and fix.ok:
-        fix = replace(fix, sky=_sky(epoch, store, fix))
+        fix = replace(fix, sky=sky_view(epoch, store, fix))
     return fix
 
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
 from pynmeagps import GET, NMEAMessage
 
@@ -161,36 +161,55 @@ def sentences_for_fix(
     """Sentences for one epoch's fix, in the order GGA, RMC, GSA, GSV, GST, ZDA.
 
     ``utc`` is the fix's own time (naive UTC); ``time_known`` allows ZDA; ``gsa_talker``
-    (default: ``talker``) is GSA's talker.
+    (default: ``talker``) is GSA's talker. A publisher may send :func:`gga_sentence` first
+    and :func:`sentences_after_gga` later: together they are this list.
     """
-    return list(
-        iter_sentences(fix, utc=utc, talker=talker, time_known=time_known, gsa_talker=gsa_talker)
-    )
+    gga = gga_sentence(fix, utc=utc, talker=talker, gsa_talker=gsa_talker)
+    return [
+        gga,
+        *sentences_after_gga(
+            fix, utc=utc, talker=talker, time_known=time_known, gsa_talker=gsa_talker
+        ),
+    ]
 
 
-def iter_sentences(
-    fix: Fix,
-    *,
-    utc: dt.datetime,
-    talker: str = "GN",
-    time_known: bool = True,
-    gsa_talker: str | None = None,
-) -> Iterator[bytes]:
-    """:func:`sentences_for_fix`, each sentence built when it is asked for: a publisher can
-    put GGA on the wire before the others are built. A bad talker raises at the first
-    ``next``."""
+def _check_talkers(talker: str, gsa_talker: str | None) -> None:
     for name in (talker, gsa_talker or talker):
         if name not in TALKERS:
             raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {name!r}")
-    when = nmea_time(utc)
-    t = when.time()
-    has_fix = (
+
+
+def _has_fix(fix: Fix) -> bool:
+    return (
         fix.ok
         and fix.lat_deg is not None
         and fix.lon_deg is not None
         and fix.alt_m is not None
         and all(math.isfinite(v) for v in (fix.lat_deg, fix.lon_deg, fix.alt_m))
     )
+
+
+def gga_sentence(
+    fix: Fix, *, utc: dt.datetime, talker: str = "GN", gsa_talker: str | None = None
+) -> bytes:
+    """The GGA of :func:`sentences_for_fix` (quality 0 and no position without a fix)."""
+    _check_talkers(talker, gsa_talker)
+    return _gga(talker, nmea_time(utc).time(), fix, _has_fix(fix))
+
+
+def sentences_after_gga(
+    fix: Fix,
+    *,
+    utc: dt.datetime,
+    talker: str = "GN",
+    time_known: bool = True,
+    gsa_talker: str | None = None,
+) -> list[bytes]:
+    """The sentences of :func:`sentences_for_fix` that follow its GGA."""
+    _check_talkers(talker, gsa_talker)
+    when = nmea_time(utc)
+    t = when.time()
+    has_fix = _has_fix(fix)
     pos: dict[str, object] = {"lat": "", "lon": ""}
     if has_fix:
         # signed degrees: pynmeagps derives N/S and E/W from the sign
@@ -198,23 +217,24 @@ def iter_sentences(
             "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
             "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
         }
-    yield _gga(talker, t, fix, has_fix)
-    yield _msg(
-        talker,
-        "RMC",
-        time=t,
-        status="A" if has_fix else "V",
-        **pos,
-        spd="",
-        cog="",
-        date=when.date(),
-        mv="",
-        mvEW="",
-        posMode="A" if has_fix else "N",
-        navStatus="V",
-    )
+    out = [
+        _msg(
+            talker,
+            "RMC",
+            time=t,
+            status="A" if has_fix else "V",
+            **pos,
+            spd="",
+            cog="",
+            date=when.date(),
+            mv="",
+            mvEW="",
+            posMode="A" if has_fix else "N",
+            navStatus="V",
+        )
+    ]
     if not has_fix:
-        return
+        return out
     gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
     used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]
     for j in range(GSA_MAX_SV):
@@ -225,32 +245,37 @@ def iter_sentences(
         "VDOP": _dop(fix.vdop),
         "systemId": BDS_SYSTEM_ID,
     }
-    yield _msg(gsa_talker or talker, "GSA", **gsa)
+    out.append(_msg(gsa_talker or talker, "GSA", **gsa))
     if fix.sky:
-        yield from gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB")
+        out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
     if fix.std_enu_m is not None:
         se, sn, su = fix.std_enu_m
-        yield _msg(
-            talker,
-            "GST",
-            time=t,
-            rangeRms=_metres(fix.resid_rms_m or 0.0),
-            stdMajor=_metres(max(se, sn)),
-            stdMinor=_metres(min(se, sn)),
-            # axes taken along north/east (the E-N correlation is not carried in Fix)
-            orient=0.0 if sn >= se else 90.0,
-            stdLat=_metres(sn),
-            stdLong=_metres(se),
-            stdAlt=_metres(su),
+        out.append(
+            _msg(
+                talker,
+                "GST",
+                time=t,
+                rangeRms=_metres(fix.resid_rms_m or 0.0),
+                stdMajor=_metres(max(se, sn)),
+                stdMinor=_metres(min(se, sn)),
+                # axes taken along north/east (the E-N correlation is not carried in Fix)
+                orient=0.0 if sn >= se else 90.0,
+                stdLat=_metres(sn),
+                stdLong=_metres(se),
+                stdAlt=_metres(su),
+            )
         )
     if time_known:
-        yield _msg(
-            talker,
-            "ZDA",
-            time=t,
-            day=when.day,
-            month=when.month,
-            year=when.year,
-            ltzh="00",
-            ltzn="00",
+        out.append(
+            _msg(
+                talker,
+                "ZDA",
+                time=t,
+                day=when.day,
+                month=when.month,
+                year=when.year,
+                ltzh="00",
+                ltzn="00",
+            )
         )
+    return out

@@ -13,16 +13,17 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from service.bds_nav import EphemerisAssembler
 from service.constants import C_M_S
-from service.engine import IonoSet, SolverConfig, solve
+from service.engine import IonoSet, SolverConfig, sky_view, solve
 from service.ephemeris import EphemerisStore
 from service.timebase import diff_s
 from service.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
-from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, NavSubframe, SatView
 
 log = logging.getLogger(__name__)
 
@@ -42,13 +43,17 @@ class IntegrityCheck:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class EpochResult:
-    """Everything one measurement epoch produced."""
+    """Everything one measurement epoch produced.
+
+    ``sky`` gives the satellites in view of ``fix`` on demand: the publishers ask for it
+    once the GGA is out, so computing it does not delay the first sentence."""
 
     epoch: MeasurementEpoch
     fix: Fix
     since_start_s: float
     track: tuple[TrackEvent, ...] = ()
     integrity: tuple[IntegrityCheck, ...] = ()
+    sky: Callable[[Fix], tuple[SatView, ...]] | None = None
 
 
 @dataclass(slots=True)
@@ -123,7 +128,7 @@ class Pipeline:
             self._recovered.clear()
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
-        fix = solve(view, self.store, self.iono, self.cfg, solver="fast", with_sky=True)
+        fix = solve(view, self.store, self.iono, self.cfg, solver="fast")
         self.counters[f"fix_{fix.mode}"] += 1
         if fix.mode == "fast":
             for prn, pr in fix.recovered_pr_m.items():
@@ -133,7 +138,9 @@ class Pipeline:
                 )
         self._emit(events)
         since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
-        return EpochResult(view, fix, since, tuple(events), tuple(checks))
+        return EpochResult(
+            view, fix, since, tuple(events), tuple(checks), partial(sky_view, view, self.store)
+        )
 
     def _check_integrity(
         self, view: MeasurementEpoch, events: list[TrackEvent]

@@ -34,13 +34,14 @@ import socket
 import sys
 import threading
 from collections import Counter, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import IO, Any
 
 from service.constants import C_M_S
 from service.errors import ConfigError
-from service.nmea import iter_sentences
+from service.nmea import gga_sentence, sentences_after_gga
 from service.records import dumps, fix_record, sky_record, status_record, track_record_of
 from service.timebase import utc_from_gpst
 from service.types import Fix, SatView
@@ -544,39 +545,49 @@ class Publishers:
         self.counters: Counter[str] = Counter()
         self._time_known = False
 
-    def fix(self, fix: Fix, since_start_s: float | None = None) -> None:
+    def fix(
+        self,
+        fix: Fix,
+        since_start_s: float | None = None,
+        sky: Callable[[Fix], tuple[SatView, ...]] | None = None,
+    ) -> Fix:
         """Publish one solver's result for one epoch (FIX record and NMEA).
 
         The latency path goes first: GGA to the NMEA TCP and serial outputs as soon as it is
         built, then the ZeroMQ FIX, then JSONL and the other sentences. NMEA files and
-        stdout get the epoch's sentences as one block after its JSONL line, as before."""
+        stdout get the epoch's sentences as one block after its JSONL line. ``sky``, when
+        given, computes the satellites in view (for GSV) once GGA is out; the fix is
+        returned with them."""
         self.counters[f"published_{fix.mode}"] += 1
         if fix.ok:
             self._time_known = True
-        nmea_live = self.nmea_tcp is not None or self.nmea_serial is not None
-        sentences = None
-        first = b""
-        if nmea_live or self.nmea_lines is not None:
+        nmea = any(o is not None for o in (self.nmea_tcp, self.nmea_serial, self.nmea_lines))
+        if nmea:
             tow = fix.gpst_tow_s - (fix.clock_bias_m or 0.0) / C_M_S
-            sentences = iter_sentences(
-                fix,
-                utc=utc_from_gpst(fix.gpst_week, tow),
-                talker=self.talker,
-                time_known=self._time_known,
-                gsa_talker=self.gsa_talker,
-            )
-            first = next(sentences)  # GGA
-            self._nmea_live(first)
+            utc = utc_from_gpst(fix.gpst_week, tow)
+            gga = gga_sentence(fix, utc=utc, talker=self.talker, gsa_talker=self.gsa_talker)
+            self._nmea_live(gga)
         rec = fix_record(fix, since_start_s)
         if self.zmq is not None:
             self.zmq.send("FIX", rec)
         if self.jsonl is not None:
             self.jsonl.write(dumps(rec) + "\n")
-        if sentences is not None:
-            rest = b"".join(sentences)
+        if sky is not None and fix.ok and not fix.sky:
+            fix = replace(fix, sky=sky(fix))
+        if nmea:
+            rest = b"".join(
+                sentences_after_gga(
+                    fix,
+                    utc=utc,
+                    talker=self.talker,
+                    time_known=self._time_known,
+                    gsa_talker=self.gsa_talker,
+                )
+            )
             self._nmea_live(rest)
             if self.nmea_lines is not None:
-                self.nmea_lines.write((first + rest).decode("ascii"))
+                self.nmea_lines.write((gga + rest).decode("ascii"))
+        return fix
 
     def _nmea_live(self, data: bytes) -> None:
         if self.nmea_tcp is not None:
@@ -591,8 +602,7 @@ class Publishers:
 
     def epoch(self, result: Any) -> None:
         """A :class:`service.pipeline.EpochResult`: its fix, then its sky when it has one."""
-        fix = result.fix
-        self.fix(fix, result.since_start_s)
+        fix = self.fix(result.fix, result.since_start_s, getattr(result, "sky", None))
         if fix.sky:
             self.sky(fix.gpst_week, fix.gpst_tow_s, fix.sky)
 
