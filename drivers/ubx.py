@@ -99,10 +99,6 @@ class _Pending:
     week_exact: bool = True  # False: week from a hint (system clock), not from the data
 
 
-def _field(msg: Any, name: str, i: int) -> Any:
-    return getattr(msg, f"{name}_{i:02d}")
-
-
 # --- RXM-RAWX / RXM-MEASX / RXM-SFRBX as data: the messages of every measurement epoch -----
 # Layouts from the u-blox F9 HPG Interface Description (UBX-RXM-RAWX: 16-byte header and
 # 32-byte blocks; UBX-RXM-MEASX: 44-byte header and 24-byte blocks; UBX-RXM-SFRBX: 8-byte
@@ -126,13 +122,50 @@ MEASX_DOPPLER_MS_LSB = 0.04
 
 
 class RxmMessage:
-    """RXM-RAWX or RXM-MEASX unpacked with :mod:`struct`, with pyubx2's attribute names
-    (``identity``, header fields, ``<field>_<nn>`` per block) so :class:`UbxMapper` reads
-    either kind of message the same way."""
+    """RXM-RAWX, RXM-MEASX or RXM-SFRBX unpacked with :mod:`struct`: ``identity`` and the
+    header fields as attributes and one dict per repeated block in ``blocks``, all named
+    as pyubx2 names them. A block field is also an attribute ``<field>_<nn>`` (block nn,
+    from 01) as in pyubx2, so either kind of message reads the same way."""
 
-    def __init__(self, identity: str, fields: dict[str, Any]) -> None:
+    def __init__(self, identity: str, head: dict[str, Any], blocks: list[dict[str, Any]]) -> None:
         self.identity = identity
-        self.__dict__.update(fields)
+        self.__dict__.update(head)
+        self.blocks = blocks
+
+    def __getattr__(self, name: str) -> Any:  # only for names not set in __init__
+        field_name, _, nn = name.rpartition("_")
+        if field_name and nn.isdigit() and 1 <= int(nn) <= len(self.blocks):
+            block = self.blocks[int(nn) - 1]
+            if field_name in block:
+                return block[field_name]
+        raise AttributeError(name)
+
+    def fields(self) -> dict[str, Any]:
+        """Every field under pyubx2's flat name (header, then ``<field>_<nn>``)."""
+        out = {k: v for k, v in vars(self).items() if k not in ("identity", "blocks")}
+        for k, block in enumerate(self.blocks, start=1):
+            out.update({f"{name}_{k:02d}": value for name, value in block.items()})
+        return out
+
+
+class _Pyubx2Block:
+    """Block ``i`` (from 1) of a pyubx2 message, read as a mapping of plain field names."""
+
+    __slots__ = ("_msg", "_sfx")
+
+    def __init__(self, msg: Any, i: int) -> None:
+        self._msg = msg
+        self._sfx = f"_{i:02d}"
+
+    def __getitem__(self, name: str) -> Any:
+        return getattr(self._msg, name + self._sfx)
+
+
+def _blocks(msg: Any, count: str) -> list[Any]:
+    """The repeated blocks of a RXM message, from :func:`parse_rxm` or from pyubx2."""
+    if isinstance(msg, RxmMessage):
+        return msg.blocks
+    return [_Pyubx2Block(msg, i) for i in range(1, int(getattr(msg, count)) + 1)]
 
 
 def _bits(shift: int, mask: int) -> Callable[[int], int]:
@@ -253,11 +286,11 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
     if len(payload) != layout.head.size + n * layout.block.size:
         return None
     fields = {name: _value(head[i], how) for name, i, how in layout.head_fields}
-    for k in range(n):
-        v = layout.block.unpack_from(payload, layout.head.size + k * layout.block.size)
-        sfx = f"_{k + 1:02d}"
-        fields.update({name + sfx: _value(v[i], how) for name, i, how in layout.block_fields})
-    return RxmMessage(layout.identity, fields)
+    blocks = [
+        {name: _value(v[i], how) for name, i, how in layout.block_fields}
+        for v in layout.block.iter_unpack(payload[layout.head.size :])
+    ]
+    return RxmMessage(layout.identity, fields, blocks)
 
 
 def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
@@ -408,25 +441,25 @@ class UbxMapper:
         pending = self._pending
         if pending is None:
             return out
-        for i in range(1, int(msg.numMeas) + 1):
-            if _field(msg, "gnssId", i) != GNSS_BDS:
+        for m in _blocks(msg, "numMeas"):
+            if m["gnssId"] != GNSS_BDS:
                 self.counters["rawx_meas_other_gnss"] += 1
                 continue
-            sig = BDS_SIGNALS.get(int(_field(msg, "sigId", i)))
+            sig = BDS_SIGNALS.get(int(m["sigId"]))
             if sig is None:
                 self.counters["rawx_bds_other_signal"] += 1
                 continue
-            sat = self._sat(pending, prn_id(int(_field(msg, "svId", i))))
-            pr_m = float(_field(msg, "prMes", i))
-            if not _field(msg, "prValid", i):
+            sat = self._sat(pending, prn_id(int(m["svId"])))
+            pr_m = float(m["prMes"])
+            if not m["prValid"]:
                 self.counters["rawx_pr_invalid"] += 1
             elif not 0.0 < pr_m < PR_MAX_M:  # NaN/inf/negative reached the solver before
                 self.counters["rawx_pr_implausible"] += 1
             else:
                 sat.pr_m = pr_m
-            sat.cn0_dbhz = float(_field(msg, "cno", i))
-            sat.doppler_hz = float(_field(msg, "doMes", i))
-            sat.lock_s = float(_field(msg, "locktime", i)) * 1e-3
+            sat.cn0_dbhz = float(m["cno"])
+            sat.doppler_hz = float(m["doMes"])
+            sat.lock_s = float(m["locktime"]) * 1e-3
         return out + self._maybe_complete()
 
     def _on_measx(self, msg: Any) -> list[Event]:
@@ -439,21 +472,21 @@ class UbxMapper:
         pending = self._pending
         if pending is None:
             return out
-        for i in range(1, int(msg.numSv) + 1):
-            if _field(msg, "gnssId", i) != GNSS_BDS:
+        for sv in _blocks(msg, "numSv"):
+            if sv["gnssId"] != GNSS_BDS:
                 continue
-            int_ms = int(_field(msg, "intCodePhase", i))
-            chips = int(_field(msg, "wholeChips", i))
+            int_ms = int(sv["intCodePhase"])
+            chips = int(sv["wholeChips"])
             if int_ms == MEASX_INVALID_INT_MS or chips == MEASX_INVALID_CHIPS:
                 self.counters["measx_invalid"] += 1
                 continue
-            code_ms = int_ms + float(_field(msg, "codePhase", i))
-            sat = self._sat(pending, prn_id(int(_field(msg, "svId", i))))
+            code_ms = int_ms + float(sv["codePhase"])
+            sat = self._sat(pending, prn_id(int(sv["svId"])))
             sat.raw_frac_m = float(np.mod(C_M_S * code_ms * 1e-3, B1I_RANGE_M))
             if math.isnan(sat.cn0_dbhz):
-                sat.cn0_dbhz = float(_field(msg, "cNo", i))
+                sat.cn0_dbhz = float(sv["cNo"])
             if math.isnan(sat.doppler_hz):
-                sat.doppler_hz = float(_field(msg, "dopplerHz", i))
+                sat.doppler_hz = float(sv["dopplerHz"])
         return out + self._maybe_complete()
 
     def _sat(self, pending: _Pending, prn: str) -> _Sat:
