@@ -13,12 +13,15 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from service.constants import C_M_S, F_B1I_HZ, F_GPS_L1_HZ, OMEGA_E_RAD_S
 from service.types import KlobucharParams
 
 _SEMI = np.pi  # semicircles -> radians
+_ONE_DEG_RAD = math.radians(1.0)
 
 
 def sagnac_rotate(sat_ecef_m: np.ndarray, travel_time_s: np.ndarray) -> np.ndarray:
@@ -57,7 +60,8 @@ def klobuchar_bds_m(
     az = np.asarray(az_rad, dtype=float)
     ratio = r_km / (r_km + h_km) * np.cos(el)
     psi = np.pi / 2 - el - np.arcsin(ratio)
-    lat_m = np.arcsin(np.sin(lat_rad) * np.cos(psi) + np.cos(lat_rad) * np.sin(psi) * np.cos(az))
+    sin_lat, cos_lat = math.sin(lat_rad), math.cos(lat_rad)
+    lat_m = np.arcsin(sin_lat * np.cos(psi) + cos_lat * np.sin(psi) * np.cos(az))
     lon_m = lon_rad + np.arcsin(np.sin(psi) * np.sin(az) / np.cos(lat_m))
     phi = np.abs(lat_m / _SEMI)
     a2 = np.maximum(_cubic(params.alpha, phi), 0.0)
@@ -107,8 +111,8 @@ def saastamoinen_m(
     h = max(alt_m, 0.0)
     pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
     temp_k = 15.0 - 6.5e-3 * h + 273.16
-    e_hpa = 6.108 * humidity * np.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
-    cos_z = np.cos(np.pi / 2 - np.maximum(el, np.radians(1.0)))
-    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * np.cos(2 * lat_rad) - 0.00028 * h / 1e3)
+    e_hpa = 6.108 * humidity * math.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
+    cos_z = np.cos(np.pi / 2 - np.maximum(el, _ONE_DEG_RAD))
+    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * math.cos(2 * lat_rad) - 0.00028 * h / 1e3)
     wet = 0.002277 * (1255.0 / temp_k + 0.05) * e_hpa
     return np.where(el > 0, (hydro + wet) / cos_z, 0.0)
