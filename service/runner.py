@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 
 _END = object()
 SWITCH_INTERVAL_S = 0.0005
+TIMER_SLACK_S = 1.0
 SKIP_KEYS = frozenset({"resyncs"})
 SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
 """Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
@@ -130,10 +131,14 @@ class Runner:
                     log.info("reopening outputs")
                     self.outputs.reopen()
                 now = time.monotonic()
-                if now >= next_status:
+                # Periodic work waits for a gap between events (the subframes that open an
+                # epoch's burst would otherwise delay its fix by a store save), unless a
+                # backlog has kept it waiting for TIMER_SLACK_S already.
+                slack = 0.0 if q.empty() else TIMER_SLACK_S
+                if now >= next_status + slack:
                     self.outputs.status(self.counters())
                     next_status = now + self.status_interval_s
-                if now >= next_save:
+                if now >= next_save + slack:
                     self.save_store()
                     next_save = now + self.store_save_interval_s
                 if self.watchdog is not None and now >= next_dog:
