@@ -52,7 +52,11 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
             sig_type,
             nav_type,
         )
-    words = tuple(int(getattr(msg, f"dwrd_{i:02d}")) & WORD_MASK for i in range(1, 11))
+    blocks = getattr(msg, "blocks", None)  # drivers.ubx.parse_rxm: one dict per word
+    if blocks is not None:
+        words = tuple(int(b["dwrd"]) & WORD_MASK for b in blocks)
+    else:  # pyubx2: dwrd_01 .. dwrd_10
+        words = tuple(int(getattr(msg, f"dwrd_{i:02d}")) & WORD_MASK for i in range(1, 11))
     try:
         head = parse_header(words, nav_type)
     except DecodeError as exc:
