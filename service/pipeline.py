@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -26,6 +26,9 @@ from service.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
 from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, NavSubframe, SatView
 
 log = logging.getLogger(__name__)
+
+WARM_START_MAX_AGE_S = 30.0
+"""A fix older than this [s, data time] is not used as the start of the next solve."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,6 +81,7 @@ class Pipeline:
     counters: Counter[str] = field(default_factory=Counter)
     _first: tuple[int, float] | None = None
     _restarted: bool = False
+    _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
 
@@ -126,10 +130,13 @@ class Pipeline:
                 SubframeEmulator(epoch.gpst_week, epoch.gpst_tow_s, delays),
             )
             self._recovered.clear()
+            self._last_fix = None
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
-        fix = solve(view, self.store, self.iono, self.cfg, solver="fast")
+        fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
         self.counters[f"fix_{fix.mode}"] += 1
+        if fix.ok and fix.x_ecef_m is not None:
+            self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
         if fix.mode == "fast":
             for prn, pr in fix.recovered_pr_m.items():
                 i = view.prn.index(prn)
@@ -141,6 +148,24 @@ class Pipeline:
         return EpochResult(
             view, fix, since, tuple(events), tuple(checks), partial(sky_view, view, self.store)
         )
+
+    def _start_cfg(self, view: MeasurementEpoch) -> SolverConfig:
+        """The solver settings for ``view``: once every measurement is full (conventional
+        SPP) the iteration starts at the position of the last fix of the past
+        WARM_START_MAX_AGE_S, as receivers do; it converges to the same solution in fewer
+        steps. Any epoch with a fractional measurement starts at the Earth's centre (the
+        paper's a-priori-free fast fix), and so does every epoch without a recent fix."""
+        last = self._last_fix
+        if (
+            self.cfg.x0_ecef_m is not None
+            or last is None
+            or not bool(np.isfinite(view.pr_m).all())
+            or not 0.0
+            <= diff_s(view.gpst_week, view.gpst_tow_s, last[0], last[1])
+            <= WARM_START_MAX_AGE_S
+        ):
+            return self.cfg
+        return replace(self.cfg, x0_ecef_m=last[2])
 
     def _check_integrity(
         self, view: MeasurementEpoch, events: list[TrackEvent]
