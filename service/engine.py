@@ -16,6 +16,9 @@ Two phases, so that fast and SPP share one fixed point:
    integer is already fixed), Klobuchar and Saastamoinen corrections, elevation weights,
    iterated to convergence. A post-fit residual check then refuses any solution whose
    residuals betray a wrong integer set or an outlier.
+
+With every measurement full and an approximate position given (``x0_ecef_m``), phase 1 has
+nothing to resolve and phase 2 starts there: conventional SPP, the same solution.
 """
 
 from __future__ import annotations
@@ -57,8 +60,10 @@ class SolverConfig:
     resid_max_m: float = 1000.0
     sigma_a_m: float = 0.3
     sigma_b_m: float = 0.3
-    # Start of the phase-1 iteration; None is the paper's (the Earth's centre, eq. 3).
-    # Reference solutions in studies may start at a known position to save iterations.
+    # A known approximate position (a reference in studies, the last fix in a stream).
+    # With every measurement full the solve is then conventional SPP from it (phase 2
+    # alone); with fractional rows phase 1 starts there. None: the paper's start, the
+    # Earth's centre (eq. 3). Either way the least-squares solution is the same.
     x0_ecef_m: tuple[float, float, float] | None = None
 
 
@@ -202,35 +207,17 @@ class _Decline(Exception):
         self.info = info
 
 
-def _solve_rows(
-    rows: _Rows,
-    gpst_week: int,
-    gpst_tow_s: float,
-    iono: IonoSet,
-    cfg: SolverConfig,
-    solver: Literal["fast", "spp"],
-) -> Fix:
-    bdt_week, bdt_sow = gpst_to_bdt(gpst_week, gpst_tow_s)
-    frac = rows.frac
-    n_full, n_frac = int((~frac).sum()), int(frac.sum())
-    base = Fix(
-        solver=solver,
-        mode="none",
-        gpst_week=gpst_week,
-        gpst_tow_s=gpst_tow_s,
-        full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
-        fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
-    )
-    if n_full < 4:
-        reason = (
-            f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
-        )
-        return replace(base, reason=reason)
-
-    # ---- phase 1: paper eqs. (3)-(14), from the Earth's centre, no corrections ----------
+def _phase1(
+    rows: _Rows, bdt_week: int, bdt_sow: float, n_int: np.ndarray, cfg: SolverConfig, base: Fix
+) -> Fix | tuple[np.ndarray, float, np.ndarray, _Geometry, float, int]:
+    """Phase 1: the paper's iteration (eqs. 3-14) from the Earth's centre (or
+    ``cfg.x0_ecef_m``) without corrections, the GEO-GDOP gate (eqs. 12, 20-21) and the
+    fixed-integer correction (eqs. 15-16). Returns ``base`` with a reason when it declines,
+    else the position, clock bias, integers, geometry, GDOP_full and iteration count."""
     x = np.zeros(3) if cfg.x0_ecef_m is None else np.array(cfg.x0_ecef_m, dtype=float)
     b = 0.0
-    n_int = np.zeros(len(rows.prn))
+    frac = rows.frac
+    n_frac = int(frac.sum())
     frac_idx = np.flatnonzero(frac)
     full_idx = np.flatnonzero(~frac)
     converged = False
@@ -295,6 +282,47 @@ def _solve_rows(
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
     x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, geo, cfg, None, False)
     it += it2
+    return x, b, n_int, geo, gd, it
+
+
+def _solve_rows(
+    rows: _Rows,
+    gpst_week: int,
+    gpst_tow_s: float,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> Fix:
+    bdt_week, bdt_sow = gpst_to_bdt(gpst_week, gpst_tow_s)
+    frac = rows.frac
+    n_full, n_frac = int((~frac).sum()), int(frac.sum())
+    base = Fix(
+        solver=solver,
+        mode="none",
+        gpst_week=gpst_week,
+        gpst_tow_s=gpst_tow_s,
+        full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
+        fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
+    )
+    if n_full < 4:
+        reason = (
+            f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
+        )
+        return replace(base, reason=reason)
+
+    n_int = np.zeros(len(rows.prn))
+    frac_idx = np.flatnonzero(frac)
+    gd: float | None = None
+    if cfg.x0_ecef_m is not None and not n_frac:
+        # every measurement full and a position known: conventional SPP, phase 2 alone (the
+        # same solution as from the Earth's centre, see SolverConfig.x0_ecef_m)
+        x, b, it = np.array(cfg.x0_ecef_m, dtype=float), 0.0, 0
+        geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+    else:
+        first = _phase1(rows, bdt_week, bdt_sow, n_int, cfg, base)
+        if isinstance(first, Fix):
+            return first
+        x, b, n_int, geo, gd, it = first
 
     # ---- phase 2: mask, corrections, weights ---------------------------------------------
     meaningful = _plausible(x)
