@@ -133,12 +133,13 @@ class Runner:
                 now = time.monotonic()
                 # Periodic work waits for a gap between events (the subframes that open an
                 # epoch's burst would otherwise delay its fix by a store save), unless a
-                # backlog has kept it waiting for TIMER_SLACK_S already.
+                # backlog has kept it waiting for TIMER_SLACK_S already. A save interval of
+                # 0 asks for a save after every change: no waiting then.
                 slack = 0.0 if q.empty() else TIMER_SLACK_S
                 if now >= next_status + slack:
                     self.outputs.status(self.counters())
                     next_status = now + self.status_interval_s
-                if now >= next_save + slack:
+                if now >= next_save + (slack if self.store_save_interval_s > 0 else 0.0):
                     self.save_store()
                     next_save = now + self.store_save_interval_s
                 if self.watchdog is not None and now >= next_dog:
