@@ -146,6 +146,7 @@ class Runner:
                     self.watchdog()
                     next_dog = now + (self.watchdog_interval_s or 1e18)
         finally:
+            gc.unfreeze()  # the caller's heap is its own again (tests run many loops)
             self._stop.set()
             self.save_store()
             self.outputs.status(self.counters())
