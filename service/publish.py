@@ -29,6 +29,7 @@ import contextlib
 import errno
 import ipaddress
 import logging
+import os
 import selectors
 import socket
 import sys
@@ -394,6 +395,7 @@ class LineSink:
     def __init__(self, target: str, append: bool = False) -> None:
         self.target = target
         self.counters: Counter[str] = Counter()
+        self.reader_gone = False  # a pipe whose reader closed it (EPIPE)
         self._fh: IO[str] | None = None
         self._failing = False
         self._open("a" if append else "w")
@@ -416,10 +418,18 @@ class LineSink:
         self._failing = False
 
     def write(self, text: str) -> None:
-        if self._fh is None:
+        if self._fh is None or self.reader_gone:
             return
         try:
             self._fh.write(text)
+        except BrokenPipeError:
+            # a pipe (stdout, a FIFO) whose reader has left, as in `bdsfix replay | head`
+            self.reader_gone = True
+            self.counters["line_write_errors"] += 1
+            log.info("%s: the reader closed the pipe; nothing more is written there", self.target)
+            if self._fh is sys.stdout:  # no second EPIPE when Python flushes it at exit
+                with contextlib.suppress(OSError, ValueError):
+                    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         except OSError as exc:
             self.counters["line_write_errors"] += 1
             if not self._failing:
@@ -630,6 +640,13 @@ class Publishers:
         """Publish a ``STATUS`` record of all counters (ZeroMQ)."""
         if self.zmq is not None:
             self.zmq.send("STATUS", status_record(self.all_counters(counters), **extra))
+
+    def gone(self) -> bool:
+        """True when every output is a pipe whose reader has left (``replay | head``):
+        nothing published from now on can reach anyone. Listeners are never gone."""
+        parts = [self.nmea_tcp, self.zmq, self.nmea_serial, self.nmea_lines, self.jsonl]
+        used = [p for p in parts if p is not None]
+        return bool(used) and all(isinstance(p, LineSink) and p.reader_gone for p in used)
 
     def reopen(self) -> None:
         """Reopen file outputs (SIGHUP after log rotation)."""

@@ -45,6 +45,7 @@ class Outputs(Protocol):
     def track(self, event: TrackEvent) -> None: ...
     def status(self, counters: Mapping[str, int | float]) -> None: ...
     def reopen(self) -> None: ...
+    def gone(self) -> bool: ...
     def close(self) -> None: ...
 
 
@@ -126,6 +127,9 @@ class Runner:
                     break
                 if ev is not None:
                     n += self._handle(ev)
+                    if self.outputs.gone():
+                        log.info("every output's reader has gone: stopping")
+                        break
                 if self._reopen.is_set():
                     self._reopen.clear()
                     log.info("reopening outputs")

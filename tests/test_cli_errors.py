@@ -199,3 +199,23 @@ def test_a_good_start_still_exits_0(tmp_path, capture):
     """The same daemon with a valid (short) capture runs to its end and exits 0."""
     rc, _, err = _bdsfix(tmp_path, "run", "--source", str(capture), *QUIET, "--log-level", "error")
     assert rc == 0 and "Traceback" not in err, err
+
+
+def test_replay_stops_when_the_reader_of_its_only_output_leaves():
+    """`bdsfix replay ... | head -n 2`: the pipe's reader leaves after two lines; the replay
+    stops there (exit 0, no traceback, no broken-pipe noise) instead of replaying on."""
+    hk = DATA / "hksc-2021"
+    rd, wr = os.pipe()
+    argv = [BDSFIX, "replay", str(hk / "hksc1610.obs"), "--nav", str(hk / "hksc1610.nav")]
+    proc = subprocess.Popen([*argv, "--max-speed"], stdout=wr, stderr=subprocess.PIPE, text=True)
+    os.close(wr)
+    with os.fdopen(rd) as reader:
+        first = [reader.readline() for _ in range(2)]
+    _, err = proc.communicate(timeout=120)
+    assert first[0].startswith("$GNGGA,") and first[1].startswith("$GNRMC,")
+    assert proc.returncode == 0, err
+    for noise in ("Traceback", "Exception ignored", "Broken pipe"):
+        assert noise not in err, err
+    # 205 epochs of NMEA (~140 kB) cannot pass a 64 kB pipe nobody reads: it stopped early
+    epochs = int(err.split("bdsfix replay: ")[1].split()[0])
+    assert epochs < 205
