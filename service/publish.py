@@ -429,7 +429,9 @@ class LineSink:
             log.info("%s: the reader closed the pipe; nothing more is written there", self.target)
             if self._fh is sys.stdout:  # no second EPIPE when Python flushes it at exit
                 with contextlib.suppress(OSError, ValueError):
-                    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+                    null = os.open(os.devnull, os.O_WRONLY)
+                    os.dup2(null, sys.stdout.fileno())
+                    os.close(null)
         except OSError as exc:
             self.counters["line_write_errors"] += 1
             if not self._failing:
