@@ -105,6 +105,7 @@ def main_solve(args: argparse.Namespace) -> int:
     reader = RinexObsReader(args.obs)
     counts: Counter[str] = Counter()
     reasons: Counter[str] = Counter()
+    excluded: Counter[str] = Counter()
     n_epochs = 0
     with _open_out(args.out) as out:
         if args.format == "csv":
@@ -115,6 +116,8 @@ def main_solve(args: argparse.Namespace) -> int:
                 counts[f"{fix.solver}:{fix.mode}"] += 1
                 if fix.reason:
                     reasons[f"{fix.solver}: {fix.reason.split(':')[0]}"] += 1
+                for prn in fix.excluded:
+                    excluded[f"{fix.solver} {prn}"] += 1
                 if args.format == "jsonl":
                     out.write(fix_json_line(fix) + "\n")
                 elif args.format == "csv":
@@ -128,4 +131,7 @@ def main_solve(args: argparse.Namespace) -> int:
     print(f"bdsfix solve: {n_epochs} epochs; {summary}", file=sys.stderr)
     for why, n in reasons.most_common():
         print(f"  declined ({why}): {n}", file=sys.stderr)
+    if excluded:
+        parts = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
+        print(f"  excluded by fault detection: {parts}", file=sys.stderr)
     return 0

@@ -24,7 +24,7 @@ from service.config import DEFAULT_CONFIG, DaemonConfig, load_config, overrides_
 from service.engine import IonoChoice, IonoSet, SolverConfig
 from service.ephemeris import EphemerisStore
 from service.errors import BdsfixError, BindError, ConfigError, InputError
-from service.pipeline import EpochResult, Pipeline
+from service.pipeline import EpochResult, Pipeline, integrity_summary
 from service.publish import (
     LineSink,
     NmeaTcpServer,
@@ -323,6 +323,8 @@ def main_replay(args: argparse.Namespace) -> int:
         f"{c.get('integrity_checks', 0)}, failures {c.get('integrity_failures', 0)}",
         file=sys.stderr,
     )
+    for line in integrity_summary(c):
+        print(f"  {line}", file=sys.stderr)
     skipped = {
         k: v for k, v in c.items() if any(w in k for w in ("bad_", "skipped", "error", "resync"))
     }

@@ -24,6 +24,7 @@ nothing to resolve and phase 2 starts there: conventional SPP, the same solution
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -36,7 +37,8 @@ from service.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m
 from service.ephemeris import EphemerisStore
 from service.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
 from service.orbit import EphemerisArrays, sat_pos_clock
-from service.timebase import gpst_to_bdt
+from service.raim import Integrity, assess
+from service.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 
 log = logging.getLogger(__name__)
@@ -46,7 +48,22 @@ IonoChoice = Literal["auto", "bds", "gps", "off"]
 
 @dataclass(frozen=True, slots=True)
 class SolverConfig:
-    """Solver settings. ``beta=None`` derives the gate from T and ``range_error_m``."""
+    """Solver settings. ``beta=None`` derives the gate from T and ``range_error_m``.
+
+    Error model (per measurement, :func:`measurement_sigma_m`):
+    sigma^2 = a^2 + b^2 / sin^2 E + c^2 10^((C0 - C/N0) / 10) + sigma_sis^2
+              + (k_iono I)^2 + (t_tropo / (sin E + 0.1))^2,
+    with the C/N0 term only where the input carries C/N0 and the tropospheric term only
+    where Saastamoinen is applied; I is the Klobuchar delay applied, or without a model an
+    unmodelled zenith delay with its slant factor. ``weighted=False`` gives every row
+    ``sigma_uniform_m``. Calibrated on the recordings (docs/method.md, "Error model").
+
+    Integrity: a chi-square test of the weighted residuals at false-alarm probability
+    ``p_fa``; up to ``max_exclusions`` satellites excluded one at a time when it fails;
+    protection levels for missed-detection probability ``p_md``; fixes with PDOP above
+    ``pdop_max``, an altitude outside [``alt_min_m``, ``alt_max_m``] or a receiver clock
+    beyond ``clock_max_s`` are declined.
+    """
 
     elmask_deg: float = 10.0
     beta: float | None = None
@@ -57,9 +74,22 @@ class SolverConfig:
     max_iter: int = 30
     theta_m: float = 1e-3
     conv_m: float = 1e-4
-    resid_max_m: float = 1000.0
-    sigma_a_m: float = 0.3
-    sigma_b_m: float = 0.3
+    sigma_a_m: float = 0.5
+    sigma_b_m: float = 0.5
+    sigma_cn0_m: float = 1.0
+    cn0_ref_dbhz: float = 45.0
+    sigma_sis_m: float = 1.0
+    iono_error_ratio: float = 0.3
+    iono_unmodelled_m: float = 3.0
+    tropo_error_m: float = 0.3
+    sigma_uniform_m: float = 3.0
+    p_fa: float = 1e-5
+    p_md: float = 1e-3
+    max_exclusions: int = 2
+    pdop_max: float = 10.0
+    alt_min_m: float = -1_000.0
+    alt_max_m: float = 1_100_000.0
+    clock_max_s: float = 1_000.0
     # A known approximate position (a reference in studies, the last fix in a stream).
     # With every measurement full the solve is then conventional SPP from it (phase 2
     # alone); with fractional rows phase 1 starts there. None: the paper's start, the
@@ -75,7 +105,7 @@ def derive_beta(period_s: float, range_error_m: float) -> float:
     return C_M_S * period_s / 2.0 / range_error_m
 
 
-@dataclass(frozen=True, slots=True, eq=False)
+@dataclass(slots=True, eq=False)
 class _Rows:
     """Measurement rows of one solve, aligned with their ephemerides."""
 
@@ -195,34 +225,85 @@ class IonoSet:
     gps: KlobucharParams | None = None
 
 
-def _plausible(x: np.ndarray) -> bool:
+def _meaningful(x: np.ndarray) -> bool:
+    """A position near enough the Earth for masks and delays to mean something."""
     r = float(np.linalg.norm(x))
     return 6.0e6 < r < 8.5e6
 
 
-class _Decline(Exception):
-    def __init__(self, reason: str, **info: object) -> None:
-        super().__init__(reason)
-        self.reason = reason
-        self.info = info
+GROSS_SPREAD_M = 25_000e3
+"""Largest possible difference of two full B1I pseudoranges of one epoch [m]. They share
+the receiver clock, so they differ by geometry and satellite clocks only: from a MEO at
+zenith (~21,500 km) to a GEO/IGSO at the horizon (~41,700 km) is ~20,200 km for a user on
+the ground or up to 1000 km above it, plus satellite clocks (< 1 ms, 300 km). A full
+pseudorange further than this from the epoch's median is impossible, not merely faulty."""
 
 
-def _phase1(
-    rows: _Rows, bdt_week: int, bdt_sow: float, n_int: np.ndarray, cfg: SolverConfig, base: Fix
-) -> Fix | tuple[np.ndarray, float, np.ndarray, _Geometry, float, int]:
+@dataclass(frozen=True, slots=True)
+class _Context:
+    """What one epoch's solve needs besides its rows."""
+
+    gpst_week: int
+    gpst_tow_s: float
+    bdt_week: int
+    bdt_sow_s: float
+    iono: IonoSet
+    cfg: SolverConfig
+    solver: Literal["fast", "spp"]
+
+
+@dataclass(slots=True, eq=False)
+class _State:
+    """An iterate: position, clock bias [m], integers (0 for full rows) and its geometry."""
+
+    x: np.ndarray
+    b: float
+    n_int: np.ndarray
+    geo: _Geometry
+    iterations: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class _Decline:
+    """Why an attempt gave no solution (``code``: the counter key, see :data:`REASONS`)."""
+
+    reason: str
+    code: str
+    gdop_full: float | None = None
+    iterations: int = 0
+
+
+REASONS: dict[str, str] = {
+    "no_measurements": "no measurements",
+    "no_ephemeris": "no usable ephemeris",
+    "too_few_full": "too few full measurements",
+    "singular": "singular geometry",
+    "no_convergence": "no convergence",
+    "gdop_gate": "GEO-GDOP gate",
+    "diverged": "solution diverged",
+    "chi2": "chi-square test failed, no exclusion passes",
+    "implausible": "implausible solution",
+    "pdop_gate": "PDOP gate",
+    "numerical": "numerical failure",
+}
+"""Decline codes (``Fix.reason_code``) and their meaning in words."""
+
+
+def _phase1(rows: _Rows, ctx: _Context) -> _State | _Decline:
     """Phase 1: the paper's iteration (eqs. 3-14) from the Earth's centre (or
     ``cfg.x0_ecef_m``) without corrections, the GEO-GDOP gate (eqs. 12, 20-21) and the
-    fixed-integer correction (eqs. 15-16). Returns ``base`` with a reason when it declines,
-    else the position, clock bias, integers, geometry, GDOP_full and iteration count."""
+    fixed-integer correction (eqs. 15-16)."""
+    cfg = ctx.cfg
     x = np.zeros(3) if cfg.x0_ecef_m is None else np.array(cfg.x0_ecef_m, dtype=float)
     b = 0.0
+    n_int = np.zeros(len(rows.prn))
     frac = rows.frac
     n_frac = int(frac.sum())
     frac_idx = np.flatnonzero(frac)
     full_idx = np.flatnonzero(~frac)
     converged = False
     it = 0
-    geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+    geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
     cost = _full_cost(rows, geo, b, full_idx)
     for it in range(1, cfg.max_iter + 1):
         dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b  # eqs. (7)-(8)
@@ -235,7 +316,7 @@ def _phase1(
         try:
             step = _lsq(h, dz)  # eq. (10)
         except np.linalg.LinAlgError:
-            return replace(base, reason="singular geometry in the fast-fix iteration")
+            return _Decline("singular geometry in the fast-fix iteration", "singular")
         # Backtracking: the float ambiguities absorb the fractional rows, so x and b move on
         # the full rows alone; from the Earth's centre, near-equatorial GEOs make the plain
         # step overshoot (beyond GEO altitude, then divergence). A step that increases the
@@ -247,17 +328,19 @@ def _phase1(
             dn = np.rint(lam * step[4:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
             n_new = n_int.copy()
             n_new[frac_idx] += dn  # eq. (13)
-            geo_new = _geometry(rows, bdt_week, bdt_sow, x_new, n_new)
+            geo_new = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x_new, n_new)
             cost_new = _full_cost(rows, geo_new, b_new, full_idx)
             if cost_new <= cost or lam < 1e-3 or not np.isfinite(cost):
                 break
             lam /= 2.0
         x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
+        if not np.all(np.isfinite(x)):
+            break
         if np.linalg.norm(lam * step[:4]) < cfg.theta_m and not np.any(dn):  # eq. (14)
             converged = True
             break
     if not np.all(np.isfinite(x)):
-        return replace(base, iterations=it, reason=f"no convergence after {it} iterations")
+        return _Decline(f"no convergence after {it} iterations", "no_convergence", iterations=it)
 
     # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
     # phase-1 position (or at the last iterate when the iteration did not settle)
@@ -268,150 +351,268 @@ def _phase1(
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
         settled = "" if converged else f" (no convergence after {it} iterations)"
-        return replace(
-            base,
-            gdop_full=gd,
-            iterations=it,
-            reason=f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}{settled}",
+        return _Decline(
+            f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}{settled}", "gdop_gate", gd, it
         )
     if not converged:
-        return replace(
-            base, gdop_full=gd, iterations=it, reason=f"no convergence after {it} iterations"
-        )
+        return _Decline(f"no convergence after {it} iterations", "no_convergence", gd, it)
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
-    x, b, geo, it2 = _fixed_iterations(rows, bdt_week, bdt_sow, x, b, n_int, geo, cfg, None, False)
-    it += it2
-    return x, b, n_int, geo, gd, it
+    state = _fixed_iterations(rows, ctx, _State(x, b, n_int, geo, it), None, False)
+    return state
 
 
-def _solve_rows(
-    rows: _Rows,
-    gpst_week: int,
-    gpst_tow_s: float,
-    iono: IonoSet,
-    cfg: SolverConfig,
-    solver: Literal["fast", "spp"],
-) -> Fix:
-    bdt_week, bdt_sow = gpst_to_bdt(gpst_week, gpst_tow_s)
+@dataclass(frozen=True, slots=True, eq=False)
+class _Attempt:
+    """One solve of a set of rows: the fix (or why not) and the integrity figures of its
+    final solution. ``kept`` indexes ``rows``: the rows the solution used (above the mask)."""
+
+    fix: Fix
+    rows: _Rows
+    kept: np.ndarray
+    integrity: Integrity | None = None
+
+    @property
+    def failed_test(self) -> bool:
+        i = self.integrity
+        return i is not None and i.chi2 is not None and not i.passed
+
+
+def _attempt(rows: _Rows, ctx: _Context) -> _Attempt:
+    """Solve ``rows`` (phase 1 when fractional rows need integers, then phase 2) and judge
+    the solution: chi-square test, plausibility, PDOP gate (in that order)."""
+    cfg = ctx.cfg
     frac = rows.frac
     n_full, n_frac = int((~frac).sum()), int(frac.sum())
     base = Fix(
-        solver=solver,
+        solver=ctx.solver,
         mode="none",
-        gpst_week=gpst_week,
-        gpst_tow_s=gpst_tow_s,
+        gpst_week=ctx.gpst_week,
+        gpst_tow_s=ctx.gpst_tow_s,
         full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
         fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
     )
-    if n_full < 4:
-        reason = (
-            f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
-        )
-        return replace(base, reason=reason)
+    none = np.zeros(0, dtype=int)
 
-    n_int = np.zeros(len(rows.prn))
-    frac_idx = np.flatnonzero(frac)
-    gd: float | None = None
+    def declined(d: _Decline) -> _Attempt:
+        fix = replace(
+            base,
+            reason=d.reason,
+            reason_code=d.code,
+            gdop_full=d.gdop_full,
+            iterations=d.iterations,
+        )
+        return _Attempt(fix, rows, none)
+
+    if n_full < 4:
+        return declined(
+            _Decline(
+                f"too few full measurements: {n_full} full, {n_frac} fractional "
+                "(need at least 4 full)",
+                "too_few_full",
+            )
+        )
     if cfg.x0_ecef_m is not None and not n_frac:
         # every measurement full and a position known: conventional SPP, phase 2 alone (the
         # same solution as from the Earth's centre, see SolverConfig.x0_ecef_m)
-        x, b, it = np.array(cfg.x0_ecef_m, dtype=float), 0.0, 0
-        geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+        x = np.array(cfg.x0_ecef_m, dtype=float)
+        n0 = np.zeros(len(rows.prn))
+        state = _State(x, 0.0, n0, _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n0))
     else:
-        first = _phase1(rows, bdt_week, bdt_sow, n_int, cfg, base)
-        if isinstance(first, Fix):
-            return first
-        x, b, n_int, geo, gd, it = first
+        first = _phase1(rows, ctx)
+        if isinstance(first, _Decline):
+            return declined(first)
+        state = first
 
     # ---- phase 2: mask, corrections, weights ---------------------------------------------
-    meaningful = _plausible(x)
+    meaningful = _meaningful(state.x)
     if meaningful:
-        keep = np.flatnonzero(_local(x, geo.sat_ecef_m).el_rad >= np.radians(cfg.elmask_deg))
+        el = _local(state.x, state.geo.sat_ecef_m).el_rad
+        keep = np.flatnonzero(el >= np.radians(cfg.elmask_deg))
     else:
         keep = np.arange(len(rows.prn))
     kept = rows if len(keep) == len(rows.prn) else rows.take(keep)
-    n_int_k = n_int[keep]
     kfrac = kept.frac
-    if int((~kfrac).sum()) < 4:
-        return replace(
-            base,
-            gdop_full=gd,
-            iterations=it,
-            reason=(
-                f"too few full measurements above the {cfg.elmask_deg:g} deg "
-                f"mask: {int((~kfrac).sum())}"
-            ),
+    n_full_k = int((~kfrac).sum())
+    if n_full_k < 4:
+        return declined(
+            _Decline(
+                f"too few full measurements above the {cfg.elmask_deg:g} deg mask: {n_full_k}",
+                "too_few_full",
+                float(gdop(state.geo.los[~frac])) if n_frac else None,
+                state.iterations,
+            )
         )
-    model = _iono_model(iono.bds, iono.gps, cfg.iono) if meaningful else None
-    x, b, geo, it3 = _fixed_iterations(
+    model = _iono_model(ctx.iono.bds, ctx.iono.gps, cfg.iono) if meaningful else None
+    geo = state.geo if kept is rows else state.geo.take(keep)
+    state = _fixed_iterations(
         kept,
-        bdt_week,
-        bdt_sow,
-        x,
-        b,
-        n_int_k,
-        geo if kept is rows else geo.take(keep),
-        cfg,
+        ctx,
+        _State(state.x, state.b, state.n_int[keep], geo, state.iterations),
         model,
         meaningful,
     )
-    it += it3
-    if not np.all(np.isfinite(x)):
-        return replace(base, iterations=it, reason="solution diverged")
+    x, b, it = state.x, state.b, state.iterations
+    if not (np.all(np.isfinite(x)) and np.isfinite(b)):
+        return declined(_Decline("solution diverged", "diverged", iterations=it))
 
-    # ---- integrity: post-fit residuals -----------------------------------------------------
+    # ---- judge the solution -----------------------------------------------------------------
+    geo = state.geo
     loc = _local(x, geo.sat_ecef_m)
-    corr = _corrections(loc, bdt_sow, model, cfg) if meaningful else np.zeros(len(kept.prn))
-    v = kept.z_m + n_int_k * kept.ct_m - geo.pred_m - b - corr
-    vmax_i = int(np.argmax(np.abs(v)))
+    iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg) if meaningful else (None, None)
+    corr = _total(iono_m, tropo_m, len(kept.prn))
+    v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - b - corr
+    sigma = _sigma_m(kept, loc, iono_m, tropo_m, cfg, meaningful)
+    a = _design(geo.los)
+    rot = enu_rotation(loc.lat_rad, loc.lon_rad)
+    integ = assess(a, v, sigma, rot, cfg.p_fa, cfg.p_md)
     resid_rms = float(np.sqrt(np.mean(v**2)))
     gd_final = float(gdop(geo.los[~kfrac]))
-    ambiguity = {rows.prn[i]: int(n_int[i]) for i in frac_idx}
-    recovered = {rows.prn[i]: float(rows.z_m[i] + n_int[i] * rows.ct_m[i]) for i in frac_idx}
-    if abs(v[vmax_i]) > cfg.resid_max_m:
-        return replace(
-            base,
-            gdop_full=gd_final,
-            iterations=it,
-            resid_rms_m=resid_rms,
-            ambiguity=ambiguity,
-            reason=(
-                f"residual check failed: |v| = {abs(v[vmax_i]):.1f} m on "
-                f"{kept.prn[vmax_i]} > {cfg.resid_max_m:g} m"
-            ),
-        )
-
-    lat_r, lon_r, alt_m = loc.lat_rad, loc.lon_rad, loc.alt_m
-    a = _design(geo.los)
-    rot = enu_rotation(lat_r, lon_r)
-    q = np.linalg.inv(a.T @ a)[:3, :3]
-    q_enu = rot @ q @ rot.T
-    w = _weights(loc, cfg) if meaningful else np.ones(len(kept.prn))
-    qw = np.linalg.inv((a * w[:, None]).T @ a)[:3, :3]
-    std = np.sqrt(np.diag(rot @ qw @ rot.T))
-    mode: Literal["fast", "spp"] = "fast" if bool(np.any(kfrac)) else "spp"
-    return replace(
+    frac_idx = np.flatnonzero(kfrac)
+    ambiguity = {kept.prn[i]: int(state.n_int[i]) for i in frac_idx}
+    judged = replace(
         base,
+        gdop_full=gd_final if ctx.solver == "fast" else None,
+        iterations=it,
+        resid_rms_m=resid_rms,
+        redundancy=integ.redundancy,
+        chi2=integ.chi2,
+        chi2_max=integ.chi2_max,
+    )
+    if integ.chi2 is not None and not integ.passed:
+        worst = int(np.nanargmax(np.abs(integ.w))) if np.any(np.isfinite(integ.w)) else 0
+        reason = (
+            f"chi-square test failed: {integ.chi2:.1f} > {integ.chi2_max:.1f} "
+            f"(redundancy {integ.redundancy}; largest w-test {kept.prn[worst]} "
+            f"{integ.w[worst]:.1f})"
+        )
+        fix = replace(judged, reason=reason, reason_code="chi2", ambiguity=ambiguity)
+        return _Attempt(fix, rows, keep, integ)
+    lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
+    if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b) > cfg.clock_max_s * C_M_S:
+        reason = (
+            f"implausible solution: altitude {loc.alt_m:.4g} m (allowed {cfg.alt_min_m:g} to "
+            f"{cfg.alt_max_m:g}), receiver clock {b / C_M_S:.4g} s (allowed +-{cfg.clock_max_s:g})"
+        )
+        return _Attempt(
+            replace(judged, reason=reason, reason_code="implausible"), rows, keep, integ
+        )
+    q_enu = rot @ np.linalg.inv(a.T @ a)[:3, :3] @ rot.T
+    pdop = float(np.sqrt(np.trace(q_enu)))
+    if not pdop <= cfg.pdop_max:
+        reason = f"PDOP gate failed: PDOP {pdop:.1f} > {cfg.pdop_max:g}"
+        fix = replace(judged, pdop=None, reason=reason, reason_code="pdop_gate")
+        return _Attempt(fix, rows, keep, integ)
+    cov = integ.cov_enu_m2
+    mode: Literal["fast", "spp"] = "fast" if bool(np.any(kfrac)) else "spp"
+    fix = replace(
+        judged,
         mode=mode,
         x_ecef_m=(float(x[0]), float(x[1]), float(x[2])),
-        lat_deg=float(np.degrees(lat_r)),
-        lon_deg=float(np.degrees(lon_r)),
-        alt_m=alt_m,
+        lat_deg=lat_deg,
+        lon_deg=lon_deg,
+        alt_m=loc.alt_m,
         clock_bias_m=float(b),
-        gdop_full=gd_final if solver == "fast" else None,
-        pdop=float(np.sqrt(np.trace(q_enu))),
+        pdop=pdop,
         hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
         vdop=float(np.sqrt(q_enu[2, 2])),
-        std_enu_m=(float(std[0]), float(std[1]), float(std[2])),
+        std_enu_m=(_std(cov, 0), _std(cov, 1), _std(cov, 2)),
+        cov_enu_m2=_rows3(cov),
+        hpl_m=integ.hpl_m,
+        vpl_m=integ.vpl_m,
         used=kept.prn,
         full=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if not f),
         fractional=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if f),
         ambiguity=ambiguity,
-        recovered_pr_m=recovered,
-        resid_rms_m=resid_rms,
-        iterations=it,
+        recovered_pr_m={
+            kept.prn[i]: float(kept.z_m[i] + state.n_int[i] * kept.ct_m[i]) for i in frac_idx
+        },
     )
+    return _Attempt(fix, rows, keep, integ)
+
+
+def _std(cov: np.ndarray, k: int) -> float:
+    return float(np.sqrt(max(float(cov[k, k]), 0.0)))
+
+
+def _rows3(m: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+    return tuple((float(r[0]), float(r[1]), float(r[2])) for r in m)
+
+
+def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
+    """Solve with fault detection and exclusion: impossible ranges are dropped first; when
+    the chi-square test fails, satellites are excluded one at a time (:func:`_exclude`)."""
+    excluded: dict[str, str] = {}
+    full = ~rows.frac
+    if int(full.sum()) >= 2:
+        dev = np.abs(rows.z_m - np.median(rows.z_m[full]))
+        gross = full & ~(dev <= GROSS_SPREAD_M)
+        if gross.any():
+            for i in np.flatnonzero(gross):
+                excluded[rows.prn[i]] = (
+                    f"pseudorange {dev[i] / 1e3:.4g} km from the epoch's median: impossible"
+                )
+            rows = rows.take(np.flatnonzero(~gross))
+    att = _attempt(rows, ctx)
+    if att.failed_test and ctx.cfg.max_exclusions > 0:
+        att, more = _exclude(att, ctx)
+        excluded |= more
+    if excluded:
+        return replace(att.fix, excluded=excluded)
+    return att.fix
+
+
+def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]:
+    """Fault exclusion: up to ``cfg.max_exclusions`` satellites, one at a time.
+
+    At each stage every used satellite is excluded in turn and the rest re-solved (phase 1
+    included: a fault on a full row can corrupt every integer). Of the solutions that pass
+    the chi-square test and the other checks, the one with the smallest chi2 / threshold is
+    taken; when none passes, the stage's best-fitting failed solution is the start of the
+    next stage. An exclusion must leave a testable solution (redundancy >= 1 after it), so
+    it needs redundancy >= 2 before. Why a satellite went is its w-test (normalised
+    residual) in the failed solution."""
+    current = failed
+    removed: dict[str, str] = {}
+    for _stage in range(ctx.cfg.max_exclusions):
+        integ = current.integrity
+        if integ is None or integ.chi2 is None or integ.redundancy < 2:
+            break
+        passed: tuple[float, _Attempt, str, str] | None = None
+        failing: tuple[float, _Attempt, str, str] | None = None
+        every = np.arange(len(current.rows.prn))
+        for k, i in enumerate(current.kept):
+            prn = current.rows.prn[int(i)]
+            why = (
+                f"chi-square test failed ({integ.chi2:.1f} > {integ.chi2_max:.1f}), "
+                f"w-test {integ.w[k]:.1f}"
+            )
+            cand = _attempt(current.rows.take(np.delete(every, int(i))), ctx)
+            ci = cand.integrity
+            ratio = (
+                ci.chi2 / ci.chi2_max
+                if ci is not None and ci.chi2 is not None and ci.chi2_max
+                else math.inf
+            )
+            if cand.fix.ok:
+                if passed is None or ratio < passed[0]:
+                    passed = (ratio, cand, prn, why)
+            elif cand.failed_test and (failing is None or ratio < failing[0]):
+                failing = (ratio, cand, prn, why)
+        if passed is not None:
+            _, cand, prn, why = passed
+            return cand, removed | {prn: why}
+        if failing is None:
+            break
+        _, current, prn, why = failing
+        removed[prn] = why
+    fix = replace(
+        failed.fix,
+        reason=(
+            f"{failed.fix.reason}; no exclusion of up to {ctx.cfg.max_exclusions} satellites passes"
+        ),
+    )
+    return replace(failed, fix=fix), {}
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -431,66 +632,116 @@ def _local(x: np.ndarray, sat_ecef_m: np.ndarray) -> _Local:
     return _Local(lat, lon, alt, el, az)
 
 
-def _weights(loc: _Local, cfg: SolverConfig) -> np.ndarray:
-    """Elevation weights 1 / (a^2 + b^2 / sin^2 E) [1/m^2]."""
-    if not cfg.weighted:
-        return np.ones(len(loc.el_rad))
-    s = np.maximum(np.sin(loc.el_rad), 0.05)
-    return 1.0 / (cfg.sigma_a_m**2 + cfg.sigma_b_m**2 / s**2)
-
-
-def _corrections(
-    loc: _Local, bdt_sow: float, model: KlobucharParams | None, cfg: SolverConfig
+def measurement_sigma_m(
+    el_rad: np.ndarray,
+    cn0_dbhz: np.ndarray,
+    iono_m: np.ndarray | None,
+    tropo_m: np.ndarray | None,
+    cfg: SolverConfig,
 ) -> np.ndarray:
-    """Ionospheric and tropospheric delays [m] for the rows at this iterate."""
-    corr = np.zeros(len(loc.el_rad))
+    """Standard deviation [m] of each pseudorange's error (model in :class:`SolverConfig`).
+
+    Code noise and multipath grow at low elevation and low C/N0 (the C/N0 term is what
+    makes the model honest in urban canyons, where weak reflected signals carry tens of
+    metres of error); the orbit and clock error (signal in space) is ``sigma_sis_m`` for
+    every satellite: the broadcast URA (BDS-SIS-ICD-B1I-3.0 5.2.4.5) is a class bound,
+    2.0-2.4 m for every healthy satellite in the recordings, not a standard deviation; the
+    broadcast Klobuchar model leaves part of the ionospheric delay (``iono_error_ratio``),
+    without one the whole delay (``iono_unmodelled_m`` at zenith, thin-shell slant factor);
+    Saastamoinen leaves a decimetre-level zenith error mapped with 1 / (sin E + 0.1), as in
+    RTKLIB's error model.
+    """
+    s = np.maximum(np.sin(el_rad), 0.05)
+    var = cfg.sigma_a_m**2 + (cfg.sigma_b_m / s) ** 2
+    cn0 = np.where(np.isfinite(cn0_dbhz), cn0_dbhz, cfg.cn0_ref_dbhz)
+    var = var + cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - cn0) / 10.0)
+    var = var + cfg.sigma_sis_m**2
+    if iono_m is not None:
+        var = var + (cfg.iono_error_ratio * iono_m) ** 2
+    else:  # no broadcast model applied: the whole delay is error
+        var = var + (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
+    if tropo_m is not None:
+        var = var + (cfg.tropo_error_m / (s + 0.1)) ** 2
+    return np.sqrt(var)
+
+
+def _obliquity(el_rad: np.ndarray) -> np.ndarray:
+    """Slant factor of a thin ionospheric shell at 350 km (IS-GPS-200 20.3.3.5.2.5 form)."""
+    ratio = 6378.0 / (6378.0 + 350.0) * np.cos(el_rad)
+    return 1.0 / np.sqrt(1.0 - ratio**2)
+
+
+def _sigma_m(
+    rows: _Rows,
+    loc: _Local,
+    iono_m: np.ndarray | None,
+    tropo_m: np.ndarray | None,
+    cfg: SolverConfig,
+    meaningful: bool,
+) -> np.ndarray:
+    if not (meaningful and cfg.weighted):
+        return np.full(len(rows.prn), cfg.sigma_uniform_m)
+    return measurement_sigma_m(loc.el_rad, rows.cn0_dbhz, iono_m, tropo_m, cfg)
+
+
+def _delays(
+    loc: _Local, bdt_sow: float, model: KlobucharParams | None, cfg: SolverConfig
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Ionospheric and tropospheric delays [m] for the rows at this iterate (None: not
+    applied)."""
+    iono = None
     if model is not None and loc.alt_m < 100e3:
         if model.system == "BDS":
-            corr += klobuchar_bds_m(
-                model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, bdt_sow
-            )
+            iono = klobuchar_bds_m(model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, bdt_sow)
         else:
-            gpst_tow = bdt_sow + 14.0
-            corr += klobuchar_gps_m(
+            gpst_tow = bdt_sow + BDT_GPST_OFFSET_S
+            iono = klobuchar_gps_m(
                 model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, gpst_tow
             )
-    if cfg.tropo:
-        corr += saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad)
-    return corr
+    tropo = saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad) if cfg.tropo else None
+    return iono, tropo
+
+
+def _total(iono_m: np.ndarray | None, tropo_m: np.ndarray | None, n: int) -> np.ndarray:
+    out = np.zeros(n)
+    if iono_m is not None:
+        out = out + iono_m
+    if tropo_m is not None:
+        out = out + tropo_m
+    return out
 
 
 def _fixed_iterations(
     rows: _Rows,
-    bdt_week: int,
-    bdt_sow: float,
-    x: np.ndarray,
-    b: float,
-    n_int: np.ndarray,
-    geo: _Geometry,
-    cfg: SolverConfig,
+    ctx: _Context,
+    state: _State,
     model: KlobucharParams | None,
     meaningful: bool,
-) -> tuple[np.ndarray, float, _Geometry, int]:
+) -> _State:
     """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated
-    from ``x`` and its geometry ``geo``.
-
-    When the position is ``meaningful`` the rows get elevation weights and the delays.
-    """
+    from ``state``. When the position is ``meaningful`` the rows are weighted by the error
+    model and corrected for the delays."""
+    cfg = ctx.cfg
+    x, b, geo, n_int = state.x, state.b, state.geo, state.n_int
     it = 0
     for it in range(1, cfg.max_iter + 1):
         dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b
         w = None
         if meaningful:
             loc = _local(x, geo.sat_ecef_m)
-            dz = dz - _corrections(loc, bdt_sow, model, cfg)
-            w = _weights(loc, cfg)
+            iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg)
+            dz = dz - _total(iono_m, tropo_m, len(dz))
+            if cfg.weighted:
+                w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
         step = _lsq(_design(geo.los), dz, w)
         x = x + step[:3]
         b += float(step[3])
-        geo = _geometry(rows, bdt_week, bdt_sow, x, n_int)
+        if not (np.all(np.isfinite(x)) and np.isfinite(b)):
+            break
+        geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
         if np.linalg.norm(step) < cfg.conv_m:
             break
-    return x, b, geo, it
+    return _State(x, b, n_int, geo, state.iterations + it)
 
 
 def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
@@ -568,33 +819,45 @@ def solve(
     solver: Literal["fast", "spp"] = "fast",
     with_sky: bool = False,
 ) -> Fix:
-    """Solve one epoch; never raises for bad geometry, returns ``mode="none"`` with a reason."""
+    """Solve one epoch. Never raises for bad input, geometry or numbers: a fix that cannot
+    be trusted comes back as ``mode="none"`` with a reason (and ``reason_code``)."""
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
-    rows, missing = select_rows(epoch, store, solver)
-    if rows is None:
-        why = "no measurements" if not missing else f"no usable ephemeris for {len(missing)} sats"
-        return Fix(
-            solver=solver,
-            mode="none",
-            gpst_week=epoch.gpst_week,
-            gpst_tow_s=epoch.gpst_tow_s,
-            reason=why,
-        )
-    fix = _solve_rows(rows, epoch.gpst_week, epoch.gpst_tow_s, iono, cfg, solver)
-    if with_sky and fix.ok:
-        fix = replace(fix, sky=sky_view(epoch, store, fix))
+    with np.errstate(all="ignore"):
+        try:
+            rows, missing = select_rows(epoch, store, solver)
+            if rows is None:
+                if missing:
+                    why = f"no usable ephemeris for {', '.join(missing)}"
+                    code = "no_ephemeris"
+                else:
+                    why, code = "no measurements", "no_measurements"
+                return Fix(
+                    solver=solver,
+                    mode="none",
+                    gpst_week=epoch.gpst_week,
+                    gpst_tow_s=epoch.gpst_tow_s,
+                    reason=why,
+                    reason_code=code,
+                )
+            bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+            ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
+            fix = _solve_rows(rows, ctx)
+            if with_sky and fix.ok:
+                fix = replace(fix, sky=sky_view(epoch, store, fix))
+        except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
+            log.debug(
+                "solver failure at GPST %d %.3f", epoch.gpst_week, epoch.gpst_tow_s, exc_info=True
+            )
+            return Fix(
+                solver=solver,
+                mode="none",
+                gpst_week=epoch.gpst_week,
+                gpst_tow_s=epoch.gpst_tow_s,
+                reason=f"numerical failure in the solver: {type(exc).__name__}: {exc}",
+                reason_code="numerical",
+            )
     return fix
-
-
-def solve_spp(
-    epoch: MeasurementEpoch,
-    store: EphemerisStore,
-    iono: IonoSet | None = None,
-    cfg: SolverConfig | None = None,
-) -> Fix:
-    """Conventional SPP: the same iteration over full pseudoranges only."""
-    return solve(epoch, store, iono, cfg, solver="spp")
 
 
 def fractionalize(

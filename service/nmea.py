@@ -19,6 +19,10 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
   with centimetre altitude and then 0.1 HDOP; latitude/longitude precision is never cut,
   so in extreme cases GGA may still exceed 82 (gpsd accepts longer sentences). GST
   values switch from millimetres to decimetres at 100 m and to metres at 10 km.
+- GST: 1-sigma figures of the solution covariance (G^T W G)^-1 of the error model
+  (:func:`service.engine.measurement_sigma_m`): the horizontal error ellipse (semi-axes
+  and the major axis' orientation from true north) and the latitude, longitude and
+  altitude standard deviations; ``rangeRms`` is the RMS of the post-fit residuals.
 - Altitude: GGA carries the ellipsoidal height as altitude with geoid separation 0.0, so
   altitude + separation is the height above the CGCS2000 ellipsoid as gpsd computes it.
 - Fix quality: fast and SPP fixes are both GGA quality 1 (autonomous) with GSA mode 3, so
@@ -82,6 +86,23 @@ def _metres(value: float) -> float | int:
     if abs(value) < 10_000.0:
         return round(value, 1)
     return round(value)
+
+
+def _error_ellipse(fix: Fix) -> tuple[float, float, float]:
+    """1-sigma semi-major and semi-minor axes [m] of the horizontal error ellipse and the
+    major axis' orientation [deg from true north, 0-180), from the solution's east-north
+    covariance; without one, axes along north and east from ``std_enu_m``."""
+    se, sn, _ = fix.std_enu_m  # type: ignore[misc]
+    if fix.cov_enu_m2 is None:
+        return max(se, sn), min(se, sn), 0.0 if sn >= se else 90.0
+    ee, en, nn = fix.cov_enu_m2[0][0], fix.cov_enu_m2[0][1], fix.cov_enu_m2[1][1]
+    mean, half = (ee + nn) / 2.0, math.hypot((nn - ee) / 2.0, en)
+    # the variance along azimuth t is ee sin^2 t + nn cos^2 t + 2 en sin t cos t: largest at
+    # tan 2t = 2 en / (nn - ee)
+    orient = math.degrees(0.5 * math.atan2(2.0 * en, nn - ee)) % 180.0
+    major = math.sqrt(max(mean + half, 0.0))
+    minor = math.sqrt(max(mean - half, 0.0))
+    return major, minor, round(orient, 1) % 180.0
 
 
 def _int_or_empty(value: float) -> object:
@@ -250,16 +271,16 @@ def sentences_after_gga(
         out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
     if fix.std_enu_m is not None:
         se, sn, su = fix.std_enu_m
+        major, minor, orient = _error_ellipse(fix)
         out.append(
             _msg(
                 talker,
                 "GST",
                 time=t,
                 rangeRms=_metres(fix.resid_rms_m or 0.0),
-                stdMajor=_metres(max(se, sn)),
-                stdMinor=_metres(min(se, sn)),
-                # axes taken along north/east (the E-N correlation is not carried in Fix)
-                orient=0.0 if sn >= se else 90.0,
+                stdMajor=_metres(major),
+                stdMinor=_metres(minor),
+                orient=orient,
                 stdLat=_metres(sn),
                 stdLong=_metres(se),
                 stdAlt=_metres(su),

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -19,7 +19,7 @@ import numpy as np
 
 from service.bds_nav import EphemerisAssembler
 from service.constants import C_M_S
-from service.engine import IonoSet, SolverConfig, sky_view, solve
+from service.engine import REASONS, IonoSet, SolverConfig, sky_view, solve
 from service.ephemeris import EphemerisStore
 from service.timebase import diff_s
 from service.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
@@ -57,6 +57,41 @@ class EpochResult:
     track: tuple[TrackEvent, ...] = ()
     integrity: tuple[IntegrityCheck, ...] = ()
     sky: Callable[[Fix], tuple[SatView, ...]] | None = None
+
+
+def count_fix(counters: Counter[str], fix: Fix) -> None:
+    """The counters of one solver result: ``fix_<mode>``, ``declined_<reason_code>``,
+    ``raim_untested`` (a fix at redundancy 0), ``fixes_with_exclusions`` and
+    ``excluded_<PRN>`` per satellite that fault exclusion removed."""
+    counters[f"fix_{fix.mode}"] += 1
+    if not fix.ok:
+        counters[f"declined_{fix.reason_code or 'other'}"] += 1
+    elif fix.redundancy == 0:
+        counters["raim_untested"] += 1
+    if fix.excluded:
+        counters["fixes_with_exclusions" if fix.ok else "declines_with_exclusions"] += 1
+        for prn in fix.excluded:
+            counters[f"excluded_{prn}"] += 1
+
+
+def integrity_summary(counters: Mapping[str, int | float]) -> list[str]:
+    """Human lines for a run's end: satellites excluded and why fixes were declined."""
+    lines = []
+    excluded = {k[9:]: int(v) for k, v in counters.items() if k.startswith("excluded_") and v}
+    if excluded:
+        parts = ", ".join(f"{p} {n}" for p, n in sorted(excluded.items(), key=lambda i: -i[1]))
+        lines.append(
+            f"excluded by fault detection: {parts} "
+            f"(in {int(counters.get('fixes_with_exclusions', 0))} published fixes)"
+        )
+    declined = {k[9:]: int(v) for k, v in counters.items() if k.startswith("declined_") and v}
+    if declined:
+        parts = ", ".join(
+            f"{REASONS.get(code, code)} {n}"
+            for code, n in sorted(declined.items(), key=lambda i: -i[1])
+        )
+        lines.append(f"declined: {parts}")
+    return lines
 
 
 @dataclass(slots=True)
@@ -134,7 +169,7 @@ class Pipeline:
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
-        self.counters[f"fix_{fix.mode}"] += 1
+        count_fix(self.counters, fix)
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
         if fix.mode == "fast":

@@ -21,8 +21,15 @@ Field rules, common to all classes:
   and, when computed, ``pdop resid_rms_m``; ``gdop_full`` when the solver computed it
   (the fast solver, also on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
   eq. (13)} when not empty, which is the fast solver's fractional satellites (also on a
-  fast fix declined by the residual check, for diagnosis); ``reason`` exactly when
-  ``mode`` is ``none`` (a declined fix has no position fields).
+  fast fix declined by the chi-square test, for diagnosis); ``reason`` (and a
+  ``reason_code``, one of :data:`service.engine.REASONS`) exactly when ``mode`` is
+  ``none`` (a declined fix has no position fields).
+  Integrity (:mod:`service.raim`): ``redundancy`` (used satellites - 4) once a solution
+  was judged, with ``chi2`` and its threshold ``chi2_max`` when it is >= 1; on a fix,
+  ``raim`` (``pass``, ``unprotected`` or ``untested``, see :func:`raim_state`), the
+  protection levels ``hpl_m``/``vpl_m`` when finite, ``std_enu_m`` (1-sigma east, north,
+  up from the solution covariance); ``excluded`` {PRN: why} when fault exclusion (or an
+  impossible range) removed satellites; they are not in the fix.
 ``SKY``: ``class gpst_week gpst_tow_s satellites``; each satellite ``prn el_deg az_deg
   used full signal`` plus ``cn0_dbhz`` when measured.
 ``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
@@ -64,6 +71,9 @@ CSV_COLUMNS = (
     "n_frac",
     "resid_rms_m",
     "reason",
+    "redundancy",
+    "hpl_m",
+    "vpl_m",
 )
 
 TRACK_EVENTS = ("sow", "full")
@@ -105,9 +115,38 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
     if fix.ambiguity:
         rec["ambiguity"] = {prn: int(n) for prn, n in sorted(fix.ambiguity.items())}
     _put(rec, "resid_rms_m", fix.resid_rms_m, 4)
+    if fix.redundancy is not None:
+        rec["redundancy"] = int(fix.redundancy)
+    _put(rec, "chi2", fix.chi2, 3)
+    _put(rec, "chi2_max", fix.chi2_max, 3)
+    if fix.ok:
+        rec["raim"] = raim_state(fix)
+        _put(rec, "hpl_m", fix.hpl_m, 3)
+        _put(rec, "vpl_m", fix.vpl_m, 3)
+        if fix.std_enu_m is not None and all(_finite(v) for v in fix.std_enu_m):
+            rec["std_enu_m"] = [round(float(v), 4) for v in fix.std_enu_m]
+    if fix.excluded:
+        rec["excluded"] = dict(sorted(fix.excluded.items()))
     if not fix.ok:
         rec["reason"] = fix.reason or NO_REASON
+        if fix.reason_code:
+            rec["reason_code"] = fix.reason_code
     return rec
+
+
+RAIM_STATES = ("pass", "unprotected", "untested")
+
+
+def raim_state(fix: Fix) -> str:
+    """Integrity of a published fix in one word: ``pass`` (the chi-square test passed and
+    the protection levels bound a single fault), ``unprotected`` (it passed, but a
+    satellite without redundancy makes the levels infinite), ``untested`` (redundancy 0:
+    no test is possible)."""
+    if fix.chi2 is None:
+        return "untested"
+    if not (_finite(fix.hpl_m) and _finite(fix.vpl_m)):
+        return "unprotected"
+    return "pass"
 
 
 def dumps(rec: Mapping[str, Any]) -> str:
@@ -250,15 +289,34 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                 "additionalProperties": False,
             },
             "resid_rms_m": _NONNEG,
+            "redundancy": _COUNT,
+            "chi2": _NONNEG,
+            "chi2_max": _NONNEG,
+            "raim": {"enum": list(RAIM_STATES)},
+            "hpl_m": _NONNEG,
+            "vpl_m": _NONNEG,
+            "std_enu_m": {"type": "array", "items": _NONNEG, "minItems": 3, "maxItems": 3},
+            "excluded": {
+                "type": "object",
+                "minProperties": 1,
+                "patternProperties": {"^C[0-9]{2}$": {"type": "string", "minLength": 1}},
+                "additionalProperties": False,
+            },
             "reason": {"type": "string", "minLength": 1},
+            "reason_code": {"type": "string", "minLength": 1},
         },
         "additionalProperties": False,
         "if": {"properties": {"mode": {"const": "none"}}},
         "then": {
             "required": ["reason"],
-            "not": {"anyOf": [{"required": [k]} for k in (*_POSITION, "pdop")]},
+            "not": {
+                "anyOf": [{"required": [k]} for k in (*_POSITION, "pdop", "raim", "hpl_m", "vpl_m")]
+            },
         },
-        "else": {"required": list(_POSITION), "not": {"required": ["reason"]}},
+        "else": {
+            "required": [*_POSITION, "raim"],
+            "not": {"anyOf": [{"required": ["reason"]}, {"required": ["reason_code"]}]},
+        },
     },
     "SKY": {
         "$schema": _DIALECT,

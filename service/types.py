@@ -188,7 +188,19 @@ class Fix:
     resid_rms_m: float | None = None
     iterations: int = 0
     reason: str | None = None
+    reason_code: str | None = None
     sky: tuple[SatView, ...] = ()
+    # integrity (service.raim): redundancy n - 4 of the final solution; the chi-square
+    # statistic and its threshold (None at redundancy 0: no test possible); protection
+    # levels (inf: a satellite without redundancy, the fix is not protected against it);
+    # the east-north-up covariance [m^2] and the satellites excluded, with why
+    redundancy: int | None = None
+    chi2: float | None = None
+    chi2_max: float | None = None
+    hpl_m: float | None = None
+    vpl_m: float | None = None
+    cov_enu_m2: tuple[tuple[float, float, float], ...] | None = None
+    excluded: dict[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:

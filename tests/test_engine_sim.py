@@ -7,6 +7,8 @@ of the same full pseudoranges, and declines rather than returning anything wrong
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -23,7 +25,10 @@ from service.types import MeasurementEpoch
 from tests._independent import DATA, eph_from_georinex, georinex_bds_ephemerides
 
 WEEK, TOW = 2161, 4 * 86400 + 3 * 3600 + 36 * 60 + 18.0  # 2021-06-10 03:36:18 GPST
-CFG = SolverConfig(elmask_deg=0.0, beta=3000.0, iono="off", tropo=False, weighted=False)
+# the paper's settings: no corrections, equal weights, no PDOP gate (Table 2 has none)
+CFG = SolverConfig(
+    elmask_deg=0.0, beta=3000.0, iono="off", tropo=False, weighted=False, pdop_max=math.inf
+)
 
 
 @pytest.fixture(scope="module")
@@ -119,8 +124,12 @@ def test_wrong_integer_is_never_published(store):
             )
             fix = solve(bad, store, cfg=CFG, solver="fast")
             if fix.ok:
-                # published: every integer must be the true one
-                assert fix.ambiguity == truth.ambiguity
+                # published: every integer reported is the true one; the damaged satellite
+                # is either repaired or excluded (and then reported, not used)
+                assert fix.ambiguity == {p: truth.ambiguity[p] for p in fix.ambiguity}
+                assert set(truth.ambiguity) - set(fix.ambiguity) <= {prn}
+                if prn not in fix.ambiguity:
+                    assert prn in fix.excluded and prn not in fix.used
                 assert np.linalg.norm(np.subtract(fix.x_ecef_m, x)) < 1000.0
             else:
                 assert fix.reason

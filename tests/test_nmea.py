@@ -10,6 +10,7 @@ import math
 import operator
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from pynmeagps import NMEAReader
 
@@ -278,3 +279,21 @@ def test_gsa_talker_can_name_the_constellation():
     assert hand_parse(sentences[2])[1][-1] == "4"
     with pytest.raises(ValueError, match="talker"):
         sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GA")
+
+
+def test_gst_error_ellipse_comes_from_the_covariance():
+    """A covariance whose major axis lies at 30 deg from north (east of north): the axes
+    and orientation are the eigen-decomposition of the east-north block."""
+    t = math.radians(30.0)
+    u = np.array([math.sin(t), math.cos(t)])  # (east, north) of the major axis
+    v = np.array([math.cos(t), -math.sin(t)])
+    en = 4.0**2 * np.outer(u, u) + 1.5**2 * np.outer(v, v)
+    cov = ((en[0, 0], en[0, 1], 0.0), (en[1, 0], en[1, 1], 0.0), (0.0, 0.0, 9.0))
+    fix = hksc_fix(std_enu_m=(math.sqrt(en[0, 0]), math.sqrt(en[1, 1]), 3.0), cov_enu_m2=cov)
+    gst = by_address(sentences_for_fix(fix, utc=fix_time(fix)))["GNGST"][0]
+    _rms, major, minor, orient, s_lat, s_lon, s_alt = (float(x) for x in gst[1:8])
+    assert (major, minor) == pytest.approx((4.0, 1.5), abs=5e-4)
+    assert orient == pytest.approx(30.0, abs=0.05)
+    assert (s_lat, s_lon, s_alt) == pytest.approx(
+        (math.sqrt(en[1, 1]), math.sqrt(en[0, 0]), 3.0), abs=5e-4
+    )

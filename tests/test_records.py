@@ -53,7 +53,16 @@ CONTRACT_FIX_FIELDS = {
     "resid_rms_m",
     "reason",
     "since_start_s",
+    "redundancy",
+    "chi2",
+    "chi2_max",
+    "raim",
+    "hpl_m",
+    "vpl_m",
+    "std_enu_m",
 }
+CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code"}
+"""Fields present only when satellites were excluded / on a declined fix."""
 
 
 def geodetic_deg_m(x: float, y: float, z: float) -> tuple[float, float, float]:
@@ -125,6 +134,11 @@ def hksc_fix(
         "ambiguity": {"C16": 71, "C06": 69, "C09": 74} if solver == "fast" else {},
         "resid_rms_m": 1.0321,
         "sky": SKY,
+        "redundancy": 4,
+        "chi2": 2.7183,
+        "chi2_max": 28.4733,
+        "hpl_m": 14.25,
+        "vpl_m": 21.5,
     }
     fields.update(changes)
     return Fix(**fields)  # type: ignore[arg-type]
@@ -172,6 +186,9 @@ def test_fast_fix_record_follows_the_contract():
     assert rec["n_full"] == 5 and rec["n_frac"] == 3
     assert rec["ambiguity"] == {"C06": 69, "C09": 74, "C16": 71}
     assert list(rec["ambiguity"]) == ["C06", "C09", "C16"]
+    assert rec["redundancy"] == 4 and rec["raim"] == "pass"
+    assert rec["hpl_m"] == 14.25 and rec["vpl_m"] == 21.5 and rec["chi2_max"] == 28.473
+    assert rec["std_enu_m"] == [0.338, 0.341, 0.792]
     assert validate(rec) == []
     line = fix_json_line(fix, since_start_s=1.2)
     assert "\n" not in line and " " not in line
@@ -196,6 +213,24 @@ def test_declined_fix_has_reason_and_no_position():
     # a declined Fix must still say why, even when the solver forgot to
     rec = fix_record(declined_fix(reason=None, gdop_full=None))
     assert rec["reason"] and validate(rec) == []
+
+
+def test_integrity_states_and_exclusions():
+    untested = fix_record(hksc_fix(redundancy=0, chi2=None, chi2_max=None, hpl_m=None, vpl_m=None))
+    assert untested["raim"] == "untested" and untested["redundancy"] == 0
+    assert not {"chi2", "chi2_max", "hpl_m", "vpl_m"} & set(untested)
+    unprotected = fix_record(hksc_fix(hpl_m=math.inf, vpl_m=math.inf))
+    assert unprotected["raim"] == "unprotected" and "hpl_m" not in unprotected
+    why = "chi-square test failed (812.5 > 28.5), w-test 27.9"
+    excl = fix_record(hksc_fix(excluded={"C08": why}))
+    assert excl["excluded"] == {"C08": why}
+    declined = fix_record(declined_fix(reason_code="gdop_gate", excluded={"C08": why}))
+    assert declined["reason_code"] == "gdop_gate" and declined["excluded"] == {"C08": why}
+    for rec in (untested, unprotected, excl, declined):
+        assert validate(rec) == []
+    # a published fix without its integrity state, or a declined one with levels, is invalid
+    assert validate({k: v for k, v in excl.items() if k != "raim"})
+    assert validate(declined | {"hpl_m": 3.0})
 
 
 def test_non_finite_values_are_omitted_and_numpy_scalars_serialise():
@@ -262,7 +297,7 @@ def test_sky_track_status_records_validate():
 
 def test_schema_fields_are_the_contract():
     assert set(SCHEMAS) == {"FIX", "SKY", "TRACK", "STATUS"}
-    assert set(SCHEMAS["FIX"]["properties"]) == CONTRACT_FIX_FIELDS
+    assert set(SCHEMAS["FIX"]["properties"]) == CONTRACT_FIX_FIELDS | CONDITIONAL_FIX_FIELDS
     for cls, schema in SCHEMAS.items():
         assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
         assert schema["properties"]["class"] == {"const": cls}
@@ -283,6 +318,7 @@ GOOD_FIX = {
     "n_full": 5,
     "n_frac": 3,
     "ambiguity": {"C06": 69},
+    "raim": "untested",
 }
 GOOD_NONE = {
     "class": "FIX",

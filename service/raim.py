@@ -1,0 +1,236 @@
+"""Statistical integrity of a weighted least-squares fix: the chi-square fault test and
+slope-based protection levels (receiver autonomous integrity monitoring, RAIM).
+
+Model (Brown & Chin 1998; Walter & Enge 1995, weighted RAIM): measurements y = G x + e with
+independent errors e_i ~ N(0, sigma_i^2), W = diag(1/sigma_i^2), K = (G^T W G)^-1 G^T W and
+the residual matrix S = I - G K, so that the residuals are v = S e.
+
+- Detection: the statistic T = v^T W v follows a central chi-square with r = n - 4 degrees
+  of freedom (the redundancy) when no measurement is faulty. A fault is declared when
+  T > T_max, the (1 - P_fa) quantile of that distribution. With r = 0 the residuals are all
+  zero and no test is possible.
+- A bias b on measurement i makes T non-central with lambda_i = b^2 S_ii / sigma_i^2 and moves
+  the position by b K_i (column i of K). The smallest lambda that the test misses with
+  probability P_md is lambda_md: P(chi2'(r, lambda_md) < T_max) = P_md. The slope of
+  measurement i relates position error to the test's square root:
+  slope_H,i = sigma_i sqrt(K_E,i^2 + K_N,i^2) / sqrt(S_ii) (vertical: |K_U,i|).
+- Protection levels: HPL = max_i slope_H,i sqrt(lambda_md) + k_H sigma_major and
+  VPL = max_i slope_V,i sqrt(lambda_md) + k_V sigma_U, i.e. the largest error a single
+  fault can cause undetected (with probability 1 - P_md) plus the fault-free noise at the
+  same probability (k_H = sqrt(-2 ln P_md), the Rayleigh quantile; k_V the two-sided normal
+  quantile). A measurement with S_ii = 0 (no redundancy for it) has an unbounded slope: the
+  fix is then not protected against it and the level is infinite.
+
+The chi-square and non-central chi-square distributions are computed here from the
+regularised incomplete gamma function (Numerical Recipes, 3rd ed., section 6.2: series and
+Lentz continued fraction), so numpy is the only dependency; the tests cross-check them
+against scipy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+_EPS = 1e-15
+_TINY = 1e-300
+
+
+def _gamma_p_series(a: float, x: float) -> float:
+    """P(a, x) by its series, for x < a + 1."""
+    term = total = 1.0 / a
+    ap = a
+    for _ in range(10_000):
+        ap += 1.0
+        term *= x / ap
+        total += term
+        if abs(term) < abs(total) * _EPS:
+            break
+    return total * math.exp(-x + a * math.log(x) - math.lgamma(a))
+
+
+def _gamma_q_fraction(a: float, x: float) -> float:
+    """Q(a, x) by its continued fraction (modified Lentz), for x >= a + 1."""
+    b = x + 1.0 - a
+    c = 1.0 / _TINY
+    d = 1.0 / b
+    h = d
+    for i in range(1, 10_000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = _TINY if abs(d) < _TINY else d
+        c = b + an / c
+        c = _TINY if abs(c) < _TINY else c
+        d = 1.0 / d
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < _EPS:
+            break
+    return math.exp(-x + a * math.log(x) - math.lgamma(a)) * h
+
+
+def gamma_p(a: float, x: float) -> float:
+    """Regularised lower incomplete gamma function P(a, x), a > 0."""
+    if x <= 0.0:
+        return 0.0
+    if x < a + 1.0:
+        return _gamma_p_series(a, x)
+    return 1.0 - _gamma_q_fraction(a, x)
+
+
+def gamma_q(a: float, x: float) -> float:
+    """Regularised upper incomplete gamma function Q(a, x) = 1 - P(a, x), a > 0."""
+    if x <= 0.0:
+        return 1.0
+    if x < a + 1.0:
+        return 1.0 - _gamma_p_series(a, x)
+    return _gamma_q_fraction(a, x)
+
+
+def chi2_sf(x: float, dof: int) -> float:
+    """P(chi2(dof) > x)."""
+    return gamma_q(dof / 2.0, x / 2.0)
+
+
+def ncx2_cdf(x: float, dof: int, lam: float) -> float:
+    """P(chi2'(dof, lam) <= x): the Poisson(lam / 2) mixture of central chi-squares
+    sum_j Pois(j; lam / 2) P(dof / 2 + j, x / 2), summed over the Poisson weights that
+    matter (mode +- 10 standard deviations)."""
+    if x <= 0.0:
+        return 0.0
+    if lam <= 0.0:
+        return gamma_p(dof / 2.0, x / 2.0)
+    half = lam / 2.0
+    spread = 10.0 * math.sqrt(half) + 20.0
+    j_lo = max(0, int(half - spread))
+    j_hi = int(half + spread) + 1
+    log_half = math.log(half)
+    total = 0.0
+    for j in range(j_lo, j_hi + 1):
+        weight = math.exp(-half + j * log_half - math.lgamma(j + 1.0))
+        total += weight * gamma_p(dof / 2.0 + j, x / 2.0)
+    return min(1.0, total)
+
+
+@lru_cache(maxsize=512)
+def chi2_threshold(dof: int, p_fa: float) -> float:
+    """The (1 - p_fa) quantile of chi2(dof): the detection threshold T_max."""
+    if dof < 1:
+        raise ValueError(f"chi-square threshold needs dof >= 1, got {dof}")
+    if p_fa <= 0.0:
+        return math.inf
+    lo, hi = 0.0, max(10.0, 4.0 * dof)
+    while chi2_sf(hi, dof) > p_fa:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if chi2_sf(mid, dof) > p_fa:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-10 * hi:
+            break
+    return 0.5 * (lo + hi)
+
+
+@lru_cache(maxsize=512)
+def noncentrality_md(dof: int, p_fa: float, p_md: float) -> float:
+    """lambda_md: the non-centrality whose chi2'(dof, lambda) falls below the threshold of
+    :func:`chi2_threshold` with probability ``p_md`` (the missed detection)."""
+    t_max = chi2_threshold(dof, p_fa)
+    if not math.isfinite(t_max):
+        return math.inf
+    lo, hi = 0.0, max(10.0, t_max)
+    while ncx2_cdf(t_max, dof, hi) > p_md:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if ncx2_cdf(t_max, dof, mid) > p_md:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-9 * hi:
+            break
+    return 0.5 * (lo + hi)
+
+
+def normal_two_sided_quantile(p: float) -> float:
+    """k with P(|N(0, 1)| > k) = p (bisection on erfc)."""
+    lo, hi = 0.0, 40.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if math.erfc(mid / math.sqrt(2.0)) > p:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Integrity:
+    """The integrity figures of one weighted least-squares solution.
+
+    ``cov_enu_m2`` is the 3x3 east-north-up covariance (G^T W G)^-1 of the position [m^2];
+    ``w`` the normalised residuals v_i / (sigma_i sqrt(S_ii)) (Baarda's w-test), NaN where
+    S_ii = 0. ``chi2`` and ``chi2_max`` are None at redundancy 0, as are the levels.
+    """
+
+    redundancy: int
+    chi2: float | None
+    chi2_max: float | None
+    w: np.ndarray
+    cov_enu_m2: np.ndarray
+    hpl_m: float | None
+    vpl_m: float | None
+
+    @property
+    def passed(self) -> bool:
+        """The chi-square test passed (False when it failed or could not be made)."""
+        return self.chi2 is not None and self.chi2_max is not None and self.chi2 <= self.chi2_max
+
+
+def assess(
+    g: np.ndarray,
+    v_m: np.ndarray,
+    sigma_m: np.ndarray,
+    enu_rot: np.ndarray,
+    p_fa: float,
+    p_md: float,
+) -> Integrity:
+    """Test and protection levels of the solution with design ``g`` (n, 4: [-e^T, 1]),
+    post-fit residuals ``v_m`` and measurement sigmas ``sigma_m``; ``enu_rot`` is the ECEF
+    to east-north-up rotation at the solution."""
+    n = len(v_m)
+    w = 1.0 / sigma_m**2
+    gtw = g.T * w
+    cov = np.linalg.inv(gtw @ g)
+    k = cov @ gtw  # (4, n)
+    s_ii = 1.0 - np.einsum("ij,ji->i", g, k)
+    cov_enu = enu_rot @ cov[:3, :3] @ enu_rot.T
+    r = n - 4
+    ok = s_ii > 1e-10
+    wtest = np.full(n, np.nan)
+    wtest[ok] = v_m[ok] / (sigma_m[ok] * np.sqrt(s_ii[ok]))
+    if r < 1:
+        return Integrity(r, None, None, wtest, cov_enu, None, None)
+    chi2 = float(np.sum(v_m**2 * w))
+    t_max = chi2_threshold(r, p_fa)
+    if not bool(ok.all()):
+        return Integrity(r, chi2, t_max, wtest, cov_enu, math.inf, math.inf)
+    k_enu = enu_rot @ k[:3]
+    root = np.sqrt(s_ii)
+    slope_h = sigma_m * np.hypot(k_enu[0], k_enu[1]) / root
+    slope_v = sigma_m * np.abs(k_enu[2]) / root
+    pbias = math.sqrt(noncentrality_md(r, p_fa, p_md))
+    en = cov_enu[:2, :2]
+    sigma_major = math.sqrt(max(float(np.linalg.eigvalsh(en)[-1]), 0.0))
+    sigma_u = math.sqrt(max(float(cov_enu[2, 2]), 0.0))
+    k_h = math.sqrt(-2.0 * math.log(p_md))
+    k_v = normal_two_sided_quantile(p_md)
+    hpl = float(np.max(slope_h)) * pbias + k_h * sigma_major
+    vpl = float(np.max(slope_v)) * pbias + k_v * sigma_u
+    return Integrity(r, chi2, t_max, wtest, cov_enu, hpl, vpl)
