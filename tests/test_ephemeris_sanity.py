@@ -67,15 +67,37 @@ def test_every_real_rinex_set_passes_except_unhealthy_ones(rel):
     assert got == want
 
 
-def test_every_real_rtcm_1042_set_passes():
+def _hiroshima_1042():
     with HIROSHIMA_RTCM.open("rb") as fh:
-        ephs = [
-            ephemeris_from_1042(msg)
+        return [
+            msg
             for _raw, msg in RTCMReader(fh, quitonerror=0)
             if msg is not None and getattr(msg, "identity", None) == "1042"
         ]
+
+
+def test_every_real_rtcm_1042_set_passes():
+    ephs = [ephemeris_from_1042(msg) for msg in _hiroshima_1042()]
     assert len(ephs) == 41  # README: 41 BDS ephemerides in the stream
     assert [_check(e) for e in ephs] == [None] * len(ephs)
+
+
+class _WithUrai:
+    """A real pyrtcm 1042 message with DF490 (URAI) replaced."""
+
+    def __init__(self, msg, urai):
+        self._msg, self._urai = msg, urai
+
+    def __getattr__(self, name):
+        return self._urai if name == "DF490" else getattr(self._msg, name)
+
+
+@pytest.mark.parametrize(("urai", "ura_m", "check"), [(14, 6144.0, None), (15, math.inf, "ura")])
+def test_rtcm_1042_urai_15_is_refused(urai, ura_m, check):
+    """ICD B1I 5.2.4.5: URAI 14 is 3072 < URA <= 6144 m, URAI 15 is URA > 6144 m."""
+    msg = _hiroshima_1042()[0]
+    eph = ephemeris_from_1042(_WithUrai(msg, urai))
+    assert eph.ura_m == ura_m and _check(eph) == check
 
 
 @pytest.mark.parametrize(
