@@ -4,6 +4,12 @@ Good sets are real ones (HKSC 2021 RINEX nav, the Hiroshima OEM729 RTCM 1042s); 
 is a real one with one field changed by ``dataclasses.replace``. Expected radii are worked by
 hand from the Keplerian elements (at t_oe with M0 = 0 the eccentric anomaly is 0, so
 r = a (1 - e) + C_rc when omega = 0), never by the code under test.
+
+End to end, ``bdsfix solve`` and ``bdsfix replay`` run in subprocesses on copies of the HKSC
+nav file (tmp_path) in which every record of C08 has sqrt(A) = 0, negative, NaN, or e = 2 or
+0.99. Expected: exit 0, a fix at each of the 205 epochs with exactly one satellite fewer
+than the clean run (C08, absent from the NMEA sky view), one WARNING line naming C08 and the
+reason, no other stderr output than the clean run's summary, and the refusals in STATUS.
 """
 
 from __future__ import annotations
@@ -12,9 +18,15 @@ import dataclasses
 import json
 import logging
 import math
+import os
+import re
+import subprocess
+import sys
 import warnings
+from pathlib import Path
 
 import pytest
+import zmq
 from pyrtcm import RTCMReader
 
 from drivers.rinex import read_nav
@@ -251,3 +263,208 @@ def test_persisted_store_with_a_nan_set_keeps_the_rest(nav, tmp_path, caplog):
     assert back.refused_by_reason == {"not_finite": len(hit)}
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 1 and "C08" in lines[0] and "sqrt_a_sqrt_m is nan" in lines[0]
+
+
+# --- the whole service on a damaged copy of the HKSC nav file ----------------------------------
+#
+# Every record of one satellite (C08, an IGSO at 70-76 deg elevation, used at every epoch of
+# the clean run) gets one damaged field in a copy of hksc1610.nav written to tmp_path. RINEX
+# 3.04 BDS record (Table A14): data lines are 4X,4D19.12; BROADCAST ORBIT - 2 is the record's
+# third line, with e the second field and sqrt(A) the fourth.
+
+REPO = Path(__file__).resolve().parents[1]
+HKSC_OBS = DATA / "hksc-2021/hksc1610.obs"
+HKSC_NAV = DATA / "hksc-2021/hksc1610.nav"
+DAMAGED_PRN = "C08"
+N_EPOCHS = 205  # DATA/README.md: 205 epochs, 1 Hz
+FIELD_COLUMNS = {"e": slice(4 + 19, 4 + 2 * 19), "sqrt_a": slice(4 + 3 * 19, 4 + 4 * 19)}
+LOG_LINE = re.compile(r"^(DEBUG|INFO|WARNING|ERROR|CRITICAL) [\w.]+: ")  # service/cli.py
+DAMAGE = {
+    # case: (field, D19.12 text, what the warning says)
+    "sqrt_a-zero": ("sqrt_a", " .000000000000D+00", "sqrtA 0 sqrt(m) outside [5000, 6700]"),
+    "sqrt_a-negative": ("sqrt_a", "-.649383323860D+04", "sqrtA -6493.83 sqrt(m) outside"),
+    "e-2": ("e", " .200000000000D+01", "e 2 outside [0, 0.1)"),
+    "e-0.99": ("e", " .990000000000D+00", "e 0.99 outside [0, 0.1)"),
+    "sqrt_a-nan": ("sqrt_a", "NaN", "sqrt_a_sqrt_m is nan, not a finite number"),
+}
+CHECK_OF_CASE = {
+    "sqrt_a-zero": "sqrt_a",
+    "sqrt_a-negative": "sqrt_a",
+    "e-2": "eccentricity",
+    "e-0.99": "eccentricity",
+    "sqrt_a-nan": "not_finite",
+}
+
+
+def _damaged_nav(out: Path, prns: set[str], field: str, text: str) -> tuple[Path, int]:
+    """Copy of the HKSC nav with ``field`` of every record of ``prns`` replaced by ``text``;
+    returns the path and the number of distinct (PRN, toe) sets damaged."""
+    lines = HKSC_NAV.read_text().splitlines(keepends=True)
+    body = next(i for i, line in enumerate(lines) if "END OF HEADER" in line) + 1
+    cut = FIELD_COLUMNS[field]
+    sets = set()
+    for i in range(body, len(lines)):
+        if lines[i][:3] in prns:
+            orbit2, orbit3 = lines[i + 2], lines[i + 3]
+            old = float(orbit2[cut].replace("D", "E"))
+            # the column really holds that field: e ~ 0.005, sqrt(A) ~ 5282.6 or 6493.4
+            assert (0 < old < 0.02) if field == "e" else (5282 < old < 6494), (i, old)
+            lines[i + 2] = orbit2[: cut.start] + text.rjust(19) + orbit2[cut.stop :]
+            sets.add((lines[i][:3], float(orbit3[4:23].replace("D", "E"))))  # toe
+    assert sets
+    out.write_text("".join(lines))
+    return out, len(sets)
+
+
+def _run(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run(
+        [sys.executable, "-m", "service.cli", *args],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def _fixes(stdout: str) -> dict[tuple[int, float], dict]:
+    recs = [json.loads(line) for line in stdout.splitlines()]
+    return {(r["gpst_week"], r["gpst_tow_s"]): r for r in recs if r["class"] == "FIX"}
+
+
+def _gsv_prns(nmea: str) -> list[set[int]]:
+    """BDS satellite numbers listed in the GSV sentences, one set per epoch (per GGA)."""
+    epochs: list[set[int]] = []
+    for line in nmea.splitlines():
+        body = line.split("*")[0].split(",")
+        if body[0].endswith("GGA"):
+            epochs.append(set())
+        elif body[0] == "$GBGSV":
+            n = (len(body) - 4) // 4  # NMEA 4.11: a trailing signal ID follows the blocks
+            epochs[-1].update(int(body[4 + 4 * k]) for k in range(n) if body[4 + 4 * k])
+    return epochs
+
+
+def _stderr_lines(stderr: str) -> tuple[list[str], list[str]]:
+    lines = stderr.splitlines()
+    return [x for x in lines if LOG_LINE.match(x)], [x for x in lines if not LOG_LINE.match(x)]
+
+
+@pytest.fixture(scope="module")
+def clean():
+    jsonl = _run("solve", str(HKSC_OBS), str(HKSC_NAV), "--mode", "spp")
+    nmea = _run("solve", str(HKSC_OBS), str(HKSC_NAV), "--mode", "spp", "--format", "nmea")
+    assert jsonl.returncode == 0 and nmea.returncode == 0
+    fixes = _fixes(jsonl.stdout)
+    assert len(fixes) == N_EPOCHS and all(f["mode"] == "spp" for f in fixes.values())
+    sky = _gsv_prns(nmea.stdout)
+    assert len(sky) == N_EPOCHS and all(8 in s for s in sky)  # C08 seen at every epoch
+    logs, other = _stderr_lines(jsonl.stderr)
+    assert logs == []
+    return fixes, other
+
+
+@pytest.mark.parametrize("case", DAMAGE)
+def test_solve_refuses_the_damaged_satellite_and_fixes_every_epoch(case, clean, tmp_path):
+    clean_fixes, clean_other = clean
+    field, text, why = DAMAGE[case]
+    nav, _ = _damaged_nav(tmp_path / f"{case}.nav", {DAMAGED_PRN}, field, text)
+    run = _run("solve", str(HKSC_OBS), str(nav), "--mode", "spp")
+    assert run.returncode == 0, run.stderr
+    fixes = _fixes(run.stdout)
+    assert fixes.keys() == clean_fixes.keys()
+    assert all(f["mode"] == "spp" for f in fixes.values())
+    # one satellite fewer at every epoch: C08 was used in all of them
+    assert all(fixes[k]["n_full"] == clean_fixes[k]["n_full"] - 1 for k in fixes)
+    # ... and it is C08: it has no ephemeris, so it is not in the sky view (GSV) either
+    nmea = _run("solve", str(HKSC_OBS), str(nav), "--mode", "spp", "--format", "nmea")
+    sky = _gsv_prns(nmea.stdout)
+    assert len(sky) == N_EPOCHS and not any(8 in s for s in sky)
+    # stderr: one log line, and otherwise only the summary the clean run prints too
+    logs, other = _stderr_lines(run.stderr)
+    assert len(logs) == 1, run.stderr
+    assert logs[0].startswith(f"WARNING service.ephemeris: refused ephemeris {DAMAGED_PRN} ")
+    assert why in logs[0]
+    assert other == clean_other
+    assert "Warning" not in run.stderr and "Traceback" not in run.stderr
+
+
+@pytest.fixture(scope="module")
+def clean_replay(tmp_path_factory):
+    out = tmp_path_factory.mktemp("replay") / "clean.jsonl"
+    run = _run(
+        "replay", str(HKSC_OBS), "--nav", str(HKSC_NAV), "--max-speed", "--jsonl-out", str(out)
+    )
+    assert run.returncode == 0
+    fixes = _fixes(out.read_text())
+    assert len(fixes) == N_EPOCHS and all(f["mode"] != "none" for f in fixes.values())
+    logs, other = _stderr_lines(run.stderr)
+    assert logs == []
+    return fixes, other
+
+
+def _replay_with_status(nav: Path, workdir: Path) -> tuple[subprocess.CompletedProcess, dict]:
+    """``bdsfix replay`` with a ZeroMQ STATUS subscriber; returns the run and the last STATUS."""
+    out, endpoint = workdir / "fixes.jsonl", f"ipc://{workdir / 'pub.ipc'}"
+    sub = zmq.Context.instance().socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.RECONNECT_IVL, 5)  # connect before the short replay's final STATUS
+    sub.setsockopt(zmq.SUBSCRIBE, b"STATUS")
+    sub.connect(endpoint)
+    status: dict = {}
+    try:
+        run = _run(
+            "replay",
+            str(HKSC_OBS),
+            "--nav",
+            str(nav),
+            "--max-speed",
+            "--jsonl-out",
+            str(out),
+            "--zmq",
+            endpoint,
+            "--status-interval-s",
+            "0.2",
+        )
+        while sub.poll(200):  # the PUB socket lingers 100 ms at exit
+            status = json.loads(sub.recv_multipart()[1])
+    finally:
+        sub.close()
+    run.stdout = out.read_text() if out.exists() else ""
+    return run, status
+
+
+@pytest.mark.parametrize("case", DAMAGE)
+def test_replay_refuses_the_damaged_satellite_and_fixes_every_epoch(case, clean_replay, tmp_path):
+    clean_fixes, clean_other = clean_replay
+    field, text, why = DAMAGE[case]
+    nav, n_sets = _damaged_nav(tmp_path / f"{case}.nav", {DAMAGED_PRN}, field, text)
+    run, status = _replay_with_status(nav, tmp_path)
+    assert run.returncode == 0, run.stderr
+    fixes = _fixes(run.stdout)
+    assert fixes.keys() == clean_fixes.keys()
+    assert all(f["mode"] != "none" for f in fixes.values())
+    assert all(fixes[k]["n_full"] == clean_fixes[k]["n_full"] - 1 for k in fixes)
+    logs, other = _stderr_lines(run.stderr)
+    assert len(logs) == 1, run.stderr
+    assert logs[0].startswith(f"WARNING service.ephemeris: refused ephemeris {DAMAGED_PRN} ")
+    assert why in logs[0]
+    assert other == clean_other
+    assert "Warning" not in run.stderr and "Traceback" not in run.stderr
+    counters = status["counters"]
+    assert counters["ephemeris_refused"] == n_sets
+    assert counters[f"ephemeris_refused_{CHECK_OF_CASE[case]}"] == n_sets
+
+
+def test_a_nav_file_with_no_usable_set_is_a_clear_error(tmp_path):
+    text = HKSC_NAV.read_text()
+    prns = {line[:3] for line in text.splitlines() if line[:1] == "C" and line[1:3].isdigit()}
+    nav, _ = _damaged_nav(tmp_path / "all.nav", prns, "sqrt_a", " .000000000000D+00")
+    run = _run("solve", str(HKSC_OBS), str(nav), "--mode", "spp")
+    assert run.returncode == 2  # ConfigError (service/errors.py EXIT_USAGE)
+    assert run.stdout == ""
+    logs, other = _stderr_lines(run.stderr)
+    assert sorted(x.split()[4] for x in logs) == sorted(prns)  # one line per satellite
+    assert all(x.startswith("WARNING service.ephemeris: refused ephemeris C") for x in logs)
+    assert other == [f"bdsfix solve: error: no usable BDS ephemeris in {nav}"]
