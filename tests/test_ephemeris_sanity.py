@@ -31,9 +31,10 @@ from pyrtcm import RTCMReader
 
 from drivers.rinex import read_nav
 from drivers.rtcm import ephemeris_from_1042
+from service.bds_nav import encode_d1_subframes
 from service.ephemeris import EphemerisStore, ephemeris_problem
 from service.pipeline import Pipeline
-from service.types import Ephemeris
+from service.types import Ephemeris, NavSubframe
 from tests._independent import DATA
 
 REAL_NAV = (
@@ -243,6 +244,38 @@ def test_pipeline_counts_refusals_by_check(c08):
         "ephemeris_refused_sqrt_a": 1,
         "ephemeris_refused_not_finite": 1,
         "ephemeris_refused_unhealthy": 1,
+    }
+
+
+@pytest.mark.parametrize(
+    ("change", "check"),
+    [({"sqrt_a_sqrt_m": 0.0}, "sqrt_a"), ({"e": 0.4}, "eccentricity"), ({"ura_m": 1e4}, "ura")],
+)
+def test_decoded_d1_set_is_refused_and_the_good_one_stays(c08, change, check):
+    """Through the subframe path: real C08 encoded into D1 subframes 1-3 (ICD 5.2.3), then
+    the same set damaged (fields the D1 message can carry: sqrt(A) >= 0, e < 0.5, URAI 15)."""
+    pipe = Pipeline(EphemerisStore())
+    sow = int(c08.toe_sow_s) - 1800
+    bdt_week, gpst_week = c08.week, c08.week + 1356  # METHOD.md: GPS week = BDS week + 1356
+
+    def feed(eph, sow_s):
+        for fra, words in enumerate(encode_d1_subframes(eph, sow_s)[:3], start=1):
+            sf_sow = sow_s + 6 * (fra - 1)
+            pipe.on_subframe(
+                NavSubframe("C08", "D1", fra, sf_sow, tuple(words), gpst_week, sf_sow + 14.0)
+            )
+
+    feed(c08, sow)
+    feed(dataclasses.replace(c08, **change), sow + 30)
+    held = pipe.store.select("C08", bdt_week, c08.toe_sow_s)
+    assert held is not None and held.source == "subframes"
+    assert held.sqrt_a_sqrt_m == pytest.approx(c08.sqrt_a_sqrt_m, abs=2.0**-19)
+    assert held.e == pytest.approx(c08.e, abs=2.0**-33) and held.ura_m == 2.4  # URAI 0
+    counts = {k: v for k, v in pipe.counters.items() if k.startswith("ephemeris")}
+    assert counts == {
+        "ephemeris_subframes": 1,
+        "ephemeris_refused": 1,
+        f"ephemeris_refused_{check}": 1,
     }
 
 
