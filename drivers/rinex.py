@@ -600,9 +600,16 @@ def _leap_seconds(h: _Header, path: Path) -> int | None:
 
 
 def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemeris:
-    """One BDS navigation record (``_BDS_RECORD`` layout) as an Ephemeris; toc -> BDT sow."""
+    """One BDS navigation record (``_BDS_RECORD`` layout) as an Ephemeris; toc -> BDT sow.
+
+    A blank required field or a non-finite integer field is a FramingError. A float field
+    that reads as NaN or infinity (``NaN``, an exponent past the double range) is passed on
+    as it is: judging values is the store's job (service.ephemeris.ephemeris_problem), and
+    it refuses that one set while the rest of the file stays usable.
+    """
     first = rec[0]
     values: dict[str, float] = {}
+    blank: set[str] = set()
     k = 0
     try:
         day = dt.date(int(first[4:8]), int(first[9:11]), int(first[12:14]))
@@ -616,19 +623,22 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
             start = 23 if k == 0 else 4
             for j, name in enumerate(names):
                 if name is not None:
-                    values[name] = _float(rec[k][start + 19 * j : start + 19 * (j + 1)])
+                    text = rec[k][start + 19 * j : start + 19 * (j + 1)]
+                    values[name] = _float(text)
+                    if not text.strip():
+                        blank.add(name)
     except ValueError as exc:
         raise FramingError(f"{path}:{lineno + k}: bad BDS record for {prn}: {exc}") from exc
     kwargs: dict[str, float | int] = {}
     for name, value in values.items():
-        if math.isinf(value):  # e.g. an exponent beyond the double range
-            raise FramingError(f"{path}:{lineno}: BDS record for {prn}: {name} is {value}")
-        if math.isnan(value):
+        if name in blank:
             if name not in _BDS_OPTIONAL and name != "tot_sow_s":
                 raise FramingError(f"{path}:{lineno}: BDS record for {prn} lacks {name}")
             if name == "tot_sow_s":
                 continue
             value = _BDS_OPTIONAL[name]
+        elif name in _BDS_INT_FIELDS and not math.isfinite(value):
+            raise FramingError(f"{path}:{lineno}: BDS record for {prn}: {name} is {value}")
         kwargs[name] = int(value) if name in _BDS_INT_FIELDS else value
     kwargs.pop("tot_sow_s", None)
     return Ephemeris(prn=prn, toc_sow_s=float(toc_sow), source="rinex", **kwargs)  # type: ignore[arg-type]

@@ -36,6 +36,7 @@ import numpy as np
 from pyrtcm import RTCMReader
 
 from drivers.framing import Counters, Event, WeekContext
+from service.bds_nav import URA_M
 from service.constants import C_M_S, F_B1I_HZ, WEEK_S, prn_id
 from service.timebase import BDT_GPS_WEEK_OFFSET, BDT_GPST_OFFSET_S, diff_s, normalize
 from service.types import Ephemeris, MeasurementEpoch
@@ -85,10 +86,6 @@ ROUGH_INT_MS_UNKNOWN = 255  # DF397
 FINE_PR_INVALID_MS = -(2.0**-10)  # DF400 raw -2^14 * 2^-24 ms; DF405 raw -2^19 * 2^-29 ms
 ROUGH_RATE_INVALID_M_S = -8192  # DF399 raw 0x2000
 FINE_RATE_INVALID_M_S = -16384 * 1e-4  # DF404 raw 0x4000
-
-URA_M = (2.4, 3.4, 4.85, 6.85, 9.65, 13.65, 24.0, 48.0, 96.0, 192.0, 384.0, 768.0,
-         1536.0, 3072.0, 6144.0, 6144.0)  # fmt: skip
-"""URA upper bounds per URAI (ICD 5.2.4.5); index 15 (> 6144 m) is reported as 6144."""
 
 # (Ephemeris field, 1042 data field, factor applied to pyrtcm's scaled value)
 EPH_1042_FIELDS: tuple[tuple[str, str, float], ...] = (
@@ -172,7 +169,11 @@ class _Cell:
 
 
 def ephemeris_from_1042(msg: Any) -> Ephemeris:
-    """Map a pyrtcm 1042 message to :class:`Ephemeris` (BDT week and seconds of week)."""
+    """Map a pyrtcm 1042 message to :class:`Ephemeris` (BDT week and seconds of week).
+
+    DF490 (URAI) becomes the upper bound of its URA interval, URAI 15 (> 6144 m) infinity,
+    as for decoded subframes (:data:`service.bds_nav.URA_M`), so that the store refuses it.
+    """
     values: dict[str, Any] = {}
     for name, df, factor in EPH_1042_FIELDS:
         v = getattr(msg, df)

@@ -497,17 +497,19 @@ def nav_geo_positions(
 ) -> tuple[tuple[str, ...], np.ndarray]:
     """Broadcast GEO positions (len(t_s), n_geo, 3) at ``t_s`` seconds after ``start_bdt``.
 
-    At each epoch every healthy GEO uses its set with the nearest t_oe (ICD 5.2.4.12).
+    At each epoch every GEO uses its set with the nearest t_oe (ICD 5.2.4.12) among those
+    :func:`service.ephemeris.ephemeris_problem` accepts (healthy and sane).
     Broadcast sets are fits to a few hours of orbit, so a GEO whose nearest set is more than
     ``max_age_s`` from some study epoch is left out with a warning.
     """
+    from service.ephemeris import ephemeris_problem
     from service.orbit import EphemerisArrays, sat_pos_clock
 
     prns, cols, spans = [], [], []
     for prn in sorted(p for p in ephemerides if is_geo(p)):
-        sets = [e for e in ephemerides[prn] if e.health == 0]
+        sets = [e for e in ephemerides[prn] if ephemeris_problem(e) is None]
         if not sets:
-            log.warning("%s: no healthy ephemeris: left out", prn)
+            log.warning("%s: no healthy ephemeris that passes the entry checks: left out", prn)
             continue
         toe = np.array(
             [(e.week - start_bdt[0]) * WEEK_S + e.toe_sow_s - start_bdt[1] for e in sets]

@@ -122,10 +122,14 @@ class Pipeline:
 
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
+        """Offer ``eph`` to the store; counts ``ephemeris_<source>`` when kept, else
+        ``ephemeris_refused`` and ``ephemeris_refused_<check>`` (see ephemeris_problem)."""
         if self.store.add(eph):
             self.counters[f"ephemeris_{eph.source}"] += 1
         else:
             self.counters["ephemeris_refused"] += 1
+            if self.store.last_refusal is not None:
+                self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
 
     def set_iono(self, params: KlobucharParams) -> None:
         if params.system == "BDS":

@@ -25,11 +25,12 @@ def _ephemerides(nav: str | None) -> tuple[list[Ephemeris], KlobucharParams | No
     if nav is None:
         return table1_ephemerides(0.0), None
     from drivers.rinex import read_nav
+    from service.ephemeris import ephemeris_problem
 
     data = read_nav(nav)
-    ephs = [e for items in data.ephemerides.values() for e in items if e.health == 0]
+    ephs = [e for items in data.ephemerides.values() for e in items if ephemeris_problem(e) is None]
     if not ephs:
-        raise ConfigError(f"{nav}: no healthy BDS ephemeris")
+        raise ConfigError(f"{nav}: no healthy BDS ephemeris that passes the entry checks")
     return ephs, data.iono_bds
 
 

@@ -480,6 +480,30 @@ def test_damaged_nav_record_names_its_line(tmp_path):
         read_nav(_write(tmp_path, "short.19b", short))
 
 
+def test_non_finite_float_field_is_passed_on_a_blank_one_is_not(tmp_path):
+    """The parser reads numbers; the store judges them (service.ephemeris)."""
+    lines = _lines(BDS_ONLY_NAV[0])
+    c = next(k for k, line in enumerate(lines) if line.startswith("C05"))
+    sqrt_a = slice(4 + 3 * 19, 4 + 4 * 19)  # BROADCAST ORBIT - 2, fourth field
+    e = slice(4 + 19, 4 + 2 * 19)  # BROADCAST ORBIT - 2, second field
+    for name, text, cut, want in [
+        ("nan.19b", "NaN", sqrt_a, ("sqrt_a_sqrt_m", math.isnan)),
+        ("inf.19b", " .100000000000D+999", e, ("e", lambda v: v == math.inf)),
+    ]:
+        bad = lines.copy()
+        row = bad[c + 2]
+        bad[c + 2] = row[: cut.start] + text.rjust(19) + row[cut.stop :]
+        nav = read_nav(_write(tmp_path, name, bad))
+        ref = read_nav(DATA / BDS_ONLY_NAV[0])
+        got = {p: [getattr(x, want[0]) for x in v] for p, v in nav.ephemerides.items()}
+        assert want[1](got["C05"][0]) and len(got) == len(ref.ephemerides)
+        assert nav.ephemerides["C06"] == ref.ephemerides["C06"]
+    bad = lines.copy()
+    bad[c + 2] = bad[c + 2][: sqrt_a.start] + " " * 19 + bad[c + 2][sqrt_a.stop :]
+    with pytest.raises(FramingError, match=r"blank\.19b:\d+: BDS record for C05 lacks sqrt_a"):
+        read_nav(_write(tmp_path, "blank.19b", bad))
+
+
 # ---------------------------------------------------------------- navigation files
 
 FIELDS = {  # georinex name -> ours
