@@ -32,6 +32,7 @@ import argparse
 import datetime as dt
 import json
 import logging
+import math
 import os
 import signal
 import socket
@@ -306,6 +307,7 @@ def _spp(
         [ep.prn[i] for i in idx],
         ["2I"] * len(idx),
         ep.pr_m[idx],
+        cn0_dbhz=ep.cn0_dbhz[idx],  # the C/N0 the receiver reports: the same weights
     )
     return solve(m, store, iono, cfg, solver="spp")
 
@@ -368,7 +370,8 @@ def analyse(
                     conv = ep.t_s
             geos = sorted(p for p in full if is_geo(p))
             if geo is None and len(geos) >= 4:
-                g = _spp(ep, geos, store, iono, ref_cfg)
+                # shown for its error: a GEO-only PDOP is far above the published gate
+                g = _spp(ep, geos, store, iono, replace(ref_cfg, pdop_max=math.inf))
                 if g.ok and g.x_ecef_m is not None:
                     geo = ep.t_s
                     geo_err = float(np.linalg.norm(np.asarray(g.x_ecef_m) - truth))

@@ -61,7 +61,12 @@ def test_scenario_fast_fixes_equal_spp_of_the_true_full_ranges():
             continue
         ep = truth[round(ev.gpst_tow_s, 6)]
         full = MeasurementEpoch.from_columns(
-            ep.tag_gpst_week, ep.tag_gpst_tow_s, list(ep.prn), ["2I"] * len(ep.prn), ep.pr_m
+            ep.tag_gpst_week,
+            ep.tag_gpst_tow_s,
+            list(ep.prn),
+            ["2I"] * len(ep.prn),
+            ep.pr_m,
+            cn0_dbhz=ep.cn0_dbhz,  # the same signal quality, so the same weights
         )
         spp = solve(full, store, solver="spp")
         assert np.linalg.norm(np.subtract(r.fix.x_ecef_m, spp.x_ecef_m)) <= 1e-3

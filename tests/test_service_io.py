@@ -44,7 +44,17 @@ SCHEMA = {
             "ambiguity": dict,
             "resid_rms_m": float,
             "reason": str,
+            "reason_code": str,
             "since_start_s": float,
+            # integrity (issue 9): the test, its state and the protection levels
+            "redundancy": int,
+            "chi2": float,
+            "chi2_max": float,
+            "raim": str,
+            "hpl_m": float,
+            "vpl_m": float,
+            "std_enu_m": list,
+            "excluded": dict,
         },
     },
     "TRACK": {
@@ -78,6 +88,9 @@ def _valid(topic: str, rec: dict) -> None:
     if topic == "FIX":
         assert rec["solver"] in ("fast", "spp") and rec["mode"] in ("fast", "spp", "none")
         assert ("reason" in rec) == (rec["mode"] == "none")
+        if rec["mode"] != "none":  # a published fix says how far it can be trusted
+            assert rec["raim"] in ("pass", "unprotected", "untested")
+            assert (rec["raim"] == "pass") == ("hpl_m" in rec and "vpl_m" in rec)
 
 
 def _free_port() -> int:
