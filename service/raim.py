@@ -30,6 +30,7 @@ against scipy.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -96,24 +97,62 @@ def chi2_sf(x: float, dof: int) -> float:
     return gamma_q(dof / 2.0, x / 2.0)
 
 
-def ncx2_cdf(x: float, dof: int, lam: float) -> float:
-    """P(chi2'(dof, lam) <= x): the Poisson(lam / 2) mixture of central chi-squares
-    sum_j Pois(j; lam / 2) P(dof / 2 + j, x / 2), summed over the Poisson weights that
-    matter (mode +- 10 standard deviations)."""
-    if x <= 0.0:
-        return 0.0
-    if lam <= 0.0:
-        return gamma_p(dof / 2.0, x / 2.0)
+def _ncx2_cdf_pair(x: float, dof: int, lam: float) -> tuple[float, float]:
+    """P(chi2'(dof, lam) <= x) and P(chi2'(dof + 2, lam) <= x).
+
+    The Poisson(lam / 2) mixture sum_j Pois(j; lam / 2) P(dof / 2 + j, x / 2), over the
+    weights that matter (mode +- 10 standard deviations). P(a + j, y) comes from one
+    incomplete gamma at the top of the range and the downward recurrence
+    P(a + j, y) = P(a + j + 1, y) + y^(a + j) e^-y / Gamma(a + j + 1) (positive terms
+    only: stable)."""
+    a, y = dof / 2.0, x / 2.0
     half = lam / 2.0
     spread = 10.0 * math.sqrt(half) + 20.0
     j_lo = max(0, int(half - spread))
     j_hi = int(half + spread) + 1
-    log_half = math.log(half)
-    total = 0.0
-    for j in range(j_lo, j_hi + 1):
-        weight = math.exp(-half + j * log_half - math.lgamma(j + 1.0))
-        total += weight * gamma_p(dof / 2.0 + j, x / 2.0)
-    return min(1.0, total)
+    log_y = math.log(y)
+    p_next = gamma_p(a + j_hi + 1, y)  # P(a + j_hi + 1, y)
+    log_half = math.log(half) if half > 0.0 else -math.inf
+    f_k = f_k2 = 0.0
+    for j in range(j_hi, j_lo - 1, -1):
+        p_j = p_next + math.exp((a + j) * log_y - y - math.lgamma(a + j + 1.0))
+        if half > 0.0:
+            weight = math.exp(-half + j * log_half - math.lgamma(j + 1.0))
+        else:
+            weight = 1.0 if j == 0 else 0.0
+        f_k += weight * p_j
+        f_k2 += weight * p_next
+        p_next = p_j
+    return min(1.0, f_k), min(1.0, f_k2)
+
+
+def ncx2_cdf(x: float, dof: int, lam: float) -> float:
+    """P(chi2'(dof, lam) <= x)."""
+    if x <= 0.0:
+        return 0.0
+    return _ncx2_cdf_pair(x, dof, max(lam, 0.0))[0]
+
+
+def _newton_root(
+    f: Callable[[float], tuple[float, float]], lo: float, hi: float, x0: float
+) -> float:
+    """Root of a decreasing f in [lo, hi] (f(lo) > 0 > f(hi)) by Newton steps kept inside
+    the bracket (bisection when a step would leave it); ``f`` returns (value, slope)."""
+    x = min(max(x0, lo), hi)
+    for _ in range(100):
+        value, slope = f(x)
+        if value > 0.0:
+            lo = x
+        else:
+            hi = x
+        step = value / slope if slope < 0.0 else math.inf
+        new = x - step
+        if not lo < new < hi:
+            new = 0.5 * (lo + hi)
+        if abs(new - x) <= 1e-10 * max(abs(new), 1.0):
+            return new
+        x = new
+    return x
 
 
 @lru_cache(maxsize=512)
@@ -123,18 +162,17 @@ def chi2_threshold(dof: int, p_fa: float) -> float:
         raise ValueError(f"chi-square threshold needs dof >= 1, got {dof}")
     if p_fa <= 0.0:
         return math.inf
-    lo, hi = 0.0, max(10.0, 4.0 * dof)
+    a = dof / 2.0
+    hi = max(10.0, 4.0 * dof)
     while chi2_sf(hi, dof) > p_fa:
         hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if chi2_sf(mid, dof) > p_fa:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo < 1e-10 * hi:
-            break
-    return 0.5 * (lo + hi)
+
+    def f(x: float) -> tuple[float, float]:  # sf - p_fa and its derivative, -pdf
+        y = x / 2.0
+        pdf = 0.5 * math.exp((a - 1.0) * math.log(y) - y - math.lgamma(a)) if y > 0 else 0.0
+        return chi2_sf(x, dof) - p_fa, -pdf
+
+    return _newton_root(f, 0.0, hi, float(dof) + 4.0 * math.sqrt(2.0 * dof))
 
 
 @lru_cache(maxsize=512)
@@ -144,18 +182,16 @@ def noncentrality_md(dof: int, p_fa: float, p_md: float) -> float:
     t_max = chi2_threshold(dof, p_fa)
     if not math.isfinite(t_max):
         return math.inf
-    lo, hi = 0.0, max(10.0, t_max)
+    hi = max(10.0, t_max)
     while ncx2_cdf(t_max, dof, hi) > p_md:
         hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if ncx2_cdf(t_max, dof, mid) > p_md:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo < 1e-9 * hi:
-            break
-    return 0.5 * (lo + hi)
+
+    def f(lam: float) -> tuple[float, float]:  # dF/dlam = -(F(dof) - F(dof + 2)) / 2
+        f_k, f_k2 = _ncx2_cdf_pair(t_max, dof, lam)
+        return f_k - p_md, -0.5 * (f_k - f_k2)
+
+    guess = (math.sqrt(t_max) + normal_two_sided_quantile(2.0 * p_md)) ** 2
+    return _newton_root(f, 0.0, hi, guess)
 
 
 def normal_two_sided_quantile(p: float) -> float:
