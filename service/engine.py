@@ -545,7 +545,11 @@ def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
     excluded: dict[str, str] = {}
     full = ~rows.frac
     if int(full.sum()) >= 2:
-        dev = np.abs(rows.z_m - np.median(rows.z_m[full]))
+        # the median by sorting: numpy's median imports numpy.ma on its first call (~14 ms,
+        # a stall on the first fast-fix epoch of a daemon)
+        z = np.sort(rows.z_m[full])
+        median = 0.5 * (z[(len(z) - 1) // 2] + z[len(z) // 2])
+        dev = np.abs(rows.z_m - median)
         gross = full & ~(dev <= GROSS_SPREAD_M)
         if gross.any():
             for i in np.flatnonzero(gross):
