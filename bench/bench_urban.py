@@ -1,0 +1,81 @@
+"""Urban real data: 3D error percentiles, availability and protection-level exceedances on the
+Hong Kong TST u-blox drive (../shared/data/hk-tst-urban-2019, with its ground truth).
+
+Every epoch with a ground-truth row is solved by SPP (all full) and by the fast fix (non-GEO
+ranges reduced modulo 1 ms, as `bdsfix solve` does), with the daemon's defaults and, for
+comparison, with fault exclusion off (detection only) and with the chi-square test off.
+
+Run: python bench/bench_urban.py   (prints figures; no assertions)
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from drivers.rinex import RinexObsReader  # noqa: E402
+from service.batch import load_navigation  # noqa: E402
+from service.engine import SolverConfig, fractionalize, solve  # noqa: E402
+from service.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef  # noqa: E402
+
+TST = ROOT.parent / "shared" / "data" / "hk-tst-urban-2019"
+
+
+def ground_truth() -> dict[tuple[int, int], np.ndarray]:
+    """(GPS week, whole TOW) -> ECEF truth, from groundTruth_TST.csv (week, TOW, lat, lon, h)."""
+    out = {}
+    with open(TST / "groundTruth_TST.csv", encoding="ascii") as f:
+        for row in csv.reader(f):
+            try:
+                week, tow, lat, lon, h = (float(v) for v in row[:5])
+            except ValueError:
+                continue
+            out[(int(week), round(tow))] = geodetic_to_ecef(math.radians(lat), math.radians(lon), h)
+    return out
+
+
+def main() -> None:
+    truth = ground_truth()
+    store, iono = load_navigation([str(TST / "hksc1180.19b")])
+    epochs = [
+        ep
+        for ep in RinexObsReader(TST / "COM3_190428_124409.obs")
+        if (ep.gpst_week, round(ep.gpst_tow_s)) in truth
+    ]
+    configs = {
+        "defaults (FDE, 2 exclusions)": SolverConfig(),
+        "detection only": SolverConfig(max_exclusions=0),
+        "no test (PDOP gate only)": SolverConfig(p_fa=0.0),
+    }
+    print(f"bench_urban: {len(epochs)} TST epochs with ground truth")
+    for solver in ("spp", "fast"):
+        for name, cfg in configs.items():
+            errs, over = [], 0
+            for ep in epochs:
+                fix = solve(fractionalize(ep) if solver == "fast" else ep, store, iono, cfg, solver)
+                if not fix.ok:
+                    continue
+                t = truth[(ep.gpst_week, round(ep.gpst_tow_s))]
+                errs.append(float(np.linalg.norm(np.subtract(fix.x_ecef_m, t))))
+                if fix.hpl_m is not None and math.isfinite(fix.hpl_m):
+                    lat, lon, _ = ecef_to_geodetic(t)
+                    e = enu_rotation(lat, lon) @ np.subtract(fix.x_ecef_m, t)
+                    over += math.hypot(e[0], e[1]) > fix.hpl_m or abs(e[2]) > fix.vpl_m
+            e = np.asarray(errs)
+            p50, p95, p99 = np.percentile(e, [50, 95, 99]) if e.size else (math.nan,) * 3
+            print(
+                f"  {solver:>4} {name:<29} availability {100 * len(e) / len(epochs):5.1f} %  3D "
+                f"error p50 {p50:6.1f}  p95 {p95:6.1f}  p99 {p99:6.1f}  max "
+                f"{e.max() if e.size else math.nan:6.1f} m; beyond HPL/VPL {over}"
+            )
+
+
+if __name__ == "__main__":
+    main()
