@@ -21,6 +21,7 @@ Run: python bench/bench_load.py [--minutes 60] [--zmq-subs 50] [--nmea 20] [--sl
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import signal
 import socket
@@ -36,6 +37,7 @@ import zmq
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
 
 from service.ephemeris import EphemerisStore  # noqa: E402
 from service.keplerian import table1_ephemerides  # noqa: E402
@@ -125,7 +127,7 @@ def run_load(
     n_zmq: int = 50,
     n_nmea: int = 20,
     n_slow: int = 5,
-    rss_period_s: float = 0.5,
+    rss_samples: int = 40,
     timeout_s: float = 3600.0,
 ) -> LoadResult:
     res = LoadResult(epochs_expected=epochs)
@@ -168,7 +170,6 @@ def run_load(
     tcp: list[socket.socket] = []
     slow: list[socket.socket] = []
     again: zmq.Socket | None = None
-    stop_rss = threading.Event()
     fixes_seen = [0]
     try:
         rx.settimeout(30)
@@ -207,14 +208,6 @@ def run_load(
         for s in tcp:
             s.setblocking(False)
 
-        def rss_sampler() -> None:
-            t0 = time.monotonic()
-            while not stop_rss.wait(rss_period_s):
-                try:
-                    res.rss_kb.append((time.monotonic() - t0, _rss_kb(daemon.pid), fixes_seen[0]))
-                except OSError:
-                    return
-
         def send_all() -> None:
             with stream.open("rb") as fh:
                 while chunk := fh.read(1 << 16):
@@ -223,10 +216,8 @@ def run_load(
                     except OSError:
                         return
 
-        sampler = threading.Thread(target=rss_sampler, daemon=True)
         sender = threading.Thread(target=send_all, daemon=True)
         t_start = time.monotonic()
-        sampler.start()
         sender.start()
 
         poller = zmq.Poller()
@@ -238,6 +229,8 @@ def run_load(
         next_cycle = time.monotonic()
         last_progress = (time.monotonic(), -1)
         stopping_at: float | None = None
+        rss_step = max(1, epochs // rss_samples)
+        next_rss = rss_step
         while True:
             now = time.monotonic()
             if now >= next_cycle:  # the subscriber that keeps leaving and coming back
@@ -276,6 +269,12 @@ def run_load(
                     res.nmea_gga[k] += buf.count(b"GGA,")
                     tails[k] = buf[-3:]
             fixes_seen[0] = res.sub_fixes[0]
+            # RSS sampled by progress (every epochs/rss_samples fixes), not by the clock, so
+            # the number of samples does not depend on how fast this machine is
+            if fixes_seen[0] >= next_rss and daemon.poll() is None:
+                with contextlib.suppress(OSError):
+                    res.rss_kb.append((now - t_start, _rss_kb(daemon.pid), fixes_seen[0]))
+                next_rss = fixes_seen[0] + rss_step
             if fixes_seen[0] != last_progress[1]:
                 last_progress = (now, fixes_seen[0])
             finished = fixes_seen[0] >= epochs or (
@@ -292,7 +291,6 @@ def run_load(
                 break
         res.daemon_rc = daemon.wait(timeout=30)
     finally:
-        stop_rss.set()
         if daemon.poll() is None:
             daemon.kill()
             daemon.wait()

@@ -13,7 +13,7 @@ def test_load_no_fix_lost_slow_clients_dropped_rss_flat(tmp_path):
     stream = tmp_path / "stream.ubx"
     epochs = make_stream(stream, minutes=1.0)
     assert epochs == 1200
-    res = run_load(stream, epochs, tmp_path, n_zmq=50, n_nmea=20, n_slow=5, rss_period_s=0.25)
+    res = run_load(stream, epochs, tmp_path, n_zmq=50, n_nmea=20, n_slow=5, rss_samples=40)
     assert res.daemon_rc == 0, res.daemon_stderr[-2000:]
     assert "Traceback" not in res.daemon_stderr
     # the daemon published one FIX per epoch (its own JSONL) ...
