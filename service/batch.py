@@ -88,16 +88,11 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.nmea import sentences_for_fix
+    from service.options import solver_config
     from service.records import csv_header, fix_csv_row, fix_json_line
     from service.timebase import utc_from_gpst
 
-    cfg = SolverConfig(
-        elmask_deg=args.elmask_deg,
-        beta=args.beta,
-        range_error_m=args.range_error_m,
-        iono=args.iono,
-        tropo=args.tropo != "off",
-    )
+    cfg = solver_config(args)
     opts = BatchOptions(
         mode=args.mode, fractional=args.fractional, period_s=args.period_ms * 1e-3, cfg=cfg
     )

@@ -13,7 +13,9 @@ from typing import NoReturn
 
 from service import __version__
 from service.config import DEFAULT_CONFIG, add_config_flags
+from service.engine import SolverConfig
 from service.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, BdsfixError
+from service.options import add_flags
 
 log = logging.getLogger(__name__)
 
@@ -57,23 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--mode", choices=["fast", "spp", "both"], default="both")
     s.add_argument("--fractional", choices=["non-geo", "none"], default="non-geo")
     s.add_argument("--period-ms", type=int, choices=[1, 20], default=1)
-    s.add_argument("--elmask-deg", type=float, default=10.0)
-    s.add_argument(
-        "--beta",
-        type=float,
-        default=None,
-        help="GDOP gate; default derived from T and --range-error-m",
-    )
-    s.add_argument(
-        "--range-error-m",
-        type=float,
-        default=50.0,
-        help="assumed 3-sigma range error used to derive the gate",
-    )
-    s.add_argument("--iono", choices=["auto", "bds", "gps", "off"], default="auto")
-    s.add_argument("--tropo", choices=["saastamoinen", "off"], default="saastamoinen")
     s.add_argument("--format", choices=["jsonl", "csv", "nmea"], default="jsonl")
     s.add_argument("--out", default="-", help="output file, - for stdout")
+    add_flags(s, SolverConfig, "solver")
 
     c = sub.add_parser("coverage", help="usability study of the fast fix (paper Table 3)")
     c.add_argument("--days", type=float, default=8.0)
@@ -116,14 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--nmea-out", metavar="FILE|-", help="NMEA to a file or stdout")
     r.add_argument("--jsonl-out", metavar="FILE|-", help="JSONL records to a file or stdout")
     r.add_argument("--talker", choices=["GN", "GB", "BD", "GP"], default="GN")
-    r.add_argument("--elmask-deg", type=float, default=10.0)
-    r.add_argument("--beta", type=float, default=0.0, help="GDOP gate (0: derived)")
-    r.add_argument("--range-error-m", type=float, default=50.0)
-    r.add_argument("--iono", choices=["auto", "bds", "gps", "off"], default="auto")
-    r.add_argument("--tropo", choices=["saastamoinen", "off"], default="saastamoinen")
     r.add_argument("--seed", type=int, default=0, help="seed of emulated sync delays")
     r.add_argument("--gps-week", type=int, default=None, help="GPS week for RTCM-only files")
     r.add_argument("--status-interval-s", type=float, default=10.0)
+    add_flags(r, SolverConfig, "solver")
 
     d = sub.add_parser("run", help="the daemon (config file; every key is also a flag)")
     d.add_argument(
@@ -153,7 +137,6 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("nav", nargs="*")
     t.add_argument("--trials", type=int, default=100)
     t.add_argument("--seed", type=int, default=1)
-    t.add_argument("--elmask-deg", type=float, default=10.0)
     t.add_argument("--json", action="store_true", help="print the result as JSON")
     t.add_argument("--plot", help="TTFF histograms PNG")
     t.add_argument(
@@ -176,6 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="--simulate: satellites whose ephemeris is older are not simulated; the daemon "
         "gets the same limit",
     )
+    add_flags(t, SolverConfig, "solver")
 
     z = sub.add_parser("sub", help="print ZeroMQ messages")
     z.add_argument("endpoint", nargs="?", default="tcp://127.0.0.1:10111")

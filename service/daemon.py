@@ -18,12 +18,13 @@ import signal
 import sys
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from service.config import DEFAULT_CONFIG, DaemonConfig, load_config, overrides_from_args
-from service.engine import IonoChoice, IonoSet, SolverConfig
+from service.engine import IonoSet
 from service.ephemeris import EphemerisStore
 from service.errors import BdsfixError, BindError, ConfigError, InputError
+from service.options import solver_config
 from service.pipeline import EpochResult, Pipeline, integrity_summary
 from service.publish import (
     LineSink,
@@ -131,18 +132,6 @@ def _check_state_dir(state_dir: Path) -> None:
         raise InputError(f"state directory {state_dir}: not writable")
 
 
-def solver_config(
-    elmask_deg: float, beta: float, range_error_m: float, iono: str, tropo: bool
-) -> SolverConfig:
-    return SolverConfig(
-        elmask_deg=elmask_deg,
-        beta=beta or None,
-        range_error_m=range_error_m,
-        iono=cast(IonoChoice, iono),
-        tropo=tropo,
-    )
-
-
 def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
     path = state_dir / STORE_NAME
     if path.exists():
@@ -199,7 +188,7 @@ def main_run(args: argparse.Namespace) -> int:
     pipeline = Pipeline(
         store,
         IonoSet(bds=store.iono if store.iono and store.iono.system == "BDS" else None),
-        solver_config(cfg.elmask_deg, cfg.beta, cfg.range_error_m, cfg.iono, cfg.tropo),
+        cfg.solver,
     )
     notifier = Notifier()
     runner = Runner(
@@ -272,9 +261,7 @@ def main_replay(args: argparse.Namespace) -> int:
         raise ConfigError(f"--speed must be a positive number, got {args.speed}")
     outputs_asked = any([args.nmea_tcp, args.zmq, args.nmea_out, args.jsonl_out])
     nmea_out = args.nmea_out if outputs_asked else "-"
-    cfg = solver_config(
-        args.elmask_deg, args.beta, args.range_error_m, args.iono, args.tropo != "off"
-    )
+    cfg = solver_config(args)
     timeline = Timeline()
     offset = 0.0
     if not args.files:

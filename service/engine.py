@@ -38,12 +38,14 @@ from service.ephemeris import EphemerisStore
 from service.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
 from service.orbit import EphemerisArrays, sat_pos_clock
 from service.raim import Integrity, assess
+from service.settings import setting
 from service.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 
 log = logging.getLogger(__name__)
 
 IonoChoice = Literal["auto", "bds", "gps", "off"]
+TropoChoice = Literal["saastamoinen", "off"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,31 +67,91 @@ class SolverConfig:
     beyond ``clock_max_s`` are declined.
     """
 
-    elmask_deg: float = 10.0
-    beta: float | None = None
-    range_error_m: float = 50.0
-    iono: IonoChoice = "auto"
-    tropo: bool = True
+    elmask_deg: float = setting(
+        10.0, "elevation mask [deg]", kind="float", low=0.0, high=90.0, high_open=True
+    )
+    beta: float = setting(
+        0.0,
+        "GEO-GDOP gate of the fast fix, paper eq. 21 (0: derived from the code period T and "
+        "--range-error-m: 2998 for 1 ms and 50 m)",
+        kind="float",
+        low=0.0,
+    )
+    range_error_m: float = setting(
+        50.0,
+        "3-sigma range error that derives the GDOP gate [m]",
+        kind="float",
+        low=0.0,
+        low_open=True,
+    )
+    iono: IonoChoice = setting(
+        "auto",
+        "ionosphere: auto (BDS Klobuchar when broadcast, else GPS coefficients scaled to B1I), "
+        "bds, gps or off",
+        kind="str",
+        choices=("auto", "bds", "gps", "off"),
+    )
+    tropo: TropoChoice = setting(
+        "saastamoinen", "troposphere model", kind="str", choices=("saastamoinen", "off")
+    )
     weighted: bool = True
     max_iter: int = 30
     theta_m: float = 1e-3
     conv_m: float = 1e-4
-    sigma_a_m: float = 0.5
-    sigma_b_m: float = 0.5
-    sigma_cn0_m: float = 1.0
-    cn0_ref_dbhz: float = 45.0
-    sigma_sis_m: float = 1.0
-    iono_error_ratio: float = 0.3
-    iono_unmodelled_m: float = 3.0
-    tropo_error_m: float = 0.3
+    sigma_a_m: float = setting(0.5, "error model: constant code term a [m]", kind="float", low=0.0)
+    sigma_b_m: float = setting(
+        0.5, "error model: elevation term b, b / sin E [m]", kind="float", low=0.0
+    )
+    sigma_cn0_m: float = setting(
+        1.0,
+        "error model: C/N0 term c, c 10^((C0 - C/N0) / 20) [m] (0: C/N0 not used)",
+        kind="float",
+        low=0.0,
+    )
+    cn0_ref_dbhz: float = setting(45.0, "error model: C/N0 reference C0 [dB-Hz]", kind="float")
+    sigma_sis_m: float = setting(
+        1.0, "error model: orbit and clock (signal in space) error [m]", kind="float", low=0.0
+    )
+    iono_error_ratio: float = setting(
+        0.3, "error model: share of the Klobuchar delay left as error", kind="float", low=0.0
+    )
+    iono_unmodelled_m: float = setting(
+        3.0, "error model: zenith ionosphere error without a model [m]", kind="float", low=0.0
+    )
+    tropo_error_m: float = setting(
+        0.3, "error model: Saastamoinen zenith error [m]", kind="float", low=0.0
+    )
     sigma_uniform_m: float = 3.0
-    p_fa: float = 1e-5
-    p_md: float = 1e-3
-    max_exclusions: int = 2
-    pdop_max: float = 10.0
-    alt_min_m: float = -1_000.0
-    alt_max_m: float = 1_100_000.0
-    clock_max_s: float = 1_000.0
+    p_fa: float = setting(
+        1e-5,
+        "integrity: false-alarm probability of the chi-square test (0: no test)",
+        kind="float",
+        low=0.0,
+        high=0.5,
+    )
+    p_md: float = setting(
+        1e-3,
+        "integrity: missed-detection probability of the protection levels",
+        kind="float",
+        low=0.0,
+        high=0.5,
+        low_open=True,
+    )
+    max_exclusions: int = setting(
+        2, "integrity: satellites fault exclusion may remove", kind="int", low=0, high=10
+    )
+    pdop_max: float = setting(
+        10.0, "largest PDOP of a published fix", kind="float", low=0.0, low_open=True
+    )
+    alt_min_m: float = setting(-1_000.0, "plausible shell: lowest altitude [m]", kind="float")
+    alt_max_m: float = setting(1_100_000.0, "plausible shell: highest altitude [m]", kind="float")
+    clock_max_s: float = setting(
+        1_000.0,
+        "plausible shell: largest receiver clock bias [s]",
+        kind="float",
+        low=0.0,
+        low_open=True,
+    )
     # A known approximate position (a reference in studies, the last fix in a stream).
     # With every measurement full the solve is then conventional SPP from it (phase 2
     # alone); with fractional rows phase 1 starts there. None: the paper's start, the
@@ -346,7 +408,7 @@ def _phase1(rows: _Rows, ctx: _Context) -> _State | _Decline:
     # phase-1 position (or at the last iterate when the iteration did not settle)
     gd = float(gdop(geo.los[~frac]))
     beta = cfg.beta
-    if beta is None:
+    if not beta:
         t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
@@ -702,7 +764,7 @@ def _delays(
             iono = klobuchar_gps_m(
                 model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, gpst_tow
             )
-    tropo = saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad) if cfg.tropo else None
+    tropo = saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad) if cfg.tropo != "off" else None
     return iono, tropo
 
 

@@ -153,6 +153,7 @@ def summarize(trials: Sequence[TrialTimes]) -> dict[str, Any]:
 def main_ttff(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.batch import load_navigation
+    from service.options import solver_config
 
     if args.simulate:
         from service.ttff_sim import run_simulated
@@ -168,7 +169,7 @@ def main_ttff(args: argparse.Namespace) -> int:
     epochs = list(RinexObsReader(args.obs))
     if len(epochs) < 40:
         raise ConfigError(f"{args.obs}: {len(epochs)} epochs; ttff needs at least 40")
-    cfg = SolverConfig(elmask_deg=args.elmask_deg)
+    cfg = solver_config(args)
     rng = np.random.default_rng(args.seed)
     last = len(epochs) - 30
     trials = [

@@ -51,10 +51,11 @@ from typing import Any
 import numpy as np
 
 from service.constants import is_geo
-from service.daemon import STORE_NAME, solver_config
+from service.daemon import STORE_NAME
 from service.engine import IonoSet, SolverConfig, solve
 from service.ephemeris import EphemerisStore
 from service.errors import BdsfixError, ConfigError
+from service.options import solver_config, solver_flags
 from service.simulator import SimConfig, SimEpoch, Simulator
 from service.timebase import diff_s, gpst_from_utc, gpst_to_bdt, normalize
 from service.types import Ephemeris, KlobucharParams, MeasurementEpoch
@@ -178,9 +179,8 @@ def run_daemon_on_pty(
     stream: _Stream,
     state_dir: Path,
     jsonl: Path,
-    elmask_deg: float,
+    cfg: SolverConfig,
     nav: Sequence[str] = (),
-    iono: str = "auto",
     max_eph_age_s: float = 7200.0,
     timeout_s: float = 900.0,
 ) -> list[dict[str, Any]]:
@@ -209,14 +209,11 @@ def run_daemon_on_pty(
         "",
         "--jsonl-out",
         str(jsonl),
-        "--elmask-deg",
-        str(elmask_deg),
         "--status-interval-s",
         "5",
-        "--iono",
-        iono,
         "--max-eph-age-s",
         str(max_eph_age_s),
+        *solver_flags(cfg),
     ]
     for path in nav:
         cmd += ["--nav", str(path)]
@@ -464,17 +461,18 @@ def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTri
     ephs, store, iono, klob = _navigation(nav)
     store.max_age_s = args.max_eph_age_s
     week, tow = _start_time(args.start_utc, bool(nav), ephs)
+    # the daemon applies the same ionosphere model as the simulator (none without a nav file)
+    cfg = solver_config(args, **({} if klob else {"iono": "off"}))
     base = SimConfig(
         lat_deg=args.lat_deg,
         lon_deg=args.lon_deg,
         alt_m=args.alt_m,
         rate_hz=args.rate_hz,
         noise_m=args.noise_m,
-        elmask_deg=min(5.0, args.elmask_deg),
+        elmask_deg=min(5.0, cfg.elmask_deg),
     )
     plans = plan_trials(week, tow, args.trials, args.trial_s, args.seed)
     stream = _Stream(ephs, klob, base, plans, args.trial_s, args.max_eph_age_s)
-    cfg = solver_config(args.elmask_deg, 0.0, 50.0, "auto" if klob else "off", True)
     with tempfile.TemporaryDirectory(prefix="bdsfix-ttff-") as tmp:
         state = Path(tmp)
         if not nav:
@@ -483,9 +481,8 @@ def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTri
             stream,
             state,
             state / "out.jsonl",
-            args.elmask_deg,
+            cfg,
             nav=nav,
-            iono="auto" if klob is not None else "off",  # the same model as the simulator
             max_eph_age_s=args.max_eph_age_s,
         )
     trials = analyse(stream, records, store, iono, cfg, args.noise_m)

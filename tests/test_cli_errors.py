@@ -65,7 +65,7 @@ def _toml(tmp_path: Path, text: str) -> str:
     [
         ('sauce = "x"\n', ["unknown key 'sauce'"]),
         ('baud = "fast"\n', ["'baud' must be int"]),
-        ("tropo = 1\n", ["'tropo' must be bool"]),
+        ("tropo = 1\n", ["'tropo' must be str"]),
         ("status_interval_s = -1.0\n", ["'status_interval_s'", "-1.0"]),
         ("elmask_deg = nan\n", ["'elmask_deg'", "nan"]),
         ("baud = \n", ["not valid TOML"]),

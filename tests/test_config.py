@@ -5,6 +5,7 @@ import argparse
 import pytest
 
 from service.config import DaemonConfig, add_config_flags, load_config, overrides_from_args
+from service.engine import SolverConfig
 from service.errors import ConfigError
 
 
@@ -23,7 +24,7 @@ def test_file_values_and_flag_overrides(tmp_path):
     p = _write(
         tmp_path,
         'source = "/dev/ttyACM0"\nbaud = 38400\nnav = ["a.nav", "b.nav"]\n'
-        "elmask_deg = 5\ntropo = false\n",
+        'elmask_deg = 5\ntropo = "off"\n',
     )
     parser = argparse.ArgumentParser()
     add_config_flags(parser)
@@ -33,9 +34,8 @@ def test_file_values_and_flag_overrides(tmp_path):
         source="/dev/ttyACM0",
         baud=9600,
         nav=("a.nav", "b.nav"),
-        elmask_deg=5.0,
-        tropo=False,
         talker="GB",
+        solver=SolverConfig(elmask_deg=5.0, tropo="off"),
     )
 
 
@@ -44,7 +44,10 @@ def test_file_values_and_flag_overrides(tmp_path):
     [
         ("sauce = 1\n", "unknown key 'sauce'"),
         ('baud = "fast"\n', "key 'baud' must be int"),
-        ("tropo = 1\n", "key 'tropo' must be bool"),
+        ("tropo = true\n", "key 'tropo' must be str"),
+        ('tropo = "on"\n', "key 'tropo' must be one of saastamoinen, off"),
+        ("p_fa = 0.7\n", "key 'p_fa' must be in [0, 0.5]"),
+        ("max_exclusions = -1\n", "key 'max_exclusions' must be in [0, 10]"),
         ('talker = "XX"\n', "key 'talker' must be one of"),
         ("baud = \n", "not valid TOML"),
         ("nav = [1]\n", "key 'nav' must be a list of strings"),

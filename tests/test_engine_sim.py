@@ -27,7 +27,7 @@ from tests._independent import DATA, eph_from_georinex, georinex_bds_ephemerides
 WEEK, TOW = 2161, 4 * 86400 + 3 * 3600 + 36 * 60 + 18.0  # 2021-06-10 03:36:18 GPST
 # the paper's settings: no corrections, equal weights, no PDOP gate (Table 2 has none)
 CFG = SolverConfig(
-    elmask_deg=0.0, beta=3000.0, iono="off", tropo=False, weighted=False, pdop_max=math.inf
+    elmask_deg=0.0, beta=3000.0, iono="off", tropo="off", weighted=False, pdop_max=math.inf
 )
 
 

@@ -25,7 +25,7 @@ from service.types import MeasurementEpoch
 
 # the paper's settings: no corrections, equal weights, no PDOP gate (Table 2 has none)
 CFG = SolverConfig(
-    elmask_deg=0.0, beta=3000.0, iono="off", tropo=False, weighted=False, pdop_max=math.inf
+    elmask_deg=0.0, beta=3000.0, iono="off", tropo="off", weighted=False, pdop_max=math.inf
 )
 WORST_OFFSET_S = 12_600.0  # 2015-05-19 07:30 UTC: ~76 % of the >=4-GEO area usable
 MARGIN = 0.02  # points within 2 % of beta are not classed (GDOP moves with the iterate)
