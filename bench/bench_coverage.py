@@ -21,9 +21,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service.constellation import positions_ecef, table1
-from service.coverage import CoverageConfig, run_coverage
-from service.geometry import geodetic_to_ecef
+from service.core.geometry import geodetic_to_ecef
+from service.sim.constellation import positions_ecef, table1
+from service.studies.coverage import CoverageConfig, run_coverage
 
 
 def baseline_counts(sats: np.ndarray, cfg: CoverageConfig) -> tuple[np.ndarray, np.ndarray]:

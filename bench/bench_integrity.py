@@ -1,6 +1,6 @@
 """Integrity Monte Carlo: single and dual range faults of 10 m to 150 km on simulated epochs.
 
-Each trial is one epoch of the virtual receiver (:class:`service.simulator.Simulator`, real
+Each trial is one epoch of the virtual receiver (:class:`service.sim.simulator.Simulator`, real
 2021 broadcast ephemerides of ../shared/data/hksc-2021, Klobuchar + Saastamoinen + 1.3 m
 noise) at one of five places in the >= 4-GEO area (Beijing, Hong Kong, Singapore, Sydney,
 Tokyo), a random time of the nav file's six hours and a random receiver clock offset.
@@ -43,13 +43,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.constants import C_M_S, is_geo  # noqa: E402
-from service.engine import IonoSet, SolverConfig, solve  # noqa: E402
-from service.ephemeris import EphemerisStore  # noqa: E402
-from service.geometry import ecef_to_geodetic, enu_rotation  # noqa: E402
-from service.simulator import SimConfig, Simulator  # noqa: E402
-from service.timebase import bdt_to_gpst  # noqa: E402
-from service.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch  # noqa: E402
+from service.core.constants import C_M_S, is_geo  # noqa: E402
+from service.core.ephemeris import EphemerisStore  # noqa: E402
+from service.core.geometry import ecef_to_geodetic, enu_rotation  # noqa: E402
+from service.core.timebase import bdt_to_gpst  # noqa: E402
+from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch  # noqa: E402
+from service.engine.solver import IonoSet, SolverConfig, solve  # noqa: E402
+from service.sim.simulator import SimConfig, Simulator  # noqa: E402
 
 NAV = ROOT.parent / "shared" / "data" / "hksc-2021" / "hksc1610.nav"
 CT_M = C_M_S * 1e-3
@@ -293,7 +293,7 @@ def hksc_restarts(instants_s: list[float], jobs: int = 2) -> list[tuple[float, i
         seed, t_s = item
         res = subprocess.run(
             [
-                sys.executable, "-m", "service.cli", "replay", str(hk / "hksc1610.obs"),
+                sys.executable, "-m", "service", "replay", str(hk / "hksc1610.obs"),
                 "--nav", str(NAV), "--restart-at", str(t_s), "--seed", str(seed),
                 "--max-speed", "--nmea-out", "/dev/null",
             ],

@@ -29,10 +29,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.ephemeris import EphemerisStore  # noqa: E402
-from service.keplerian import table1_ephemerides  # noqa: E402
-from service.scenario import scenario_config  # noqa: E402
-from service.simulator import Simulator  # noqa: E402
+from service.core.ephemeris import EphemerisStore  # noqa: E402
+from service.sim.keplerian import table1_ephemerides  # noqa: E402
+from service.sim.scenario import scenario_config  # noqa: E402
+from service.sim.simulator import Simulator  # noqa: E402
 
 GOAL_P99_MS = 5.0
 
@@ -55,7 +55,7 @@ def one_run(epochs: list[bytes]) -> tuple[np.ndarray, list[bytes]] | None:
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "service",
             "run",
             "--source",
             os.ttyname(slave),

@@ -39,10 +39,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-from service.ephemeris import EphemerisStore  # noqa: E402
-from service.keplerian import table1_ephemerides  # noqa: E402
+from service.core.ephemeris import EphemerisStore  # noqa: E402
+from service.sim.keplerian import table1_ephemerides  # noqa: E402
 
-BDSFIX = [sys.executable, "-m", "service.cli"]
+BDSFIX = [sys.executable, "-m", "service"]
 RATE_HZ = 20.0
 
 

@@ -17,8 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from drivers.rinex import RinexObsReader  # noqa: E402
-from service.batch import load_navigation  # noqa: E402
-from service.engine import fractionalize, solve  # noqa: E402
+from service.commands.solve import load_navigation  # noqa: E402
+from service.engine.solver import fractionalize, solve  # noqa: E402
 
 HKSC = ROOT.parent / "shared" / "data" / "hksc-2021"
 
@@ -48,8 +48,8 @@ def fde_cost(repeats: int = 3) -> None:
     excluded in turn), and clean with the test and exclusion off."""
     from dataclasses import replace
 
-    from service.constants import C_M_S, is_geo
-    from service.engine import SolverConfig
+    from service.core.constants import C_M_S, is_geo
+    from service.engine.solver import SolverConfig
 
     store, iono = load_navigation([str(HKSC / "hksc1610.nav")])
     epochs = list(RinexObsReader(HKSC / "hksc1610.obs"))
@@ -90,7 +90,7 @@ def throughput() -> None:
     cmd = [
         sys.executable,
         "-m",
-        "service.cli",
+        "service",
         "solve",
         str(HKSC / "hksc1610.obs"),
         str(HKSC / "hksc1610.nav"),

@@ -21,9 +21,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from drivers.rinex import RinexObsReader  # noqa: E402
-from service.batch import load_navigation  # noqa: E402
-from service.engine import SolverConfig, fractionalize, solve  # noqa: E402
-from service.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef  # noqa: E402
+from service.commands.solve import load_navigation  # noqa: E402
+from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef  # noqa: E402
+from service.engine.solver import SolverConfig, fractionalize, solve  # noqa: E402
 
 TST = ROOT.parent / "shared" / "data" / "hk-tst-urban-2019"
 

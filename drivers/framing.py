@@ -27,8 +27,8 @@ from typing import Literal
 
 import numpy as np
 
-from service.timebase import diff_s, normalize
-from service.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.timebase import diff_s, normalize
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
 
 log = logging.getLogger(__name__)
 

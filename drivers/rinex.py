@@ -17,7 +17,7 @@ Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RT
 - Satellite numbers (section 3.5): ``snn``; writers that print ``C 1`` are read as ``C01``.
 - ``TIME OF FIRST OBS`` time system (section 3.1): GPS, GLO, GAL, QZS, BDT or IRN; the
   default follows the file's satellite system. BDT epochs become GPST by +14 s
-  (BDS-SIS-ICD-B1I-3.0 section 4.2 via :mod:`service.timebase`); GLO (UTC(SU) + 3 h)
+  (BDS-SIS-ICD-B1I-3.0 section 4.2 via :mod:`service.core.timebase`); GLO (UTC(SU) + 3 h)
   via the leap-second table.
 - Observation data records (Appendix, "GNSS observation data file - data record
   description"; event flags, section 5.3.x of 3.05 / "Event flag records"): an epoch line
@@ -34,7 +34,7 @@ Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RT
 - ``IONOSPHERIC CORR`` (A4,1X,4D12.4): ``BDSA``/``BDSB`` and ``GPSA``/``GPSB``;
   ``LEAP SECONDS`` (4I6,A3; identifier ``BDS`` or blank).
 
-A malformed file raises :class:`~service.errors.FramingError` whose message starts with
+A malformed file raises :class:`~service.core.errors.FramingError` whose message starts with
 ``<file>:<1-based line>:``. A *lenient* observation reader (``RinexObsReader(path,
 lenient=True)``, used by stream replay) raises only for a malformed header; in the data
 section it logs the same message, counts what it drops and resynchronises at the next epoch
@@ -62,14 +62,14 @@ from typing import IO, Literal
 
 import numpy as np
 
-from service.errors import FramingError
-from service.timebase import (
+from service.core.errors import FramingError
+from service.core.timebase import (
     BDT_GPS_WEEK_OFFSET,
     BDT_GPST_OFFSET_S,
     bdt_to_gpst,
     gpst_from_utc,
 )
-from service.types import Ephemeris, KlobucharParams, MeasurementEpoch
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -313,10 +313,10 @@ class RinexObsReader:
     """The BDS B1I measurements of a RINEX 3 observation file, epoch by epoch.
 
     The header is read on construction (:attr:`header`); iterating streams the data
-    section, one :class:`~service.types.MeasurementEpoch` per observation epoch (flags 0
+    section, one :class:`~service.core.types.MeasurementEpoch` per observation epoch (flags 0
     and 1), with the BDS satellites that carry a non-zero B1I pseudorange. Epochs without
     any are yielded empty. Times are GPST. :attr:`counters` counts what was read and
-    skipped; a malformed record raises :class:`~service.errors.FramingError`, or with
+    skipped; a malformed record raises :class:`~service.core.errors.FramingError`, or with
     ``lenient`` is logged (``file:line``), counted and skipped (see the module docstring).
     A malformed header raises in both modes.
     """
@@ -604,7 +604,7 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
 
     A blank required field or a non-finite integer field is a FramingError. A float field
     that reads as NaN or infinity (``NaN``, an exponent past the double range) is passed on
-    as it is: judging values is the store's job (service.ephemeris.ephemeris_problem), and
+    as it is: judging values is the store's job (service.core.ephemeris.ephemeris_problem), and
     it refuses that one set while the rest of the file stays usable.
     """
     first = rec[0]

@@ -15,7 +15,7 @@ BDS-SIS-ICD-B1I-3.0.
   comes from a :class:`~drivers.framing.WeekContext` shared with the other mappers of the
   stream: a constructor hint, the latest exact week (UBX RXM-RAWX / NAV-TIMEGPS) or the week
   of the latest 1042 toe, and the time of week is put in the week nearest that reference.
-- 1042 becomes an :class:`~service.types.Ephemeris` (``source="rtcm"``). pyrtcm applies the
+- 1042 becomes an :class:`~service.core.types.Ephemeris` (``source="rtcm"``). pyrtcm applies the
   scale factors (toe/toc in s, angles in semicircles, TGD in ns); angles and rates are turned
   into radians with the ICD's pi = 3.1415926535898 (ICD 5.2.4.9).
 
@@ -36,10 +36,10 @@ import numpy as np
 from pyrtcm import RTCMReader
 
 from drivers.framing import Counters, Event, WeekContext
-from service.bds_nav import URA_M
-from service.constants import C_M_S, F_B1I_HZ, WEEK_S, prn_id
-from service.timebase import BDT_GPS_WEEK_OFFSET, BDT_GPST_OFFSET_S, diff_s, normalize
-from service.types import Ephemeris, MeasurementEpoch
+from service.core.bds_nav import URA_M
+from service.core.constants import C_M_S, F_B1I_HZ, WEEK_S, prn_id
+from service.core.timebase import BDT_GPS_WEEK_OFFSET, BDT_GPST_OFFSET_S, diff_s, normalize
+from service.core.types import Ephemeris, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +172,7 @@ def ephemeris_from_1042(msg: Any) -> Ephemeris:
     """Map a pyrtcm 1042 message to :class:`Ephemeris` (BDT week and seconds of week).
 
     DF490 (URAI) becomes the upper bound of its URA interval, URAI 15 (> 6144 m) infinity,
-    as for decoded subframes (:data:`service.bds_nav.URA_M`), so that the store refuses it.
+    as for decoded subframes (:data:`service.core.bds_nav.URA_M`), so that the store refuses it.
     """
     values: dict[str, Any] = {}
     for name, df, factor in EPH_1042_FIELDS:

@@ -1,4 +1,4 @@
-"""u-blox RXM-SFRBX (BDS B1I D1/D2) to :class:`~service.types.NavSubframe`.
+"""u-blox RXM-SFRBX (BDS B1I D1/D2) to :class:`~service.core.types.NavSubframe`.
 
 u-blox delivers a BDS D1/D2 subframe as 10 dwords, one 30-bit word each in bits 29-0 (bits
 31-30 are padding), in the ICD bit numbering: de-interleaved, parity included, information
@@ -18,10 +18,10 @@ from __future__ import annotations
 import logging
 from typing import Any, Literal
 
-from service.bds_nav import parse_header
-from service.constants import is_geo, prn_id
-from service.errors import DecodeError
-from service.types import NavSubframe
+from service.core.bds_nav import parse_header
+from service.core.constants import is_geo, prn_id
+from service.core.errors import DecodeError
+from service.core.types import NavSubframe
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +35,7 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
     """The subframe of a BDS B1I RXM-SFRBX, time-tagged with the receive time (GPST).
 
     None for other GNSS or signals, a word count other than 10, or a subframe that fails
-    the preamble/header checks (:func:`service.bds_nav.parse_header`).
+    the preamble/header checks (:func:`service.core.bds_nav.parse_header`).
     """
     if int(msg.gnssId) != GNSS_BDS or int(msg.numWords) != 10:
         return None

@@ -37,8 +37,8 @@ from drivers.transport import (
 )
 from drivers.ubx import USED_MESSAGES as UBX_USED
 from drivers.ubx import UbxMapper, parse_rxm
-from service.errors import ConfigError, DecodeError
-from service.timebase import gpst_from_utc
+from service.core.errors import ConfigError, DecodeError
+from service.core.timebase import gpst_from_utc
 
 log = logging.getLogger(__name__)
 

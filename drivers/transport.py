@@ -29,9 +29,9 @@ from typing import IO, Any, Protocol, TypeVar
 import serial
 
 from drivers.framing import Counters
-from service.errors import ConfigError, InputError
-from service.timebase import diff_s
-from service.types import MeasurementEpoch
+from service.core.errors import ConfigError, InputError
+from service.core.timebase import diff_s
+from service.core.types import MeasurementEpoch
 
 log = logging.getLogger(__name__)
 

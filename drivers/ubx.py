@@ -51,11 +51,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.framing import Counters, Event, WeekContext, fletcher8
+from drivers.framing import Counters, Event, WeekContext
 from drivers.sfrbx import nav_subframe_from_sfrbx
-from service.constants import C_M_S, WEEK_S, prn_id
-from service.timebase import diff_s, gpst_from_utc
-from service.types import MeasurementEpoch
+from service.core.constants import C_M_S, WEEK_S, prn_id
+from service.core.timebase import diff_s, gpst_from_utc
+from service.core.types import MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -291,84 +291,6 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
         for v in layout.block.iter_unpack(payload[layout.head.size :])
     ]
     return RxmMessage(layout.identity, fields, blocks)
-
-
-def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
-    """A complete UBX frame: sync chars, class, id, length, payload, Fletcher checksum."""
-    body = bytes((msg_class, msg_id)) + struct.pack("<H", len(payload)) + payload
-    return b"\xb5\x62" + body + fletcher8(body)
-
-
-@dataclass(frozen=True, slots=True)
-class RawxMeas:
-    """One RXM-RAWX block as the virtual receiver writes it."""
-
-    pr_m: float
-    gnss_id: int
-    sv_id: int
-    sig_id: int
-    locktime_ms: int
-    cn0_dbhz: int
-    pr_std_index: int
-    pr_valid: bool
-
-
-def rawx_frame(rcv_tow_s: float, week: int, leap_s: int, meas: list[RawxMeas]) -> bytes:
-    """Encode RXM-RAWX (version 1, leap seconds known)."""
-    parts = [_RAWX_HEAD.pack(rcv_tow_s, week, leap_s, len(meas), 1, 1)]
-    for m in meas:
-        parts.append(
-            _RAWX_MEAS.pack(
-                m.pr_m if m.pr_valid else 0.0,
-                0.0,
-                0.0,
-                m.gnss_id,
-                m.sv_id,
-                m.sig_id,
-                0,
-                m.locktime_ms,
-                m.cn0_dbhz,
-                m.pr_std_index & 0x0F,
-                0,
-                0,
-                int(m.pr_valid),
-            )
-        )
-    return ubx_frame(_UBX_CLASS_RXM, _ID_RAWX, b"".join(parts))
-
-
-@dataclass(frozen=True, slots=True)
-class MeasxSv:
-    """One RXM-MEASX block as the virtual receiver writes it (code phase in 2^-21 ms)."""
-
-    gnss_id: int
-    sv_id: int
-    cn0_dbhz: int
-    whole_chips: int
-    code_phase_units: int
-    int_code_phase_ms: int = 0
-
-
-def measx_frame(gps_tow_ms: int, bds_tow_ms: int, svs: list[MeasxSv]) -> bytes:
-    """Encode RXM-MEASX (version 1; TOW accuracies 0; towSet 2 = TOW known)."""
-    parts = [_MEASX_HEAD.pack(1, gps_tow_ms, 0, bds_tow_ms, 0, 0, 0, 0, 0, len(svs), 2)]
-    for sv in svs:
-        parts.append(
-            _MEASX_SV.pack(
-                sv.gnss_id,
-                sv.sv_id,
-                sv.cn0_dbhz,
-                0,
-                0,
-                0,
-                sv.whole_chips,
-                0,
-                sv.code_phase_units,
-                sv.int_code_phase_ms,
-                0,
-            )
-        )
-    return ubx_frame(_UBX_CLASS_RXM, _ID_MEASX, b"".join(parts))
 
 
 class UbxMapper:

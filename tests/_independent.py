@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.types import Ephemeris
+from service.core.types import Ephemeris
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HKSC_TRUTH_ECEF_M = np.array([-2414266.9197, 5386768.9868, 2407460.0314])

@@ -11,17 +11,17 @@ What each target allows to escape (anything else is a crash that libFuzzer repor
   (:class:`drivers.framing.Framer`, :class:`drivers.source.StreamDecoder`): nothing.
 - ``ubx``: the input as class, id and payload of a UBX frame (UBX frame structure; length
   and Fletcher checksum added by pyubx2's helper), parsed by pyubx2 and mapped by
-  :class:`drivers.ubx.UbxMapper`: :class:`~service.errors.DecodeError` from the mapper;
+  :class:`drivers.ubx.UbxMapper`: :class:`~service.core.errors.DecodeError` from the mapper;
   through :class:`~drivers.source.StreamDecoder`: nothing.
 - ``rtcm``: the input as an RTCM3 payload (RTCM 10403.3 section 4, CRC-24Q by pyrtcm's
   helper), parsed by pyrtcm and mapped by :class:`drivers.rtcm.RtcmMapper`: DecodeError;
   through StreamDecoder: nothing.
 - ``sfrbx``: the input as ten 32-bit dwords of a BDS B1I subframe (BDS-SIS-ICD-B1I-3.0
-  5.1.3 words, u-blox RXM-SFRBX layout): :func:`service.bds_nav.parse_header` DecodeError,
-  :class:`service.bds_nav.EphemerisAssembler` and :func:`drivers.sfrbx.nav_subframe_from_sfrbx`
+  5.1.3 words, u-blox RXM-SFRBX layout): :func:`service.core.bds_nav.parse_header` DecodeError,
+  :class:`service.core.bds_nav.EphemerisAssembler` and :func:`drivers.sfrbx.nav_subframe_from_sfrbx`
   nothing.
 - ``rinex_obs``, ``rinex_nav``: the input as a RINEX 3 file (:mod:`drivers.rinex`):
-  :class:`~service.errors.FramingError`; the lenient observation reader raises it only
+  :class:`~service.core.errors.FramingError`; the lenient observation reader raises it only
   for the header.
 """
 
@@ -50,8 +50,8 @@ with atheris.instrument_imports(include=["drivers", "service"]):
     from drivers.sfrbx import nav_subframe_from_sfrbx
     from drivers.source import StreamDecoder
     from drivers.ubx import UbxMapper
-    from service.bds_nav import EphemerisAssembler, parse_header
-    from service.errors import DecodeError, FramingError
+    from service.core.bds_nav import EphemerisAssembler, parse_header
+    from service.core.errors import DecodeError, FramingError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CAPTURES = (

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from drivers.framing import Framer, fletcher8
-from service.geometry import ecef_to_geodetic
+from service.core.geometry import ecef_to_geodetic
 from tests._independent import DATA
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,7 +93,7 @@ def _check_run(cmd: list[str], jsonl: Path) -> tuple[str, list[dict]]:
 
 
 def _commands(tmp_path: Path, capture: Path, nav: Path) -> dict[str, tuple[list[str], Path]]:
-    py = [sys.executable, "-m", "service.cli"]
+    py = [sys.executable, "-m", "service"]
     rj, dj = tmp_path / "replay.jsonl", tmp_path / "run.jsonl"
     replay = [*py, "replay", str(capture), "--nav", str(nav), "--max-speed"]
     replay += ["--jsonl-out", str(rj), "--nmea-out", "/dev/null"]

@@ -1,4 +1,4 @@
-"""B1I navigation codec (service.bds_nav) and the RXM-SFRBX mapping (drivers.sfrbx).
+"""B1I navigation codec (service.core.bds_nav) and the RXM-SFRBX mapping (drivers.sfrbx).
 
 Expected values never come from the code under test:
 - BCH parity from a GF(2) polynomial division written here, from the ICD's g(x) = x^4 + x + 1;
@@ -28,8 +28,8 @@ from pygnssutils.rawnav_reader import RawNavReader
 
 from drivers.sfrbx import nav_subframe_from_sfrbx
 from service import bds_nav as bn
-from service.errors import DecodeError, EphemerisError
-from service.types import Ephemeris, KlobucharParams
+from service.core.errors import DecodeError, EphemerisError
+from service.core.types import Ephemeris, KlobucharParams
 from tests._independent import DATA
 
 POLYU_UBX = DATA / "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx"

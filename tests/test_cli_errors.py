@@ -1,5 +1,5 @@
 """Bad configuration and arguments through the real ``bdsfix`` console script: each gives
-exactly one line on stderr (default verbosity), the documented exit code (service/errors.py,
+exactly one line on stderr (default verbosity), the documented exit code (service/core/errors.py,
 README "Exit codes") and never a traceback. Ports in use are held by real sockets."""
 
 from __future__ import annotations

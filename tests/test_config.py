@@ -4,9 +4,9 @@ import argparse
 
 import pytest
 
-from service.config import DaemonConfig, add_config_flags, load_config, overrides_from_args
-from service.engine import SolverConfig
-from service.errors import ConfigError
+from service.core.errors import ConfigError
+from service.daemon.config import DaemonConfig, add_config_flags, load_config, overrides_from_args
+from service.engine.solver import SolverConfig
 
 
 def _write(tmp_path, text):

@@ -155,7 +155,15 @@ def replay(path: Path, extra: list[str], workdir: Path) -> Run:
     sub.setsockopt(zmq.SUBSCRIBE, b"STATUS")
     sub.connect(endpoint)
     try:
-        cmd = [sys.executable, "-m", "service.cli", "replay", str(path), *extra, "--max-speed"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "service",
+            "replay",
+            str(path),
+            *extra,
+            "--max-speed",
+        ]
         cmd += ["--jsonl-out", str(out), "--zmq", endpoint, "--status-interval-s", "0.2"]
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
         status = None
@@ -377,7 +385,7 @@ def test_rinex_cut_tail_loses_only_the_cut_epoch(runs):
 def test_solve_keeps_its_error_on_a_broken_epoch(runs, tmp_path):
     damaged, _ = runs["hksc-broken-epochs"]
     proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", "solve", str(damaged.path), str(HKSC_NAV)],
+        [sys.executable, "-m", "service", "solve", str(damaged.path), str(HKSC_NAV)],
         cwd=REPO,
         capture_output=True,
         text=True,

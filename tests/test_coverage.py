@@ -17,17 +17,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.cli import main
-from service.constants import GM_M3_S2
-from service.constellation import gmst_rad, positions_ecef, positions_eci, table1
-from service.coverage import (
+from service.commands.cli import main
+from service.core.constants import GM_M3_S2
+from service.core.geometry import ecef_to_geodetic, geodetic_to_ecef, look_angles
+from service.sim.constellation import gmst_rad, positions_ecef, positions_eci, table1
+from service.studies.coverage import (
     CoverageConfig,
     geo_gdop,
     nav_geo_positions,
     run_coverage,
     trace_inverse_normal,
 )
-from service.geometry import ecef_to_geodetic, geodetic_to_ecef, look_angles
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -158,10 +158,10 @@ def test_two_body_invariants():
 
 
 def test_direct_propagation_matches_the_broadcast_form():
-    """service.keplerian's ICD-form ephemerides (GEO frame re-expressed) give the same orbits;
+    """service.sim.keplerian's ICD-form ephemerides (GEO frame re-expressed) give the same orbits;
     they rotate the Earth at the CGCS2000 rate, GMST at 7.2921158553e-5 rad/s."""
-    from service.keplerian import table1_ephemerides
-    from service.orbit import EphemerisArrays, sat_pos_clock
+    from service.core.orbit import EphemerisArrays, sat_pos_clock
+    from service.sim.keplerian import table1_ephemerides
 
     ephs = table1_ephemerides(0.0)
     arr = EphemerisArrays.from_ephemerides(ephs)

@@ -18,8 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from service.daemon import load_store
-from service.ephemeris import EphemerisStore
+from service.commands.run import load_store
+from service.core.ephemeris import EphemerisStore
 from tests._independent import DATA
 
 NAV = DATA / "hksc-2021" / "hksc1610.nav"
@@ -96,7 +96,7 @@ def _daemon(state: Path, tty: str) -> subprocess.Popen[str]:
 
 
 def test_sigkill_of_the_daemon_while_it_saves_then_warm_start(tmp_path):
-    from service.keplerian import table1_ephemerides
+    from service.sim.keplerian import table1_ephemerides
 
     state = tmp_path / "state"
     seed = EphemerisStore()

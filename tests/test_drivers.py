@@ -32,8 +32,8 @@ from drivers.framing import Counters, Framer, WeekContext, crc24q, fletcher8
 from drivers.rtcm import msm_lock_time_s
 from drivers.source import BinarySource, StreamDecoder, is_rinex, open_source
 from drivers.transport import FileTransport, SerialTransport, TcpClientTransport, pace
-from service.errors import ConfigError
-from service.types import Ephemeris, MeasurementEpoch, NavSubframe
+from service.core.errors import ConfigError
+from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 C = 299_792_458.0

@@ -1,6 +1,6 @@
 """The fast fix on physically simulated measurements (real 2021 broadcast ephemerides).
 
-Measurements come from service.rangegen (light time, Sagnac, satellite clock, noise) at a
+Measurements come from service.sim.rangegen (light time, Sagnac, satellite clock, noise) at a
 known position; the checks are that the fast fix recovers the true integers, equals the SPP
 of the same full pseudoranges, and declines rather than returning anything wrong.
 """
@@ -14,14 +14,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.constants import C_M_S, is_geo
-from service.engine import SolverConfig, fractionalize, solve
-from service.ephemeris import EphemerisStore
-from service.geometry import geodetic_to_ecef
-from service.orbit import EphemerisArrays
-from service.rangegen import true_ranges
-from service.timebase import gpst_to_bdt
-from service.types import MeasurementEpoch
+from service.core.constants import C_M_S, is_geo
+from service.core.ephemeris import EphemerisStore
+from service.core.geometry import geodetic_to_ecef
+from service.core.orbit import EphemerisArrays
+from service.core.timebase import gpst_to_bdt
+from service.core.types import MeasurementEpoch
+from service.engine.solver import SolverConfig, fractionalize, solve
+from service.sim.rangegen import true_ranges
 from tests._independent import DATA, eph_from_georinex, georinex_bds_ephemerides
 
 WEEK, TOW = 2161, 4 * 86400 + 3 * 3600 + 36 * 60 + 18.0  # 2021-06-10 03:36:18 GPST

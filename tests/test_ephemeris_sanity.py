@@ -31,10 +31,10 @@ from pyrtcm import RTCMReader
 
 from drivers.rinex import read_nav
 from drivers.rtcm import ephemeris_from_1042
-from service.bds_nav import encode_d1_subframes
-from service.ephemeris import EphemerisStore, ephemeris_problem
-from service.pipeline import Pipeline
-from service.types import Ephemeris, NavSubframe
+from service.core.bds_nav import encode_d1_subframes
+from service.core.ephemeris import EphemerisStore, ephemeris_problem
+from service.core.types import Ephemeris, NavSubframe
+from service.engine.pipeline import Pipeline
 from tests._independent import DATA
 
 REAL_NAV = (
@@ -128,7 +128,7 @@ def test_rtcm_1042_urai_15_is_refused(urai, ura_m, check):
         ({"i0_rad": math.radians(70.5)}, "inclination"),
         ({"i0_rad": -0.01}, "inclination"),
         ({"health": 1}, "unhealthy"),
-        ({"ura_m": math.inf}, "ura"),  # URAI 15 as service.bds_nav decodes it
+        ({"ura_m": math.inf}, "ura"),  # URAI 15 as service.core.bds_nav decodes it
         ({"ura_m": 6145.0}, "ura"),
         ({"ura_m": math.nan}, "ura"),
         ({"ura_m": -1.0}, "ura"),
@@ -207,7 +207,7 @@ def test_refusal_log_is_one_line_per_satellite_and_check_rate_limited(c08, c01, 
     now = [1000.0]
     store = EphemerisStore(clock=lambda: now[0])
     bad08 = dataclasses.replace(c08, sqrt_a_sqrt_m=0.0)
-    with caplog.at_level(logging.INFO, logger="service.ephemeris"):
+    with caplog.at_level(logging.INFO, logger="service.core.ephemeris"):
         for t in (1000.0, 1010.0, 1059.0):
             now[0] = t
             assert not store.add(bad08)
@@ -290,7 +290,7 @@ def test_persisted_store_with_a_nan_set_keeps_the_rest(nav, tmp_path, caplog):
     for i in hit:
         doc["ephemerides"][i]["sqrt_a_sqrt_m"] = math.nan  # json writes NaN, and reads it
     path.write_text(json.dumps(doc))
-    with caplog.at_level(logging.WARNING, logger="service.ephemeris"):
+    with caplog.at_level(logging.WARNING, logger="service.core.ephemeris"):
         back = EphemerisStore.load(path)
     assert len(back) == len(store) - len(hit) and "C08" not in back.prns
     assert back.refused_by_reason == {"not_finite": len(hit)}
@@ -311,7 +311,7 @@ HKSC_NAV = DATA / "hksc-2021/hksc1610.nav"
 DAMAGED_PRN = "C08"
 N_EPOCHS = 205  # DATA/README.md: 205 epochs, 1 Hz
 FIELD_COLUMNS = {"e": slice(4 + 19, 4 + 2 * 19), "sqrt_a": slice(4 + 3 * 19, 4 + 4 * 19)}
-LOG_LINE = re.compile(r"^(DEBUG|INFO|WARNING|ERROR|CRITICAL) [\w.]+: ")  # service/cli.py
+LOG_LINE = re.compile(r"^(DEBUG|INFO|WARNING|ERROR|CRITICAL) [\w.]+: ")  # service/commands/cli.py
 DAMAGE = {
     # case: (field, D19.12 text, what the warning says)
     "sqrt_a-zero": ("sqrt_a", " .000000000000D+00", "sqrtA 0 sqrt(m) outside [5000, 6700]"),
@@ -352,7 +352,7 @@ def _damaged_nav(out: Path, prns: set[str], field: str, text: str) -> tuple[Path
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.run(
-        [sys.executable, "-m", "service.cli", *args],
+        [sys.executable, "-m", "service", *args],
         cwd=REPO,
         env=env,
         capture_output=True,
@@ -417,7 +417,7 @@ def test_solve_refuses_the_damaged_satellite_and_fixes_every_epoch(case, clean, 
     # stderr: one log line, and otherwise only the summary the clean run prints too
     logs, other = _stderr_lines(run.stderr)
     assert len(logs) == 1, run.stderr
-    assert logs[0].startswith(f"WARNING service.ephemeris: refused ephemeris {DAMAGED_PRN} ")
+    assert logs[0].startswith(f"WARNING service.core.ephemeris: refused ephemeris {DAMAGED_PRN} ")
     assert why in logs[0]
     assert other == clean_other
     assert "Warning" not in run.stderr and "Traceback" not in run.stderr
@@ -481,7 +481,7 @@ def test_replay_refuses_the_damaged_satellite_and_fixes_every_epoch(case, clean_
     assert all(fixes[k]["n_full"] == clean_fixes[k]["n_full"] - 1 for k in fixes)
     logs, other = _stderr_lines(run.stderr)
     assert len(logs) == 1, run.stderr
-    assert logs[0].startswith(f"WARNING service.ephemeris: refused ephemeris {DAMAGED_PRN} ")
+    assert logs[0].startswith(f"WARNING service.core.ephemeris: refused ephemeris {DAMAGED_PRN} ")
     assert why in logs[0]
     assert other == clean_other
     assert "Warning" not in run.stderr and "Traceback" not in run.stderr
@@ -495,9 +495,9 @@ def test_a_nav_file_with_no_usable_set_is_a_clear_error(tmp_path):
     prns = {line[:3] for line in text.splitlines() if line[:1] == "C" and line[1:3].isdigit()}
     nav, _ = _damaged_nav(tmp_path / "all.nav", prns, "sqrt_a", " .000000000000D+00")
     run = _run("solve", str(HKSC_OBS), str(nav), "--mode", "spp")
-    assert run.returncode == 2  # ConfigError (service/errors.py EXIT_USAGE)
+    assert run.returncode == 2  # ConfigError (service/core/errors.py EXIT_USAGE)
     assert run.stdout == ""
     logs, other = _stderr_lines(run.stderr)
     assert sorted(x.split()[4] for x in logs) == sorted(prns)  # one line per satellite
-    assert all(x.startswith("WARNING service.ephemeris: refused ephemeris C") for x in logs)
+    assert all(x.startswith("WARNING service.core.ephemeris: refused ephemeris C") for x in logs)
     assert other == [f"bdsfix solve: error: no usable BDS ephemeris in {nav}"]

@@ -7,8 +7,8 @@ import logging
 import pytest
 
 from drivers.rinex import read_nav
-from service.ephemeris import EphemerisStore
-from service.errors import EphemerisError
+from service.core.ephemeris import EphemerisStore
+from service.core.errors import EphemerisError
 from tests._independent import DATA
 
 
@@ -33,7 +33,7 @@ def test_unhealthy_sets_are_refused_with_a_log_line(nav, caplog):
     store = EphemerisStore()
     good = nav.ephemerides["C08"][0]
     bad = dataclasses.replace(good, health=1, toe_sow_s=good.toe_sow_s + 3600)
-    with caplog.at_level(logging.INFO, logger="service.ephemeris"):
+    with caplog.at_level(logging.INFO, logger="service.core.ephemeris"):
         assert store.add(good) and not store.add(bad)
     assert store.refused == 1 and "unhealthy" in caplog.text
     assert store.select("C08", good.week, bad.toe_sow_s).toe_sow_s == good.toe_sow_s

@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 
 from drivers.rinex import RinexObsReader
-from service.batch import load_navigation
-from service.constants import C_M_S, is_geo
-from service.engine import fractionalize, solve
-from service.geometry import ecef_to_geodetic, enu_rotation
-from service.types import Fix, MeasurementEpoch
+from service.commands.solve import load_navigation
+from service.core.constants import C_M_S, is_geo
+from service.core.geometry import ecef_to_geodetic, enu_rotation
+from service.core.types import Fix, MeasurementEpoch
+from service.engine.solver import fractionalize, solve
 from tests._independent import DATA, HKSC_TRUTH_ECEF_M
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -173,7 +173,7 @@ def test_a_1ms_fault_on_a_fractional_row_is_caught_at_the_d1_sow(tmp_path):
     _rinex_with_fault(HK / "hksc1610.obs", obs, "C08", MS_M)
     res = subprocess.run(
         [
-            sys.executable, "-m", "service.cli", "replay", str(obs), "--nav",
+            sys.executable, "-m", "service", "replay", str(obs), "--nav",
             str(HK / "hksc1610.nav"), "--restart-at", "60", "--max-speed", "--nmea-out",
             "/dev/null",
         ],

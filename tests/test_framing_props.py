@@ -20,7 +20,7 @@ from pyubx2.ubxhelpers import calc_checksum
 
 from drivers.framing import DEFAULT_MAX_UBX_PAYLOAD, Framer
 from drivers.source import StreamDecoder
-from service.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TINY = DATA / "tiny-ubx-rtcm"

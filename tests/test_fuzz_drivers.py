@@ -7,12 +7,12 @@ The driver boundary and what may cross it:
 - :class:`drivers.framing.Framer`: nothing; every frame it returns is checksum-valid by the
   libraries' own helpers (pyubx2 Fletcher, pyrtcm CRC-24Q).
 - The mappers (:class:`drivers.ubx.UbxMapper`, :class:`drivers.rtcm.RtcmMapper`) given a
-  message the library *did* parse: at most :class:`~service.errors.DecodeError`.
+  message the library *did* parse: at most :class:`~service.core.errors.DecodeError`.
 - RINEX (:class:`drivers.rinex.RinexObsReader`, :func:`drivers.rinex.read_nav`): at most
-  :class:`~service.errors.FramingError`; in lenient mode the observation data section
+  :class:`~service.core.errors.FramingError`; in lenient mode the observation data section
   raises nothing.
 - B1I subframes (:func:`drivers.sfrbx.nav_subframe_from_sfrbx`,
-  :func:`service.bds_nav.parse_header`, :class:`service.bds_nav.EphemerisAssembler`):
+  :func:`service.core.bds_nav.parse_header`, :class:`service.core.bds_nav.EphemerisAssembler`):
   None / DecodeError / nothing respectively.
 
 Inputs are random bytes and mutations of real frames from the captures, re-sealed with the
@@ -48,9 +48,9 @@ from drivers.rtcm import RtcmMapper
 from drivers.sfrbx import nav_subframe_from_sfrbx
 from drivers.source import StreamDecoder
 from drivers.ubx import UbxMapper
-from service.bds_nav import EphemerisAssembler, parse_header
-from service.errors import DecodeError, FramingError
-from service.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.bds_nav import EphemerisAssembler, parse_header
+from service.core.errors import DecodeError, FramingError
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
 from tests._independent import DATA
 
 HANG_S = 20.0

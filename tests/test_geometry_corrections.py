@@ -6,10 +6,10 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from service.constants import C_M_S
-from service.corrections import klobuchar_bds_m, saastamoinen_m, sagnac_rotate
-from service.geometry import ecef_to_geodetic, gdop, geodetic_to_ecef, look_angles
-from service.types import KlobucharParams
+from service.core.constants import C_M_S
+from service.core.corrections import klobuchar_bds_m, saastamoinen_m, sagnac_rotate
+from service.core.geometry import ecef_to_geodetic, gdop, geodetic_to_ecef, look_angles
+from service.core.types import KlobucharParams
 
 A, F = 6378137.0, 1 / 298.257222101
 

@@ -25,8 +25,8 @@ import pytest
 import zmq
 
 from bench.bench_integrity import load_nav, pl_ratio, run_trials, wrong_integers
-from service.engine import SolverConfig
-from service.types import Fix
+from service.core.types import Fix
+from service.engine.solver import SolverConfig
 from tests._independent import DATA
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,7 +102,7 @@ def test_hksc_restarts_every_recovered_ambiguity_confirmed_by_d1_sow():
             [
                 sys.executable,
                 "-m",
-                "service.cli",
+                "service",
                 "replay",
                 str(HK / "hksc1610.obs"),
                 "--nav",
@@ -169,7 +169,7 @@ def test_hksc_restart_jsonl_integers_match_the_full_pseudoranges(tmp_path):
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "service",
             "replay",
             str(HK / "hksc1610.obs"),
             "--nav",

@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from service.constants import GM_M3_S2, OMEGA_E_RAD_S
-from service.keplerian import ephemeris_from_kepler, mean_from_true_anomaly
-from service.orbit import EphemerisArrays, sat_pos_clock
+from service.core.constants import GM_M3_S2, OMEGA_E_RAD_S
+from service.core.orbit import EphemerisArrays, sat_pos_clock
+from service.sim.keplerian import ephemeris_from_kepler, mean_from_true_anomaly
 
 
 def _direct_ecef(a, e, inc, raan, argp, m0, gmst0, dt):

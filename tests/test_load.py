@@ -40,7 +40,7 @@ def test_latency_quantiles_in_status_match_numpy_within_a_bin():
     """The STATUS loop-time quantiles (log bins of 5 %) against numpy on the same samples."""
     import numpy as np
 
-    from service.runner import LatencyStats
+    from service.daemon.loop import LatencyStats
 
     rng = np.random.default_rng(4)
     solve_s = rng.lognormal(np.log(5e-3), 0.6, 20_000)

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from pynmeagps import NMEAReader
 
-from service.nmea import sentences_for_fix
-from service.types import SatView
+from service.core.types import SatView
+from service.output.nmea import sentences_for_fix
 from tests.test_records import SKY, declined_fix, ecef_m, hksc_fix
 
 C_M_S = 299_792_458.0

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from service.constants import is_geo
-from service.geometry import ecef_to_geodetic
-from service.orbit import EphemerisArrays, sat_pos_clock
+from service.core.constants import is_geo
+from service.core.geometry import ecef_to_geodetic
+from service.core.orbit import EphemerisArrays, sat_pos_clock
 from tests._independent import DATA, georinex_bds_ephemerides, icd_position
 from tests._independent import eph_from_georinex as _eph
 

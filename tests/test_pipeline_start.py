@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-import service.pipeline as pipeline_mod
+import service.engine.pipeline as pipeline_mod
 from drivers.rinex import RinexObsReader
-from service.batch import load_navigation
-from service.engine import solve
-from service.pipeline import Pipeline
+from service.commands.solve import load_navigation
+from service.engine.pipeline import Pipeline
+from service.engine.solver import solve
 
 HKSC = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hksc-2021"
 

@@ -22,11 +22,11 @@ from types import SimpleNamespace
 import pytest
 import zmq
 
-from service.errors import ConfigError
-from service.nmea import sentences_for_fix
-from service.publish import LineSink, NmeaTcpServer, Publishers, SerialSink, ZmqPublisher
-from service.records import fix_record, status_record, validate
-from service.tracker import TrackEvent
+from service.core.errors import ConfigError
+from service.engine.tracker import TrackEvent
+from service.output.nmea import sentences_for_fix
+from service.output.publish import LineSink, NmeaTcpServer, Publishers, SerialSink, ZmqPublisher
+from service.output.records import fix_record, status_record, validate
 from tests.test_nmea import C_M_S, hand_parse, horiz_err_m, sec_of_day, utc_of_gpst
 from tests.test_records import SKY, declined_fix, ecef_m, hksc_fix
 
@@ -146,7 +146,7 @@ def test_tcp_port_in_use_and_released_on_close():
 
 
 def test_non_loopback_listening_is_warned_about(caplog):
-    with caplog.at_level(logging.WARNING, logger="service.publish"):
+    with caplog.at_level(logging.WARNING, logger="service.output.publish"):
         NmeaTcpServer("127.0.0.1", 0).close()
         pub = ZmqPublisher("tcp://127.0.0.1:*")
         pub.close()
@@ -306,7 +306,7 @@ def test_line_sink_stdout(capsys):
 
 def test_line_sink_counts_write_errors_instead_of_raising(caplog):
     sink = LineSink("/dev/full", append=True)
-    with caplog.at_level(logging.WARNING, logger="service.publish"):
+    with caplog.at_level(logging.WARNING, logger="service.output.publish"):
         for _ in range(3):
             sink.write("x\n")
     sink.close()

@@ -1,4 +1,4 @@
-"""The integrity statistics of service.raim against scipy, and the protection-level algebra
+"""The integrity statistics of service.engine.raim against scipy, and the protection-level algebra
 against a direct computation with numpy's least squares."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from service import raim
+import service.engine.raim as raim
 
 
 @given(a=st.floats(0.5, 60.0), x=st.floats(1e-3, 300.0))
@@ -66,7 +66,7 @@ def _geometry(seed: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_assess_statistic_covariance_and_slopes_are_the_least_squares_ones(seed):
     n = 9
     g, sigma, noise = _geometry(seed, n)
-    # the fit itself by numpy's lstsq on whitened rows, independently of service.raim
+    # the fit itself by numpy's lstsq on whitened rows, independently of service.engine.raim
     gw, yw = g / sigma[:, None], noise / sigma
     x, *_ = np.linalg.lstsq(gw, yw, rcond=None)
     v = noise - g @ x

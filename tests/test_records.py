@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.records import (
+from service.core.types import Fix, SatView
+from service.output.records import (
     CSV_COLUMNS,
     SCHEMAS,
     csv_header,
@@ -25,7 +26,6 @@ from service.records import (
     track_record,
     validate,
 )
-from service.types import Fix, SatView
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 

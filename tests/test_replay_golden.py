@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
+from service.commands.cli import main
 from tests._independent import DATA
 
 GOLDEN = Path(__file__).parent / "golden"

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pyubx2
 
-from service.cli import main
-from service.geometry import geodetic_to_ecef
+from service.commands.cli import main
+from service.core.geometry import geodetic_to_ecef
 from tests._independent import DATA, HKSC_TRUTH_ECEF_M
 
 

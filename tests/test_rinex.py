@@ -26,9 +26,9 @@ import numpy as np
 import pytest
 
 from drivers.rinex import NavData, ObsHeader, RinexObsReader, iter_obs, merge_nav, read_nav
-from service.constants import GEO_PRNS
-from service.errors import FramingError
-from service.types import Ephemeris, MeasurementEpoch
+from service.core.constants import GEO_PRNS
+from service.core.errors import FramingError
+from service.core.types import Ephemeris, MeasurementEpoch
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HKSC_OBS = "hksc-2021/hksc1610.obs"
@@ -481,7 +481,7 @@ def test_damaged_nav_record_names_its_line(tmp_path):
 
 
 def test_non_finite_float_field_is_passed_on_a_blank_one_is_not(tmp_path):
-    """The parser reads numbers; the store judges them (service.ephemeris)."""
+    """The parser reads numbers; the store judges them (service.core.ephemeris)."""
     lines = _lines(BDS_ONLY_NAV[0])
     c = next(k for k, line in enumerate(lines) if line.startswith("C05"))
     sqrt_a = slice(4 + 3 * 19, 4 + 4 * 19)  # BROADCAST ORBIT - 2, fourth field

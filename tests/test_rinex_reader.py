@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from drivers.rinex import RinexObsReader, merge_nav, read_nav
-from service.errors import FramingError
-from service.timebase import gpst_from_datetime
+from service.core.errors import FramingError
+from service.core.timebase import gpst_from_datetime
 from tests._independent import DATA, georinex_bds_ephemerides
 
 OBS_FILES = [

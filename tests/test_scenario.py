@@ -10,12 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from service.engine import solve
-from service.ephemeris import EphemerisStore
-from service.keplerian import table1_ephemerides
-from service.scenario import builtin_scenario, scenario_config
-from service.simulator import Simulator
-from service.types import MeasurementEpoch
+from service.commands.run import decode_chunks
+from service.core.ephemeris import EphemerisStore
+from service.core.types import MeasurementEpoch
+from service.engine.solver import solve
+from service.sim.keplerian import table1_ephemerides
+from service.sim.scenario import builtin_scenario, scenario_config
+from service.sim.simulator import Simulator
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_replay_without_arguments_prints_the_timeline(tmp_path):
     out = tmp_path / "fixes.jsonl"
     proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", "replay", "--jsonl-out", str(out)],
+        [sys.executable, "-m", "service", "replay", "--jsonl-out", str(out)],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -48,8 +49,9 @@ def test_scenario_fast_fixes_equal_spp_of_the_true_full_ranges():
     store = EphemerisStore()
     store.add_all(ephs)
     truth = {round(ep.tag_gpst_tow_s, 6): ep for ep in sim.epochs()}
-    events, store2, iono, _, _ = builtin_scenario(duration_s=12.0)
-    from service.pipeline import Pipeline
+    chunks, week, store2, iono, _, _ = builtin_scenario(duration_s=12.0)
+    events = decode_chunks(chunks, week)
+    from service.engine.pipeline import Pipeline
 
     pipe = Pipeline(store2, iono)
     n_fast = 0

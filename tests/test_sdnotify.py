@@ -2,7 +2,7 @@
 
 import socket
 
-from service.sdnotify import Notifier
+from service.daemon.sdnotify import Notifier
 
 
 def test_ready_and_watchdog_reach_the_socket(tmp_path):

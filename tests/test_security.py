@@ -20,15 +20,15 @@ import pytest
 import zmq
 import zmq.auth
 
-from service.ephemeris import EphemerisStore
-from service.errors import ConfigError
-from service.keplerian import table1_ephemerides
-from service.publish import ZmqPublisher
-from service.records import fix_record
+from service.core.ephemeris import EphemerisStore
+from service.core.errors import ConfigError
+from service.output.publish import ZmqPublisher
+from service.output.records import fix_record
+from service.sim.keplerian import table1_ephemerides
 from tests.test_publish import hksc_fix
 
 ROOT = Path(__file__).resolve().parents[1]
-BDSFIX = [sys.executable, "-m", "service.cli"]
+BDSFIX = [sys.executable, "-m", "service"]
 
 
 def _free_port() -> int:
@@ -194,7 +194,7 @@ def test_daemon_and_bdsfix_sub_with_curve_and_a_warned_public_bind(tmp_path):
 
 
 def test_outputs_are_loopback_by_default_in_code_and_example_config():
-    from service.config import DaemonConfig
+    from service.daemon.config import DaemonConfig
 
     example = tomllib.loads((ROOT / "systemd" / "bdsfix.toml").read_text())
     for cfg in (DaemonConfig(), example):
@@ -228,7 +228,7 @@ def test_ruff_security_rules_are_on_and_no_shell_pickle_eval():
 def test_curve_keys_from_toml_and_flags(tmp_path):
     import argparse
 
-    from service.config import add_config_flags, load_config, overrides_from_args
+    from service.daemon.config import add_config_flags, load_config, overrides_from_args
 
     p = tmp_path / "bdsfix.toml"
     p.write_text('zmq_curve_secret_key = "/etc/k/server.key_secret"\nzmq_curve_clients = "/c"\n')

@@ -37,9 +37,9 @@ RESUME_LIMIT_S = 2.0  # issue 5: fixes resume within 2 s of the device returning
 
 @pytest.fixture(scope="module")
 def epochs() -> list[tuple[float, bytes]]:
-    from service.keplerian import table1_ephemerides
-    from service.scenario import scenario_config
-    from service.simulator import Simulator
+    from service.sim.keplerian import table1_ephemerides
+    from service.sim.scenario import scenario_config
+    from service.sim.simulator import Simulator
 
     sim = Simulator(table1_ephemerides(0.0), scenario_config(duration_s=60.0))
     return [(ep.tag_gpst_tow_s, data) for ep, data in sim.ubx_epochs()]
@@ -56,8 +56,8 @@ class Daemon:
     stderr collected by a thread."""
 
     def __init__(self, tmp_path: Path, source: str, *extra: str) -> None:
-        from service.ephemeris import EphemerisStore
-        from service.keplerian import table1_ephemerides
+        from service.core.ephemeris import EphemerisStore
+        from service.sim.keplerian import table1_ephemerides
 
         state = tmp_path / "state"
         store = EphemerisStore()

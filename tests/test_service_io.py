@@ -18,7 +18,7 @@ import zmq
 from tests._independent import DATA
 
 HK = DATA / "hksc-2021"
-BDSFIX = [sys.executable, "-m", "service.cli"]
+BDSFIX = [sys.executable, "-m", "service"]
 ROOT = Path(__file__).resolve().parents[1]
 
 # The contract of ARCHITECTURE.md, written out here (not taken from the code under test).
@@ -226,8 +226,8 @@ def test_gpsd_reports_our_fixes_as_tpv_mode_3(tmp_path):
 
 
 def _write_store(state: Path) -> None:
-    from service.ephemeris import EphemerisStore
-    from service.keplerian import table1_ephemerides
+    from service.core.ephemeris import EphemerisStore
+    from service.sim.keplerian import table1_ephemerides
 
     store = EphemerisStore()
     store.add_all(table1_ephemerides(0.0))
@@ -236,9 +236,9 @@ def _write_store(state: Path) -> None:
 
 def test_daemon_reads_ubx_from_a_pty_and_survives_the_writer_going_away(tmp_path):
     """Real pty pair, pyserial in the daemon; the writer closes and comes back."""
-    from service.keplerian import table1_ephemerides
-    from service.scenario import scenario_config
-    from service.simulator import Simulator
+    from service.sim.keplerian import table1_ephemerides
+    from service.sim.scenario import scenario_config
+    from service.sim.simulator import Simulator
 
     state = tmp_path / "state"
     state.mkdir()
@@ -329,10 +329,10 @@ def test_daemon_sighup_reopens_outputs_and_sigterm_saves_the_store(tmp_path):
     SIGTERM ends with exit 0 and an intact ephemeris store."""
     import signal
 
-    from service.ephemeris import EphemerisStore
-    from service.keplerian import table1_ephemerides
-    from service.scenario import scenario_config
-    from service.simulator import Simulator
+    from service.core.ephemeris import EphemerisStore
+    from service.sim.keplerian import table1_ephemerides
+    from service.sim.scenario import scenario_config
+    from service.sim.simulator import Simulator
 
     state = tmp_path / "state"
     state.mkdir()

@@ -2,7 +2,7 @@
 
 import json
 
-from service.cli import main
+from service.commands.cli import main
 from tests._independent import DATA
 
 NAV = DATA / "hksc-2021/hksc1610.nav"

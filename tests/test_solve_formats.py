@@ -7,7 +7,7 @@ import operator
 
 import pynmeagps
 
-from service.cli import main
+from service.commands.cli import main
 from tests._independent import DATA
 
 HK = DATA / "hksc-2021"

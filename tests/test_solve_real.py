@@ -8,7 +8,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from service.cli import main
+from service.commands.cli import main
 from tests._independent import DATA, HKSC_TRUTH_ECEF_M
 
 FIELDS_ALWAYS = {"class", "solver", "mode", "gpst_week", "gpst_tow_s", "n_full", "n_frac"}

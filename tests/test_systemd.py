@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from service.config import load_config
+from service.daemon.config import load_config
 
 UNIT = Path(__file__).resolve().parents[1] / "systemd" / "bdsfix.service"
 EXAMPLE = UNIT.with_name("bdsfix.toml")

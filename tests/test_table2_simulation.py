@@ -14,14 +14,14 @@ import math
 import numpy as np
 import pytest
 
-from service.constants import C_M_S, is_geo
-from service.engine import SolverConfig, fractionalize, solve
-from service.ephemeris import EphemerisStore
-from service.geometry import geodetic_to_ecef
-from service.keplerian import table1_ephemerides
-from service.orbit import EphemerisArrays
-from service.rangegen import true_ranges
-from service.types import MeasurementEpoch
+from service.core.constants import C_M_S, is_geo
+from service.core.ephemeris import EphemerisStore
+from service.core.geometry import geodetic_to_ecef
+from service.core.orbit import EphemerisArrays
+from service.core.types import MeasurementEpoch
+from service.engine.solver import SolverConfig, fractionalize, solve
+from service.sim.keplerian import table1_ephemerides
+from service.sim.rangegen import true_ranges
 
 # the paper's settings: no corrections, equal weights, no PDOP gate (Table 2 has none)
 CFG = SolverConfig(

@@ -7,7 +7,7 @@ for why the median is 2 s with these emulation rules.
 
 import json
 
-from service.cli import main
+from service.commands.cli import main
 from tests._independent import DATA
 
 HK = DATA / "hksc-2021"

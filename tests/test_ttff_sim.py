@@ -25,7 +25,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
-BDSFIX = [sys.executable, "-m", "service.cli"]
+BDSFIX = [sys.executable, "-m", "service"]
 
 INSIDE = {
     "Beijing": (39.9, 116.4),

@@ -2,7 +2,7 @@
 
 Every RAWX, MEASX and SFRBX frame of every real capture is unpacked both ways and every field the
 fast path exposes must equal pyubx2's attribute of the same name. Frames the simulator
-writes with :func:`drivers.ubx.rawx_frame` / :func:`drivers.ubx.measx_frame` are parsed by
+writes with :func:`service.sim.ubx.rawx_frame` / :func:`service.sim.ubx.measx_frame` are parsed by
 pyubx2 and must carry the values put in (hypothesis over the field ranges).
 """
 
@@ -16,7 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pyubx2 import UBXReader
 
-from drivers.ubx import MeasxSv, RawxMeas, measx_frame, parse_rxm, rawx_frame
+from drivers.ubx import parse_rxm
+from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CAPTURES = sorted(

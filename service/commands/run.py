@@ -1,0 +1,389 @@
+"""``bdsfix run`` (the daemon), ``bdsfix replay`` and ``bdsfix sub``.
+
+The daemon reads its TOML config (every key also a flag), loads the persisted ephemeris
+store (the warm start the method assumes) plus any RINEX nav files, opens the receiver
+source and the outputs, tells systemd it is ready and keeps the watchdog fed. SIGTERM stops
+it cleanly after saving the store; SIGHUP reopens file outputs. Only this module and the
+CLI entry configure logging.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import logging
+import math
+import os
+import signal
+import sys
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from service.commands.options import solver_config
+from service.core.ephemeris import EphemerisStore
+from service.core.errors import BdsfixError, BindError, ConfigError, InputError
+from service.daemon.config import (
+    DEFAULT_CONFIG,
+    STORE_NAME,
+    DaemonConfig,
+    load_config,
+    overrides_from_args,
+)
+from service.daemon.loop import Runner
+from service.daemon.sdnotify import Notifier
+from service.engine.pipeline import EpochResult, Pipeline, integrity_summary
+from service.engine.solver import IonoSet
+from service.output.publish import (
+    LineSink,
+    NmeaTcpServer,
+    Publishers,
+    SerialSink,
+    ZmqPublisher,
+    parse_host_port,
+)
+
+log = logging.getLogger(__name__)
+
+
+def build_publishers(
+    *,
+    nmea_tcp: str = "",
+    nmea_out: str = "",
+    nmea_serial: str = "",
+    zmq: str = "",
+    jsonl_out: str = "",
+    talker: str = "GN",
+    baud: int = 115200,
+    append: bool = False,
+    zmq_curve_secret_key: str = "",
+    zmq_curve_clients: str = "",
+) -> Publishers:
+    """Open the requested outputs; a bad one raises ConfigError after closing the others.
+
+    File outputs are truncated unless ``append`` (the daemon appends, replay rewrites).
+    """
+    opened: dict[str, Any] = {}
+    try:
+        if nmea_tcp:
+            opened["nmea_tcp"] = NmeaTcpServer(*parse_host_port(nmea_tcp, "--nmea-tcp"))
+        if nmea_out:
+            opened["nmea_lines"] = LineSink(nmea_out, append=append)
+        if nmea_serial:
+            opened["nmea_serial"] = SerialSink(nmea_serial, baud)
+        if zmq:
+            opened["zmq"] = ZmqPublisher(
+                zmq,
+                curve_secret_key_file=zmq_curve_secret_key,
+                curve_clients_dir=zmq_curve_clients,
+            )
+        if jsonl_out:
+            opened["jsonl"] = LineSink(jsonl_out, append=append)
+    except BdsfixError as exc:
+        for part in opened.values():
+            part.close()
+        asked = {"nmea_tcp": nmea_tcp, "nmea_lines": nmea_out, "nmea_serial": nmea_serial}
+        asked.update(zmq=zmq, jsonl=jsonl_out)
+        failed = next((k for k, v in asked.items() if v and k not in opened), "")
+        raise _output_error(exc, failed) from exc
+    return Publishers(talker=talker, **opened)
+
+
+_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
+
+
+def _output_error(exc: BdsfixError, failed: str) -> BdsfixError:
+    """The error of an output that failed to open, as the class giving its exit code:
+    a listener that cannot bind is a BindError, a file or device an InputError."""
+    if type(exc) is not ConfigError or not isinstance(exc.__cause__, Exception):
+        return exc
+    code = getattr(exc.__cause__, "errno", None)
+    if failed in ("nmea_tcp", "zmq") and code in _BIND_ERRNOS:
+        return BindError(str(exc))
+    if failed in ("nmea_lines", "nmea_serial", "jsonl") and isinstance(exc.__cause__, OSError):
+        return InputError(str(exc))
+    return exc
+
+
+def _check_source(spec: str) -> None:
+    """A capture file given as the source must be there and readable (one-line error).
+
+    Serial devices are opened at start by the caller (a device that vanishes later is
+    waited for); TCP sources are retried, since the server may start after the daemon."""
+    if spec == "-" or spec.startswith(("tcp:", "serial:", "/dev/")):
+        return
+    path = spec.removeprefix("file:")
+    if not os.path.exists(path):
+        raise InputError(f"source {spec!r}: no such file or device")
+    if os.path.isdir(path):
+        raise InputError(f"source {spec!r}: is a directory")
+    if os.path.isfile(path):
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
+
+
+def _check_state_dir(state_dir: Path) -> None:
+    """The ephemeris store's directory must be (or become) a writable directory."""
+    if state_dir.exists() and not state_dir.is_dir():
+        raise InputError(f"state directory {state_dir}: not a directory")
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"state directory {state_dir}: {exc.strerror}") from exc
+    if not os.access(state_dir, os.W_OK | os.X_OK):
+        raise InputError(f"state directory {state_dir}: not writable")
+
+
+def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
+    path = state_dir / STORE_NAME
+    if path.exists():
+        try:
+            store = EphemerisStore.load(path, max_age_s=max_age_s)
+            log.info("warm start: %d ephemerides from %s", len(store), path)
+            return store
+        except BdsfixError as exc:
+            log.error("%s; starting with an empty store", exc)
+    return EphemerisStore(max_age_s=max_age_s)
+
+
+def _install_signals(runner: Runner) -> None:
+    signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
+    signal.signal(signal.SIGINT, lambda *_: runner.request_stop())
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, lambda *_: runner.request_reopen())
+
+
+def main_run(args: argparse.Namespace) -> int:
+    from drivers.source import open_source
+    from drivers.transport import RECONNECT_MAX_S, SerialTransport
+
+    cfg_path = args.config
+    if cfg_path is None and Path(DEFAULT_CONFIG).exists():
+        cfg_path = DEFAULT_CONFIG
+    cfg: DaemonConfig = load_config(cfg_path, overrides_from_args(args))
+    logging.getLogger().setLevel(cfg.log_level.upper())
+    if not cfg.source:
+        raise ConfigError("no receiver source: set 'source' in the config or --source")
+    # What can refuse to start (source, nav files, outputs) does so first, with one line.
+    _check_source(cfg.source)
+    _check_state_dir(cfg.resolved_state_dir())
+    source = open_source(
+        cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
+    )
+    transport = getattr(source, "transport", None)
+    if isinstance(transport, SerialTransport):
+        transport.open_now()  # a missing device at start is an error (exit 3)
+    outputs = build_publishers(
+        nmea_tcp=cfg.nmea_tcp,
+        nmea_out=cfg.nmea_out,
+        nmea_serial=cfg.nmea_serial,
+        zmq=cfg.zmq,
+        jsonl_out=cfg.jsonl_out,
+        talker=cfg.talker,
+        baud=cfg.baud,
+        append=True,
+        zmq_curve_secret_key=cfg.zmq_curve_secret_key,
+        zmq_curve_clients=cfg.zmq_curve_clients,
+    )
+    state_dir = cfg.resolved_state_dir()
+    store = load_store(state_dir, cfg.max_eph_age_s)
+    pipeline = Pipeline(
+        store,
+        IonoSet(bds=store.iono if store.iono and store.iono.system == "BDS" else None),
+        cfg.solver,
+    )
+    notifier = Notifier()
+    runner = Runner(
+        source,
+        pipeline,
+        outputs,
+        source_counters=source.counters,
+        status_interval_s=cfg.status_interval_s,
+        store_path=state_dir / STORE_NAME,
+        store_save_interval_s=cfg.store_save_interval_s,
+        watchdog=notifier.watchdog,
+        watchdog_interval_s=notifier.watchdog_interval_s,
+    )
+    _install_signals(runner)
+    notifier.ready(f"reading {cfg.source}")
+    log.info(
+        "bdsfix running: source %s, NMEA %s, ZMQ %s",
+        cfg.source,
+        cfg.nmea_tcp or "-",
+        cfg.zmq or "-",
+    )
+    try:
+        n = runner.run()
+    finally:
+        notifier.stopping()
+        source.close()
+        outputs.close()
+    log.info("stopped after %d epochs; counters: %s", n, dict(runner.counters()))
+    return 0
+
+
+class Timeline:
+    """First events of a stream, for the human summary of a replay."""
+
+    def __init__(self) -> None:
+        self.first: dict[str, float] = {}
+
+    def mark(self, key: str, t_s: float) -> None:
+        self.first.setdefault(key, t_s)
+
+    def on_result(self, r: EpochResult) -> None:
+        for ev in r.track:
+            kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
+            self.mark(f"first {kind} SOW decoded", ev.since_start_s)
+        if r.fix.mode == "fast":
+            self.mark("first fast fix", r.since_start_s)
+        if r.fix.mode == "spp":
+            self.mark("first conventional fix", r.since_start_s)
+
+    def lines(self, offset_s: float = 0.0) -> list[str]:
+        order = [
+            "first GEO SOW decoded",
+            "first fast fix",
+            "first non-GEO SOW decoded",
+            "first conventional fix",
+        ]
+        return [
+            f"  {k:<28} t = {self.first[k] + offset_s:6.2f} s"
+            if k in self.first
+            else f"  {k:<28} (not reached)"
+            for k in order
+        ]
+
+
+def main_replay(args: argparse.Namespace) -> int:
+    from drivers.source import open_source
+    from drivers.transport import pace
+
+    if args.speed is not None and not (args.speed > 0 and math.isfinite(args.speed)):
+        raise ConfigError(f"--speed must be a positive number, got {args.speed}")
+    outputs_asked = any([args.nmea_tcp, args.zmq, args.nmea_out, args.jsonl_out])
+    nmea_out = args.nmea_out if outputs_asked else "-"
+    cfg = solver_config(args)
+    timeline = Timeline()
+    offset = 0.0
+    if not args.files:
+        from service.sim.scenario import builtin_scenario
+
+        events: Iterable[Any]
+        chunks, week, store, iono, offset, info = builtin_scenario(seed=args.seed)
+        events = decode_chunks(chunks, week)
+        speed = args.speed if args.speed is not None else None
+        counters: dict[str, int] = {}
+        print(f"bdsfix replay: built-in scenario: {info}", file=sys.stderr)
+    else:
+        if len(args.files) > 1:
+            raise ConfigError("replay takes one capture at a time (or none for the scenario)")
+        store = EphemerisStore()
+        iono = IonoSet()
+        _check_source(args.files[0])
+        src = open_source(args.files[0], nav=args.nav or None, gps_week=args.gps_week)
+        events = src
+        counters = src.counters
+        speed = None if args.max_speed else (args.speed or 1.0)
+    pipeline = Pipeline(store, iono, cfg, restart_at_s=args.restart_at, sync_seed=args.seed)
+    outputs = build_publishers(
+        nmea_tcp=args.nmea_tcp or "",
+        nmea_out=nmea_out,
+        zmq=args.zmq or "",
+        jsonl_out=args.jsonl_out or "",
+        talker=args.talker,
+    )
+    runner = Runner(
+        pace(events, speed),
+        pipeline,
+        outputs,
+        source_counters=counters,
+        status_interval_s=args.status_interval_s,
+        on_result=timeline.on_result,
+    )
+    _install_signals(runner)
+    try:
+        n = runner.run()
+    finally:
+        outputs.close()
+    c = runner.counters()
+    print(
+        f"bdsfix replay: {n} epochs; fixes fast {c.get('fix_fast', 0)}, "
+        f"spp {c.get('fix_spp', 0)}, none {c.get('fix_none', 0)}; integrity checks "
+        f"{c.get('integrity_checks', 0)}, failures {c.get('integrity_failures', 0)}",
+        file=sys.stderr,
+    )
+    for line in integrity_summary(c):
+        print(f"  {line}", file=sys.stderr)
+    skipped = {
+        k: v for k, v in c.items() if any(w in k for w in ("bad_", "skipped", "error", "resync"))
+    }
+    if skipped:
+        print(f"  skipped: {skipped}", file=sys.stderr)
+    for line in timeline.lines(offset):
+        print(line, file=sys.stderr)
+    return 0
+
+
+def main_sub(args: argparse.Namespace) -> int:
+    import zmq
+
+    ctx: Any = zmq.Context.instance()
+    sock = ctx.socket(zmq.SUB)
+    sock.setsockopt(zmq.LINGER, 0)
+    for topic in args.topic or [""]:
+        sock.setsockopt_string(zmq.SUBSCRIBE, topic)
+    _curve_client(sock, getattr(args, "curve_server_key", None), getattr(args, "curve_key", None))
+    try:
+        sock.connect(args.endpoint)
+    except zmq.ZMQError as exc:
+        sock.close()
+        raise ConfigError(f"endpoint {args.endpoint!r}: {exc.strerror}") from exc
+    n = 0
+    try:
+        while args.count is None or n < args.count:
+            if not sock.poll(int(args.timeout_s * 1000) if args.timeout_s else None):
+                break
+            topic, body = sock.recv_multipart()
+            print(f"{topic.decode()} {body.decode()}", flush=True)
+            n += 1
+    finally:
+        sock.close()
+    return 0
+
+
+def _curve_client(sock: Any, server_key: str | None, client_key: str | None) -> None:
+    """CURVE on a SUB socket: the server's public certificate and our own secret one."""
+    if not server_key:
+        if client_key:
+            raise ConfigError("--curve-key needs --curve-server-key")
+        return
+    import zmq
+    import zmq.auth
+
+    try:
+        server_public, _ = zmq.auth.load_certificate(server_key)
+        if client_key:
+            public, secret = zmq.auth.load_certificate(client_key)
+        else:
+            public, secret = zmq.curve_keypair()
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"ZeroMQ CURVE certificate: {exc}") from exc
+    if not secret:
+        raise ConfigError(f"--curve-key {client_key}: no secret-key in file")
+    sock.curve_serverkey = server_public
+    sock.curve_publickey = public
+    sock.curve_secretkey = secret
+
+
+def decode_chunks(chunks: Iterable[bytes], gps_week: int) -> Iterator[Any]:
+    """Events of a byte stream through the production stream decoder (as from a receiver)."""
+    from drivers.source import StreamDecoder
+
+    dec = StreamDecoder(gps_week=gps_week)
+    for data in chunks:
+        yield from dec.feed(data)
+    yield from dec.flush()

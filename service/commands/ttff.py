@@ -1,0 +1,152 @@
+"""``bdsfix ttff``: emulated restarts on real data, or restarts of the virtual receiver
+streamed into ``bdsfix run`` (``--simulate``)."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import tempfile
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.rinex import RinexObsReader
+from service.commands.options import solver_config
+from service.commands.solve import load_navigation
+from service.core.ephemeris import EphemerisStore
+from service.core.errors import ConfigError
+from service.core.timebase import bdt_to_gpst, gpst_from_utc
+from service.core.types import Ephemeris, KlobucharParams
+from service.daemon.config import STORE_NAME
+from service.engine.solver import IonoSet
+from service.sim.keplerian import TABLE1_EPOCH_UTC, table1_ephemerides
+from service.sim.simulator import SimConfig
+from service.studies.ttff import plot_trials, run_trial, summarize
+from service.studies.ttff_sim import (
+    SimStream,
+    SimTrial,
+    analyse,
+    plan_trials,
+    run_daemon_on_pty,
+    summarize_sim,
+)
+
+
+def main_ttff(args: argparse.Namespace) -> int:
+    if args.simulate:
+        doc, sim_trials = run_simulated(args)
+        _print(doc, args.json)
+        if args.plot:
+            plot_trials(sim_trials, args.plot)
+        return 0
+    if not args.obs or not args.nav:
+        raise ConfigError("ttff needs OBS and NAV (or --simulate)")
+    store, iono = load_navigation(list(args.nav))
+    epochs = list(RinexObsReader(args.obs))
+    if len(epochs) < 40:
+        raise ConfigError(f"{args.obs}: {len(epochs)} epochs; ttff needs at least 40")
+    cfg = solver_config(args)
+    rng = np.random.default_rng(args.seed)
+    last = len(epochs) - 30
+    trials = [
+        run_trial(epochs, int(rng.integers(0, last)), store, iono, cfg, rng)
+        for _ in range(args.trials)
+    ]
+    doc = summarize(trials)
+    _print(doc, args.json)
+    if args.plot:
+        plot_trials(trials, args.plot)
+    return 0
+
+
+def _print(doc: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(doc))
+        return
+    for key in ("fast", "conventional", "geo_only"):
+        v = doc[key]
+        print(
+            f"{key:>12}: median {v.get('median_s', math.nan):5.1f} s, p95 "
+            f"{v.get('p95_s', math.nan):5.1f} s, success {v['success_pct']:.0f} %"
+            + (f", median error {v['median_err_m']:.1f} m" if "median_err_m" in v else "")
+        )
+
+
+def _navigation(
+    nav: Sequence[str],
+) -> tuple[list[Ephemeris], EphemerisStore, IonoSet, KlobucharParams | None]:
+    if nav:
+        store, iono = load_navigation(list(nav))
+        klob = iono.bds if iono.bds is not None and iono.bds.system == "BDS" else None
+        return store.all(), store, IonoSet(bds=klob), klob
+
+    ephs = table1_ephemerides(0.0)
+    store = EphemerisStore()
+    store.add_all(ephs)
+    return ephs, store, IonoSet(), None
+
+
+def _start_time(
+    start_utc: str | None, from_nav: bool, ephs: Sequence[Ephemeris]
+) -> tuple[int, float]:
+    """``--start-utc``, else 10 min after the nav file's commonest toe, else Table 1's epoch."""
+    if start_utc:
+        try:
+            utc = dt.datetime.fromisoformat(start_utc)
+        except ValueError as exc:
+            raise ConfigError(f"--start-utc: not an ISO time: {start_utc!r}") from exc
+        return gpst_from_utc(utc.replace(tzinfo=None))
+    if from_nav:
+        # the toe most satellites share: every one of them has a fresh ephemeris there
+        (w, t), _ = Counter((e.week, e.toe_sow_s) for e in ephs).most_common(1)[0]
+        return bdt_to_gpst(w, t + 600.0)
+    return gpst_from_utc(dt.datetime(*TABLE1_EPOCH_UTC))
+
+
+def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTrial]]:
+    """Everything ``ttff --simulate`` does, returning the JSON document and the trials."""
+    if not -90.0 <= args.lat_deg <= 90.0 or not -180.0 <= args.lon_deg <= 360.0:
+        raise ConfigError(f"--lat-deg/--lon-deg out of range: {args.lat_deg}, {args.lon_deg}")
+    if args.rate_hz <= 0 or args.trials < 1 or args.trial_s < 2.0:
+        raise ConfigError("--rate-hz > 0, --trials >= 1 and --trial-s >= 2 are required")
+    nav = [p for p in (args.obs, *(args.nav or ())) if p]  # NAV files only, when simulating
+    ephs, store, iono, klob = _navigation(nav)
+    store.max_age_s = args.max_eph_age_s
+    week, tow = _start_time(args.start_utc, bool(nav), ephs)
+    # the daemon applies the same ionosphere model as the simulator (none without a nav file)
+    cfg = solver_config(args, **({} if klob else {"iono": "off"}))
+    base = SimConfig(
+        lat_deg=args.lat_deg,
+        lon_deg=args.lon_deg,
+        alt_m=args.alt_m,
+        rate_hz=args.rate_hz,
+        noise_m=args.noise_m,
+        elmask_deg=min(5.0, cfg.elmask_deg),
+    )
+    plans = plan_trials(week, tow, args.trials, args.trial_s, args.seed)
+    stream = SimStream(ephs, klob, base, plans, args.trial_s, args.max_eph_age_s)
+    with tempfile.TemporaryDirectory(prefix="bdsfix-ttff-") as tmp:
+        state = Path(tmp)
+        if not nav:
+            store.save(state / STORE_NAME)  # warm start: Table 1 ephemerides held
+        records = run_daemon_on_pty(
+            stream,
+            state,
+            state / "out.jsonl",
+            cfg,
+            nav=nav,
+            max_eph_age_s=args.max_eph_age_s,
+        )
+    trials = analyse(stream, records, store, iono, cfg, args.noise_m)
+    location = {"lat_deg": args.lat_deg, "lon_deg": args.lon_deg, "alt_m": args.alt_m}
+    doc = summarize_sim(trials, location)
+    doc["rate_hz"] = args.rate_hz
+    doc["sigma_m"] = args.noise_m
+    doc["stream_epochs"] = len(stream.epochs)
+    doc["start_gpst"] = [week, round(tow, 3)]
+    return doc, trials

@@ -1,0 +1,168 @@
+"""Satellite position and clock from BDS broadcast ephemerides, vectorised over satellites.
+
+Implements BDS-SIS-ICD-B1I-3.0 section 5.2.4.12 (Table 5-11, user algorithm for BDS ephemeris):
+IGSO/MEO use the GPS-style node Omega_k = Omega0 + (Omega_dot - Omega_e) t_k - Omega_e t_oe;
+GEOs (C01-C05 and C59-C63) use Omega_k = Omega0 + Omega_dot t_k - Omega_e t_oe, then the
+position is rotated by R_z(Omega_e t_k) R_x(-5 deg). The clock follows section 5.2.4.10
+(polynomial plus relativistic term F e sqrt(A) sin E_k) and 5.2.4.11 (B1I uses T_GD1).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from service.core.constants import (
+    F_REL_S_PER_SQRT_M,
+    GEO_TILT_RAD,
+    GM_M3_S2,
+    OMEGA_E_RAD_S,
+    WEEK_S,
+    is_geo,
+)
+from service.core.types import Ephemeris
+
+_HALF_WEEK_S = WEEK_S / 2
+
+_ARRAY_FIELDS = (
+    "week",
+    "toe_sow_s",
+    "toc_sow_s",
+    "af0_s",
+    "af1_s_s",
+    "af2_s_s2",
+    "sqrt_a_sqrt_m",
+    "e",
+    "i0_rad",
+    "omega0_rad",
+    "omega_rad",
+    "m0_rad",
+    "delta_n_rad_s",
+    "omega_dot_rad_s",
+    "idot_rad_s",
+    "cuc_rad",
+    "cus_rad",
+    "crc_m",
+    "crs_m",
+    "cic_rad",
+    "cis_rad",
+    "tgd1_s",
+)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EphemerisArrays:
+    """Ephemerides of n satellites as numpy columns (one row per satellite, same order)."""
+
+    prn: tuple[str, ...]
+    geo: np.ndarray
+    week: np.ndarray
+    toe_sow_s: np.ndarray
+    toc_sow_s: np.ndarray
+    af0_s: np.ndarray
+    af1_s_s: np.ndarray
+    af2_s_s2: np.ndarray
+    sqrt_a_sqrt_m: np.ndarray
+    e: np.ndarray
+    i0_rad: np.ndarray
+    omega0_rad: np.ndarray
+    omega_rad: np.ndarray
+    m0_rad: np.ndarray
+    delta_n_rad_s: np.ndarray
+    omega_dot_rad_s: np.ndarray
+    idot_rad_s: np.ndarray
+    cuc_rad: np.ndarray
+    cus_rad: np.ndarray
+    crc_m: np.ndarray
+    crs_m: np.ndarray
+    cic_rad: np.ndarray
+    cis_rad: np.ndarray
+    tgd1_s: np.ndarray
+
+    @classmethod
+    def from_ephemerides(cls, ephs: Sequence[Ephemeris]) -> EphemerisArrays:
+        cols = {
+            name: np.array([getattr(e, name) for e in ephs], dtype=float) for name in _ARRAY_FIELDS
+        }
+        return cls(
+            prn=tuple(e.prn for e in ephs),
+            geo=np.array([is_geo(e.prn) for e in ephs], dtype=bool),
+            **cols,
+        )
+
+    def take(self, index: np.ndarray | Sequence[int]) -> EphemerisArrays:
+        """Rows ``index`` as a new set."""
+        idx = np.asarray(index, dtype=int)
+        kw = {f.name: getattr(self, f.name)[idx] for f in fields(self) if f.name != "prn"}
+        return EphemerisArrays(prn=tuple(self.prn[i] for i in idx), **kw)
+
+    def __len__(self) -> int:
+        return len(self.prn)
+
+
+def _wrap_half_week(dt_s: np.ndarray) -> np.ndarray:
+    """Account for week crossover (ICD 5.2.4.12 note on t_k)."""
+    return dt_s - WEEK_S * np.round(dt_s / WEEK_S) * (np.abs(dt_s) > _HALF_WEEK_S)
+
+
+def sat_pos_clock(
+    eph: EphemerisArrays, bdt_week: int | np.ndarray, bdt_sow_s: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray]:
+    """ECEF position [m] (n, 3) and B1I clock offset [s] (n,) at BDT transmit times.
+
+    The clock offset includes the relativistic term and subtracts T_GD1, so that the
+    predicted B1I pseudorange is rho - c * clock_s (ICD 5.2.4.10, 5.2.4.11).
+    """
+    t_sow = np.asarray(bdt_sow_s, dtype=float)
+    dweek = (np.asarray(bdt_week, dtype=float) - eph.week) * WEEK_S
+    tk = _wrap_half_week(dweek + (t_sow - eph.toe_sow_s))
+
+    a = eph.sqrt_a_sqrt_m**2
+    n = np.sqrt(GM_M3_S2 / a**3) + eph.delta_n_rad_s
+    mk = eph.m0_rad + n * tk
+    ek = mk.copy()
+    for _ in range(5):  # Kepler's equation by Newton (quadratic); e < 0.01 for BDS
+        ek = ek - (ek - eph.e * np.sin(ek) - mk) / (1.0 - eph.e * np.cos(ek))
+    sin_e, cos_e = np.sin(ek), np.cos(ek)
+    nu = np.arctan2(np.sqrt(1.0 - eph.e**2) * sin_e, cos_e - eph.e)
+    phi = nu + eph.omega_rad
+    s2, c2 = np.sin(2 * phi), np.cos(2 * phi)
+    u = phi + eph.cus_rad * s2 + eph.cuc_rad * c2
+    r = a * (1.0 - eph.e * cos_e) + eph.crs_m * s2 + eph.crc_m * c2
+    inc = eph.i0_rad + eph.idot_rad_s * tk + eph.cis_rad * s2 + eph.cic_rad * c2
+    xp, yp = r * np.cos(u), r * np.sin(u)
+
+    node = (
+        eph.omega0_rad
+        + np.where(eph.geo, eph.omega_dot_rad_s * tk, (eph.omega_dot_rad_s - OMEGA_E_RAD_S) * tk)
+        - OMEGA_E_RAD_S * eph.toe_sow_s
+    )
+    cn, sn, ci, si = np.cos(node), np.sin(node), np.cos(inc), np.sin(inc)
+    x = xp * cn - yp * ci * sn
+    y = xp * sn + yp * ci * cn
+    z = yp * si
+
+    if eph.geo.any():
+        # GEO: R_z(Omega_e t_k) R_x(-5 deg) applied to the inertial-like frame position
+        ct, st = np.cos(GEO_TILT_RAD), np.sin(GEO_TILT_RAD)
+        yg = ct * y + st * z
+        zg = -st * y + ct * z
+        ang = OMEGA_E_RAD_S * tk
+        ca, sa = np.cos(ang), np.sin(ang)
+        xr = ca * x + sa * yg
+        yr = -sa * x + ca * yg
+        x = np.where(eph.geo, xr, x)
+        y = np.where(eph.geo, yr, y)
+        z = np.where(eph.geo, zg, z)
+
+    dtc = _wrap_half_week(dweek + (t_sow - eph.toc_sow_s))
+    clock_s = (
+        eph.af0_s
+        + eph.af1_s_s * dtc
+        + eph.af2_s_s2 * dtc**2
+        + F_REL_S_PER_SQRT_M * eph.e * eph.sqrt_a_sqrt_m * sin_e
+        - eph.tgd1_s
+    )
+    return np.stack([x, y, z], axis=-1), clock_s

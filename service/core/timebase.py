@@ -1,0 +1,97 @@
+"""GPS time (GPST), BeiDou time (BDT) and UTC, with week rollover.
+
+BDT started at 2006-01-01 00:00:00 UTC (BDS-SIS-ICD-B1I-3.0, section 4.2); at that instant
+GPST - UTC was 14 s, so GPST = BDT + 14 s and GPS week = BDS week + 1356.
+All times here are (week, seconds-of-week) pairs; :func:`diff_s` gives differences that stay
+exact across week boundaries, which a single float since 1980 would not.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+
+from service.core.constants import WEEK_S
+
+BDT_GPS_WEEK_OFFSET = 1356
+BDT_GPST_OFFSET_S = 14.0
+GPS_EPOCH = dt.datetime(1980, 1, 6)
+
+# (first UTC day in force, GPST - UTC in seconds); IERS Bulletin C.
+_LEAP_TABLE: tuple[tuple[dt.datetime, int], ...] = (
+    (dt.datetime(1999, 1, 1), 13),
+    (dt.datetime(2006, 1, 1), 14),
+    (dt.datetime(2009, 1, 1), 15),
+    (dt.datetime(2012, 7, 1), 16),
+    (dt.datetime(2015, 7, 1), 17),
+    (dt.datetime(2017, 1, 1), 18),
+)
+
+
+def normalize(week: int, sow_s: float) -> tuple[int, float]:
+    """Bring seconds-of-week into [0, 604800), carrying whole weeks."""
+    carry = int(sow_s // WEEK_S)
+    sow = sow_s - carry * WEEK_S
+    if sow >= WEEK_S:  # a tiny negative input rounds up to a whole week
+        return week + carry + 1, 0.0
+    return week + carry, sow
+
+
+def diff_s(week_a: int, sow_a: float, week_b: int, sow_b: float) -> float:
+    """(a - b) in seconds, for two times on the same scale."""
+    return (week_a - week_b) * WEEK_S + (sow_a - sow_b)
+
+
+def gpst_to_bdt(week: int, tow_s: float) -> tuple[int, float]:
+    """GPST (week, tow) to BDT (week, sow)."""
+    return normalize(week - BDT_GPS_WEEK_OFFSET, tow_s - BDT_GPST_OFFSET_S)
+
+
+def bdt_to_gpst(week: int, sow_s: float) -> tuple[int, float]:
+    """BDT (week, sow) to GPST (week, tow)."""
+    return normalize(week + BDT_GPS_WEEK_OFFSET, sow_s + BDT_GPST_OFFSET_S)
+
+
+def gpst_from_datetime(t: dt.datetime) -> tuple[int, float]:
+    """A naive datetime read on the GPST scale (as in RINEX epochs) to (week, tow)."""
+    delta = t - GPS_EPOCH
+    total_s = delta.days * 86400 + delta.seconds
+    week, rem = divmod(total_s, WEEK_S)
+    return int(week), rem + delta.microseconds * 1e-6
+
+
+def datetime_from_gpst(week: int, tow_s: float) -> dt.datetime:
+    """(week, tow) to a naive datetime on the GPST scale."""
+    return GPS_EPOCH + dt.timedelta(weeks=week, seconds=tow_s)
+
+
+def leap_seconds(utc: dt.datetime) -> int:
+    """GPST - UTC [s] at a UTC instant (table from 1999 on)."""
+    value = _LEAP_TABLE[0][1]
+    for start, leap in _LEAP_TABLE:
+        if utc >= start:
+            value = leap
+    return value
+
+
+def utc_from_gpst(week: int, tow_s: float) -> dt.datetime:
+    """GPST (week, tow) to naive UTC datetime."""
+    t = datetime_from_gpst(week, tow_s)
+    return t - dt.timedelta(seconds=leap_seconds(t - dt.timedelta(seconds=18)))
+
+
+def gmst_rad(utc: dt.datetime) -> float:
+    """Greenwich mean sidereal angle [rad] (IAU 1982, UT1 taken as UTC).
+
+    GMST = 67310.54841 s + (876600 h + 8640184.812866 s) T + 0.093104 s T^2 - 6.2e-6 s T^3,
+    T in Julian centuries of UT1 from J2000.0 (Aoki et al. 1982).
+    """
+    j2000 = dt.datetime(2000, 1, 1, 12)
+    t = (utc - j2000).total_seconds() / 86400.0 / 36525.0
+    sec = 67310.54841 + (876600.0 * 3600.0 + 8640184.812866) * t + 0.093104 * t**2 - 6.2e-6 * t**3
+    return (sec % 86400.0) / 86400.0 * 2.0 * math.pi
+
+
+def gpst_from_utc(utc: dt.datetime) -> tuple[int, float]:
+    """Naive UTC datetime to GPST (week, tow)."""
+    return gpst_from_datetime(utc + dt.timedelta(seconds=leap_seconds(utc)))

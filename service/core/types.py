@@ -1,0 +1,207 @@
+"""Data that crosses stages: frozen, slotted dataclasses with units in every numeric name.
+
+See ARCHITECTURE.md, "Types crossing stages". Per-satellite data travel as numpy columns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+FixMode = Literal["fast", "spp", "none"]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MeasurementEpoch:
+    """One receive epoch of BDS code measurements.
+
+    Times are the receiver's time tag on the GPST scale. ``pr_m`` is the full pseudorange or
+    NaN when the satellite's transmit time is not yet known; ``frac_pr_m`` is the pseudorange
+    modulo c*T with T = ``period_s`` (0.001 or 0.020), NaN when unknown.
+    """
+
+    gpst_week: int
+    gpst_tow_s: float
+    prn: tuple[str, ...]
+    signal: tuple[str, ...]
+    pr_m: np.ndarray
+    frac_pr_m: np.ndarray
+    period_s: np.ndarray
+    cn0_dbhz: np.ndarray
+    doppler_hz: np.ndarray
+    lock_s: np.ndarray
+    source: str = ""
+
+    def __len__(self) -> int:
+        return len(self.prn)
+
+    @classmethod
+    def from_columns(
+        cls,
+        gpst_week: int,
+        gpst_tow_s: float,
+        prn: list[str] | tuple[str, ...],
+        signal: list[str] | tuple[str, ...],
+        pr_m: np.ndarray | list[float],
+        frac_pr_m: np.ndarray | list[float] | None = None,
+        period_s: np.ndarray | list[float] | float = 0.001,
+        cn0_dbhz: np.ndarray | list[float] | None = None,
+        doppler_hz: np.ndarray | list[float] | None = None,
+        lock_s: np.ndarray | list[float] | None = None,
+        source: str = "",
+    ) -> MeasurementEpoch:
+        """Build an epoch, filling absent columns with NaN and deriving ``frac_pr_m``."""
+        n = len(prn)
+        pr = np.asarray(pr_m, dtype=float).reshape(n)
+        period = np.broadcast_to(np.asarray(period_s, dtype=float), (n,)).copy()
+        if frac_pr_m is None:
+            frac = np.mod(pr, period * 299_792_458.0)
+        else:
+            frac = np.asarray(frac_pr_m, dtype=float).reshape(n)
+
+        def col(v: np.ndarray | list[float] | None) -> np.ndarray:
+            return np.full(n, np.nan) if v is None else np.asarray(v, dtype=float).reshape(n)
+
+        return cls(
+            gpst_week=int(gpst_week),
+            gpst_tow_s=float(gpst_tow_s),
+            prn=tuple(prn),
+            signal=tuple(signal),
+            pr_m=pr,
+            frac_pr_m=frac,
+            period_s=period,
+            cn0_dbhz=col(cn0_dbhz),
+            doppler_hz=col(doppler_hz),
+            lock_s=col(lock_s),
+            source=source,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Ephemeris:
+    """BDS broadcast ephemeris and clock (ICD B1I 5.2.4.9-5.2.4.12, Table 5-11).
+
+    ``toe_sow_s``/``toc_sow_s`` are BDT seconds of week in BDT ``week``. Angles in radians,
+    rates in rad/s. ``health`` is SatH1 (0 = healthy). ``tgd1_s`` is the B1I group delay.
+    """
+
+    prn: str
+    week: int
+    toe_sow_s: float
+    toc_sow_s: float
+    af0_s: float
+    af1_s_s: float
+    af2_s_s2: float
+    sqrt_a_sqrt_m: float
+    e: float
+    i0_rad: float
+    omega0_rad: float
+    omega_rad: float
+    m0_rad: float
+    delta_n_rad_s: float
+    omega_dot_rad_s: float
+    idot_rad_s: float
+    cuc_rad: float
+    cus_rad: float
+    crc_m: float
+    crs_m: float
+    cic_rad: float
+    cis_rad: float
+    tgd1_s: float = 0.0
+    tgd2_s: float = 0.0
+    health: int = 0
+    aode: int = 0
+    aodc: int = 0
+    ura_m: float = 0.0
+    source: str = "rinex"
+
+
+@dataclass(frozen=True, slots=True)
+class KlobucharParams:
+    """Broadcast Klobuchar coefficients: alpha [s, s/sc, s/sc^2, s/sc^3], beta [s, ...].
+
+    ``system`` is ``"BDS"`` for BDSA/BDSB (D1 subframe 1, D2 subframe 1 page 2) or ``"GPS"``
+    for GPSA/GPSB used as a fallback.
+    """
+
+    alpha: tuple[float, float, float, float]
+    beta: tuple[float, float, float, float]
+    system: Literal["BDS", "GPS"] = "BDS"
+
+
+@dataclass(frozen=True, slots=True)
+class NavSubframe:
+    """One B1I navigation subframe: 10 words of 30 bits as received (parity included)."""
+
+    prn: str
+    nav_type: Literal["D1", "D2"]
+    fra_id: int
+    sow_s: int
+    words: tuple[int, ...]
+    gpst_week: int
+    gpst_tow_s: float
+    page: int | None = None
+    signal: str = "2I"
+
+
+@dataclass(frozen=True, slots=True)
+class SatView:
+    """One satellite as seen at an epoch (for GSV/GSA and the ZMQ ``SKY`` topic)."""
+
+    prn: str
+    el_deg: float
+    az_deg: float
+    cn0_dbhz: float
+    used: bool
+    full: bool
+    signal: str = "2I"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Fix:
+    """A solver's result for one epoch; ``mode == "none"`` carries ``reason`` instead.
+
+    ``solver`` is which solver ran (``fast``/``spp``), ``mode`` what it achieved.
+    """
+
+    solver: Literal["fast", "spp"]
+    mode: FixMode
+    gpst_week: int
+    gpst_tow_s: float
+    x_ecef_m: tuple[float, float, float] | None = None
+    lat_deg: float | None = None
+    lon_deg: float | None = None
+    alt_m: float | None = None
+    clock_bias_m: float | None = None
+    gdop_full: float | None = None
+    pdop: float | None = None
+    hdop: float | None = None
+    vdop: float | None = None
+    std_enu_m: tuple[float, float, float] | None = None
+    used: tuple[str, ...] = ()
+    full: tuple[str, ...] = ()
+    fractional: tuple[str, ...] = ()
+    ambiguity: dict[str, int] = field(default_factory=dict)
+    recovered_pr_m: dict[str, float] = field(default_factory=dict)
+    resid_rms_m: float | None = None
+    iterations: int = 0
+    reason: str | None = None
+    reason_code: str | None = None
+    sky: tuple[SatView, ...] = ()
+    # integrity (service.engine.raim): redundancy n - 4 of the final solution; the chi-square
+    # statistic and its threshold (None at redundancy 0: no test possible); protection
+    # levels (inf: a satellite without redundancy, the fix is not protected against it);
+    # the east-north-up covariance [m^2] and the satellites excluded, with why
+    redundancy: int | None = None
+    chi2: float | None = None
+    chi2_max: float | None = None
+    hpl_m: float | None = None
+    vpl_m: float | None = None
+    cov_enu_m2: tuple[tuple[float, float, float], ...] | None = None
+    excluded: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.mode != "none"

@@ -1,0 +1,1 @@
+"""The long-running loop, its configuration and systemd notification."""

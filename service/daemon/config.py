@@ -1,0 +1,125 @@
+"""Daemon configuration: a TOML file (tomllib) whose every key is also a command-line flag.
+
+The keys are the settings of :class:`DaemonConfig` (source, outputs, store, status) and of
+:class:`service.engine.solver.SolverConfig` (the solver, shared by every command), declared
+once with their help, type and allowed values; :mod:`service.core.settings` parses and
+checks them. Unknown keys, wrong types and bad values raise
+:class:`~service.core.errors.ConfigError` with one line naming the file or flag and the key.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from service.core.errors import ConfigError
+from service.core.settings import add_flags, build, given, setting, settings_of
+from service.engine.solver import SolverConfig
+
+DEFAULT_CONFIG = "/etc/bdsfix/bdsfix.toml"
+
+
+STORE_NAME = "ephemeris.json"  # the ephemeris store in the state directory
+
+
+@dataclass(frozen=True, slots=True)
+class DaemonConfig:
+    """Settings of ``bdsfix run`` (defaults: loopback-only outputs)."""
+
+    source: str = setting(
+        "", "receiver: /dev/ttyX, serial:DEV[:BAUD], tcp:HOST:PORT or a capture file", kind="str"
+    )
+    baud: int = setting(115200, "serial baud rate", kind="int", low=1, high=4_000_000)
+    nav: tuple[str, ...] = setting(
+        (), "RINEX 3 nav file(s) loaded into the ephemeris store at start", kind="list"
+    )
+    state_dir: str = setting(
+        "", "directory of the persisted ephemeris store ($BDSFIX_STATE_DIR)", kind="str"
+    )
+    nmea_tcp: str = setting(
+        "127.0.0.1:10110", "NMEA TCP server HOST:PORT ('' disables)", kind="str"
+    )
+    nmea_out: str = setting("", "NMEA to a file or - for stdout", kind="str")
+    nmea_serial: str = setting("", "NMEA to a serial device or pty", kind="str")
+    talker: str = setting("GN", "NMEA talker", kind="str", choices=("GN", "GB", "BD", "GP"))
+    zmq: str = setting("tcp://127.0.0.1:10111", "ZeroMQ PUB endpoint ('' disables)", kind="str")
+    zmq_curve_secret_key: str = setting(
+        "", "ZeroMQ CURVE: server secret certificate file ('' = no CURVE)", kind="str"
+    )
+    zmq_curve_clients: str = setting(
+        "",
+        "ZeroMQ CURVE: directory of allowed client public certificates ('' = any client that "
+        "knows the server key)",
+        kind="str",
+    )
+    jsonl_out: str = setting("", "JSONL records to a file or - for stdout", kind="str")
+    max_eph_age_s: float = setting(
+        7200.0, "oldest usable ephemeris, |t - toe| [s]", kind="float", low=0.0, low_open=True
+    )
+    status_interval_s: float = setting(
+        10.0, "period of STATUS messages [s]", kind="float", low=1e-3, high=86400.0
+    )
+    store_save_interval_s: float = setting(
+        60.0,
+        "shortest period between saves of a changed ephemeris store [s]",
+        kind="float",
+        low=0.0,
+        high=86400.0,
+    )
+    log_level: str = setting(
+        "info", "log level", kind="str", choices=("debug", "info", "warning", "error")
+    )
+    solver: SolverConfig = field(default_factory=SolverConfig)
+
+    def resolved_state_dir(self) -> Path:
+        return Path(self.state_dir or os.environ.get("BDSFIX_STATE_DIR", "") or "bdsfix-state")
+
+
+def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None) -> DaemonConfig:
+    """Read ``path`` (None: defaults only) and apply command-line ``overrides``."""
+    values: dict[str, Any] = {}
+    origin: dict[str, str] = {}
+    daemon_keys = {f.name for f, _ in settings_of(DaemonConfig)}
+    solver_keys = {f.name for f, _ in settings_of(SolverConfig)}
+    if path is not None:
+        p = Path(path)
+        try:
+            doc = tomllib.loads(p.read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise ConfigError(f"{p}: config file not found") from exc
+        except OSError as exc:
+            raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from exc
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
+        for key, value in doc.items():
+            if key not in daemon_keys | solver_keys:
+                raise ConfigError(f"{p}: unknown key '{key}'")
+            values[key] = value
+            origin[key] = str(p)
+    for key, value in (overrides or {}).items():
+        if value is not None:
+            values[key] = value
+            origin[key] = "--" + key.replace("_", "-")
+    solver = build(SolverConfig, {k: v for k, v in values.items() if k in solver_keys}, origin)
+    daemon = build(DaemonConfig, {k: v for k, v in values.items() if k in daemon_keys}, origin)
+    return _with_solver(daemon, solver)
+
+
+def _with_solver(cfg: DaemonConfig, solver: SolverConfig) -> DaemonConfig:
+    kw = {f.name: getattr(cfg, f.name) for f in fields(DaemonConfig)}
+    kw["solver"] = solver
+    return DaemonConfig(**kw)
+
+
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per config key (default None, so the file's value stands unless given)."""
+    add_flags(parser, DaemonConfig, "daemon")
+    add_flags(parser, SolverConfig, "solver")
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    return given(args, DaemonConfig) | given(args, SolverConfig)

@@ -1,0 +1,246 @@
+"""The stream loop of ``bdsfix replay`` and ``bdsfix run``.
+
+A reader thread pulls events from a driver source (paced for replay) into a bounded queue;
+the main thread feeds them to the :class:`~service.engine.pipeline.Pipeline` and hands results to
+the outputs, none of which may block. Between events the main thread keeps time for STATUS
+messages, the systemd watchdog and periodic saves of the ephemeris store, and it stops
+cleanly on request (SIGTERM) after saving the store.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import math
+import queue
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.engine.pipeline import EpochResult, Pipeline
+from service.engine.tracker import TrackEvent
+
+log = logging.getLogger(__name__)
+
+_END = object()
+SWITCH_INTERVAL_S = 0.0005
+TIMER_SLACK_S = 1.0
+SKIP_KEYS = frozenset({"resyncs"})
+SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
+"""Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
+:mod:`drivers.rinex`) that count damaged input; with ``*_skipped`` they make the shutdown
+line of :meth:`Runner.log_skipped`."""
+
+
+class Outputs(Protocol):
+    """What the loop publishes to (see :mod:`service.output.publish`)."""
+
+    def epoch(self, result: EpochResult) -> None: ...
+    def track(self, event: TrackEvent) -> None: ...
+    def status(self, counters: Mapping[str, int | float]) -> None: ...
+    def reopen(self) -> None: ...
+    def gone(self) -> bool: ...
+    def close(self) -> None: ...
+
+
+@dataclass
+class Runner:
+    """Runs one source through the pipeline into the outputs."""
+
+    events: Iterable[Any]
+    pipeline: Pipeline
+    outputs: Outputs
+    source_counters: Mapping[str, int] = field(default_factory=dict)
+    status_interval_s: float = 10.0
+    store_path: Path | None = None
+    store_save_interval_s: float = 60.0
+    watchdog: Callable[[], Any] | None = None
+    watchdog_interval_s: float | None = None
+    on_result: Callable[[EpochResult], None] | None = None
+    queue_size: int = 4096
+    _stop: threading.Event = field(default_factory=threading.Event)
+    _reopen: threading.Event = field(default_factory=threading.Event)
+    _error: BaseException | None = None
+    _store_dirty: bool = False
+    _latency: LatencyStats = field(default_factory=lambda: LatencyStats())
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    def request_reopen(self) -> None:
+        self._reopen.set()
+
+    def counters(self) -> dict[str, int | float]:
+        out: dict[str, int | float] = {f"source_{k}": v for k, v in self.source_counters.items()}
+        out.update(self.pipeline.counters)
+        out.update(self._latency.counters())
+        return out
+
+    def _reader(self, q: queue.Queue[Any]) -> None:
+        try:
+            for ev in self.events:
+                while not self._stop.is_set():
+                    try:
+                        q.put(ev, timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+                if self._stop.is_set():
+                    return
+        except BaseException as exc:  # reported by the main thread
+            self._error = exc
+        finally:
+            q.put(_END)
+
+    def run(self) -> int:
+        """Process until the source ends or a stop is requested; returns the epoch count."""
+        self.pipeline.on_track = self.outputs.track
+        # The reader, the loop and the publishers' I/O threads hand each epoch on: with the
+        # interpreter's default 5 ms switch interval every hand-off may wait that long.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        # What exists now (modules, tables, the ephemeris store) lives as long as the loop:
+        # keep it out of the collector's full passes, which would otherwise walk it all and
+        # stall an epoch by milliseconds (~4 ms for a daemon's start-up heap).
+        gc.collect()
+        gc.freeze()
+        q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
+        reader = threading.Thread(target=self._reader, args=(q,), name="bdsfix-reader", daemon=True)
+        reader.start()
+        now = time.monotonic()
+        next_status = now + self.status_interval_s
+        next_save = now + self.store_save_interval_s
+        next_dog = now + (self.watchdog_interval_s or 1e18)
+        n = 0
+        try:
+            while not self._stop.is_set():
+                try:
+                    ev = q.get(timeout=0.2)
+                except queue.Empty:
+                    ev = None
+                if ev is _END:
+                    break
+                if ev is not None:
+                    n += self._handle(ev)
+                    if self.outputs.gone():
+                        log.info("every output's reader has gone: stopping")
+                        break
+                if self._reopen.is_set():
+                    self._reopen.clear()
+                    log.info("reopening outputs")
+                    self.outputs.reopen()
+                now = time.monotonic()
+                # Periodic work waits for a gap between events (the subframes that open an
+                # epoch's burst would otherwise delay its fix by a store save), unless a
+                # backlog has kept it waiting for TIMER_SLACK_S already. A save interval of
+                # 0 asks for a save after every change: no waiting then.
+                slack = 0.0 if q.empty() else TIMER_SLACK_S
+                if now >= next_status + slack:
+                    self.outputs.status(self.counters())
+                    next_status = now + self.status_interval_s
+                if now >= next_save + (slack if self.store_save_interval_s > 0 else 0.0):
+                    self.save_store()
+                    next_save = now + self.store_save_interval_s
+                if self.watchdog is not None and now >= next_dog:
+                    self.watchdog()
+                    next_dog = now + (self.watchdog_interval_s or 1e18)
+        finally:
+            gc.unfreeze()  # the caller's heap is its own again (tests run many loops)
+            self._stop.set()
+            self.save_store()
+            self.outputs.status(self.counters())
+            self.log_skipped()
+        if self._error is not None:
+            raise self._error
+        return n
+
+    def _handle(self, ev: Any) -> int:
+        if isinstance(ev, MeasurementEpoch):
+            t0 = time.perf_counter()
+            result = self.pipeline.on_epoch(ev)
+            t1 = time.perf_counter()
+            self.outputs.epoch(result)
+            self._latency.add(t0, t1, time.perf_counter())
+            if self.on_result is not None:
+                self.on_result(result)
+            return 1
+        if isinstance(ev, NavSubframe):
+            before = len(self.pipeline.store)
+            self.pipeline.on_subframe(ev)
+            self._store_dirty |= len(self.pipeline.store) != before
+        elif isinstance(ev, Ephemeris):
+            self.pipeline.add_ephemeris(ev)
+            self._store_dirty = True
+        elif isinstance(ev, KlobucharParams):
+            self.pipeline.set_iono(ev)
+        return 0
+
+    def skipped(self) -> dict[str, int]:
+        """Source counters of input that was dropped (bad bytes, frames, RINEX lines/epochs)."""
+        return {
+            k: int(v)
+            for k, v in sorted(self.source_counters.items())
+            if v and (k in SKIP_KEYS or k.startswith(SKIP_PREFIXES) or k.endswith("_skipped"))
+        }
+
+    def log_skipped(self) -> None:
+        """The shutdown line with what the source skipped (also in every STATUS record)."""
+        skipped = self.skipped()
+        if skipped:
+            log.warning("input skipped: %s", ", ".join(f"{k}={v}" for k, v in skipped.items()))
+        else:
+            log.info("input skipped: nothing")
+
+    def save_store(self) -> None:
+        if self.store_path is None or not self._store_dirty:
+            return
+        try:
+            self.pipeline.store.save(self.store_path)
+            self._store_dirty = False
+            log.info(
+                "ephemeris store saved: %d entries in %s", len(self.pipeline.store), self.store_path
+            )
+        except OSError as exc:
+            log.error("cannot save ephemeris store %s: %s", self.store_path, exc)
+
+
+class LatencyStats:
+    """Time the receiver loop spends per epoch (solve + publish) and in publishing alone.
+
+    Log-spaced histograms (5 % bins from 1 us), so the STATUS quantiles cost O(1) memory:
+    ``epoch_loop_{p50,p99,max}_ms`` and ``epoch_publish_{p50,p99,max}_ms``.
+    """
+
+    _STEP = math.log(1.05)
+
+    def __init__(self) -> None:
+        self._hist: dict[str, Counter[int]] = {"loop": Counter(), "publish": Counter()}
+        self._max: dict[str, float] = {"loop": 0.0, "publish": 0.0}
+
+    def add(self, t_start: float, t_solved: float, t_published: float) -> None:
+        for key, dt in (("loop", t_published - t_start), ("publish", t_published - t_solved)):
+            self._hist[key][max(0, math.ceil(math.log(max(dt, 1e-6) / 1e-6) / self._STEP))] += 1
+            self._max[key] = max(self._max[key], dt)
+
+    def counters(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for key, hist in self._hist.items():
+            n = sum(hist.values())
+            if not n:
+                continue
+            for q in (0.5, 0.99):
+                seen = 0
+                for b in sorted(hist):
+                    seen += hist[b]
+                    if seen >= q * n:
+                        out[f"epoch_{key}_p{round(q * 100)}_ms"] = round(
+                            1e3 * min(1e-6 * math.exp(b * self._STEP), self._max[key]), 3
+                        )
+                        break
+            out[f"epoch_{key}_max_ms"] = round(1e3 * self._max[key], 3)
+        return out

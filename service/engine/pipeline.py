@@ -1,0 +1,242 @@
+"""The engine loop shared by replay and the daemon: events in, fixes and TRACK/STATUS out.
+
+Per measurement epoch: the tracker decides which measurements are full, the engine solves
+from all usable ones (the fast fix, which is SPP when everything is full), and integrity
+bookkeeping compares every recovered pseudorange with the full one that arrives once the
+satellite's SOW decodes. A refused solution is passed on as ``mode="none"`` with its reason,
+never as a position.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from functools import partial
+
+import numpy as np
+
+from service.core.bds_nav import EphemerisAssembler
+from service.core.constants import C_M_S
+from service.core.ephemeris import EphemerisStore
+from service.core.timebase import diff_s
+from service.core.types import (
+    Ephemeris,
+    Fix,
+    KlobucharParams,
+    MeasurementEpoch,
+    NavSubframe,
+    SatView,
+)
+from service.engine.solver import REASONS, IonoSet, SolverConfig, sky_view, solve
+from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
+
+log = logging.getLogger(__name__)
+
+WARM_START_MAX_AGE_S = 30.0
+"""A fix older than this [s, data time] is not used as the start of the next solve."""
+
+
+@dataclass(frozen=True, slots=True)
+class IntegrityCheck:
+    """A recovered pseudorange checked against the full one after the SOW arrived."""
+
+    prn: str
+    gpst_week: int
+    gpst_tow_s: float
+    recovered_pr_m: float
+    full_pr_m: float
+    elapsed_s: float
+    ok: bool
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EpochResult:
+    """Everything one measurement epoch produced.
+
+    ``sky`` gives the satellites in view of ``fix`` on demand: the publishers ask for it
+    once the GGA is out, so computing it does not delay the first sentence."""
+
+    epoch: MeasurementEpoch
+    fix: Fix
+    since_start_s: float
+    track: tuple[TrackEvent, ...] = ()
+    integrity: tuple[IntegrityCheck, ...] = ()
+    sky: Callable[[Fix], tuple[SatView, ...]] | None = None
+
+
+def count_fix(counters: Counter[str], fix: Fix) -> None:
+    """The counters of one solver result: ``fix_<mode>``, ``declined_<reason_code>``,
+    ``raim_untested`` (a fix at redundancy 0), ``fixes_with_exclusions`` and
+    ``excluded_<PRN>`` per satellite that fault exclusion removed."""
+    counters[f"fix_{fix.mode}"] += 1
+    if not fix.ok:
+        counters[f"declined_{fix.reason_code or 'other'}"] += 1
+    elif fix.redundancy == 0:
+        counters["raim_untested"] += 1
+    if fix.excluded:
+        counters["fixes_with_exclusions" if fix.ok else "declines_with_exclusions"] += 1
+        for prn in fix.excluded:
+            counters[f"excluded_{prn}"] += 1
+
+
+def integrity_summary(counters: Mapping[str, int | float]) -> list[str]:
+    """Human lines for a run's end: satellites excluded and why fixes were declined."""
+    lines = []
+    excluded = {k[9:]: int(v) for k, v in counters.items() if k.startswith("excluded_") and v}
+    if excluded:
+        parts = ", ".join(f"{p} {n}" for p, n in sorted(excluded.items(), key=lambda i: -i[1]))
+        lines.append(
+            f"excluded by fault detection: {parts} "
+            f"(in {int(counters.get('fixes_with_exclusions', 0))} published fixes)"
+        )
+    declined = {k[9:]: int(v) for k, v in counters.items() if k.startswith("declined_") and v}
+    if declined:
+        parts = ", ".join(
+            f"{REASONS.get(code, code)} {n}"
+            for code, n in sorted(declined.items(), key=lambda i: -i[1])
+        )
+        lines.append(f"declined: {parts}")
+    return lines
+
+
+@dataclass(slots=True)
+class _Recovered:
+    week: int
+    tow_s: float
+    pr_m: float
+    period_s: float
+
+
+@dataclass
+class Pipeline:
+    """Stateful wiring of tracker, ephemeris store and engine (no I/O of its own)."""
+
+    store: EphemerisStore
+    iono: IonoSet = field(default_factory=IonoSet)
+    cfg: SolverConfig = field(default_factory=SolverConfig)
+    restart_at_s: float | None = None
+    sync_seed: int = 0
+    on_track: Callable[[TrackEvent], None] | None = None
+    tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
+    counters: Counter[str] = field(default_factory=Counter)
+    _first: tuple[int, float] | None = None
+    _restarted: bool = False
+    _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
+    _recovered: dict[str, _Recovered] = field(default_factory=dict)
+    _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
+
+    # --- navigation data -----------------------------------------------------------------
+    def add_ephemeris(self, eph: Ephemeris) -> None:
+        """Offer ``eph`` to the store; counts ``ephemeris_<source>`` when kept, else
+        ``ephemeris_refused`` and ``ephemeris_refused_<check>`` (see ephemeris_problem)."""
+        if self.store.add(eph):
+            self.counters[f"ephemeris_{eph.source}"] += 1
+        else:
+            self.counters["ephemeris_refused"] += 1
+            if self.store.last_refusal is not None:
+                self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
+
+    def set_iono(self, params: KlobucharParams) -> None:
+        if params.system == "BDS":
+            self.iono = IonoSet(bds=params, gps=self.iono.gps)
+            self.store.iono = params
+
+    def on_subframe(self, sf: NavSubframe) -> list[TrackEvent]:
+        self.counters["subframes"] += 1
+        events = self.tracker.on_subframe(sf)
+        self._feed_assembler(sf)
+        self._emit(events)
+        return events
+
+    def _feed_assembler(self, sf: NavSubframe) -> None:
+        for item in self._assembler.feed(sf.prn, sf.nav_type, sf.words):
+            if isinstance(item, Ephemeris):
+                self.add_ephemeris(item)
+            elif isinstance(item, KlobucharParams):
+                self.set_iono(item)
+
+    # --- measurements ---------------------------------------------------------------------
+    def on_epoch(self, epoch: MeasurementEpoch) -> EpochResult:
+        self.counters["epochs"] += 1
+        if self._first is None:
+            self._first = (epoch.gpst_week, epoch.gpst_tow_s)
+        if (
+            self.restart_at_s is not None
+            and not self._restarted
+            and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) >= self.restart_at_s
+        ):
+            self._restarted = True
+            rng = np.random.default_rng(self.sync_seed)
+            delays = {p: float(rng.uniform(0.1, 0.5)) for p in sorted(epoch.prn)}
+            self.tracker.restart(
+                epoch.gpst_week,
+                epoch.gpst_tow_s,
+                SubframeEmulator(epoch.gpst_week, epoch.gpst_tow_s, delays),
+            )
+            self._recovered.clear()
+            self._last_fix = None
+        view, events = self.tracker.on_epoch(epoch)
+        checks = self._check_integrity(view, events)
+        fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        count_fix(self.counters, fix)
+        if fix.ok and fix.x_ecef_m is not None:
+            self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
+        if fix.mode == "fast":
+            for prn, pr in fix.recovered_pr_m.items():
+                i = view.prn.index(prn)
+                self._recovered[prn] = _Recovered(
+                    epoch.gpst_week, epoch.gpst_tow_s, pr, float(view.period_s[i])
+                )
+        self._emit(events)
+        since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
+        return EpochResult(
+            view, fix, since, tuple(events), tuple(checks), partial(sky_view, view, self.store)
+        )
+
+    def _start_cfg(self, view: MeasurementEpoch) -> SolverConfig:
+        """The solver settings for ``view``: once every measurement is full (conventional
+        SPP) the iteration starts at the position of the last fix of the past
+        WARM_START_MAX_AGE_S, as receivers do; it converges to the same solution in fewer
+        steps. Any epoch with a fractional measurement starts at the Earth's centre (the
+        paper's a-priori-free fast fix), and so does every epoch without a recent fix."""
+        last = self._last_fix
+        if (
+            self.cfg.x0_ecef_m is not None
+            or last is None
+            or not bool(np.isfinite(view.pr_m).all())
+            or not 0.0
+            <= diff_s(view.gpst_week, view.gpst_tow_s, last[0], last[1])
+            <= WARM_START_MAX_AGE_S
+        ):
+            return self.cfg
+        return replace(self.cfg, x0_ecef_m=last[2])
+
+    def _check_integrity(
+        self, view: MeasurementEpoch, events: list[TrackEvent]
+    ) -> list[IntegrityCheck]:
+        checks = []
+        for ev in events:
+            if ev.event != "full" or ev.prn not in self._recovered:
+                continue
+            rec = self._recovered.pop(ev.prn)
+            i = view.prn.index(ev.prn)
+            full = float(view.pr_m[i])
+            dt = diff_s(view.gpst_week, view.gpst_tow_s, rec.week, rec.tow_s)
+            ok = bool(np.isfinite(full)) and abs(full - rec.pr_m) < C_M_S * rec.period_s / 2
+            checks.append(
+                IntegrityCheck(ev.prn, view.gpst_week, view.gpst_tow_s, rec.pr_m, full, dt, ok)
+            )
+            self.counters["integrity_checks"] += 1
+            if not ok:
+                self.counters["integrity_failures"] += 1
+                log.error(
+                    "integrity: %s recovered %.1f m, SOW gives %.1f m", ev.prn, rec.pr_m, full
+                )
+        return checks
+
+    def _emit(self, events: list[TrackEvent]) -> None:
+        if self.on_track is not None:
+            for ev in events:
+                self.on_track(ev)

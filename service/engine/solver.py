@@ -1,0 +1,942 @@
+"""The positioning engine: the Zhao-Cui-Lu fast fix and conventional SPP, as pure functions.
+
+The fast fix follows the paper's eqs. (1)-(16): unknowns [x, y, z, b, N_1..N_m] start at zero;
+fractional rows z_j = |X_j - x| + b - N_j c T_j get a -c T_j column (eq. 11); x and b take the
+least-squares step (eq. 10) while each N_j takes round(dN_j) (eq. 13); transmit times use
+z_j + N_j c T_j (eq. 5); iteration stops when the position/clock step is below theta and every
+rounded dN is zero (eq. 14). The GEO-GDOP eigenvalue gate (eqs. 12, 20-21) is then evaluated
+over the full rows at the converged position, and the state is corrected with the integers
+fixed (eqs. 15-16). With every measurement full there are no N columns and the procedure is
+conventional single-point positioning, which is how :func:`solve_spp` is built.
+
+Two phases, so that fast and SPP share one fixed point:
+1. From the Earth's centre with no corrections and no elevation mask (they mean nothing
+   before the position does): the paper's iteration, gate and final correction.
+2. From that position: elevation mask (a masked fractional satellite loses its row; its
+   integer is already fixed), Klobuchar and Saastamoinen corrections, elevation weights,
+   iterated to convergence. A post-fit residual check then refuses any solution whose
+   residuals betray a wrong integer set or an outlier.
+
+With every measurement full and an approximate position given (``x0_ecef_m``), phase 1 has
+nothing to resolve and phase 2 starts there: conventional SPP, the same solution.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+
+from service.core.constants import C_M_S, is_geo
+from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
+from service.core.ephemeris import EphemerisStore
+from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
+from service.core.orbit import EphemerisArrays, sat_pos_clock
+from service.core.settings import setting
+from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
+from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
+from service.engine.raim import Integrity, assess
+
+log = logging.getLogger(__name__)
+
+IonoChoice = Literal["auto", "bds", "gps", "off"]
+TropoChoice = Literal["saastamoinen", "off"]
+
+
+@dataclass(frozen=True, slots=True)
+class SolverConfig:
+    """Solver settings. ``beta=None`` derives the gate from T and ``range_error_m``.
+
+    Error model (per measurement, :func:`measurement_sigma_m`):
+    sigma^2 = a^2 + b^2 / sin^2 E + c^2 10^((C0 - C/N0) / 10) + sigma_sis^2
+              + (k_iono I)^2 + (t_tropo / (sin E + 0.1))^2,
+    with the C/N0 term only where the input carries C/N0 and the tropospheric term only
+    where Saastamoinen is applied; I is the Klobuchar delay applied, or without a model an
+    unmodelled zenith delay with its slant factor. ``weighted=False`` gives every row
+    ``sigma_uniform_m``. Calibrated on the recordings (docs/method.md, "Error model").
+
+    Integrity: a chi-square test of the weighted residuals at false-alarm probability
+    ``p_fa``; up to ``max_exclusions`` satellites excluded one at a time when it fails;
+    protection levels for missed-detection probability ``p_md``; fixes with PDOP above
+    ``pdop_max``, an altitude outside [``alt_min_m``, ``alt_max_m``] or a receiver clock
+    beyond ``clock_max_s`` are declined.
+    """
+
+    elmask_deg: float = setting(
+        10.0, "elevation mask [deg]", kind="float", low=0.0, high=90.0, high_open=True
+    )
+    beta: float = setting(
+        0.0,
+        "GEO-GDOP gate of the fast fix, paper eq. 21 (0: derived from the code period T and "
+        "--range-error-m: 2998 for 1 ms and 50 m)",
+        kind="float",
+        low=0.0,
+    )
+    range_error_m: float = setting(
+        50.0,
+        "3-sigma range error that derives the GDOP gate [m]",
+        kind="float",
+        low=0.0,
+        low_open=True,
+    )
+    iono: IonoChoice = setting(
+        "auto",
+        "ionosphere: auto (BDS Klobuchar when broadcast, else GPS coefficients scaled to B1I), "
+        "bds, gps or off",
+        kind="str",
+        choices=("auto", "bds", "gps", "off"),
+    )
+    tropo: TropoChoice = setting(
+        "saastamoinen", "troposphere model", kind="str", choices=("saastamoinen", "off")
+    )
+    weighted: bool = True
+    max_iter: int = 30
+    theta_m: float = 1e-3
+    conv_m: float = 1e-4
+    sigma_a_m: float = setting(0.5, "error model: constant code term a [m]", kind="float", low=0.0)
+    sigma_b_m: float = setting(
+        0.5, "error model: elevation term b, b / sin E [m]", kind="float", low=0.0
+    )
+    sigma_cn0_m: float = setting(
+        1.0,
+        "error model: C/N0 term c, c 10^((C0 - C/N0) / 20) [m] (0: C/N0 not used)",
+        kind="float",
+        low=0.0,
+    )
+    cn0_ref_dbhz: float = setting(45.0, "error model: C/N0 reference C0 [dB-Hz]", kind="float")
+    sigma_sis_m: float = setting(
+        1.0, "error model: orbit and clock (signal in space) error [m]", kind="float", low=0.0
+    )
+    iono_error_ratio: float = setting(
+        0.3, "error model: share of the Klobuchar delay left as error", kind="float", low=0.0
+    )
+    iono_unmodelled_m: float = setting(
+        3.0, "error model: zenith ionosphere error without a model [m]", kind="float", low=0.0
+    )
+    tropo_error_m: float = setting(
+        0.3, "error model: Saastamoinen zenith error [m]", kind="float", low=0.0
+    )
+    sigma_uniform_m: float = 3.0
+    p_fa: float = setting(
+        1e-5,
+        "integrity: false-alarm probability of the chi-square test (0: no test)",
+        kind="float",
+        low=0.0,
+        high=0.5,
+    )
+    p_md: float = setting(
+        1e-3,
+        "integrity: missed-detection probability of the protection levels",
+        kind="float",
+        low=0.0,
+        high=0.5,
+        low_open=True,
+    )
+    max_exclusions: int = setting(
+        2, "integrity: satellites fault exclusion may remove", kind="int", low=0, high=10
+    )
+    pdop_max: float = setting(
+        10.0, "largest PDOP of a published fix", kind="float", low=0.0, low_open=True
+    )
+    alt_min_m: float = setting(-1_000.0, "plausible shell: lowest altitude [m]", kind="float")
+    alt_max_m: float = setting(1_100_000.0, "plausible shell: highest altitude [m]", kind="float")
+    clock_max_s: float = setting(
+        1_000.0,
+        "plausible shell: largest receiver clock bias [s]",
+        kind="float",
+        low=0.0,
+        low_open=True,
+    )
+    # A known approximate position (a reference in studies, the last fix in a stream).
+    # With every measurement full the solve is then conventional SPP from it (phase 2
+    # alone); with fractional rows phase 1 starts there. None: the paper's start, the
+    # Earth's centre (eq. 3). Either way the least-squares solution is the same.
+    x0_ecef_m: tuple[float, float, float] | None = None
+
+
+def derive_beta(period_s: float, range_error_m: float) -> float:
+    """Gate threshold beta = alpha / max|d rho| with alpha = c T / 2 (paper eq. 21).
+
+    For T = 1 ms and a 50 m 3-sigma range error this is 2998, the paper's 3000.
+    """
+    return C_M_S * period_s / 2.0 / range_error_m
+
+
+@dataclass(slots=True, eq=False)
+class _Rows:
+    """Measurement rows of one solve, aligned with their ephemerides."""
+
+    prn: tuple[str, ...]
+    z_m: np.ndarray  # full pseudorange, or fractional value in [0, cT)
+    ct_m: np.ndarray  # c*T for fractional rows, 0 for full rows
+    cn0_dbhz: np.ndarray
+    eph: EphemerisArrays
+    # satellite positions and clocks at the transmit times of eqs. (4)-(5): those depend on
+    # the receive time and z + N cT only, not on the receiver state, so iterations that keep
+    # N reuse them (key: :func:`_orbit_key`)
+    orbit_cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    @property
+    def frac(self) -> np.ndarray:
+        return self.ct_m > 0
+
+    def take(self, idx: np.ndarray) -> _Rows:
+        """Rows ``idx``; the cached satellite states come along."""
+        cache = {}
+        for key, (sat, clk) in self.orbit_cache.items():
+            n_int, when = np.frombuffer(key[: -_TIME_KEY.size]), key[-_TIME_KEY.size :]
+            cache[n_int[idx].tobytes() + when] = (sat[idx], clk[idx])
+        return _Rows(
+            tuple(self.prn[i] for i in idx),
+            self.z_m[idx],
+            self.ct_m[idx],
+            self.cn0_dbhz[idx],
+            self.eph.take(idx),
+            cache,
+        )
+
+
+_TIME_KEY = struct.Struct("<id")
+
+
+def _orbit_key(n_int: np.ndarray, bdt_week: int, bdt_sow_s: float) -> bytes:
+    """Key of :attr:`_Rows.orbit_cache`: the integers' bytes, then the receive time's."""
+    return n_int.tobytes() + _TIME_KEY.pack(bdt_week, bdt_sow_s)
+
+
+@dataclass(slots=True)
+class _Geometry:
+    los: np.ndarray  # unit vectors receiver -> satellite (n, 3)
+    pred_m: np.ndarray  # predicted pseudorange without the receiver clock and N terms
+    sat_ecef_m: np.ndarray
+
+    def take(self, idx: np.ndarray) -> _Geometry:
+        return _Geometry(self.los[idx], self.pred_m[idx], self.sat_ecef_m[idx])
+
+
+def _geometry(
+    rows: _Rows, bdt_week: int, bdt_sow_s: float, x: np.ndarray, n_int: np.ndarray
+) -> _Geometry:
+    """Satellite positions at transmit time (paper eqs. 4-5) and geometric ranges."""
+    key = _orbit_key(n_int, bdt_week, bdt_sow_s)
+    cached = rows.orbit_cache.get(key)
+    if cached is None:
+        if len(rows.orbit_cache) > 64:
+            rows.orbit_cache.clear()
+        eph = rows.eph
+        t1 = bdt_sow_s - (rows.z_m + n_int * rows.ct_m) / C_M_S
+        t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
+        cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
+    sat, clk_s = cached
+    d = sat - x
+    sat = sagnac_rotate(sat, np.sqrt(np.einsum("ij,ij->i", d, d)) / C_M_S)
+    d = sat - x
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
+
+
+def _full_cost(rows: _Rows, geo: _Geometry, b: float, full_idx: np.ndarray) -> float:
+    """Sum of squared residuals of the full rows (no corrections): the line-search merit."""
+    r = rows.z_m[full_idx] - geo.pred_m[full_idx] - b
+    return float(r @ r)
+
+
+def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """The (weighted) least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and 16).
+
+    Solved through the normal equations: a handful of unknowns, where an SVD per iteration
+    costs more than the rest of the iteration; a singular system falls back to numpy's
+    minimum-norm least squares (raising LinAlgError only where that fails too)."""
+    ht = h.T if w is None else h.T * w
+    try:
+        return np.linalg.solve(ht @ h, ht @ dz)
+    except np.linalg.LinAlgError:
+        if w is not None:
+            sw = np.sqrt(w)
+            h, dz = h * sw[:, None], dz * sw
+        step, *_ = np.linalg.lstsq(h, dz, rcond=None)
+        return np.asarray(step)
+
+
+def _design(los: np.ndarray) -> np.ndarray:
+    return np.concatenate([-los, np.ones((len(los), 1))], axis=1)
+
+
+def _iono_model(
+    store_iono: KlobucharParams | None, gps_iono: KlobucharParams | None, choice: IonoChoice
+) -> KlobucharParams | None:
+    if choice == "off":
+        return None
+    if choice == "bds":
+        return store_iono if store_iono is not None and store_iono.system == "BDS" else None
+    if choice == "gps":
+        return gps_iono
+    return store_iono if store_iono is not None else gps_iono
+
+
+@dataclass(frozen=True, slots=True)
+class IonoSet:
+    """Broadcast ionosphere coefficients available to the solver."""
+
+    bds: KlobucharParams | None = None
+    gps: KlobucharParams | None = None
+
+
+def _meaningful(x: np.ndarray) -> bool:
+    """A position near enough the Earth for masks and delays to mean something."""
+    r = float(np.linalg.norm(x))
+    return 6.0e6 < r < 8.5e6
+
+
+GROSS_SPREAD_M = 25_000e3
+"""Largest possible difference of two full B1I pseudoranges of one epoch [m]. They share
+the receiver clock, so they differ by geometry and satellite clocks only: from a MEO at
+zenith (~21,500 km) to a GEO/IGSO at the horizon (~41,700 km) is ~20,200 km for a user on
+the ground or up to 1000 km above it, plus satellite clocks (< 1 ms, 300 km). A full
+pseudorange further than this from the epoch's median is impossible, not merely faulty."""
+
+
+@dataclass(frozen=True, slots=True)
+class _Context:
+    """What one epoch's solve needs besides its rows."""
+
+    gpst_week: int
+    gpst_tow_s: float
+    bdt_week: int
+    bdt_sow_s: float
+    iono: IonoSet
+    cfg: SolverConfig
+    solver: Literal["fast", "spp"]
+
+
+@dataclass(slots=True, eq=False)
+class _State:
+    """An iterate: position, clock bias [m], integers (0 for full rows) and its geometry."""
+
+    x: np.ndarray
+    b: float
+    n_int: np.ndarray
+    geo: _Geometry
+    iterations: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class _Decline:
+    """Why an attempt gave no solution (``code``: the counter key, see :data:`REASONS`)."""
+
+    reason: str
+    code: str
+    gdop_full: float | None = None
+    iterations: int = 0
+
+
+REASONS: dict[str, str] = {
+    "no_measurements": "no measurements",
+    "no_ephemeris": "no usable ephemeris",
+    "too_few_full": "too few full measurements",
+    "singular": "singular geometry",
+    "no_convergence": "no convergence",
+    "gdop_gate": "GEO-GDOP gate",
+    "diverged": "solution diverged",
+    "chi2": "chi-square test failed, no exclusion passes",
+    "implausible": "implausible solution",
+    "pdop_gate": "PDOP gate",
+    "numerical": "numerical failure",
+}
+"""Decline codes (``Fix.reason_code``) and their meaning in words."""
+
+
+def _phase1(rows: _Rows, ctx: _Context) -> _State | _Decline:
+    """Phase 1: the paper's iteration (eqs. 3-14) from the Earth's centre (or
+    ``cfg.x0_ecef_m``) without corrections, the GEO-GDOP gate (eqs. 12, 20-21) and the
+    fixed-integer correction (eqs. 15-16)."""
+    cfg = ctx.cfg
+    x = np.zeros(3) if cfg.x0_ecef_m is None else np.array(cfg.x0_ecef_m, dtype=float)
+    b = 0.0
+    n_int = np.zeros(len(rows.prn))
+    frac = rows.frac
+    n_frac = int(frac.sum())
+    frac_idx = np.flatnonzero(frac)
+    full_idx = np.flatnonzero(~frac)
+    converged = False
+    it = 0
+    geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
+    cost = _full_cost(rows, geo, b, full_idx)
+    for it in range(1, cfg.max_iter + 1):
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b  # eqs. (7)-(8)
+        h = _design(geo.los)
+        if n_frac:
+            # eq. (11) with the ambiguity in metres (column -1 instead of -cT) for conditioning
+            hn = np.zeros((len(rows.prn), n_frac))
+            hn[frac_idx, np.arange(n_frac)] = -1.0
+            h = np.concatenate([h, hn], axis=1)
+        try:
+            step = _lsq(h, dz)  # eq. (10)
+        except np.linalg.LinAlgError:
+            return _Decline("singular geometry in the fast-fix iteration", "singular")
+        # Backtracking: the float ambiguities absorb the fractional rows, so x and b move on
+        # the full rows alone; from the Earth's centre, near-equatorial GEOs make the plain
+        # step overshoot (beyond GEO altitude, then divergence). A step that increases the
+        # full-row residual is halved; where the plain step helps it is taken unchanged.
+        lam = 1.0
+        while True:
+            x_new = x + lam * step[:3]
+            b_new = b + lam * step[3]
+            dn = np.rint(lam * step[4:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
+            n_new = n_int.copy()
+            n_new[frac_idx] += dn  # eq. (13)
+            geo_new = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x_new, n_new)
+            cost_new = _full_cost(rows, geo_new, b_new, full_idx)
+            if cost_new <= cost or lam < 1e-3 or not np.isfinite(cost):
+                break
+            lam /= 2.0
+        x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
+        if not np.all(np.isfinite(x)):
+            break
+        if np.linalg.norm(lam * step[:4]) < cfg.theta_m and not np.any(dn):  # eq. (14)
+            converged = True
+            break
+    if not np.all(np.isfinite(x)):
+        return _Decline(f"no convergence after {it} iterations", "no_convergence", iterations=it)
+
+    # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
+    # phase-1 position (or at the last iterate when the iteration did not settle)
+    gd = float(gdop(geo.los[~frac]))
+    beta = cfg.beta
+    if not beta:
+        t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
+        beta = derive_beta(t_min, cfg.range_error_m)
+    if n_frac and not gd < beta:
+        settled = "" if converged else f" (no convergence after {it} iterations)"
+        return _Decline(
+            f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}{settled}", "gdop_gate", gd, it
+        )
+    if not converged:
+        return _Decline(f"no convergence after {it} iterations", "no_convergence", gd, it)
+
+    # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
+    state = _fixed_iterations(rows, ctx, _State(x, b, n_int, geo, it), None, False)
+    return state
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Attempt:
+    """One solve of a set of rows: the fix (or why not) and the integrity figures of its
+    final solution. ``kept`` indexes ``rows``: the rows the solution used (above the mask)."""
+
+    fix: Fix
+    rows: _Rows
+    kept: np.ndarray
+    integrity: Integrity | None = None
+
+    @property
+    def failed_test(self) -> bool:
+        i = self.integrity
+        return i is not None and i.chi2 is not None and not i.passed
+
+
+def _attempt(rows: _Rows, ctx: _Context) -> _Attempt:
+    """Solve ``rows`` (phase 1 when fractional rows need integers, then phase 2) and judge
+    the solution: chi-square test, plausibility, PDOP gate (in that order)."""
+    cfg = ctx.cfg
+    frac = rows.frac
+    n_full, n_frac = int((~frac).sum()), int(frac.sum())
+    base = Fix(
+        solver=ctx.solver,
+        mode="none",
+        gpst_week=ctx.gpst_week,
+        gpst_tow_s=ctx.gpst_tow_s,
+        full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
+        fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
+    )
+    none = np.zeros(0, dtype=int)
+
+    def declined(d: _Decline) -> _Attempt:
+        fix = replace(
+            base,
+            reason=d.reason,
+            reason_code=d.code,
+            gdop_full=d.gdop_full,
+            iterations=d.iterations,
+        )
+        return _Attempt(fix, rows, none)
+
+    if n_full < 4:
+        return declined(
+            _Decline(
+                f"too few full measurements: {n_full} full, {n_frac} fractional "
+                "(need at least 4 full)",
+                "too_few_full",
+            )
+        )
+    if cfg.x0_ecef_m is not None and not n_frac:
+        # every measurement full and a position known: conventional SPP, phase 2 alone (the
+        # same solution as from the Earth's centre, see SolverConfig.x0_ecef_m)
+        x = np.array(cfg.x0_ecef_m, dtype=float)
+        n0 = np.zeros(len(rows.prn))
+        state = _State(x, 0.0, n0, _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n0))
+    else:
+        first = _phase1(rows, ctx)
+        if isinstance(first, _Decline):
+            return declined(first)
+        state = first
+
+    # ---- phase 2: mask, corrections, weights ---------------------------------------------
+    meaningful = _meaningful(state.x)
+    if meaningful:
+        el = _local(state.x, state.geo.sat_ecef_m).el_rad
+        keep = np.flatnonzero(el >= np.radians(cfg.elmask_deg))
+    else:
+        keep = np.arange(len(rows.prn))
+    kept = rows if len(keep) == len(rows.prn) else rows.take(keep)
+    kfrac = kept.frac
+    n_full_k = int((~kfrac).sum())
+    if n_full_k < 4:
+        return declined(
+            _Decline(
+                f"too few full measurements above the {cfg.elmask_deg:g} deg mask: {n_full_k}",
+                "too_few_full",
+                float(gdop(state.geo.los[~frac])) if n_frac else None,
+                state.iterations,
+            )
+        )
+    model = _iono_model(ctx.iono.bds, ctx.iono.gps, cfg.iono) if meaningful else None
+    geo = state.geo if kept is rows else state.geo.take(keep)
+    state = _fixed_iterations(
+        kept,
+        ctx,
+        _State(state.x, state.b, state.n_int[keep], geo, state.iterations),
+        model,
+        meaningful,
+    )
+    x, b, it = state.x, state.b, state.iterations
+    if not (np.all(np.isfinite(x)) and np.isfinite(b)):
+        return declined(_Decline("solution diverged", "diverged", iterations=it))
+
+    # ---- judge the solution -----------------------------------------------------------------
+    geo = state.geo
+    loc = _local(x, geo.sat_ecef_m)
+    iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg) if meaningful else (None, None)
+    corr = _total(iono_m, tropo_m, len(kept.prn))
+    v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - b - corr
+    sigma = _sigma_m(kept, loc, iono_m, tropo_m, cfg, meaningful)
+    a = _design(geo.los)
+    rot = enu_rotation(loc.lat_rad, loc.lon_rad)
+    integ = assess(a, v, sigma, rot, cfg.p_fa, cfg.p_md)
+    resid_rms = float(np.sqrt(np.mean(v**2)))
+    gd_final = float(gdop(geo.los[~kfrac]))
+    frac_idx = np.flatnonzero(kfrac)
+    ambiguity = {kept.prn[i]: int(state.n_int[i]) for i in frac_idx}
+    judged = replace(
+        base,
+        gdop_full=gd_final if ctx.solver == "fast" else None,
+        iterations=it,
+        resid_rms_m=resid_rms,
+        redundancy=integ.redundancy,
+        chi2=integ.chi2,
+        chi2_max=integ.chi2_max,
+    )
+    if integ.chi2 is not None and not integ.passed:
+        worst = int(np.nanargmax(np.abs(integ.w))) if np.any(np.isfinite(integ.w)) else 0
+        reason = (
+            f"chi-square test failed: {integ.chi2:.1f} > {integ.chi2_max:.1f} "
+            f"(redundancy {integ.redundancy}; largest w-test {kept.prn[worst]} "
+            f"{integ.w[worst]:.1f})"
+        )
+        fix = replace(judged, reason=reason, reason_code="chi2", ambiguity=ambiguity)
+        return _Attempt(fix, rows, keep, integ)
+    lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
+    if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b) > cfg.clock_max_s * C_M_S:
+        reason = (
+            f"implausible solution: altitude {loc.alt_m:.4g} m (allowed {cfg.alt_min_m:g} to "
+            f"{cfg.alt_max_m:g}), receiver clock {b / C_M_S:.4g} s (allowed +-{cfg.clock_max_s:g})"
+        )
+        return _Attempt(
+            replace(judged, reason=reason, reason_code="implausible"), rows, keep, integ
+        )
+    q_enu = rot @ np.linalg.inv(a.T @ a)[:3, :3] @ rot.T
+    pdop = float(np.sqrt(np.trace(q_enu)))
+    if not pdop <= cfg.pdop_max:
+        reason = f"PDOP gate failed: PDOP {pdop:.1f} > {cfg.pdop_max:g}"
+        fix = replace(judged, pdop=None, reason=reason, reason_code="pdop_gate")
+        return _Attempt(fix, rows, keep, integ)
+    cov = integ.cov_enu_m2
+    mode: Literal["fast", "spp"] = "fast" if bool(np.any(kfrac)) else "spp"
+    fix = replace(
+        judged,
+        mode=mode,
+        x_ecef_m=(float(x[0]), float(x[1]), float(x[2])),
+        lat_deg=lat_deg,
+        lon_deg=lon_deg,
+        alt_m=loc.alt_m,
+        clock_bias_m=float(b),
+        pdop=pdop,
+        hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
+        vdop=float(np.sqrt(q_enu[2, 2])),
+        std_enu_m=(_std(cov, 0), _std(cov, 1), _std(cov, 2)),
+        cov_enu_m2=_rows3(cov),
+        hpl_m=integ.hpl_m,
+        vpl_m=integ.vpl_m,
+        used=kept.prn,
+        full=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if not f),
+        fractional=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if f),
+        ambiguity=ambiguity,
+        recovered_pr_m={
+            kept.prn[i]: float(kept.z_m[i] + state.n_int[i] * kept.ct_m[i]) for i in frac_idx
+        },
+    )
+    return _Attempt(fix, rows, keep, integ)
+
+
+def _std(cov: np.ndarray, k: int) -> float:
+    return float(np.sqrt(max(float(cov[k, k]), 0.0)))
+
+
+def _rows3(m: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+    return tuple((float(r[0]), float(r[1]), float(r[2])) for r in m)
+
+
+def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
+    """Solve with fault detection and exclusion: impossible ranges are dropped first; when
+    the chi-square test fails, satellites are excluded one at a time (:func:`_exclude`)."""
+    excluded: dict[str, str] = {}
+    full = ~rows.frac
+    if int(full.sum()) >= 2:
+        # the median by sorting: numpy's median imports numpy.ma on its first call (~14 ms,
+        # a stall on the first fast-fix epoch of a daemon)
+        z = np.sort(rows.z_m[full])
+        median = 0.5 * (z[(len(z) - 1) // 2] + z[len(z) // 2])
+        dev = np.abs(rows.z_m - median)
+        gross = full & ~(dev <= GROSS_SPREAD_M)
+        if gross.any():
+            for i in np.flatnonzero(gross):
+                excluded[rows.prn[i]] = (
+                    f"pseudorange {dev[i] / 1e3:.4g} km from the epoch's median: impossible"
+                )
+            rows = rows.take(np.flatnonzero(~gross))
+    att = _attempt(rows, ctx)
+    if att.failed_test and ctx.cfg.max_exclusions > 0:
+        att, more = _exclude(att, ctx)
+        excluded |= more
+    if excluded:
+        return replace(att.fix, excluded=excluded)
+    return att.fix
+
+
+def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]:
+    """Fault exclusion: up to ``cfg.max_exclusions`` satellites, one at a time.
+
+    At each stage every used satellite is excluded in turn and the rest re-solved (phase 1
+    included: a fault on a full row can corrupt every integer). Of the solutions that pass
+    the chi-square test and the other checks, the one with the smallest chi2 / threshold is
+    taken; when none passes, the stage's best-fitting failed solution is the start of the
+    next stage. An exclusion must leave a testable solution (redundancy >= 1 after it), so
+    it needs redundancy >= 2 before. Why a satellite went is its w-test (normalised
+    residual) in the failed solution."""
+    current = failed
+    removed: dict[str, str] = {}
+    for _stage in range(ctx.cfg.max_exclusions):
+        integ = current.integrity
+        if integ is None or integ.chi2 is None or integ.redundancy < 2:
+            break
+        passed: tuple[float, _Attempt, str, str] | None = None
+        failing: tuple[float, _Attempt, str, str] | None = None
+        every = np.arange(len(current.rows.prn))
+        for k, i in enumerate(current.kept):
+            prn = current.rows.prn[int(i)]
+            why = (
+                f"chi-square test failed ({integ.chi2:.1f} > {integ.chi2_max:.1f}), "
+                f"w-test {integ.w[k]:.1f}"
+            )
+            cand = _attempt(current.rows.take(np.delete(every, int(i))), ctx)
+            ci = cand.integrity
+            ratio = (
+                ci.chi2 / ci.chi2_max
+                if ci is not None and ci.chi2 is not None and ci.chi2_max
+                else math.inf
+            )
+            if cand.fix.ok:
+                if passed is None or ratio < passed[0]:
+                    passed = (ratio, cand, prn, why)
+            elif cand.failed_test and (failing is None or ratio < failing[0]):
+                failing = (ratio, cand, prn, why)
+        if passed is not None:
+            _, cand, prn, why = passed
+            return cand, removed | {prn: why}
+        if failing is None:
+            break
+        _, current, prn, why = failing
+        removed[prn] = why
+    fix = replace(
+        failed.fix,
+        reason=(
+            f"{failed.fix.reason}; no exclusion of up to {ctx.cfg.max_exclusions} satellites passes"
+        ),
+    )
+    return replace(failed, fix=fix), {}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Local:
+    """Receiver geodetic position and satellite look angles at one iterate."""
+
+    lat_rad: float
+    lon_rad: float
+    alt_m: float
+    el_rad: np.ndarray
+    az_rad: np.ndarray
+
+
+def _local(x: np.ndarray, sat_ecef_m: np.ndarray) -> _Local:
+    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
+    el, az = look_angles(x, sat_ecef_m, (lat, lon))
+    return _Local(lat, lon, alt, el, az)
+
+
+def measurement_sigma_m(
+    el_rad: np.ndarray,
+    cn0_dbhz: np.ndarray,
+    iono_m: np.ndarray | None,
+    tropo_m: np.ndarray | None,
+    cfg: SolverConfig,
+) -> np.ndarray:
+    """Standard deviation [m] of each pseudorange's error (model in :class:`SolverConfig`).
+
+    Code noise and multipath grow at low elevation and low C/N0 (the C/N0 term is what
+    makes the model honest in urban canyons, where weak reflected signals carry tens of
+    metres of error); the orbit and clock error (signal in space) is ``sigma_sis_m`` for
+    every satellite: the broadcast URA (BDS-SIS-ICD-B1I-3.0 5.2.4.5) is a class bound,
+    2.0-2.4 m for every healthy satellite in the recordings, not a standard deviation; the
+    broadcast Klobuchar model leaves part of the ionospheric delay (``iono_error_ratio``),
+    without one the whole delay (``iono_unmodelled_m`` at zenith, thin-shell slant factor);
+    Saastamoinen leaves a decimetre-level zenith error mapped with 1 / (sin E + 0.1), as in
+    RTKLIB's error model.
+    """
+    s = np.maximum(np.sin(el_rad), 0.05)
+    var = cfg.sigma_a_m**2 + (cfg.sigma_b_m / s) ** 2
+    cn0 = np.where(np.isfinite(cn0_dbhz), cn0_dbhz, cfg.cn0_ref_dbhz)
+    var = var + cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - cn0) / 10.0)
+    var = var + cfg.sigma_sis_m**2
+    if iono_m is not None:
+        var = var + (cfg.iono_error_ratio * iono_m) ** 2
+    else:  # no broadcast model applied: the whole delay is error
+        var = var + (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
+    if tropo_m is not None:
+        var = var + (cfg.tropo_error_m / (s + 0.1)) ** 2
+    return np.sqrt(var)
+
+
+def _obliquity(el_rad: np.ndarray) -> np.ndarray:
+    """Slant factor of a thin ionospheric shell at 350 km (IS-GPS-200 20.3.3.5.2.5 form)."""
+    ratio = 6378.0 / (6378.0 + 350.0) * np.cos(el_rad)
+    return 1.0 / np.sqrt(1.0 - ratio**2)
+
+
+def _sigma_m(
+    rows: _Rows,
+    loc: _Local,
+    iono_m: np.ndarray | None,
+    tropo_m: np.ndarray | None,
+    cfg: SolverConfig,
+    meaningful: bool,
+) -> np.ndarray:
+    if not (meaningful and cfg.weighted):
+        return np.full(len(rows.prn), cfg.sigma_uniform_m)
+    return measurement_sigma_m(loc.el_rad, rows.cn0_dbhz, iono_m, tropo_m, cfg)
+
+
+def _delays(
+    loc: _Local, bdt_sow: float, model: KlobucharParams | None, cfg: SolverConfig
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Ionospheric and tropospheric delays [m] for the rows at this iterate (None: not
+    applied)."""
+    iono = None
+    if model is not None and loc.alt_m < 100e3:
+        if model.system == "BDS":
+            iono = klobuchar_bds_m(model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, bdt_sow)
+        else:
+            gpst_tow = bdt_sow + BDT_GPST_OFFSET_S
+            iono = klobuchar_gps_m(
+                model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, gpst_tow
+            )
+    tropo = saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad) if cfg.tropo != "off" else None
+    return iono, tropo
+
+
+def _total(iono_m: np.ndarray | None, tropo_m: np.ndarray | None, n: int) -> np.ndarray:
+    out = np.zeros(n)
+    if iono_m is not None:
+        out = out + iono_m
+    if tropo_m is not None:
+        out = out + tropo_m
+    return out
+
+
+def _fixed_iterations(
+    rows: _Rows,
+    ctx: _Context,
+    state: _State,
+    model: KlobucharParams | None,
+    meaningful: bool,
+) -> _State:
+    """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated
+    from ``state``. When the position is ``meaningful`` the rows are weighted by the error
+    model and corrected for the delays."""
+    cfg = ctx.cfg
+    x, b, geo, n_int = state.x, state.b, state.geo, state.n_int
+    it = 0
+    for it in range(1, cfg.max_iter + 1):
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b
+        w = None
+        if meaningful:
+            loc = _local(x, geo.sat_ecef_m)
+            iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg)
+            dz = dz - _total(iono_m, tropo_m, len(dz))
+            if cfg.weighted:
+                w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
+        step = _lsq(_design(geo.los), dz, w)
+        x = x + step[:3]
+        b += float(step[3])
+        if not (np.all(np.isfinite(x)) and np.isfinite(b)):
+            break
+        geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
+        if np.linalg.norm(step) < cfg.conv_m:
+            break
+    return _State(x, b, n_int, geo, state.iterations + it)
+
+
+def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
+    """Satellites of ``epoch`` with an ephemeris, seen from the fix (empty without one)."""
+    if fix.x_ecef_m is None:
+        return ()
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    ephs, idx = [], []
+    for i, prn in enumerate(epoch.prn):
+        e = store.select(prn, bdt_week, bdt_sow)
+        if e is not None:
+            ephs.append(e)
+            idx.append(i)
+    if not ephs:
+        return ()
+    arr = store.arrays(ephs)
+    pos, _ = sat_pos_clock(arr, bdt_week, np.full(len(ephs), bdt_sow - 0.075))
+    el, az = look_angles(np.asarray(fix.x_ecef_m), pos)
+    used = set(fix.used)
+    return tuple(
+        SatView(
+            prn=epoch.prn[i],
+            el_deg=float(np.degrees(el[k])),
+            az_deg=float(np.degrees(az[k])),
+            cn0_dbhz=float(epoch.cn0_dbhz[i]),
+            used=epoch.prn[i] in used,
+            full=bool(np.isfinite(epoch.pr_m[i])),
+            signal=epoch.signal[i],
+        )
+        for k, i in enumerate(idx)
+    )
+
+
+def select_rows(
+    epoch: MeasurementEpoch, store: EphemerisStore, solver: Literal["fast", "spp"]
+) -> tuple[_Rows | None, list[str]]:
+    """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
+
+    Returns the rows and the PRNs dropped for want of a usable ephemeris.
+    """
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    full = np.isfinite(epoch.pr_m)
+    fracok = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
+    use = full | fracok if solver == "fast" else full
+    idx: list[int] = []
+    ephs: list[Ephemeris] = []
+    missing: list[str] = []
+    for i in np.flatnonzero(use):
+        e = store.select(epoch.prn[i], bdt_week, bdt_sow)
+        if e is None:
+            missing.append(epoch.prn[i])
+            continue
+        idx.append(int(i))
+        ephs.append(e)
+    if not idx:
+        return None, missing
+    ii = np.asarray(idx)
+    z = np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii])
+    ct = np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii])
+    rows = _Rows(
+        prn=tuple(epoch.prn[i] for i in idx),
+        z_m=z,
+        ct_m=ct,
+        cn0_dbhz=epoch.cn0_dbhz[ii],
+        eph=store.arrays(ephs),
+    )
+    return rows, missing
+
+
+def solve(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    solver: Literal["fast", "spp"] = "fast",
+    with_sky: bool = False,
+) -> Fix:
+    """Solve one epoch. Never raises for bad input, geometry or numbers: a fix that cannot
+    be trusted comes back as ``mode="none"`` with a reason (and ``reason_code``)."""
+    cfg = cfg or SolverConfig()
+    iono = iono or IonoSet()
+    with np.errstate(all="ignore"):
+        try:
+            rows, missing = select_rows(epoch, store, solver)
+            if rows is None:
+                if missing:
+                    why = f"no usable ephemeris for {', '.join(missing)}"
+                    code = "no_ephemeris"
+                else:
+                    why, code = "no measurements", "no_measurements"
+                return Fix(
+                    solver=solver,
+                    mode="none",
+                    gpst_week=epoch.gpst_week,
+                    gpst_tow_s=epoch.gpst_tow_s,
+                    reason=why,
+                    reason_code=code,
+                )
+            bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+            ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
+            fix = _solve_rows(rows, ctx)
+            if with_sky and fix.ok:
+                fix = replace(fix, sky=sky_view(epoch, store, fix))
+        except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
+            log.debug(
+                "solver failure at GPST %d %.3f", epoch.gpst_week, epoch.gpst_tow_s, exc_info=True
+            )
+            return Fix(
+                solver=solver,
+                mode="none",
+                gpst_week=epoch.gpst_week,
+                gpst_tow_s=epoch.gpst_tow_s,
+                reason=f"numerical failure in the solver: {type(exc).__name__}: {exc}",
+                reason_code="numerical",
+            )
+    return fix
+
+
+def fractionalize(
+    epoch: MeasurementEpoch, period_s: float = 1e-3, keep_full: Sequence[str] | None = None
+) -> MeasurementEpoch:
+    """Reduce pseudoranges modulo c*T except for ``keep_full`` PRNs (default: the GEOs).
+
+    ``numpy.mod`` keeps z + N c T equal to the original to floating-point precision.
+    """
+    keep = set(keep_full) if keep_full is not None else {p for p in epoch.prn if is_geo(p)}
+    mask = np.array([p not in keep for p in epoch.prn], dtype=bool)
+    ct = C_M_S * period_s
+    pr = np.where(mask, np.nan, epoch.pr_m)
+    frac = np.where(mask, np.mod(epoch.pr_m, ct), epoch.frac_pr_m)
+    per = np.where(mask, period_s, epoch.period_s)
+    return replace(epoch, pr_m=pr, frac_pr_m=frac, period_s=per)

@@ -1,0 +1,168 @@
+"""Frame-sync tracker: when each satellite's measurement becomes *full*.
+
+A receiver knows a satellite's full pseudorange once it has decoded a SOW from that
+satellite's navigation message and carries the time forward (BDS-SIS-ICD-B1I-3.0 5.2.3 for
+D1, 5.3.3 for D2). GEOs (D2, 500 bps) decode a SOW every 0.6 s subframe, IGSO/MEO (D1,
+50 bps) every 6 s. Until then the measurement is fractional: known modulo c*T, with T = 1 ms
+after code lock (20 ms once D1 bit sync is known).
+
+The tracker trusts the receiver: a measurement the driver reports as full (u-blox prValid,
+RINEX, RTCM with integer milliseconds) is full. After a restart, real or emulated
+(``--restart-at``), every satellite is fractional again until its first SOW after the
+restart: from a decoded subframe when the stream carries them, otherwise from the subframe
+boundaries in BDT, as the real signal has them (:class:`SubframeEmulator`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, SubframeHeader, subframe_start_sow_s
+from service.core.constants import C_M_S, is_geo
+from service.core.timebase import diff_s, gpst_to_bdt
+from service.core.types import MeasurementEpoch, NavSubframe
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class TrackEvent:
+    """A satellite's frame-sync event (ZMQ topic ``TRACK``)."""
+
+    prn: str
+    event: str  # "sow" (a SOW decoded) or "full" (measurement became full)
+    gpst_week: int
+    gpst_tow_s: float
+    since_start_s: float
+    nav_type: str
+    sow_s: float | None = None
+
+
+def nav_type_of(prn: str) -> str:
+    """D2 for GEOs (C01-C05, C59-C63), D1 otherwise (ICD 5.1)."""
+    return "D2" if is_geo(prn) else "D1"
+
+
+@dataclass(frozen=True, slots=True)
+class SubframeEmulator:
+    """Emulated SOW decoding for sources without subframes (RINEX), after a restart.
+
+    Each satellite needs a bit-sync delay after the restart; its SOW decodes at the end of
+    the first complete subframe that starts after sync. Subframe boundaries are multiples of
+    0.6 s (D2) or 6 s (D1) of BDT transmit time; the end is seen one flight time later.
+    """
+
+    restart_gpst_week: int
+    restart_gpst_tow_s: float
+    sync_delay_s: dict[str, float]
+    default_sync_delay_s: float = 0.3
+
+    def full_at_tow_s(self, prn: str, pr_m: float) -> tuple[int, float]:
+        """GPST (week, tow) at which ``prn``'s first SOW after the restart is decoded."""
+        period = D2_SUBFRAME_S if is_geo(prn) else D1_SUBFRAME_S
+        flight_s = pr_m / C_M_S if math.isfinite(pr_m) else 0.075
+        delay = self.sync_delay_s.get(prn, self.default_sync_delay_s)
+        _, bdt_sow = gpst_to_bdt(self.restart_gpst_week, self.restart_gpst_tow_s)
+        tx_sync = bdt_sow + delay - flight_s  # transmit time of the first synced bit
+        start = math.ceil(round(tx_sync / period, 9)) * period
+        end_rx = start + period + flight_s
+        return self.restart_gpst_week, self.restart_gpst_tow_s + (end_rx - bdt_sow)
+
+
+class FrameSyncTracker:
+    """Per-satellite frame sync; turns driver epochs into the engine's view of full/fractional."""
+
+    def __init__(self) -> None:
+        self._start: tuple[int, float] | None = None
+        self._full_since: dict[str, tuple[int, float]] = {}
+        self._was_full: set[str] = set()
+        self._restart: tuple[int, float] | None = None
+        self._emulator: SubframeEmulator | None = None
+        self._sow_after_restart: set[str] = set()
+        self.seen_subframes = False
+
+    # --- time --------------------------------------------------------------------------
+    def since_start_s(self, week: int, tow_s: float) -> float:
+        ref = self._restart or self._start
+        return 0.0 if ref is None else diff_s(week, tow_s, *ref)
+
+    def restart(
+        self, gpst_week: int, gpst_tow_s: float, emulator: SubframeEmulator | None = None
+    ) -> None:
+        """Forget all frame sync at this instant (receiver restart)."""
+        log.info(
+            "restart at GPST %d/%.3f: all satellites fractional until SOW", gpst_week, gpst_tow_s
+        )
+        self._restart = (gpst_week, gpst_tow_s)
+        self._emulator = emulator
+        self._full_since.clear()
+        self._was_full.clear()
+        self._sow_after_restart.clear()
+
+    # --- inputs ------------------------------------------------------------------------
+    def on_subframe(self, sf: NavSubframe) -> list[TrackEvent]:
+        """A decoded subframe: its SOW makes the satellite's time known."""
+        self.seen_subframes = True
+        if self._start is None:
+            self._start = (sf.gpst_week, sf.gpst_tow_s)
+        self._sow_after_restart.add(sf.prn)
+        since = self.since_start_s(sf.gpst_week, sf.gpst_tow_s)
+        header = SubframeHeader(sf.fra_id, int(sf.sow_s), sf.page)
+        return [
+            TrackEvent(
+                prn=sf.prn,
+                event="sow",
+                gpst_week=sf.gpst_week,
+                gpst_tow_s=sf.gpst_tow_s,
+                since_start_s=since,
+                nav_type=sf.nav_type,
+                sow_s=subframe_start_sow_s(header, sf.nav_type),
+            )
+        ]
+
+    def on_epoch(self, epoch: MeasurementEpoch) -> tuple[MeasurementEpoch, list[TrackEvent]]:
+        """The epoch as the engine should see it, and TRACK events for satellites gone full."""
+        if self._start is None:
+            self._start = (epoch.gpst_week, epoch.gpst_tow_s)
+        week, tow = epoch.gpst_week, epoch.gpst_tow_s
+        full = np.isfinite(epoch.pr_m)
+        if self._restart is not None and diff_s(week, tow, *self._restart) >= 0:
+            for i, prn in enumerate(epoch.prn):
+                if not full[i]:
+                    continue
+                if self._emulator is not None and not self.seen_subframes:
+                    w, t = self._emulator.full_at_tow_s(prn, float(epoch.pr_m[i]))
+                    full[i] = diff_s(week, tow, w, t) >= 0
+                else:
+                    full[i] = prn in self._sow_after_restart
+        events: list[TrackEvent] = []
+        since = self.since_start_s(week, tow)
+        for i, prn in enumerate(epoch.prn):
+            if full[i] and prn not in self._was_full:
+                self._was_full.add(prn)
+                self._full_since.setdefault(prn, (week, tow))
+                events.append(
+                    TrackEvent(
+                        prn=prn,
+                        event="full",
+                        gpst_week=week,
+                        gpst_tow_s=tow,
+                        since_start_s=since,
+                        nav_type=nav_type_of(prn),
+                    )
+                )
+            elif not full[i] and prn in self._was_full:
+                self._was_full.discard(prn)  # lost lock or time: fractional again
+                self._full_since.pop(prn, None)
+        if full.all() or np.array_equal(full, np.isfinite(epoch.pr_m)):
+            return epoch, events
+        ct = C_M_S * epoch.period_s
+        frac = np.where(np.isfinite(epoch.frac_pr_m), epoch.frac_pr_m, np.mod(epoch.pr_m, ct))
+        return replace(epoch, pr_m=np.where(full, epoch.pr_m, np.nan), frac_pr_m=frac), events
+
+    def full_since(self, prn: str) -> tuple[int, float] | None:
+        return self._full_since.get(prn)

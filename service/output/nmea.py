@@ -1,0 +1,302 @@
+"""NMEA 0183 sentences for a fix, built with pynmeagps (output sentences, msgmode GET).
+
+Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
+
+- Talker: GGA/RMC/GSA/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD``
+  or ``GP``). GSV describes one constellation, so it always uses BeiDou's ``GB`` (``BD``
+  when ``BD`` was asked for). ``gsa_talker`` overrides GSA's talker: gpsd (3.22 and later)
+  takes the constellation of GSA satellite IDs from the talker, not from the system-ID
+  field, so it reads the PRNs of a ``GNGSA`` (u-blox 9 style, the default) as GPS/SBAS and
+  those of a ``GBGSA`` as BeiDou; gpsd 3.22 also maps any ID 33-64 to SBAS.
+- NMEA 4.11 fields: GSA ends with the GNSS system ID, 4 = BeiDou; GSV ends with the signal
+  ID, 1 = B1I (D1 and D2 alike, as u-blox NMEA 4.11 output and gpsd's tables have it).
+  Satellite IDs are BDS PRNs 1-63.
+- Precision: latitude/longitude carry 7 decimals of minutes (pynmeagps ``hpnmeamode``:
+  1e-7 min = 0.19 mm); times carry hundredths of a second (hhmmss.ss), so 10 Hz output
+  keeps distinct stamps; the altitude carries millimetres.
+- Length: NMEA 0183 caps a sentence at 82 characters including ``$`` and CRLF. GGA is 80
+  for typical values; when the altitude has five digits or HDOP reaches 10 it is rebuilt
+  with centimetre altitude and then 0.1 HDOP; latitude/longitude precision is never cut,
+  so in extreme cases GGA may still exceed 82 (gpsd accepts longer sentences). GST
+  values switch from millimetres to decimetres at 100 m and to metres at 10 km.
+- GST: 1-sigma figures of the solution covariance (G^T W G)^-1 of the error model
+  (:func:`service.engine.solver.measurement_sigma_m`): the horizontal error ellipse (semi-axes
+  and the major axis' orientation from true north) and the latitude, longitude and
+  altitude standard deviations; ``rangeRms`` is the RMS of the post-fit residuals.
+- Altitude: GGA carries the ellipsoidal height as altitude with geoid separation 0.0, so
+  altitude + separation is the height above the CGCS2000 ellipsoid as gpsd computes it.
+- Fix quality: fast and SPP fixes are both GGA quality 1 (autonomous) with GSA mode 3, so
+  gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only GGA with quality 0 and an
+  empty position and RMC with status V (gpsd: no fix); pynmeagps fills the hemisphere
+  fields with N/E even then. Its time is the receiver's unsolved tag, so no ZDA follows.
+- ZDA only with ``time_known`` (the caller knows UTC, e.g. after a first fix).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+from collections.abc import Sequence
+
+from pynmeagps import GET, NMEAMessage
+
+from service.core.constants import prn_number
+from service.core.types import Fix, SatView
+
+TALKERS = ("GN", "GB", "BD", "GP")
+BDS_SYSTEM_ID = "4"
+B1I_SIGNAL_ID = "1"
+NMEA_MAX_LEN = 82
+GSA_MAX_SV = 12
+GSV_SATS_PER_SENTENCE = 4
+
+
+def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
+    return bytes(NMEAMessage(talker, msg_id, GET, hpnmeamode=True, **fields).serialize())
+
+
+def nmea_time(utc: dt.datetime) -> dt.datetime:
+    """``utc`` rounded to the hundredth of a second NMEA carries (date included)."""
+    cs = round(utc.microsecond / 10_000)
+    return utc.replace(microsecond=0) + dt.timedelta(milliseconds=10 * cs)
+
+
+def _deg_for_dmm(deg: float) -> float:
+    """``deg`` nudged so that pynmeagps' ddmm.mmmmmmm never shows 60.0000000 minutes.
+
+    pynmeagps splits |deg|*60 with divmod and formats the minutes to 7 decimals; minutes
+    that round up to 60 are returned as the next whole degree, which is exact in floats.
+    """
+    whole, minutes = divmod(abs(deg) * 60.0, 60.0)
+    if round(minutes, 7) >= 60.0:
+        return math.copysign(whole + 1.0, deg)
+    return deg
+
+
+def _dop(value: float | None, ndigits: int = 2) -> object:
+    return round(value, ndigits) if value is not None and math.isfinite(value) else ""
+
+
+def _metres(value: float) -> float | int:
+    """A GST standard deviation with mm, dm or m resolution by size (keeps GST short)."""
+    if not math.isfinite(value):
+        return 0.0
+    if abs(value) < 100.0:
+        return round(value, 3)
+    if abs(value) < 10_000.0:
+        return round(value, 1)
+    return round(value)
+
+
+def _error_ellipse(fix: Fix) -> tuple[float, float, float]:
+    """1-sigma semi-major and semi-minor axes [m] of the horizontal error ellipse and the
+    major axis' orientation [deg from true north, 0-180), from the solution's east-north
+    covariance; without one, axes along north and east from ``std_enu_m``."""
+    se, sn, _ = fix.std_enu_m  # type: ignore[misc]
+    if fix.cov_enu_m2 is None:
+        return max(se, sn), min(se, sn), 0.0 if sn >= se else 90.0
+    ee, en, nn = fix.cov_enu_m2[0][0], fix.cov_enu_m2[0][1], fix.cov_enu_m2[1][1]
+    mean, half = (ee + nn) / 2.0, math.hypot((nn - ee) / 2.0, en)
+    # the variance along azimuth t is ee sin^2 t + nn cos^2 t + 2 en sin t cos t: largest at
+    # tan 2t = 2 en / (nn - ee)
+    orient = math.degrees(0.5 * math.atan2(2.0 * en, nn - ee)) % 180.0
+    major = math.sqrt(max(mean + half, 0.0))
+    minor = math.sqrt(max(mean - half, 0.0))
+    return major, minor, round(orient, 1) % 180.0
+
+
+def _int_or_empty(value: float) -> object:
+    return round(value) if math.isfinite(value) else ""
+
+
+def gsv_sentences(sky: Sequence[SatView], talker: str = "GB") -> list[bytes]:
+    """GSV sentences (4 satellites each, sorted by PRN) with the B1I signal ID."""
+    sats = sorted(sky, key=lambda s: prn_number(s.prn))
+    n_msg = max(1, math.ceil(len(sats) / GSV_SATS_PER_SENTENCE))
+    out = []
+    for k in range(n_msg):
+        fields: dict[str, object] = {"numMsg": n_msg, "msgNum": k + 1, "numSV": len(sats)}
+        group = sats[GSV_SATS_PER_SENTENCE * k : GSV_SATS_PER_SENTENCE * (k + 1)]
+        for j, s in enumerate(group, start=1):
+            fields[f"svid_{j:02d}"] = prn_number(s.prn)
+            fields[f"elv_{j:02d}"] = _int_or_empty(s.el_deg)
+            az = _int_or_empty(s.az_deg)
+            fields[f"az_{j:02d}"] = az % 360 if isinstance(az, int) else az
+            fields[f"cno_{j:02d}"] = _int_or_empty(s.cn0_dbhz)
+        fields["signalID"] = B1I_SIGNAL_ID
+        out.append(_msg(talker, "GSV", **fields))
+    return out
+
+
+def _gga(talker: str, t: dt.time, fix: Fix, has_fix: bool) -> bytes:
+    if not has_fix:
+        return _msg(
+            talker,
+            "GGA",
+            time=t,
+            lat="",
+            lon="",
+            quality=0,
+            numSV=len(fix.used),
+            HDOP="",
+            alt="",
+            altUnit="M",
+            sep="",
+            sepUnit="M",
+            diffAge="",
+            diffStation="",
+        )
+    alt_m = float(fix.alt_m)  # type: ignore[arg-type]
+    sentence = b""
+    # millimetre altitude and 0.01 HDOP first; shorter forms only to stay within 82 chars
+    for alt_nd, hdop_nd in ((3, 2), (2, 2), (2, 1)):
+        sentence = _msg(
+            talker,
+            "GGA",
+            time=t,
+            lat=_deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
+            lon=_deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
+            quality=1,
+            numSV=len(fix.used),
+            HDOP=_dop(fix.hdop, hdop_nd),
+            alt=round(alt_m, alt_nd),
+            altUnit="M",
+            sep=0.0,
+            sepUnit="M",
+            diffAge="",
+            diffStation="",
+        )
+        if len(sentence) <= NMEA_MAX_LEN:
+            break
+    return sentence
+
+
+def sentences_for_fix(
+    fix: Fix,
+    *,
+    utc: dt.datetime,
+    talker: str = "GN",
+    time_known: bool = True,
+    gsa_talker: str | None = None,
+) -> list[bytes]:
+    """Sentences for one epoch's fix, in the order GGA, RMC, GSA, GSV, GST, ZDA.
+
+    ``utc`` is the fix's own time (naive UTC); ``time_known`` allows ZDA; ``gsa_talker``
+    (default: ``talker``) is GSA's talker. A publisher may send :func:`gga_sentence` first
+    and :func:`sentences_after_gga` later: together they are this list.
+    """
+    gga = gga_sentence(fix, utc=utc, talker=talker, gsa_talker=gsa_talker)
+    return [
+        gga,
+        *sentences_after_gga(
+            fix, utc=utc, talker=talker, time_known=time_known, gsa_talker=gsa_talker
+        ),
+    ]
+
+
+def _check_talkers(talker: str, gsa_talker: str | None) -> None:
+    for name in (talker, gsa_talker or talker):
+        if name not in TALKERS:
+            raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {name!r}")
+
+
+def _has_fix(fix: Fix) -> bool:
+    return (
+        fix.ok
+        and fix.lat_deg is not None
+        and fix.lon_deg is not None
+        and fix.alt_m is not None
+        and all(math.isfinite(v) for v in (fix.lat_deg, fix.lon_deg, fix.alt_m))
+    )
+
+
+def gga_sentence(
+    fix: Fix, *, utc: dt.datetime, talker: str = "GN", gsa_talker: str | None = None
+) -> bytes:
+    """The GGA of :func:`sentences_for_fix` (quality 0 and no position without a fix)."""
+    _check_talkers(talker, gsa_talker)
+    return _gga(talker, nmea_time(utc).time(), fix, _has_fix(fix))
+
+
+def sentences_after_gga(
+    fix: Fix,
+    *,
+    utc: dt.datetime,
+    talker: str = "GN",
+    time_known: bool = True,
+    gsa_talker: str | None = None,
+) -> list[bytes]:
+    """The sentences of :func:`sentences_for_fix` that follow its GGA."""
+    _check_talkers(talker, gsa_talker)
+    when = nmea_time(utc)
+    t = when.time()
+    has_fix = _has_fix(fix)
+    pos: dict[str, object] = {"lat": "", "lon": ""}
+    if has_fix:
+        # signed degrees: pynmeagps derives N/S and E/W from the sign
+        pos = {
+            "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
+            "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
+        }
+    out = [
+        _msg(
+            talker,
+            "RMC",
+            time=t,
+            status="A" if has_fix else "V",
+            **pos,
+            spd="",
+            cog="",
+            date=when.date(),
+            mv="",
+            mvEW="",
+            posMode="A" if has_fix else "N",
+            navStatus="V",
+        )
+    ]
+    if not has_fix:
+        return out
+    gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
+    used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]
+    for j in range(GSA_MAX_SV):
+        gsa[f"svid_{j + 1:02d}"] = prn_number(used[j]) if j < len(used) else ""
+    gsa |= {
+        "PDOP": _dop(fix.pdop),
+        "HDOP": _dop(fix.hdop),
+        "VDOP": _dop(fix.vdop),
+        "systemId": BDS_SYSTEM_ID,
+    }
+    out.append(_msg(gsa_talker or talker, "GSA", **gsa))
+    if fix.sky:
+        out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
+    if fix.std_enu_m is not None:
+        se, sn, su = fix.std_enu_m
+        major, minor, orient = _error_ellipse(fix)
+        out.append(
+            _msg(
+                talker,
+                "GST",
+                time=t,
+                rangeRms=_metres(fix.resid_rms_m or 0.0),
+                stdMajor=_metres(major),
+                stdMinor=_metres(minor),
+                orient=orient,
+                stdLat=_metres(sn),
+                stdLong=_metres(se),
+                stdAlt=_metres(su),
+            )
+        )
+    if time_known:
+        out.append(
+            _msg(
+                talker,
+                "ZDA",
+                time=t,
+                day=when.day,
+                month=when.month,
+                year=when.year,
+                ltzh="00",
+                ltzn="00",
+            )
+        )
+    return out

@@ -1,0 +1,505 @@
+"""The one place that turns results into the JSON/CSV contract of ARCHITECTURE.md.
+
+Every record is a flat JSON object with a ``class`` (``FIX``, ``SKY``, ``TRACK``,
+``STATUS``); on ZeroMQ the class is also the topic. :data:`SCHEMAS` holds a JSON Schema
+(draft 2020-12) for each class and :func:`validate` checks a record against it without
+third-party packages.
+
+Field rules, common to all classes:
+
+- fields that do not apply are omitted, never ``null``; non-finite numbers (NaN, inf) are
+  omitted too, so every line is strict JSON (``allow_nan=False``);
+- times are GPST ``gpst_week`` (int) and ``gpst_tow_s`` (s, 1 µs resolution);
+  ``since_start_s`` is data time since the stream's first measurement (or since an
+  emulated restart) and appears on records from a stream only;
+- precision: ``x_ecef_m`` 0.1 mm, ``lat_deg``/``lon_deg`` 1e-10 deg (~0.01 mm),
+  ``alt_m``/``clock_bias_m``/``resid_rms_m`` 0.1 mm, DOPs 0.001.
+
+``FIX`` (one per epoch and solver; ``solver`` is which ran, ``mode`` what it achieved):
+  always ``class solver mode gpst_week gpst_tow_s n_full n_frac``;
+  with a position (mode ``fast``/``spp``): ``x_ecef_m lat_deg lon_deg alt_m clock_bias_m``
+  and, when computed, ``pdop resid_rms_m``; ``gdop_full`` when the solver computed it
+  (the fast solver, also on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
+  eq. (13)} when not empty, which is the fast solver's fractional satellites (also on a
+  fast fix declined by the chi-square test, for diagnosis); ``reason`` (and a
+  ``reason_code``, one of :data:`service.engine.solver.REASONS`) exactly when ``mode`` is
+  ``none`` (a declined fix has no position fields).
+  Integrity (:mod:`service.engine.raim`): ``redundancy`` (used satellites - 4) once a solution
+  was judged, with ``chi2`` and its threshold ``chi2_max`` when it is >= 1; on a fix,
+  ``raim`` (``pass``, ``unprotected`` or ``untested``, see :func:`raim_state`), the
+  protection levels ``hpl_m``/``vpl_m`` when finite, ``std_enu_m`` (1-sigma east, north,
+  up from the solution covariance); ``excluded`` {PRN: why} when fault exclusion (or an
+  impossible range) removed satellites; they are not in the fix.
+``SKY``: ``class gpst_week gpst_tow_s satellites``; each satellite ``prn el_deg az_deg
+  used full signal`` plus ``cn0_dbhz`` when measured.
+``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
+  gpst_tow_s since_start_s``; ``event`` is ``sow`` (a subframe's SOW decoded: ``sow_s`` is
+  the BDT second of week at which that subframe started) or ``full`` (its measurement
+  became a full pseudorange at ``gpst_tow_s``); ``full_since_s`` (data time since the
+  stream start at which it first became full) when the caller knows it.
+``STATUS``: ``class counters`` ({name: number}) plus any scalar extras the caller adds
+  (e.g. ``uptime_s``).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from service.core.types import Fix, SatView
+
+CSV_COLUMNS = (
+    "solver",
+    "mode",
+    "gpst_week",
+    "gpst_tow_s",
+    "x_ecef_m",
+    "y_ecef_m",
+    "z_ecef_m",
+    "lat_deg",
+    "lon_deg",
+    "alt_m",
+    "clock_bias_m",
+    "gdop_full",
+    "pdop",
+    "n_full",
+    "n_frac",
+    "resid_rms_m",
+    "reason",
+    "redundancy",
+    "hpl_m",
+    "vpl_m",
+)
+
+TRACK_EVENTS = ("sow", "full")
+NO_REASON = "declined without a reason"
+
+
+def _finite(value: float | None) -> bool:
+    return value is not None and math.isfinite(value)
+
+
+def _put(rec: dict[str, Any], key: str, value: float | None, ndigits: int) -> None:
+    """Set ``rec[key]`` to ``value`` rounded, unless it is None or not finite."""
+    if _finite(value):
+        rec[key] = round(float(value), ndigits)  # type: ignore[arg-type]
+
+
+def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
+    """The ``FIX`` record of one solver at one epoch (field rules in the module docstring)."""
+    rec: dict[str, Any] = {
+        "class": "FIX",
+        "solver": fix.solver,
+        "mode": fix.mode,
+        "gpst_week": int(fix.gpst_week),
+        "gpst_tow_s": round(float(fix.gpst_tow_s), 6),
+    }
+    _put(rec, "since_start_s", since_start_s, 6)
+    if fix.ok:
+        if fix.x_ecef_m is not None and all(_finite(v) for v in fix.x_ecef_m):
+            rec["x_ecef_m"] = [round(float(v), 4) for v in fix.x_ecef_m]
+        _put(rec, "lat_deg", fix.lat_deg, 10)
+        _put(rec, "lon_deg", fix.lon_deg, 10)
+        _put(rec, "alt_m", fix.alt_m, 4)
+        _put(rec, "clock_bias_m", fix.clock_bias_m, 4)
+    _put(rec, "gdop_full", fix.gdop_full, 3)
+    if fix.ok:
+        _put(rec, "pdop", fix.pdop, 3)
+    rec["n_full"] = len(fix.full)
+    rec["n_frac"] = len(fix.fractional)
+    if fix.ambiguity:
+        rec["ambiguity"] = {prn: int(n) for prn, n in sorted(fix.ambiguity.items())}
+    _put(rec, "resid_rms_m", fix.resid_rms_m, 4)
+    if fix.redundancy is not None:
+        rec["redundancy"] = int(fix.redundancy)
+    _put(rec, "chi2", fix.chi2, 3)
+    _put(rec, "chi2_max", fix.chi2_max, 3)
+    if fix.ok:
+        rec["raim"] = raim_state(fix)
+        _put(rec, "hpl_m", fix.hpl_m, 3)
+        _put(rec, "vpl_m", fix.vpl_m, 3)
+        if fix.std_enu_m is not None and all(_finite(v) for v in fix.std_enu_m):
+            rec["std_enu_m"] = [round(float(v), 4) for v in fix.std_enu_m]
+    if fix.excluded:
+        rec["excluded"] = dict(sorted(fix.excluded.items()))
+    if not fix.ok:
+        rec["reason"] = fix.reason or NO_REASON
+        if fix.reason_code:
+            rec["reason_code"] = fix.reason_code
+    return rec
+
+
+RAIM_STATES = ("pass", "unprotected", "untested")
+
+
+def raim_state(fix: Fix) -> str:
+    """Integrity of a published fix in one word: ``pass`` (the chi-square test passed and
+    the protection levels bound a single fault), ``unprotected`` (it passed, but a
+    satellite without redundancy makes the levels infinite), ``untested`` (redundancy 0:
+    no test is possible)."""
+    if fix.chi2 is None:
+        return "untested"
+    if not (_finite(fix.hpl_m) and _finite(fix.vpl_m)):
+        return "unprotected"
+    return "pass"
+
+
+def dumps(rec: Mapping[str, Any]) -> str:
+    """Compact one-line strict JSON (raises ValueError on NaN/inf)."""
+    return json.dumps(rec, separators=(",", ":"), allow_nan=False)
+
+
+def fix_json_line(fix: Fix, since_start_s: float | None = None) -> str:
+    """One JSONL line (no newline) for ``bdsfix solve --format jsonl`` and the streams."""
+    return dumps(fix_record(fix, since_start_s))
+
+
+def csv_header() -> str:
+    """The header line of ``--format csv`` (no newline)."""
+    return ",".join(CSV_COLUMNS)
+
+
+def fix_csv_row(fix: Fix) -> str:
+    """One CSV row (no newline); cells that do not apply are empty; RFC 4180 quoting."""
+    rec = fix_record(fix)
+    x, y, z = rec.pop("x_ecef_m", ("", "", ""))
+    rec |= {"x_ecef_m": x, "y_ecef_m": y, "z_ecef_m": z}
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="").writerow([rec.get(col, "") for col in CSV_COLUMNS])
+    return buf.getvalue()
+
+
+def sky_record(gpst_week: int, gpst_tow_s: float, sats: Sequence[SatView]) -> dict[str, Any]:
+    """The ``SKY`` record: satellites in view with elevation, azimuth, C/N0 and use."""
+    out = []
+    for s in sats:
+        sat: dict[str, Any] = {"prn": s.prn}
+        _put(sat, "el_deg", s.el_deg, 2)
+        if _finite(s.az_deg):
+            sat["az_deg"] = round(float(s.az_deg), 2) % 360.0
+        _put(sat, "cn0_dbhz", s.cn0_dbhz, 1)
+        sat |= {"used": bool(s.used), "full": bool(s.full), "signal": s.signal}
+        out.append(sat)
+    return {
+        "class": "SKY",
+        "gpst_week": int(gpst_week),
+        "gpst_tow_s": round(float(gpst_tow_s), 6),
+        "satellites": out,
+    }
+
+
+def track_record(
+    prn: str,
+    event: str,
+    gpst_week: int,
+    gpst_tow_s: float,
+    since_start_s: float,
+    nav_type: str,
+    sow_s: float | None = None,
+    full_since_s: float | None = None,
+) -> dict[str, Any]:
+    """The ``TRACK`` record of one frame-sync event (``sow`` or ``full``)."""
+    rec: dict[str, Any] = {
+        "class": "TRACK",
+        "prn": prn,
+        "event": event,
+        "nav_type": nav_type,
+        "gpst_week": int(gpst_week),
+        "gpst_tow_s": round(float(gpst_tow_s), 6),
+        "since_start_s": round(float(since_start_s), 6),
+    }
+    _put(rec, "sow_s", sow_s, 6)
+    _put(rec, "full_since_s", full_since_s, 6)
+    return rec
+
+
+def track_record_of(event: Any) -> dict[str, Any]:
+    """``TRACK`` record of a :class:`service.engine.tracker.TrackEvent` (or any look-alike)."""
+    return track_record(
+        event.prn,
+        event.event,
+        event.gpst_week,
+        event.gpst_tow_s,
+        event.since_start_s,
+        event.nav_type,
+        getattr(event, "sow_s", None),
+        getattr(event, "full_since_s", None),
+    )
+
+
+def status_record(counters: Mapping[str, int | float], **extra: Any) -> dict[str, Any]:
+    """The ``STATUS`` record: counters of every stage plus scalar extras (None/NaN omitted)."""
+    rec: dict[str, Any] = {"class": "STATUS"}
+    for key, value in extra.items():
+        if key in ("class", "counters") or value is None:
+            continue
+        if isinstance(value, float) and not math.isfinite(value):
+            continue
+        rec[key] = value
+    rec["counters"] = {
+        k: (v if isinstance(v, float) else int(v))
+        for k, v in sorted(counters.items())
+        if math.isfinite(v)
+    }
+    return rec
+
+
+# ---- JSON Schemas (draft 2020-12) ---------------------------------------------------------
+
+_DIALECT = "https://json-schema.org/draft/2020-12/schema"
+_NUM = {"type": "number"}
+_NONNEG = {"type": "number", "minimum": 0}
+_COUNT = {"type": "integer", "minimum": 0}
+_PRN = {"type": "string", "pattern": "^C[0-9]{2}$"}
+_WEEK = {"type": "integer", "minimum": 0}
+_TOW = {"type": "number", "minimum": 0, "exclusiveMaximum": 604800}
+_POSITION = ("x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m")
+
+SCHEMAS: dict[str, dict[str, Any]] = {
+    "FIX": {
+        "$schema": _DIALECT,
+        "title": "bdsfix FIX",
+        "type": "object",
+        "required": ["class", "solver", "mode", "gpst_week", "gpst_tow_s", "n_full", "n_frac"],
+        "properties": {
+            "class": {"const": "FIX"},
+            "solver": {"enum": ["fast", "spp"]},
+            "mode": {"enum": ["fast", "spp", "none"]},
+            "gpst_week": _WEEK,
+            "gpst_tow_s": _TOW,
+            "since_start_s": _NUM,
+            "x_ecef_m": {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3},
+            "lat_deg": {"type": "number", "minimum": -90, "maximum": 90},
+            "lon_deg": {"type": "number", "minimum": -180, "maximum": 180},
+            "alt_m": _NUM,
+            "clock_bias_m": _NUM,
+            "gdop_full": _NONNEG,
+            "pdop": _NONNEG,
+            "n_full": _COUNT,
+            "n_frac": _COUNT,
+            "ambiguity": {
+                "type": "object",
+                "minProperties": 1,
+                "patternProperties": {"^C[0-9]{2}$": {"type": "integer"}},
+                "additionalProperties": False,
+            },
+            "resid_rms_m": _NONNEG,
+            "redundancy": _COUNT,
+            "chi2": _NONNEG,
+            "chi2_max": _NONNEG,
+            "raim": {"enum": list(RAIM_STATES)},
+            "hpl_m": _NONNEG,
+            "vpl_m": _NONNEG,
+            "std_enu_m": {"type": "array", "items": _NONNEG, "minItems": 3, "maxItems": 3},
+            "excluded": {
+                "type": "object",
+                "minProperties": 1,
+                "patternProperties": {"^C[0-9]{2}$": {"type": "string", "minLength": 1}},
+                "additionalProperties": False,
+            },
+            "reason": {"type": "string", "minLength": 1},
+            "reason_code": {"type": "string", "minLength": 1},
+        },
+        "additionalProperties": False,
+        "if": {"properties": {"mode": {"const": "none"}}},
+        "then": {
+            "required": ["reason"],
+            "not": {
+                "anyOf": [{"required": [k]} for k in (*_POSITION, "pdop", "raim", "hpl_m", "vpl_m")]
+            },
+        },
+        "else": {
+            "required": [*_POSITION, "raim"],
+            "not": {"anyOf": [{"required": ["reason"]}, {"required": ["reason_code"]}]},
+        },
+    },
+    "SKY": {
+        "$schema": _DIALECT,
+        "title": "bdsfix SKY",
+        "type": "object",
+        "required": ["class", "gpst_week", "gpst_tow_s", "satellites"],
+        "properties": {
+            "class": {"const": "SKY"},
+            "gpst_week": _WEEK,
+            "gpst_tow_s": _TOW,
+            "satellites": {
+                "type": "array",
+                "items": {
+                    "type": "object",
+                    "required": ["prn", "used", "full"],
+                    "properties": {
+                        "prn": _PRN,
+                        "el_deg": {"type": "number", "minimum": -90, "maximum": 90},
+                        "az_deg": {"type": "number", "minimum": 0, "exclusiveMaximum": 360},
+                        "cn0_dbhz": _NUM,
+                        "used": {"type": "boolean"},
+                        "full": {"type": "boolean"},
+                        "signal": {"type": "string"},
+                    },
+                    "additionalProperties": False,
+                },
+            },
+        },
+        "additionalProperties": False,
+    },
+    "TRACK": {
+        "$schema": _DIALECT,
+        "title": "bdsfix TRACK",
+        "type": "object",
+        "required": [
+            "class",
+            "prn",
+            "event",
+            "nav_type",
+            "gpst_week",
+            "gpst_tow_s",
+            "since_start_s",
+        ],
+        "properties": {
+            "class": {"const": "TRACK"},
+            "prn": _PRN,
+            "event": {"enum": list(TRACK_EVENTS)},
+            "nav_type": {"enum": ["D1", "D2"]},
+            "gpst_week": _WEEK,
+            "gpst_tow_s": _TOW,
+            "since_start_s": _NUM,
+            "sow_s": {"type": "number", "minimum": 0, "exclusiveMaximum": 604800},
+            "full_since_s": _NUM,
+        },
+        "additionalProperties": False,
+        "if": {"properties": {"event": {"const": "sow"}}},
+        "then": {"required": ["sow_s"]},
+    },
+    "STATUS": {
+        "$schema": _DIALECT,
+        "title": "bdsfix STATUS",
+        "type": "object",
+        "required": ["class", "counters"],
+        "properties": {
+            "class": {"const": "STATUS"},
+            "counters": {"type": "object", "additionalProperties": _NUM},
+        },
+        "additionalProperties": {"type": ["string", "number", "boolean"]},
+    },
+}
+
+
+# ---- a small validator for the keywords SCHEMAS uses ---------------------------------------
+
+_TYPES: dict[str, Any] = {
+    "object": lambda v: isinstance(v, dict),
+    "array": lambda v: isinstance(v, list | tuple),
+    "string": lambda v: isinstance(v, str),
+    "boolean": lambda v: isinstance(v, bool),
+    "null": lambda v: v is None,
+    # JSON numbers are finite; 1.0 counts as an integer (draft 2020-12, section 6.1.1)
+    "number": lambda v: isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v),
+    "integer": lambda v: (
+        isinstance(v, int | float)
+        and not isinstance(v, bool)
+        and math.isfinite(v)
+        and float(v).is_integer()
+    ),
+}
+
+
+def _check(value: Any, schema: Mapping[str, Any] | bool, path: str, errors: list[str]) -> None:
+    """Append to ``errors`` every violation of ``schema`` by ``value`` (``path`` names it)."""
+    if schema is True:
+        return
+    if schema is False:
+        errors.append(f"{path}: not allowed")
+        return
+    if "type" in schema:
+        types = schema["type"] if isinstance(schema["type"], list) else [schema["type"]]
+        if not any(_TYPES[t](value) for t in types):
+            errors.append(f"{path}: expected {'/'.join(types)}, got {type(value).__name__}")
+            return
+    if "const" in schema and value != schema["const"]:
+        errors.append(f"{path}: must be {schema['const']!r}, got {value!r}")
+    if "enum" in schema and value not in schema["enum"]:
+        errors.append(f"{path}: {value!r} not one of {schema['enum']}")
+    if _TYPES["number"](value):
+        for key, ok in (
+            ("minimum", lambda v, b: v >= b),
+            ("maximum", lambda v, b: v <= b),
+            ("exclusiveMinimum", lambda v, b: v > b),
+            ("exclusiveMaximum", lambda v, b: v < b),
+        ):
+            if key in schema and not ok(value, schema[key]):
+                errors.append(f"{path}: {value!r} violates {key} {schema[key]}")
+    if isinstance(value, str):
+        if len(value) < schema.get("minLength", 0):
+            errors.append(f"{path}: shorter than {schema['minLength']}")
+        if "pattern" in schema and not re.search(schema["pattern"], value):
+            errors.append(f"{path}: {value!r} does not match {schema['pattern']}")
+    if isinstance(value, list | tuple):
+        if len(value) < schema.get("minItems", 0):
+            errors.append(f"{path}: fewer than {schema['minItems']} items")
+        if "maxItems" in schema and len(value) > schema["maxItems"]:
+            errors.append(f"{path}: more than {schema['maxItems']} items")
+        if "items" in schema:
+            for i, item in enumerate(value):
+                _check(item, schema["items"], f"{path}[{i}]", errors)
+    if isinstance(value, dict):
+        for key in schema.get("required", ()):
+            if key not in value:
+                errors.append(f"{path}: missing {key!r}")
+        if len(value) < schema.get("minProperties", 0):
+            errors.append(f"{path}: fewer than {schema['minProperties']} properties")
+        props = schema.get("properties", {})
+        patterns = schema.get("patternProperties", {})
+        for key, item in value.items():
+            sub = f"{path}.{key}"
+            matched = False
+            if key in props:
+                matched = True
+                _check(item, props[key], sub, errors)
+            for pattern, pschema in patterns.items():
+                if re.search(pattern, key):
+                    matched = True
+                    _check(item, pschema, sub, errors)
+            if not matched and "additionalProperties" in schema:
+                extra = schema["additionalProperties"]
+                if extra is False:
+                    errors.append(f"{path}: unexpected property {key!r}")
+                else:
+                    _check(item, extra, sub, errors)
+    for sub_schema in schema.get("allOf", ()):
+        _check(value, sub_schema, path, errors)
+    if "anyOf" in schema and not any(_ok(value, s) for s in schema["anyOf"]):
+        errors.append(f"{path}: matches none of anyOf")
+    if "not" in schema and _ok(value, schema["not"]):
+        errors.append(f"{path}: matches a forbidden schema {schema['not']}")
+    if "if" in schema:
+        branch = "then" if _ok(value, schema["if"]) else "else"
+        if branch in schema:
+            _check(value, schema[branch], path, errors)
+
+
+def _ok(value: Any, schema: Mapping[str, Any] | bool) -> bool:
+    errors: list[str] = []
+    _check(value, schema, "", errors)
+    return not errors
+
+
+def validate(record: Any) -> list[str]:
+    """Violations of the schema of ``record["class"]``; an empty list means valid.
+
+    Covers the keywords :data:`SCHEMAS` uses: type, const, enum, required, properties,
+    patternProperties, additionalProperties, items, min/maxItems, minProperties,
+    minLength, pattern, minimum/maximum (exclusive too), allOf, anyOf, not, if/then/else.
+    """
+    if not isinstance(record, dict):
+        return [f"$: expected object, got {type(record).__name__}"]
+    cls = record.get("class")
+    if cls not in SCHEMAS:
+        return [f"$.class: {cls!r} not one of {sorted(SCHEMAS)}"]
+    errors: list[str] = []
+    _check(record, SCHEMAS[cls], "$", errors)
+    return errors

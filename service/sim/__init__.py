@@ -1,0 +1,3 @@
+"""The virtual receiver: the paper's Table 1 constellation, range generation and the UBX stream
+it emits.
+"""

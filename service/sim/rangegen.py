@@ -1,0 +1,86 @@
+"""Physically generated pseudoranges for a receiver at a known place and time.
+
+Used by the simulation tests and the virtual receiver. For a true receive time t (GPST) and a
+receiver clock offset dt_r, each satellite's signal left at t - tau, where tau solves the
+light-time equation with the satellite position at transmit time rotated into the
+receive-time Earth frame (Sagnac). The B1I pseudorange is
+c tau + c (dt_r - dt_sv) + I + T + noise, and the receiver's time tag is t + dt_r, so that
+tag and ranges carry the same clock offset (METHOD.md, "Simulating a clock bias").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core.constants import C_M_S
+from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
+from service.core.geometry import ecef_to_geodetic, look_angles
+from service.core.orbit import EphemerisArrays, sat_pos_clock
+from service.core.timebase import gpst_to_bdt, normalize
+from service.core.types import KlobucharParams
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TrueRanges:
+    """Generated measurements; ``pr_m`` already includes clock offset, delays and noise."""
+
+    prn: tuple[str, ...]
+    tag_gpst_week: int
+    tag_gpst_tow_s: float
+    pr_m: np.ndarray
+    geometric_m: np.ndarray
+    sat_ecef_m: np.ndarray
+    el_rad: np.ndarray
+    az_rad: np.ndarray
+    transmit_bdt_sow_s: np.ndarray
+
+
+def true_ranges(
+    eph: EphemerisArrays,
+    rx_ecef_m: np.ndarray,
+    gpst_week: int,
+    gpst_tow_s: float,
+    clock_offset_s: float = 0.0,
+    *,
+    iono: KlobucharParams | None = None,
+    tropo: bool = False,
+    noise_m: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> TrueRanges:
+    """Pseudoranges of the satellites in ``eph`` received at true GPST time (week, tow)."""
+    x = np.asarray(rx_ecef_m, dtype=float)
+    bdt_week, bdt_sow = gpst_to_bdt(gpst_week, gpst_tow_s)
+    tau = np.full(len(eph), 0.075)
+    for _ in range(6):
+        sat, clk_s = sat_pos_clock(eph, bdt_week, bdt_sow - tau)
+        sat = sagnac_rotate(sat, tau)
+        rho = np.linalg.norm(sat - x, axis=1)
+        tau = rho / C_M_S
+    el, az = look_angles(x, sat)
+    delay = np.zeros(len(eph))
+    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
+    if iono is not None:
+        if iono.system == "BDS":
+            delay += klobuchar_bds_m(iono, lat, lon, el, az, bdt_sow)
+        else:
+            delay += klobuchar_gps_m(iono, lat, lon, el, az, gpst_tow_s)
+    if tropo:
+        delay += saastamoinen_m(lat, alt, el)
+    noise = np.zeros(len(eph))
+    if noise_m > 0:
+        noise = (rng or np.random.default_rng()).normal(0.0, noise_m, len(eph))
+    pr = rho + C_M_S * (clock_offset_s - clk_s) + delay + noise
+    tag_week, tag_tow = normalize(gpst_week, gpst_tow_s + clock_offset_s)
+    return TrueRanges(
+        prn=eph.prn,
+        tag_gpst_week=tag_week,
+        tag_gpst_tow_s=tag_tow,
+        pr_m=pr,
+        geometric_m=rho,
+        sat_ecef_m=sat,
+        el_rad=el,
+        az_rad=az,
+        transmit_bdt_sow_s=bdt_sow - tau,
+    )

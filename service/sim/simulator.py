@@ -1,0 +1,295 @@
+"""Virtual BDS receiver: a real UBX byte stream with true D1/D2 subframe timing.
+
+For a true position, start time and receiver clock offset, each visible satellite is
+acquired after a random delay (code lock: fractional measurement, T = 1 ms), reaches bit sync
+after a further random delay, and becomes full once it has read one complete subframe after
+sync: D2 subframes last 0.6 s (GEOs), D1 subframes 6 s (BDS-SIS-ICD-B1I-3.0 5.2.2, 5.3.2).
+Subframe boundaries are those of the real signal: multiples of 0.6 s / 6 s of BDT transmit
+time, received one flight time later.
+
+Per epoch the stream carries RXM-SFRBX for every subframe completed since the last epoch
+(synced satellites only), RXM-MEASX with the code phase of every tracked satellite, and
+RXM-RAWX whose prMes is valid only for satellites that are full. Pseudoranges come from
+:mod:`service.sim.rangegen` (light time, Sagnac, satellite clock with TGD1, Klobuchar,
+Saastamoinen, Gaussian noise) and are quantised to the MEASX code-phase step (2^-21 ms), so
+that the fractional value a decoder reads back is exactly the full one modulo 1 ms.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, encode_d1_subframes, encode_d2_frame
+from service.core.constants import C_M_S, WEEK_S, is_geo, prn_number
+from service.core.geometry import geodetic_to_ecef
+from service.core.orbit import EphemerisArrays
+from service.core.timebase import diff_s, gpst_to_bdt, normalize
+from service.core.types import Ephemeris, KlobucharParams
+from service.sim.rangegen import true_ranges
+from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
+
+log = logging.getLogger(__name__)
+
+CODE_PHASE_LSB_MS = 2.0**-21
+PR_LSB_M = C_M_S * 1e-3 * CODE_PHASE_LSB_MS
+LEAP_S = 18
+
+
+@dataclass(frozen=True, slots=True)
+class SimConfig:
+    """Scenario of the virtual receiver (true values)."""
+
+    lat_deg: float = 39.9
+    lon_deg: float = 116.4
+    alt_m: float = 50.0
+    start_gpst_week: int = 2161
+    start_gpst_tow_s: float = 4 * 86400 + 3 * 3600 + 36 * 60.0
+    duration_s: float = 60.0
+    rate_hz: float = 10.0
+    clock_offset_s: float = 0.0123
+    noise_m: float = 1.3
+    seed: int = 0
+    elmask_deg: float = 5.0
+    acq_delay_s: tuple[float, float] = (0.02, 0.10)  # warm start: Doppler and code known
+    d2_sync_delay_s: tuple[float, float] = (0.01, 0.04)  # 2 ms bits, no NH code
+    d1_sync_delay_s: tuple[float, float] = (0.1, 0.5)  # 20 ms bits behind the NH code
+    tropo: bool = True
+
+
+@dataclass(slots=True)
+class _SatState:
+    prn: str
+    acq_s: float  # receiver time since start when code locks
+    sync_s: float  # when bit sync is reached
+    full_s: float = math.inf  # when the first complete subframe after sync has been read
+    next_subframe_k: int | None = None  # index of the next subframe to report
+
+
+@dataclass(frozen=True, slots=True)
+class SimSubframe:
+    """A subframe completed by the virtual receiver (what RXM-SFRBX carries)."""
+
+    prn: str
+    nav_type: str
+    index: int  # subframe number since BDT week start
+    start_bdt_sow_s: float
+    received_s: float  # receiver time since start
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SimEpoch:
+    """One epoch of the virtual receiver, with the truth kept beside it."""
+
+    t_s: float  # true time since start
+    tag_gpst_week: int
+    tag_gpst_tow_s: float
+    prn: tuple[str, ...]
+    pr_m: np.ndarray  # full pseudoranges (quantised), whatever the receiver knows
+    full: np.ndarray  # bool: prMes valid
+    cn0_dbhz: np.ndarray
+    subframes: tuple[SimSubframe, ...] = ()
+    truth_x_ecef_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+def _subframe_period_s(prn: str) -> float:
+    return D2_SUBFRAME_S if is_geo(prn) else D1_SUBFRAME_S
+
+
+class Simulator:
+    """Generates :class:`SimEpoch` s and their UBX encoding for one scenario."""
+
+    def __init__(
+        self,
+        ephemerides: Sequence[Ephemeris],
+        cfg: SimConfig | None = None,
+        iono: KlobucharParams | None = None,
+    ) -> None:
+        self.cfg = cfg or SimConfig()
+        self.iono = iono
+        self.x_ecef_m = geodetic_to_ecef(
+            math.radians(self.cfg.lat_deg), math.radians(self.cfg.lon_deg), self.cfg.alt_m
+        )
+        rng = np.random.default_rng(self.cfg.seed)
+        self._rng = rng
+        bw, bs = gpst_to_bdt(self.cfg.start_gpst_week, self.cfg.start_gpst_tow_s)
+        chosen: dict[str, Ephemeris] = {}
+        for e in ephemerides:
+            best = chosen.get(e.prn)
+            if best is None or abs(diff_s(bw, bs, e.week, e.toe_sow_s)) < abs(
+                diff_s(bw, bs, best.week, best.toe_sow_s)
+            ):
+                chosen[e.prn] = e
+        ephs = [chosen[p] for p in sorted(chosen)]
+        arr = EphemerisArrays.from_ephemerides(ephs)
+        tr = true_ranges(arr, self.x_ecef_m, self.cfg.start_gpst_week, self.cfg.start_gpst_tow_s)
+        vis = np.flatnonzero(tr.el_rad >= math.radians(self.cfg.elmask_deg))
+        self.ephemerides = [ephs[i] for i in vis]
+        self._arr = arr.take(vis)
+        self._sats = {
+            e.prn: _SatState(
+                prn=e.prn,
+                acq_s=float(rng.uniform(*self.cfg.acq_delay_s)),
+                sync_s=0.0,
+            )
+            for e in self.ephemerides
+        }
+        for s in self._sats.values():
+            span = self.cfg.d2_sync_delay_s if is_geo(s.prn) else self.cfg.d1_sync_delay_s
+            s.sync_s = s.acq_s + float(rng.uniform(*span))
+
+    @property
+    def prns(self) -> list[str]:
+        return [e.prn for e in self.ephemerides]
+
+    def epochs(self) -> Iterator[SimEpoch]:
+        """Epochs at the configured rate, from the first one after start to the duration."""
+        cfg = self.cfg
+        n = round(cfg.duration_s * cfg.rate_hz)
+        prev_t = 0.0
+        for k in range(1, n + 1):
+            t = k / cfg.rate_hz
+            week, tow = normalize(cfg.start_gpst_week, cfg.start_gpst_tow_s + t)
+            tr = true_ranges(
+                self._arr,
+                self.x_ecef_m,
+                week,
+                tow,
+                cfg.clock_offset_s,
+                iono=self.iono,
+                tropo=cfg.tropo,
+                noise_m=cfg.noise_m,
+                rng=self._rng,
+            )
+            pr_q = np.round(tr.pr_m / PR_LSB_M) * PR_LSB_M
+            flight_s = tr.geometric_m / C_M_S
+            subframes: list[SimSubframe] = []
+            tracked, full = [], []
+            _, bdt_sow_rx = gpst_to_bdt(week, tow)
+            for i, prn in enumerate(self._arr.prn):
+                st = self._sats[prn]
+                if t < st.acq_s:
+                    continue
+                tracked.append(i)
+                subframes.extend(
+                    self._completed_subframes(st, prev_t, t, bdt_sow_rx, float(flight_s[i]))
+                )
+                full.append(t >= st.full_s)
+            prev_t = t
+            idx = np.asarray(tracked, dtype=int)
+            cn0 = 45.0 - 10.0 * (1.0 - np.sin(np.clip(tr.el_rad[idx], 0, None)))
+            yield SimEpoch(
+                t_s=t,
+                tag_gpst_week=tr.tag_gpst_week,
+                tag_gpst_tow_s=tr.tag_gpst_tow_s,
+                prn=tuple(self._arr.prn[i] for i in idx),
+                pr_m=pr_q[idx],
+                full=np.asarray(full, dtype=bool),
+                cn0_dbhz=np.round(cn0),
+                subframes=tuple(sorted(subframes, key=lambda s: s.received_s)),
+                truth_x_ecef_m=self.x_ecef_m,
+            )
+
+    def ubx_epochs(self) -> Iterator[tuple[SimEpoch, bytes]]:
+        """Each epoch with its UBX bytes: SFRBX for completed subframes, MEASX, then RAWX."""
+        geo_of = {p: is_geo(p) for p in self.prns}
+        eph_of = {e.prn: e for e in self.ephemerides}
+        for ep in self.epochs():
+            parts = [
+                _sfrbx(sf.prn, sf.nav_type, subframe_words(eph_of[sf.prn], sf, self.iono))
+                for sf in ep.subframes
+            ]
+            parts.append(_measx(ep))
+            parts.append(_rawx(ep, [geo_of[p] for p in ep.prn]))
+            yield ep, b"".join(parts)
+
+    def _completed_subframes(
+        self, st: _SatState, t0: float, t1: float, bdt_sow_rx: float, flight_s: float
+    ) -> list[SimSubframe]:
+        """Subframes of ``st`` whose last bit arrived in (t0, t1] after bit sync."""
+        period = _subframe_period_s(st.prn)
+        # receiver time since start <-> BDT transmit time: tx = bdt_sow_rx - (t1 - t) - flight
+        tx_of = lambda t: bdt_sow_rx - (t1 - t) - flight_s  # noqa: E731
+        if st.next_subframe_k is None:
+            if t1 < st.sync_s:
+                return []
+            st.next_subframe_k = math.ceil(round(tx_of(st.sync_s) / period, 9))
+        out = []
+        while True:
+            k = st.next_subframe_k
+            end_tx = (k + 1) * period
+            end_rx = t1 + (end_tx - tx_of(t1))
+            if end_rx > t1 + 1e-9:
+                break
+            if end_rx > t0 - 1e-9:
+                nav = "D2" if is_geo(st.prn) else "D1"
+                out.append(SimSubframe(st.prn, nav, k, k * period, end_rx))
+                st.full_s = min(st.full_s, end_rx)
+            st.next_subframe_k = k + 1
+        return out
+
+
+def subframe_words(eph: Ephemeris, sf: SimSubframe, iono: KlobucharParams | None) -> list[int]:
+    """The ten BCH-coded 30-bit words of a completed subframe, in ICD word order (5.1.3)."""
+    frame, fra_id = divmod(sf.index, 5)
+    if sf.nav_type == "D1":
+        sow = round(frame * 5 * D1_SUBFRAME_S)
+        return list(encode_d1_subframes(eph, sow, iono)[fra_id])
+    sow = round(frame * 5 * D2_SUBFRAME_S)
+    return list(encode_d2_frame(eph, sow, frame % 10 + 1, iono)[fra_id])
+
+
+def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
+    """RXM-RAWX: prMes valid only for full satellites (B1I sigId 0 = D1, 1 = D2)."""
+    meas = [
+        RawxMeas(
+            pr_m=float(ep.pr_m[i]),
+            gnss_id=3,
+            sv_id=prn_number(prn),
+            sig_id=1 if geo[i] else 0,
+            locktime_ms=1000,
+            cn0_dbhz=int(ep.cn0_dbhz[i]),
+            pr_std_index=5,
+            pr_valid=bool(ep.full[i]),
+        )
+        for i, prn in enumerate(ep.prn)
+    ]
+    return rawx_frame(ep.tag_gpst_tow_s, ep.tag_gpst_week, LEAP_S, meas)
+
+
+def _measx(ep: SimEpoch) -> bytes:
+    """RXM-MEASX: the code phase (pseudorange modulo 1 ms) of every tracked satellite."""
+    gps_tow_ms = round(ep.tag_gpst_tow_s * 1000.0)
+    svs = []
+    for i, prn in enumerate(ep.prn):
+        units = round(float(ep.pr_m[i]) / PR_LSB_M) % (1 << 21)  # code phase in 2^-21 ms
+        svs.append(
+            MeasxSv(
+                gnss_id=3,
+                sv_id=prn_number(prn),
+                cn0_dbhz=int(ep.cn0_dbhz[i]),
+                whole_chips=(units * 2046) >> 21,
+                code_phase_units=units,
+            )
+        )
+    return measx_frame(gps_tow_ms, (gps_tow_ms - 14_000) % (WEEK_S * 1000), svs)
+
+
+def _sfrbx(prn: str, nav_type: str, words: Sequence[int]) -> bytes:
+    from pyubx2 import GET, UBXMessage
+
+    kw: dict[str, Any] = {
+        "gnssId": 3,
+        "svId": prn_number(prn),
+        "sigId": 1 if nav_type == "D2" else 0,
+        "numWords": len(words),
+        "chn": 0,
+        "version": 2,
+    }
+    kw |= {f"dwrd_{i:02d}": int(w) for i, w in enumerate(words, start=1)}
+    return bytes(UBXMessage("RXM", "RXM-SFRBX", GET, **kw).serialize())

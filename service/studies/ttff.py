@@ -1,0 +1,175 @@
+"""``bdsfix ttff``: time to first fix, fast against conventional, on emulated restarts.
+
+On real RINEX data each trial restarts at a random epoch with ephemerides held. Each
+satellite becomes full at the end of the first complete subframe after a random sync delay
+of 0.1-0.5 s (D2: 0.6 s subframes for GEOs, D1: 6 s), subframe boundaries taken from BDT as
+in the real signal (:class:`service.engine.tracker.SubframeEmulator`); before that it is fractional
+(mod 1 ms). Then, counted from the restart epoch:
+- TTFF_fast: the first epoch with a published fast fix (any fix from the fast solver);
+- TTFF_conventional: the first epoch at which the full measurements alone give an SPP fix
+  with PDOP <= 10;
+- geo_only: the first epoch with >= 4 full GEOs, solved by SPP from the GEOs alone, and its
+  3D error against the SPP of all full measurements at that epoch.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from service.core.constants import C_M_S, is_geo
+from service.core.ephemeris import EphemerisStore
+from service.core.errors import ConfigError
+from service.core.timebase import diff_s
+from service.core.types import Fix, MeasurementEpoch
+from service.engine.solver import IonoSet, SolverConfig, solve
+from service.engine.tracker import SubframeEmulator
+
+
+@dataclass(frozen=True, slots=True)
+class Trial:
+    restart_index: int
+    fast_s: float | None
+    conventional_s: float | None
+    geo_only_s: float | None
+    geo_only_err_m: float | None
+    fast_vs_spp_m: float | None
+
+
+def _distance_m(a: Fix, b: Fix) -> float:
+    """3D distance between two fixes that have positions."""
+    return float(np.linalg.norm(np.subtract(a.x_ecef_m or (0, 0, 0), b.x_ecef_m or (0, 0, 0))))
+
+
+def _emulated(epoch: MeasurementEpoch, emu: SubframeEmulator) -> MeasurementEpoch:
+    full = np.isfinite(epoch.pr_m).copy()
+    for i, prn in enumerate(epoch.prn):
+        if full[i]:
+            w, t = emu.full_at_tow_s(prn, float(epoch.pr_m[i]))
+            full[i] = diff_s(epoch.gpst_week, epoch.gpst_tow_s, w, t) >= 0
+    ct = C_M_S * epoch.period_s
+    return replace(epoch, pr_m=np.where(full, epoch.pr_m, np.nan), frac_pr_m=np.mod(epoch.pr_m, ct))
+
+
+def run_trial(
+    epochs: list[MeasurementEpoch],
+    r: int,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    rng: np.random.Generator,
+    horizon_s: float = 30.0,
+) -> Trial:
+    t0 = epochs[r]
+    delays = {p: float(rng.uniform(0.1, 0.5)) for p in sorted({p for e in epochs for p in e.prn})}
+    emu = SubframeEmulator(t0.gpst_week, t0.gpst_tow_s, delays)
+    fast = conv = geo = geo_err = diff = None
+    for ep in epochs[r:]:
+        dt = diff_s(ep.gpst_week, ep.gpst_tow_s, t0.gpst_week, t0.gpst_tow_s)
+        if dt > horizon_s:
+            break
+        view = _emulated(ep, emu)
+        if fast is None:
+            f = solve(view, store, iono, cfg, solver="fast")
+            if f.ok:
+                fast = dt
+                ref = solve(ep, store, iono, cfg, solver="spp")
+                if ref.ok:
+                    diff = _distance_m(f, ref)
+        if conv is None:
+            c = solve(view, store, iono, cfg, solver="spp")
+            if c.ok and c.pdop is not None and c.pdop <= 10.0:
+                conv = dt
+        if geo is None:
+            geos = [i for i, p in enumerate(view.prn) if is_geo(p) and math.isfinite(view.pr_m[i])]
+            if len(geos) >= 4:
+                sub = MeasurementEpoch.from_columns(
+                    ep.gpst_week,
+                    ep.gpst_tow_s,
+                    [ep.prn[i] for i in geos],
+                    [ep.signal[i] for i in geos],
+                    ep.pr_m[geos],
+                )
+                # the GEO-only solution is shown for its error: its PDOP (~100) is far
+                # above the gate a published fix must pass
+                g = solve(sub, store, iono, replace(cfg, pdop_max=math.inf), solver="spp")
+                ref = solve(ep, store, iono, cfg, solver="spp")
+                if g.ok and ref.ok:
+                    geo = dt
+                    geo_err = _distance_m(g, ref)
+        if fast is not None and conv is not None and geo is not None:
+            break
+    return Trial(r, fast, conv, geo, geo_err, diff)
+
+
+def _stats(values: list[float | None], n: int) -> dict[str, Any]:
+    ok = [v for v in values if v is not None]
+    out: dict[str, Any] = {"success_pct": round(100.0 * len(ok) / max(n, 1), 2)}
+    if ok:
+        out["median_s"] = float(np.median(ok))
+        out["p95_s"] = float(np.percentile(ok, 95))
+    return out
+
+
+class TrialTimes(Protocol):
+    """What a TTFF summary reads from a trial (RINEX :class:`Trial` or simulated)."""
+
+    @property
+    def fast_s(self) -> float | None: ...
+    @property
+    def conventional_s(self) -> float | None: ...
+    @property
+    def geo_only_s(self) -> float | None: ...
+    @property
+    def geo_only_err_m(self) -> float | None: ...
+    @property
+    def fast_vs_spp_m(self) -> float | None: ...
+
+
+def summarize(trials: Sequence[TrialTimes]) -> dict[str, Any]:
+    """The ``ttff --json`` document (ARCHITECTURE.md)."""
+    n = len(trials)
+    doc: dict[str, Any] = {
+        "trials": n,
+        "fast": _stats([t.fast_s for t in trials], n),
+        "conventional": _stats([t.conventional_s for t in trials], n),
+        "geo_only": _stats([t.geo_only_s for t in trials], n),
+    }
+    errs = [t.geo_only_err_m for t in trials if t.geo_only_err_m is not None]
+    if errs:
+        doc["geo_only"]["median_err_m"] = round(float(np.median(errs)), 3)
+    diffs = [t.fast_vs_spp_m for t in trials if t.fast_vs_spp_m is not None]
+    if diffs:
+        doc["fast"]["max_diff_to_spp_m"] = float(max(diffs))
+    return doc
+
+
+def plot_trials(trials: Sequence[TrialTimes], path: str) -> None:
+    """Histograms of the trials' TTFFs."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise ConfigError("--plot needs matplotlib: pip install 'bdsfix[plot]'") from exc
+    fig, ax = plt.subplots(figsize=(7, 4))
+    data = {
+        "fast": [t.fast_s for t in trials],
+        "conventional": [t.conventional_s for t in trials],
+        "GEO-only SPP": [t.geo_only_s for t in trials],
+    }
+    top = max((v for vals in data.values() for v in vals if v is not None), default=10.0)
+    bins = [0.5 * k for k in range(int(2 * top) + 4)]
+    for name, vals in data.items():
+        ax.hist([v for v in vals if v is not None], bins=bins, alpha=0.6, label=name)
+    ax.set_xlabel("time to first fix after restart [s]")
+    ax.set_ylabel("trials")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
