@@ -20,7 +20,8 @@ from hypothesis import strategies as st
 from service.commands.cli import main
 from service.core.constants import GM_M3_S2
 from service.core.geometry import ecef_to_geodetic, geodetic_to_ecef, look_angles
-from service.sim.constellation import gmst_rad, positions_ecef, positions_eci, table1
+from service.core.timebase import gmst_rad
+from service.sim.constellation import positions_ecef, positions_eci, table1
 from service.studies.coverage import (
     CoverageConfig,
     geo_gdop,
@@ -296,7 +297,7 @@ def test_cli_json_contract(tmp_path, capsys):
 def test_cli_rejects_bad_values(capsys):
     assert main(["coverage", "--days", "0", "--no-progress"]) == 2
     assert "--days" in capsys.readouterr().err
-    assert main(["coverage", "--days", "0.1", "--epoch", "yesterday", "--no-progress"]) == 2
+    assert main(["coverage", "--days", "0.1", "--start", "yesterday", "--no-progress"]) == 2
 
 
 NAV_2021 = DATA / "hksc-2021" / "hksc1610.nav"

@@ -1,5 +1,5 @@
-"""The ``bdsfix`` command line (contract in ARCHITECTURE.md). Each subcommand delegates to
-the module that owns its concern; only this entry point configures logging."""
+"""The ``bdsfix`` command line (contract in docs/architecture.md): the parser and the
+dispatch to one module per subcommand; only this entry point configures logging."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from service import __version__
+from service.commands.options import add_start_flag
 from service.core.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, BdsfixError
 from service.core.settings import add_flags
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
@@ -71,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--beta", type=float, default=3000.0)
     c.add_argument("--elmask-deg", type=float, default=0.0)
     c.add_argument("--nav", help="RINEX nav file: broadcast constellation instead of Table 1")
-    c.add_argument("--epoch", help="ISO UTC start time (default 2015-05-19T04:00:00)")
+    add_start_flag(c, "the study's first epoch (default: Table 1's, 2015-05-19T04:00:00)")
     c.add_argument("--json", dest="json_out", help="write the result as JSON to FILE (- stdout)")
     c.add_argument("--plot", help="write a coverage map PNG (needs the plot extra)")
     c.add_argument("--no-progress", action="store_true")
@@ -98,7 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="pace by the data's timestamps at X times real time (files: 1)",
     )
-    pace.add_argument("--max-speed", action="store_true", help="as fast as possible")
+    pace.add_argument(
+        "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
+    )
     r.add_argument("--nmea-tcp", metavar="HOST:PORT", help="NMEA TCP server")
     r.add_argument("--zmq", metavar="ENDPOINT", help="ZeroMQ PUB endpoint")
     r.add_argument("--nmea-out", metavar="FILE|-", help="NMEA to a file or stdout")
@@ -120,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--lat-deg", type=float, default=39.9)
     m.add_argument("--lon-deg", type=float, default=116.4)
     m.add_argument("--alt-m", type=float, default=50.0)
-    m.add_argument("--start", help="ISO UTC start (default: first toe, or Table 1's epoch)")
+    add_start_flag(m, "the first epoch (default: first toe, or Table 1's epoch)")
     m.add_argument("--duration-s", type=float, default=60.0)
     m.add_argument("--rate-hz", type=float, default=10.0)
     m.add_argument("--clock-offset-s", type=float, default=0.0123)
@@ -130,7 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     dest.add_argument("--out", help="file, - for stdout (default)")
     dest.add_argument("--pty", action="store_true", help="write to a new pty (path on stderr)")
     m.add_argument("--realtime", action="store_true", help="pace file/stdout output in real time")
-    m.add_argument("--max-speed", action="store_true", help="do not pace the pty")
+    m.add_argument(
+        "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
+    )
 
     t = sub.add_parser("ttff", help="time to first fix: fast vs conventional on restarts")
     t.add_argument("obs", nargs="?")
@@ -151,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--rate-hz", type=float, default=10.0, help="--simulate: measurement rate")
     t.add_argument("--noise-m", type=float, default=1.3, help="--simulate: range noise sigma")
     t.add_argument("--trial-s", type=float, default=13.0, help="--simulate: stream per trial")
-    t.add_argument("--start-utc", help="--simulate: ISO UTC of the first restart")
+    add_start_flag(t, "--simulate: the first restart (default: 10 min after the nav toe)")
     t.add_argument(
         "--max-eph-age-s",
         type=float,

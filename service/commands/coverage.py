@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import logging
 
 import numpy as np
 
+from service.commands.options import parse_start
 from service.core.constants import is_geo
 from service.core.errors import ConfigError
 from service.studies.coverage import (
@@ -21,16 +21,6 @@ from service.studies.coverage import (
 )
 
 log = logging.getLogger(__name__)
-
-
-def _parse_utc(text: str) -> dt.datetime:
-    try:
-        t = dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
-    except ValueError as exc:
-        raise ConfigError(f"--epoch {text!r} is not an ISO date-time") from exc
-    if t.tzinfo is not None:
-        t = t.astimezone(dt.UTC).replace(tzinfo=None)
-    return t
 
 
 def main_coverage(args: argparse.Namespace) -> int:
@@ -52,8 +42,8 @@ def main_coverage(args: argparse.Namespace) -> int:
         from drivers.rinex import read_nav
 
         nav = read_nav(args.nav)
-        if args.epoch:
-            start = gpst_to_bdt(*gpst_from_utc(_parse_utc(args.epoch)))
+        if args.start:
+            start = gpst_to_bdt(*gpst_from_utc(parse_start(args.start)))
         else:
             geo_sets = [e for p, s in nav.ephemerides.items() if is_geo(p) for e in s]
             if not geo_sets:
@@ -64,10 +54,10 @@ def main_coverage(args: argparse.Namespace) -> int:
         prns, sats = nav_geo_positions(nav.ephemerides, start, t_s)
         log.info("--nav: GEOs %s", " ".join(prns))
     else:
-        if args.epoch:
+        if args.start:
             from service.sim.constellation import table1
 
-            offset = (_parse_utc(args.epoch) - table1().epoch_utc).total_seconds()
+            offset = (parse_start(args.start) - table1().epoch_utc).total_seconds()
             if abs(offset) > 30 * 86400:
                 log.warning("Table 1 propagated two-body %.0f days from its epoch", offset / 86400)
             t_s = t_s + offset

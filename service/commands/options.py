@@ -4,8 +4,10 @@ flags of :func:`service.core.settings.add_flags`."""
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 from typing import Any
 
+from service.core.errors import ConfigError
 from service.core.settings import build, given
 from service.engine.solver import SolverConfig
 
@@ -14,3 +16,19 @@ def solver_config(args: argparse.Namespace, **overrides: Any) -> SolverConfig:
     """The :class:`service.engine.solver.SolverConfig` of a command's solver flags (the one
     builder every command uses); ``overrides`` are settings the command fixes itself."""
     return build(SolverConfig, given(args, SolverConfig) | overrides, {})
+
+
+def add_start_flag(parser: argparse.ArgumentParser | Any, what: str) -> None:
+    """``--start ISO``: the one spelling of a start time (UTC) in every command."""
+    parser.add_argument("--start", metavar="ISO", help=f"ISO 8601 UTC start: {what}")
+
+
+def parse_start(text: str) -> dt.datetime:
+    """``--start`` as a naive UTC datetime (an offset or ``Z`` is converted to UTC)."""
+    try:
+        t = dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError as exc:
+        raise ConfigError(f"--start {text!r} is not an ISO 8601 UTC date-time") from exc
+    if t.tzinfo is not None:
+        t = t.astimezone(dt.UTC).replace(tzinfo=None)
+    return t

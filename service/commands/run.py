@@ -192,7 +192,7 @@ def main_run(args: argparse.Namespace) -> int:
     store = load_store(state_dir, cfg.max_eph_age_s)
     pipeline = Pipeline(
         store,
-        IonoSet(bds=store.iono if store.iono and store.iono.system == "BDS" else None),
+        IonoSet.of([store.iono]),
         cfg.solver,
     )
     notifier = Notifier()
@@ -318,9 +318,7 @@ def main_replay(args: argparse.Namespace) -> int:
     )
     for line in integrity_summary(c):
         print(f"  {line}", file=sys.stderr)
-    skipped = {
-        k: v for k, v in c.items() if any(w in k for w in ("bad_", "skipped", "error", "resync"))
-    }
+    skipped = runner.skipped()
     if skipped:
         print(f"  skipped: {skipped}", file=sys.stderr)
     for line in timeline.lines(offset):

@@ -14,6 +14,7 @@ import os
 import sys
 import time
 
+from service.commands.options import parse_start
 from service.core.errors import ConfigError, InputError
 from service.core.timebase import bdt_to_gpst, gpst_from_utc
 from service.core.types import Ephemeris, KlobucharParams
@@ -40,10 +41,7 @@ def main_simulate(args: argparse.Namespace) -> int:
             raise ConfigError(f"{flag} must be a positive number, got {value}")
     ephs, iono = _ephemerides(args.nav)
     if args.start:
-        try:
-            week, tow = gpst_from_utc(dt.datetime.fromisoformat(args.start.replace("Z", "")))
-        except ValueError as exc:
-            raise ConfigError(f"--start {args.start!r} is not an ISO UTC date-time") from exc
+        week, tow = gpst_from_utc(parse_start(args.start))
     elif args.nav:
         first = min(ephs, key=lambda e: (e.week, e.toe_sow_s))
         week, tow = bdt_to_gpst(first.week, first.toe_sow_s)

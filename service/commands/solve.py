@@ -39,23 +39,23 @@ def load_navigation(paths: list[str], max_age_s: float = 7200.0) -> tuple[Epheme
     from drivers.rinex import read_nav
 
     store = EphemerisStore(max_age_s=max_age_s)
-    bds = gps = None
+    params = []
     for path in paths:
         nav = read_nav(path)
         for ephs in nav.ephemerides.values():
             store.add_all(ephs)
-        bds = bds or nav.iono_bds
-        gps = gps or nav.iono_gps
+        params += [nav.iono_bds, nav.iono_gps]
     if len(store) == 0:
         raise ConfigError(f"no usable BDS ephemeris in {', '.join(paths)}")
-    if bds is None and gps is not None:
+    iono = IonoSet.of(params)
+    if iono.bds is None and iono.gps is not None:
         log.warning(
             "no BDSA/BDSB ionosphere coefficients in %s: using GPSA/GPSB scaled "
             "to B1I by (f_L1/f_B1I)^2",
             ", ".join(paths),
         )
-    store.iono = bds or gps
-    return store, IonoSet(bds=bds, gps=gps)
+    store.iono = iono.preferred
+    return store, iono
 
 
 def solve_epochs(
@@ -88,8 +88,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
-    from service.core.timebase import utc_from_gpst
-    from service.output.nmea import sentences_for_fix
+    from service.output.nmea import fix_utc, sentences_for_fix
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
     cfg = solver_config(args)
@@ -119,8 +118,7 @@ def main_solve(args: argparse.Namespace) -> int:
                     out.write(fix_csv_row(fix) + "\n")
             if args.format == "nmea":
                 best = next((f for f in fixes if f.ok), fixes[0])
-                utc = utc_from_gpst(best.gpst_week, best.gpst_tow_s)
-                for sentence in sentences_for_fix(best, utc=utc, time_known=True):
+                for sentence in sentences_for_fix(best, utc=fix_utc(best), time_known=True):
                     out.write(sentence.decode("ascii"))
     summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
     print(f"bdsfix solve: {n_epochs} epochs; {summary}", file=sys.stderr)

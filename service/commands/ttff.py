@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from drivers.rinex import RinexObsReader
-from service.commands.options import solver_config
+from service.commands.options import parse_start, solver_config
 from service.commands.solve import load_navigation
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
@@ -82,7 +82,7 @@ def _navigation(
 ) -> tuple[list[Ephemeris], EphemerisStore, IonoSet, KlobucharParams | None]:
     if nav:
         store, iono = load_navigation(list(nav))
-        klob = iono.bds if iono.bds is not None and iono.bds.system == "BDS" else None
+        klob = iono.bds
         return store.all(), store, IonoSet(bds=klob), klob
 
     ephs = table1_ephemerides(0.0)
@@ -94,13 +94,9 @@ def _navigation(
 def _start_time(
     start_utc: str | None, from_nav: bool, ephs: Sequence[Ephemeris]
 ) -> tuple[int, float]:
-    """``--start-utc``, else 10 min after the nav file's commonest toe, else Table 1's epoch."""
+    """``--start``, else 10 min after the nav file's commonest toe, else Table 1's epoch."""
     if start_utc:
-        try:
-            utc = dt.datetime.fromisoformat(start_utc)
-        except ValueError as exc:
-            raise ConfigError(f"--start-utc: not an ISO time: {start_utc!r}") from exc
-        return gpst_from_utc(utc.replace(tzinfo=None))
+        return gpst_from_utc(parse_start(start_utc))
     if from_nav:
         # the toe most satellites share: every one of them has a fresh ephemeris there
         (w, t), _ = Counter((e.week, e.toe_sow_s) for e in ephs).most_common(1)[0]
@@ -117,7 +113,7 @@ def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTri
     nav = [p for p in (args.obs, *(args.nav or ())) if p]  # NAV files only, when simulating
     ephs, store, iono, klob = _navigation(nav)
     store.max_age_s = args.max_eph_age_s
-    week, tow = _start_time(args.start_utc, bool(nav), ephs)
+    week, tow = _start_time(args.start, bool(nav), ephs)
     # the daemon applies the same ionosphere model as the simulator (none without a nav file)
     cfg = solver_config(args, **({} if klob else {"iono": "off"}))
     base = SimConfig(

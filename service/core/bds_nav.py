@@ -47,7 +47,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
-from service.core.constants import WEEK_S
+from service.core.constants import ICD_PI, URA_M, WEEK_S
 from service.core.errors import DecodeError, EphemerisError
 from service.core.types import Ephemeris, KlobucharParams
 
@@ -57,8 +57,6 @@ NavType = Literal["D1", "D2"]
 
 PREAMBLE = 0b11100010010
 """Subframe preamble, ICD bits 1-11 (5.2.3)."""
-ICD_PI = 3.1415926535898
-"""pi as the ICD defines it for semicircle conversion (5.2.4.12)."""
 NH_CODE = (0, 0, 0, 0, 0, 1, 0, 0, 1, 1, 0, 1, 0, 1, 0, 0, 1, 1, 1, 0)
 """Neumann-Hoffman secondary code on D1, one chip per 1 ms code period (ICD 5.2.1)."""
 D1_SUBFRAME_S = 6.0
@@ -69,29 +67,6 @@ DATA_BITS = 224
 """Information bits of a subframe: 26 (word 1) + 9 x 22."""
 _GEN = 0b10011  # g(x) = x^4 + x + 1 (ICD 5.1.3)
 _WORD_MASK = (1 << 30) - 1
-
-URA_M = (
-    2.4,
-    3.4,
-    4.85,
-    6.85,
-    9.65,
-    13.65,
-    24.0,
-    48.0,
-    96.0,
-    192.0,
-    384.0,
-    768.0,
-    1536.0,
-    3072.0,
-    6144.0,
-    math.inf,
-)
-"""URAI -> URA [m], the upper bound of each index's interval (ICD 5.2.4.5).
-
-URAI 15 means URA > 6144 m (no accuracy prediction) and decodes as infinity, so that it
-encodes back to 15."""
 
 
 # --- BCH(15,11,1), ICD 5.1.3 ----------------------------------------------------------------
@@ -539,7 +514,7 @@ def subframe_start_sow_s(header: SubframeHeader, nav_type: str) -> float:
     SOW + 14 s + 6 s GPST, and FraID = (SOW / 6) mod 5 + 1).
 
     D2: every subframe of a 3 s frame carries the SOW of the frame's subframe 1, and subframe
-    k starts at SOW + 0.6 (k - 1) s. This CONFIRMS the working reading of METHOD.md:
+    k starts at SOW + 0.6 (k - 1) s. This reading is confirmed by two independent sources:
     - The ICD (5.3.3, D2 SOW) defines it at "the leading edge of preamble first bit in
       subframe 1 of each frame", as transcribed in GNSSTk (ARL:UT), BDSD2NavData.hpp. The
       ICD text itself could not be retrieved here, only that transcription.

@@ -33,8 +33,37 @@ GEO_PRNS = frozenset([1, 2, 3, 4, 5, 59, 60, 61, 62, 63])
 """BDS PRNs that are GEO satellites and broadcast D2 (BDS-2 C01-C05, BDS-3 C59-C63)."""
 
 WEEK_S = 604_800
+NOMINAL_FLIGHT_TIME_S = 0.075
+"""Typical signal flight time from a BDS satellite [s] (MEO ~0.072, GEO/IGSO ~0.12 at the
+horizon), used where no pseudorange gives the real one."""
 MS_RANGE_M = C_M_S * 1e-3
 """Distance light travels in one B1I code period (1 ms) [m]."""
+
+ICD_PI = 3.1415926535898
+"""pi as the ICD defines it for semicircle conversion (5.2.4.12)."""
+
+URA_M = (
+    2.4,
+    3.4,
+    4.85,
+    6.85,
+    9.65,
+    13.65,
+    24.0,
+    48.0,
+    96.0,
+    192.0,
+    384.0,
+    768.0,
+    1536.0,
+    3072.0,
+    6144.0,
+    math.inf,
+)
+"""URAI -> URA [m], the upper bound of each index's interval (ICD 5.2.4.5).
+
+URAI 15 means URA > 6144 m (no accuracy prediction) and decodes as infinity, so that it
+encodes back to 15."""
 
 
 def prn_number(prn: str) -> int:

@@ -41,11 +41,11 @@ SQRT_A_MAX_SQRT_M = 6700.0
 (sqrt(A) 5282.6), IGSOs and GEOs a = 42,164 km (sqrt(A) 6493.4). The broadcast field
 (ICD B1I 5.2.4.12: 32 bits unsigned, scale 2^-19) spans 0-8192, far wider."""
 ECCENTRICITY_MAX = 0.1
-"""Upper bound (exclusive) for e. BDS orbits are near circular (e < 0.013 in every real
-set of ../shared/data); the broadcast field (32 bits unsigned, scale 2^-33) spans 0-0.5."""
+"""Upper bound (exclusive) for e. BDS orbits are near circular (e of order 0.001-0.01);
+the broadcast field (32 bits unsigned, scale 2^-33) spans 0-0.5."""
 I0_MAX_RAD = math.radians(70.0)
-"""Upper bound for i0 (lower bound 0). IGSOs and MEOs fly at about 55 deg; the real sets of
-../shared/data have i0 2.4-7.4 deg for GEOs and 48.7-61.5 deg for the others."""
+"""Upper bound for i0 (lower bound 0). IGSOs and MEOs fly at about 55 deg, GEOs
+below 10 deg."""
 R_MIN_M = 25_000_000.0
 R_MAX_M = 45_000_000.0
 """Window for the satellite's geocentric radius at t_oe [m]: MEO 27,906 km and IGSO/GEO

@@ -9,7 +9,8 @@ exact across week boundaries, which a single float since 1980 would not.
 from __future__ import annotations
 
 import datetime as dt
-import math
+
+import numpy as np
 
 from service.core.constants import WEEK_S
 
@@ -80,16 +81,24 @@ def utc_from_gpst(week: int, tow_s: float) -> dt.datetime:
     return t - dt.timedelta(seconds=leap_seconds(t - dt.timedelta(seconds=18)))
 
 
-def gmst_rad(utc: dt.datetime) -> float:
-    """Greenwich mean sidereal angle [rad] (IAU 1982, UT1 taken as UTC).
+J2000_UTC = dt.datetime(2000, 1, 1, 12)
+"""J2000.0 (2000-01-01 12:00), here on the UTC scale."""
+
+
+def gmst_rad(epoch_utc: dt.datetime, dt_s: np.ndarray | float = 0.0) -> np.ndarray:
+    """IAU 1982 GMST [rad] at ``epoch_utc + dt_s`` (UT1 taken as UTC), vectorised.
 
     GMST = 67310.54841 s + (876600 h + 8640184.812866 s) T + 0.093104 s T^2 - 6.2e-6 s T^3,
-    T in Julian centuries of UT1 from J2000.0 (Aoki et al. 1982).
+    T in Julian centuries of UT1 from J2000.0 (Aoki et al. 1982). The whole-day part of the
+    epoch is removed before the polynomial so that float64 keeps sub-microsecond precision.
     """
-    j2000 = dt.datetime(2000, 1, 1, 12)
-    t = (utc - j2000).total_seconds() / 86400.0 / 36525.0
-    sec = 67310.54841 + (876600.0 * 3600.0 + 8640184.812866) * t + 0.093104 * t**2 - 6.2e-6 * t**3
-    return (sec % 86400.0) / 86400.0 * 2.0 * math.pi
+    off = np.asarray(dt_s, dtype=float)
+    base_s = (epoch_utc - J2000_UTC).total_seconds()
+    t = (base_s + off) / 86400.0 / 36525.0
+    # (876600 h) T is exactly the elapsed UT1 seconds: keep only its part modulo one day.
+    frac_day_s = np.mod(base_s, 86400.0) + off
+    sec = 67310.54841 + frac_day_s + 8640184.812866 * t + 0.093104 * t**2 - 6.2e-6 * t**3
+    return np.mod(sec, 86400.0) / 86400.0 * 2.0 * np.pi
 
 
 def gpst_from_utc(utc: dt.datetime) -> tuple[int, float]:

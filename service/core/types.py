@@ -1,6 +1,6 @@
 """Data that crosses stages: frozen, slotted dataclasses with units in every numeric name.
 
-See ARCHITECTURE.md, "Types crossing stages". Per-satellite data travel as numpy columns.
+Per-satellite data travel as numpy columns (docs/architecture.md, "Types").
 """
 
 from __future__ import annotations

@@ -139,9 +139,10 @@ class Pipeline:
                 self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
 
     def set_iono(self, params: KlobucharParams) -> None:
-        if params.system == "BDS":
-            self.iono = IonoSet(bds=params, gps=self.iono.gps)
-            self.store.iono = params
+        """Broadcast ionosphere coefficients (BDS, or GPS as the fallback) for the solver and
+        the saved store."""
+        self.iono = self.iono.with_params(params)
+        self.store.iono = self.iono.preferred
 
     def on_subframe(self, sf: NavSubframe) -> list[TrackEvent]:
         self.counters["subframes"] += 1
@@ -168,15 +169,7 @@ class Pipeline:
             and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) >= self.restart_at_s
         ):
             self._restarted = True
-            rng = np.random.default_rng(self.sync_seed)
-            delays = {p: float(rng.uniform(0.1, 0.5)) for p in sorted(epoch.prn)}
-            self.tracker.restart(
-                epoch.gpst_week,
-                epoch.gpst_tow_s,
-                SubframeEmulator(epoch.gpst_week, epoch.gpst_tow_s, delays),
-            )
-            self._recovered.clear()
-            self._last_fix = None
+            self.restart(epoch, np.random.default_rng(self.sync_seed))
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
@@ -194,6 +187,15 @@ class Pipeline:
         return EpochResult(
             view, fix, since, tuple(events), tuple(checks), partial(sky_view, view, self.store)
         )
+
+    def restart(self, epoch: MeasurementEpoch, rng: np.random.Generator) -> None:
+        """Emulate a receiver restart at ``epoch``: frame sync is lost, every satellite is
+        fractional until its first SOW after it (decoded subframes when the stream has them,
+        else :class:`SubframeEmulator` with one bit-sync delay draw); no warm start."""
+        emulator = SubframeEmulator.draw(epoch.gpst_week, epoch.gpst_tow_s, epoch.prn, rng)
+        self.tracker.restart(epoch.gpst_week, epoch.gpst_tow_s, emulator)
+        self._recovered.clear()
+        self._last_fix = None
 
     def _start_cfg(self, view: MeasurementEpoch) -> SolverConfig:
         """The solver settings for ``view``: once every measurement is full (conventional

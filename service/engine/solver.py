@@ -26,13 +26,13 @@ from __future__ import annotations
 import logging
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 
-from service.core.constants import C_M_S, is_geo
+from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S, is_geo
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
@@ -267,24 +267,45 @@ def _design(los: np.ndarray) -> np.ndarray:
     return np.concatenate([-los, np.ones((len(los), 1))], axis=1)
 
 
-def _iono_model(
-    store_iono: KlobucharParams | None, gps_iono: KlobucharParams | None, choice: IonoChoice
-) -> KlobucharParams | None:
-    if choice == "off":
-        return None
-    if choice == "bds":
-        return store_iono if store_iono is not None and store_iono.system == "BDS" else None
-    if choice == "gps":
-        return gps_iono
-    return store_iono if store_iono is not None else gps_iono
-
-
 @dataclass(frozen=True, slots=True)
 class IonoSet:
-    """Broadcast ionosphere coefficients available to the solver."""
+    """The broadcast ionosphere coefficients the solver may use: BDS (D1 page / BDSA-BDSB)
+    and GPS (GPSA-GPSB), the fallback when no BDS set is known. The one holder every command
+    and the stream use."""
 
     bds: KlobucharParams | None = None
     gps: KlobucharParams | None = None
+
+    @classmethod
+    def of(cls, params: Iterable[KlobucharParams | None]) -> IonoSet:
+        """The holder of the first BDS and the first GPS set among ``params``."""
+        out = cls()
+        for p in params:
+            if p is not None and getattr(out, p.system.lower()) is None:
+                out = out.with_params(p)
+        return out
+
+    def with_params(self, params: KlobucharParams) -> IonoSet:
+        """This holder with ``params`` (by its system) replacing the set it had."""
+        if params.system == "BDS":
+            return replace(self, bds=params)
+        return replace(self, gps=params)
+
+    @property
+    def preferred(self) -> KlobucharParams | None:
+        """BDS if known, else GPS (scaled to B1I by the model)."""
+        return self.bds if self.bds is not None else self.gps
+
+    def model(self, choice: IonoChoice) -> KlobucharParams | None:
+        """The coefficients for the ``iono`` setting: off, bds only, gps only, or auto
+        (BDS, else the GPS fallback)."""
+        if choice == "off":
+            return None
+        if choice == "bds":
+            return self.bds
+        if choice == "gps":
+            return self.gps
+        return self.preferred
 
 
 def _meaningful(x: np.ndarray) -> bool:
@@ -505,7 +526,7 @@ def _attempt(rows: _Rows, ctx: _Context) -> _Attempt:
                 state.iterations,
             )
         )
-    model = _iono_model(ctx.iono.bds, ctx.iono.gps, cfg.iono) if meaningful else None
+    model = ctx.iono.model(cfg.iono) if meaningful else None
     geo = state.geo if kept is rows else state.geo.take(keep)
     state = _fixed_iterations(
         kept,
@@ -824,7 +845,7 @@ def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[
     if not ephs:
         return ()
     arr = store.arrays(ephs)
-    pos, _ = sat_pos_clock(arr, bdt_week, np.full(len(ephs), bdt_sow - 0.075))
+    pos, _ = sat_pos_clock(arr, bdt_week, np.full(len(ephs), bdt_sow - NOMINAL_FLIGHT_TIME_S))
     el, az = look_angles(np.asarray(fix.x_ecef_m), pos)
     used = set(fix.used)
     return tuple(

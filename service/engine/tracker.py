@@ -17,16 +17,22 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, SubframeHeader, subframe_start_sow_s
-from service.core.constants import C_M_S, is_geo
+from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S, is_geo
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import MeasurementEpoch, NavSubframe
 
 log = logging.getLogger(__name__)
+
+SYNC_DELAY_MIN_S = 0.1
+SYNC_DELAY_MAX_S = 0.5
+"""Bit-sync delay after a restart, drawn per satellite uniformly in this window [s] (an
+assumed receiver behaviour: code lock and bit sync within half a second)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,6 +46,7 @@ class TrackEvent:
     since_start_s: float
     nav_type: str
     sow_s: float | None = None
+    full_since_s: float | None = None  # data time since start at which it became full
 
 
 def nav_type_of(prn: str) -> str:
@@ -61,10 +68,29 @@ class SubframeEmulator:
     sync_delay_s: dict[str, float]
     default_sync_delay_s: float = 0.3
 
+    @classmethod
+    def draw(
+        cls, gpst_week: int, gpst_tow_s: float, prns: Iterable[str], rng: np.random.Generator
+    ) -> SubframeEmulator:
+        """A restart at (week, tow) with a bit-sync delay per satellite drawn uniformly in
+        [SYNC_DELAY_MIN_S, SYNC_DELAY_MAX_S] (the one draw every restart uses)."""
+        delays = {p: float(rng.uniform(SYNC_DELAY_MIN_S, SYNC_DELAY_MAX_S)) for p in sorted(prns)}
+        return cls(gpst_week, gpst_tow_s, delays)
+
+    def full_mask(self, epoch: MeasurementEpoch) -> np.ndarray:
+        """Which of ``epoch``'s measurements are full: reported full by the receiver and
+        past their first SOW after the restart."""
+        full = np.isfinite(epoch.pr_m)
+        for i, prn in enumerate(epoch.prn):
+            if full[i]:
+                w, t = self.full_at_tow_s(prn, float(epoch.pr_m[i]))
+                full[i] = diff_s(epoch.gpst_week, epoch.gpst_tow_s, w, t) >= 0
+        return full
+
     def full_at_tow_s(self, prn: str, pr_m: float) -> tuple[int, float]:
         """GPST (week, tow) at which ``prn``'s first SOW after the restart is decoded."""
         period = D2_SUBFRAME_S if is_geo(prn) else D1_SUBFRAME_S
-        flight_s = pr_m / C_M_S if math.isfinite(pr_m) else 0.075
+        flight_s = pr_m / C_M_S if math.isfinite(pr_m) else NOMINAL_FLIGHT_TIME_S
         delay = self.sync_delay_s.get(prn, self.default_sync_delay_s)
         _, bdt_sow = gpst_to_bdt(self.restart_gpst_week, self.restart_gpst_tow_s)
         tx_sync = bdt_sow + delay - flight_s  # transmit time of the first synced bit
@@ -78,8 +104,7 @@ class FrameSyncTracker:
 
     def __init__(self) -> None:
         self._start: tuple[int, float] | None = None
-        self._full_since: dict[str, tuple[int, float]] = {}
-        self._was_full: set[str] = set()
+        self._full_since_s: dict[str, float] = {}  # satellites full now, since when
         self._restart: tuple[int, float] | None = None
         self._emulator: SubframeEmulator | None = None
         self._sow_after_restart: set[str] = set()
@@ -99,8 +124,7 @@ class FrameSyncTracker:
         )
         self._restart = (gpst_week, gpst_tow_s)
         self._emulator = emulator
-        self._full_since.clear()
-        self._was_full.clear()
+        self._full_since_s.clear()
         self._sow_after_restart.clear()
 
     # --- inputs ------------------------------------------------------------------------
@@ -121,6 +145,7 @@ class FrameSyncTracker:
                 since_start_s=since,
                 nav_type=sf.nav_type,
                 sow_s=subframe_start_sow_s(header, sf.nav_type),
+                full_since_s=self._full_since_s.get(sf.prn),
             )
         ]
 
@@ -131,20 +156,15 @@ class FrameSyncTracker:
         week, tow = epoch.gpst_week, epoch.gpst_tow_s
         full = np.isfinite(epoch.pr_m)
         if self._restart is not None and diff_s(week, tow, *self._restart) >= 0:
-            for i, prn in enumerate(epoch.prn):
-                if not full[i]:
-                    continue
-                if self._emulator is not None and not self.seen_subframes:
-                    w, t = self._emulator.full_at_tow_s(prn, float(epoch.pr_m[i]))
-                    full[i] = diff_s(week, tow, w, t) >= 0
-                else:
-                    full[i] = prn in self._sow_after_restart
+            if self._emulator is not None and not self.seen_subframes:
+                full = self._emulator.full_mask(epoch)
+            else:
+                full &= np.array([p in self._sow_after_restart for p in epoch.prn], dtype=bool)
         events: list[TrackEvent] = []
         since = self.since_start_s(week, tow)
         for i, prn in enumerate(epoch.prn):
-            if full[i] and prn not in self._was_full:
-                self._was_full.add(prn)
-                self._full_since.setdefault(prn, (week, tow))
+            if full[i] and prn not in self._full_since_s:
+                self._full_since_s[prn] = since
                 events.append(
                     TrackEvent(
                         prn=prn,
@@ -153,16 +173,13 @@ class FrameSyncTracker:
                         gpst_tow_s=tow,
                         since_start_s=since,
                         nav_type=nav_type_of(prn),
+                        full_since_s=since,
                     )
                 )
-            elif not full[i] and prn in self._was_full:
-                self._was_full.discard(prn)  # lost lock or time: fractional again
-                self._full_since.pop(prn, None)
+            elif not full[i] and prn in self._full_since_s:
+                del self._full_since_s[prn]  # lost lock or time: fractional again
         if full.all() or np.array_equal(full, np.isfinite(epoch.pr_m)):
             return epoch, events
         ct = C_M_S * epoch.period_s
         frac = np.where(np.isfinite(epoch.frac_pr_m), epoch.frac_pr_m, np.mod(epoch.pr_m, ct))
         return replace(epoch, pr_m=np.where(full, epoch.pr_m, np.nan), frac_pr_m=frac), events
-
-    def full_since(self, prn: str) -> tuple[int, float] | None:
-        return self._full_since.get(prn)

@@ -40,7 +40,8 @@ from collections.abc import Sequence
 
 from pynmeagps import GET, NMEAMessage
 
-from service.core.constants import prn_number
+from service.core.constants import C_M_S, prn_number
+from service.core.timebase import utc_from_gpst
 from service.core.types import Fix, SatView
 
 TALKERS = ("GN", "GB", "BD", "GP")
@@ -53,6 +54,13 @@ GSV_SATS_PER_SENTENCE = 4
 
 def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
     return bytes(NMEAMessage(talker, msg_id, GET, hpnmeamode=True, **fields).serialize())
+
+
+def fix_utc(fix: Fix) -> dt.datetime:
+    """The time NMEA gives a fix (naive UTC): the receiver's time tag minus the solved clock
+    bias for a published fix; a declined fix has no trusted clock, so its tag as is."""
+    bias_s = (fix.clock_bias_m or 0.0) / C_M_S if fix.ok else 0.0
+    return utc_from_gpst(fix.gpst_week, fix.gpst_tow_s - bias_s)
 
 
 def nmea_time(utc: dt.datetime) -> dt.datetime:

@@ -26,12 +26,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.core.constants import A_CGCS2000_M, GM_M3_S2, is_geo
+from service.core.timebase import gmst_rad
 from service.sim.keplerian import TABLE1, TABLE1_EPOCH_UTC, mean_from_true_anomaly
 
 J2_CGCS2000 = 1.082629832258e-3
 """CGCS2000 second zonal harmonic (unnormalised); only for the optional J2 secular rates."""
-
-_J2000_UTC = dt.datetime(2000, 1, 1, 12)
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,22 +84,6 @@ def table1() -> Constellation:
             )
         )
     return Constellation(dt.datetime(*TABLE1_EPOCH_UTC), tuple(sats))
-
-
-def gmst_rad(epoch_utc: dt.datetime, dt_s: np.ndarray | float) -> np.ndarray:
-    """IAU 1982 GMST [rad] at ``epoch_utc + dt_s`` (UT1 taken as UTC), vectorised.
-
-    GMST = 67310.54841 s + (876600 h + 8640184.812866 s) T + 0.093104 s T^2 - 6.2e-6 s T^3,
-    T in Julian centuries of UT1 from J2000.0 (Aoki et al. 1982). The whole-day part of the
-    epoch is removed before the polynomial so that float64 keeps sub-microsecond precision.
-    """
-    off = np.asarray(dt_s, dtype=float)
-    base_s = (epoch_utc - _J2000_UTC).total_seconds()
-    t = (base_s + off) / 86400.0 / 36525.0
-    # (876600 h) T is exactly the elapsed UT1 seconds: keep only its part modulo one day.
-    frac_day_s = np.mod(base_s, 86400.0) + off
-    sec = 67310.54841 + frac_day_s + 8640184.812866 * t + 0.093104 * t**2 - 6.2e-6 * t**3
-    return np.mod(sec, 86400.0) / 86400.0 * 2.0 * np.pi
 
 
 def _solve_kepler(m: np.ndarray, e: np.ndarray) -> np.ndarray:

@@ -136,7 +136,7 @@ def table1_ephemerides(offset_s: float = 0.0) -> list[Ephemeris]:
 
     utc = dt.datetime(*TABLE1_EPOCH_UTC) + dt.timedelta(seconds=offset_s)
     bdt_week, bdt_sow = gpst_to_bdt(*gpst_from_utc(utc))
-    gmst = gmst_rad(utc)
+    gmst = float(gmst_rad(utc))
     out = []
     for prn, (a_km, e, inc, raan, argp, nu) in TABLE1.items():
         a = a_km * 1e3

@@ -5,7 +5,7 @@ receiver clock offset dt_r, each satellite's signal left at t - tau, where tau s
 light-time equation with the satellite position at transmit time rotated into the
 receive-time Earth frame (Sagnac). The B1I pseudorange is
 c tau + c (dt_r - dt_sv) + I + T + noise, and the receiver's time tag is t + dt_r, so that
-tag and ranges carry the same clock offset (METHOD.md, "Simulating a clock bias").
+tag and ranges carry the same clock offset (docs/method.md).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.constants import C_M_S
+from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
 from service.core.geometry import ecef_to_geodetic, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -52,7 +52,7 @@ def true_ranges(
     """Pseudoranges of the satellites in ``eph`` received at true GPST time (week, tow)."""
     x = np.asarray(rx_ecef_m, dtype=float)
     bdt_week, bdt_sow = gpst_to_bdt(gpst_week, gpst_tow_s)
-    tau = np.full(len(eph), 0.075)
+    tau = np.full(len(eph), NOMINAL_FLIGHT_TIME_S)
     for _ in range(6):
         sat, clk_s = sat_pos_clock(eph, bdt_week, bdt_sow - tau)
         sat = sagnac_rotate(sat, tau)

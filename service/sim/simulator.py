@@ -29,7 +29,7 @@ from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, encode_d1_subfram
 from service.core.constants import C_M_S, WEEK_S, is_geo, prn_number
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays
-from service.core.timebase import diff_s, gpst_to_bdt, normalize
+from service.core.timebase import BDT_GPST_OFFSET_S, diff_s, gpst_to_bdt, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rangegen import true_ranges
 from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
@@ -277,7 +277,9 @@ def _measx(ep: SimEpoch) -> bytes:
                 code_phase_units=units,
             )
         )
-    return measx_frame(gps_tow_ms, (gps_tow_ms - 14_000) % (WEEK_S * 1000), svs)
+    return measx_frame(
+        gps_tow_ms, (gps_tow_ms - round(BDT_GPST_OFFSET_S * 1000)) % (WEEK_S * 1000), svs
+    )
 
 
 def _sfrbx(prn: str, nav_type: str, words: Sequence[int]) -> bytes:

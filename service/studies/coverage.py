@@ -537,7 +537,7 @@ def nav_geo_positions(
         raise ConfigError(
             f"only {len(prns)} GEOs have ephemerides within {max_age_s / 3600:.0f} h of every "
             f"study epoch (0 to {float(t_s[-1]) / 3600:.1f} h; the file has {span}); "
-            "the study needs 4: choose --epoch and --days inside the file's span"
+            "the study needs 4: choose --start and --days inside the file's span"
         )
     return tuple(prns), np.stack(cols, axis=1)
 

@@ -21,13 +21,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from service.core.constants import C_M_S, is_geo
+from service.core.constants import is_geo
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
 from service.core.timebase import diff_s
 from service.core.types import Fix, MeasurementEpoch
+from service.engine.pipeline import Pipeline
 from service.engine.solver import IonoSet, SolverConfig, solve
-from service.engine.tracker import SubframeEmulator
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,16 +45,6 @@ def _distance_m(a: Fix, b: Fix) -> float:
     return float(np.linalg.norm(np.subtract(a.x_ecef_m or (0, 0, 0), b.x_ecef_m or (0, 0, 0))))
 
 
-def _emulated(epoch: MeasurementEpoch, emu: SubframeEmulator) -> MeasurementEpoch:
-    full = np.isfinite(epoch.pr_m).copy()
-    for i, prn in enumerate(epoch.prn):
-        if full[i]:
-            w, t = emu.full_at_tow_s(prn, float(epoch.pr_m[i]))
-            full[i] = diff_s(epoch.gpst_week, epoch.gpst_tow_s, w, t) >= 0
-    ct = C_M_S * epoch.period_s
-    return replace(epoch, pr_m=np.where(full, epoch.pr_m, np.nan), frac_pr_m=np.mod(epoch.pr_m, ct))
-
-
 def run_trial(
     epochs: list[MeasurementEpoch],
     r: int,
@@ -64,17 +54,21 @@ def run_trial(
     rng: np.random.Generator,
     horizon_s: float = 30.0,
 ) -> Trial:
+    """Restart the receiver at ``epochs[r]`` (the stream pipeline with an emulated restart)
+    and time, from there, the first fix of the pipeline (fast), the first conventional SPP of
+    the same view (>= 4 full measurements) and the first GEO-only SPP."""
     t0 = epochs[r]
-    delays = {p: float(rng.uniform(0.1, 0.5)) for p in sorted({p for e in epochs for p in e.prn})}
-    emu = SubframeEmulator(t0.gpst_week, t0.gpst_tow_s, delays)
+    pipeline = Pipeline(store, iono, cfg)
+    pipeline.restart(t0, rng)
     fast = conv = geo = geo_err = diff = None
     for ep in epochs[r:]:
         dt = diff_s(ep.gpst_week, ep.gpst_tow_s, t0.gpst_week, t0.gpst_tow_s)
         if dt > horizon_s:
             break
-        view = _emulated(ep, emu)
+        result = pipeline.on_epoch(ep)
+        view = result.epoch
         if fast is None:
-            f = solve(view, store, iono, cfg, solver="fast")
+            f = result.fix
             if f.ok:
                 fast = dt
                 ref = solve(ep, store, iono, cfg, solver="spp")
@@ -131,7 +125,7 @@ class TrialTimes(Protocol):
 
 
 def summarize(trials: Sequence[TrialTimes]) -> dict[str, Any]:
-    """The ``ttff --json`` document (ARCHITECTURE.md)."""
+    """The ``ttff --json`` document (docs/architecture.md)."""
     n = len(trials)
     doc: dict[str, Any] = {
         "trials": n,

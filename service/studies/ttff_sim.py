@@ -385,7 +385,7 @@ def analyse(
 
 
 def summarize_sim(trials: list[SimTrial], location: dict[str, float]) -> dict[str, Any]:
-    """The ``ttff --json`` document (ARCHITECTURE.md), with the stream checks added."""
+    """The ``ttff --json`` document (docs/architecture.md), with the stream checks added."""
     from service.studies.ttff import summarize
 
     doc = summarize(trials)
