@@ -11,11 +11,11 @@ import argparse
 import contextlib
 import logging
 import sys
-from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import IO, Literal
 
+from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
 from service.core.types import Fix, MeasurementEpoch
@@ -97,9 +97,7 @@ def main_solve(args: argparse.Namespace) -> int:
     )
     store, iono = load_navigation(list(args.nav))
     reader = RinexObsReader(args.obs)
-    counts: Counter[str] = Counter()
-    reasons: Counter[str] = Counter()
-    excluded: Counter[str] = Counter()
+    counts, reasons, excluded = Counters(), Counters(), Counters()
     n_epochs = 0
     with _open_out(args.out) as out:
         if args.format == "csv":

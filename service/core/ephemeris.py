@@ -17,7 +17,6 @@ import math
 import os
 import tempfile
 import time
-from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from numbers import Real
 from pathlib import Path
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from service.core.constants import prn_number
+from service.core.counters import Counters
 from service.core.errors import EphemerisError
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import diff_s
@@ -149,7 +149,7 @@ class EphemerisStore:
         self._by_prn: dict[str, dict[tuple[int, float], Ephemeris]] = {}
         self.iono: KlobucharParams | None = None
         self.refused = 0
-        self.refused_by_reason: Counter[str] = Counter()
+        self.refused_by_reason = Counters()
         """Refusals per :class:`EphemerisProblem` check name."""
         self.last_refusal: EphemerisProblem | None = None
         """Why the latest refused set was refused."""

@@ -10,7 +10,6 @@ never as a position.
 from __future__ import annotations
 
 import logging
-from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -19,6 +18,7 @@ import numpy as np
 
 from service.core.bds_nav import EphemerisAssembler
 from service.core.constants import C_M_S
+from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
 from service.core.timebase import diff_s
 from service.core.types import (
@@ -66,7 +66,7 @@ class EpochResult:
     sky: Callable[[Fix], tuple[SatView, ...]] | None = None
 
 
-def count_fix(counters: Counter[str], fix: Fix) -> None:
+def count_fix(counters: Counters, fix: Fix) -> None:
     """The counters of one solver result: ``fix_<mode>``, ``declined_<reason_code>``,
     ``raim_untested`` (a fix at redundancy 0), ``fixes_with_exclusions`` and
     ``excluded_<PRN>`` per satellite that fault exclusion removed."""
@@ -120,7 +120,7 @@ class Pipeline:
     sync_seed: int = 0
     on_track: Callable[[TrackEvent], None] | None = None
     tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
-    counters: Counter[str] = field(default_factory=Counter)
+    counters: Counters = field(default_factory=Counters)
     _first: tuple[int, float] | None = None
     _restarted: bool = False
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
