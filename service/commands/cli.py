@@ -49,7 +49,12 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="bdsfix", description=__doc__)
+    p = _Parser(
+        prog="bdsfix",
+        description="Real-time BeiDou receiver service with the a-priori-free fast first fix "
+        "(Zhao, Cui & Lu). Each command's options: bdsfix COMMAND --help; the record, NMEA "
+        "and ZeroMQ contracts: docs/architecture.md in the repository.",
+    )
     p.add_argument("--version", action="version", version=f"bdsfix {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = p.add_subparsers(dest="command", required=True)
