@@ -610,6 +610,10 @@ def test_every_registered_kind_resolves_to_a_factory():
 
 
 def test_output_specs_and_open_errors(tmp_path):
+    assert OutputSpec.parse("nmea-tcp:127.0.0.1:0") == OutputSpec("nmea-tcp", "127.0.0.1:0")
+    for bad, why in [("jsonl", "KIND:SPEC"), ("jsonl:", "KIND:SPEC"), ("carrier-pigeon:x", "kind")]:
+        with pytest.raises(ConfigError, match=why):
+            OutputSpec.parse(bad)
     with pytest.raises(ConfigError, match="unknown output kind 'carrier-pigeon'"):
         open_sinks([OutputSpec("carrier-pigeon", "x")])
     with pytest.raises(ConfigError, match="HOST:PORT"):

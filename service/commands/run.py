@@ -51,12 +51,13 @@ OUTPUT_SETTINGS: dict[str, str] = {
 
 def output_specs(settings: Any) -> list[OutputSpec]:
     """The outputs ``settings`` (a DaemonConfig or replay's flags) ask for, in the order
-    they are opened and fed."""
-    return [
+    they are opened and fed: the named settings that are set, then each ``output``."""
+    specs = [
         OutputSpec(kind, value)
         for key, kind in OUTPUT_SETTINGS.items()
         if (value := getattr(settings, key, None))
     ]
+    return specs + [OutputSpec.parse(text) for text in getattr(settings, "output", None) or ()]
 
 
 def build_publishers(
@@ -128,6 +129,7 @@ def main_run(args: argparse.Namespace) -> int:
     logging.getLogger().setLevel(cfg.log_level.upper())
     if not cfg.source:
         raise ConfigError("no receiver source: set 'source' in the config or --source")
+    specs = output_specs(cfg)
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
     _check_state_dir(cfg.resolved_state_dir())
@@ -137,7 +139,6 @@ def main_run(args: argparse.Namespace) -> int:
     transport = getattr(source, "transport", None)
     if isinstance(transport, SerialTransport):
         transport.open_now()  # a missing device at start is an error (exit 3)
-    specs = output_specs(cfg)
     options = SinkOptions(
         baud=cfg.baud,
         append=True,

@@ -2,7 +2,7 @@
 spec string through :data:`SINKS`.
 
 A new output is a module here with a factory ``(spec, options) -> Sink`` and one line in
-:data:`SINKS`.
+:data:`SINKS`; ``--output KIND:SPEC`` (key ``output``) then opens it.
 """
 
 from __future__ import annotations
@@ -31,13 +31,26 @@ class OutputSpec:
     kind: str
     spec: str
 
+    @classmethod
+    def parse(cls, text: str) -> OutputSpec:
+        """``KIND:SPEC`` (``jsonl:fixes.jsonl``, ``nmea-tcp:127.0.0.1:10110``) or ConfigError."""
+        kind, sep, spec = text.partition(":")
+        if not sep or not spec:
+            raise ConfigError(f"output {text!r}: expected KIND:SPEC")
+        _target(kind)  # a known kind, checked without importing its module
+        return cls(kind, spec)
 
-def factory(kind: str) -> SinkFactory:
-    """The factory registered for ``kind``; ConfigError naming the known kinds otherwise."""
+
+def _target(kind: str) -> str:
     target = SINKS.get(kind)
     if target is None:
         raise ConfigError(f"unknown output kind {kind!r}: expected one of {', '.join(SINKS)}")
-    module, name = target.split(":")
+    return target
+
+
+def factory(kind: str) -> SinkFactory:
+    """The factory registered for ``kind``; ConfigError naming the known kinds otherwise."""
+    module, name = _target(kind).split(":")
     opener: SinkFactory = getattr(importlib.import_module(module), name)
     return opener
 
