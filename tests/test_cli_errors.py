@@ -99,6 +99,8 @@ def test_missing_and_unreadable_config_file_exit_2(tmp_path):
         (["run", *QUIET], ["no receiver source"]),
         (["run", "--source", "capture.ubx", "--nmea-tcp", "nope", "--zmq", ""], ["HOST:PORT"]),
         (["run", "--source", "capture.ubx", "--nmea-tcp", "", "--zmq", "nope"], ["ZeroMQ nope"]),
+        (["run", "--source", "capture.ubx", *QUIET, "--output", "pigeon:x"], ["'pigeon'"]),
+        (["replay", "--output", "jsonl"], ["KIND:SPEC"]),
         (["frobnicate"], ["invalid choice"]),
         (["solve", "--mode", "slow", "a.obs", "b.nav"], ["--mode"]),
         (["replay", "--speed", "fast"], ["--speed"]),
@@ -145,6 +147,8 @@ def test_unreadable_or_malformed_nav_file_exits_3(tmp_path, capture):
 def test_unwritable_output_or_state_dir_exits_3(tmp_path, capture):
     argv = ["run", "--source", str(capture), *QUIET, "--jsonl-out", "no/such/dir/fixes.jsonl"]
     _one_clear_line(tmp_path, INPUT, argv, "fixes.jsonl")
+    argv = ["run", "--source", str(capture), *QUIET, "--output", "jsonl:no/such/dir/x.jsonl"]
+    _one_clear_line(tmp_path, INPUT, argv, "x.jsonl")
     argv = ["run", "--source", str(capture), *QUIET, "--state-dir", str(capture)]
     _one_clear_line(tmp_path, INPUT, argv, "state directory", "not a directory")
     argv = ["simulate", "--duration-s", "1", "--out", "no/such/dir/x.ubx"]

@@ -1,4 +1,4 @@
-"""Publishers with real peers: TCP clients on 127.0.0.1 (one never reads and is dropped),
+"""Sinks and the fan-out with real peers: TCP clients on 127.0.0.1 (one never reads and is dropped),
 ZeroMQ SUB sockets, a pseudo-terminal for the serial sink, logrotate for the line sink, and
 gpsd reading our NMEA. Waits are bounded loops; nothing asserts on timing."""
 
@@ -22,11 +22,17 @@ from types import SimpleNamespace
 import pytest
 import zmq
 
-from service.core.errors import ConfigError
+from service.core.errors import BindError, ConfigError, InputError
 from service.engine.tracker import TrackEvent
 from service.output.nmea import sentences_for_fix
-from service.output.publish import LineSink, NmeaTcpServer, Publishers, SerialSink, ZmqPublisher
+from service.output.publish import Publishers
 from service.output.records import fix_record, status_record, validate
+from service.output.sinks import SINKS, OutputSpec, SinkOptions, open_sinks
+from service.output.sinks.base import Sink
+from service.output.sinks.lines import JsonlSink, LineSink, NmeaFileSink
+from service.output.sinks.nmea_serial import SerialSink
+from service.output.sinks.nmea_tcp import NmeaTcpServer
+from service.output.sinks.zmq_pub import ZmqPublisher
 from tests.test_nmea import C_M_S, hand_parse, horiz_err_m, sec_of_day, utc_of_gpst
 from tests.test_records import SKY, declined_fix, ecef_m, hksc_fix
 
@@ -78,17 +84,17 @@ def test_tcp_slow_client_is_dropped_while_healthy_clients_get_everything():
         chunk = b"".join(epochs)  # ~7 kB, ten epochs at 10 Hz
         sent = bytearray()
         for _ in range(20_000):  # at most ~140 MB; the drop comes long before
-            server.publish(chunk)
+            server.write_nmea(chunk)
             sent += chunk
             n_sent = len(sent)
             wait_until(lambda n=n_sent: all(len(r.data) == n for r in healthy), "healthy clients")
-            if server.counters.get("nmea_clients_dropped_slow"):
+            if server.counters().get("nmea_clients_dropped_slow"):
                 break
-        assert server.counters["nmea_clients_dropped_slow"] == 1
+        assert server.counters()["nmea_clients_dropped_slow"] == 1
         assert server.n_clients == 3
-        assert server.counters["nmea_clients_accepted"] == 4
+        assert server.counters()["nmea_clients_accepted"] == 4
         for _ in range(5):  # the healthy ones carry on
-            server.publish(chunk)
+            server.write_nmea(chunk)
             sent += chunk
         wait_until(lambda: all(len(r.data) == len(sent) for r in healthy), "healthy clients")
         assert all(r.data == sent for r in healthy)
@@ -113,14 +119,14 @@ def test_tcp_client_that_leaves_is_forgotten_without_counting_a_drop():
     try:
         r = Reader(server.address)
         wait_until(lambda: server.n_clients == 1, "one client")
-        server.publish(b"$GNTXT,hello*00\r\n")
+        server.write_nmea(b"$GNTXT,hello*00\r\n")
         wait_until(lambda: len(r.data) > 0, "data")
         r.sock.shutdown(socket.SHUT_RDWR)  # the client leaves (FIN) ...
         r.join(timeout=10)
         r.sock.close()
         wait_until(lambda: server.n_clients == 0, "client gone")
-        server.publish(b"$GNTXT,anyone*00\r\n")  # nobody left: nothing to do, no error
-        assert server.counters.get("nmea_clients_dropped_slow", 0) == 0
+        server.write_nmea(b"$GNTXT,anyone*00\r\n")  # nobody left: nothing to do, no error
+        assert server.counters().get("nmea_clients_dropped_slow", 0) == 0
     finally:
         server.close()
 
@@ -130,7 +136,7 @@ def test_tcp_port_in_use_and_released_on_close():
     blocker.bind(("127.0.0.1", 0))
     blocker.listen()
     port = blocker.getsockname()[1]
-    with pytest.raises(ConfigError) as err:
+    with pytest.raises(BindError) as err:
         NmeaTcpServer("127.0.0.1", port)
     assert str(err.value) == f"NMEA TCP 127.0.0.1:{port}: address already in use"
     blocker.close()
@@ -146,7 +152,7 @@ def test_tcp_port_in_use_and_released_on_close():
 
 
 def test_non_loopback_listening_is_warned_about(caplog):
-    with caplog.at_level(logging.WARNING, logger="service.output.publish"):
+    with caplog.at_level(logging.WARNING, logger="service.output"):
         NmeaTcpServer("127.0.0.1", 0).close()
         pub = ZmqPublisher("tcp://127.0.0.1:*")
         pub.close()
@@ -201,7 +207,7 @@ def receive(sub: zmq.Socket, n: int) -> list[tuple[str, dict]]:
 
 def test_zmq_topics_are_classes_and_bodies_validate():
     pub = ZmqPublisher("tcp://127.0.0.1:*")
-    out = Publishers(zmq=pub)
+    out = Publishers([pub])
     sub = sub_socket(pub.endpoint)
     fix_only = sub_socket(pub.endpoint, b"FIX")
     try:
@@ -255,16 +261,16 @@ def test_zmq_send_never_waits_for_a_subscriber_that_does_not_read():
         # the queue held only what the high-water marks allow; the rest was dropped by PUB
         assert 0 < len(seqs) < n / 10
         assert seqs == sorted(seqs) and seqs[0] == 0
-        assert pub.counters["zmq_STATUS"] >= n
+        assert pub.counters()["zmq_STATUS"] >= n
     finally:
         sub.close()
         pub.close()
 
 
-def test_zmq_endpoint_in_use_is_a_config_error():
+def test_zmq_endpoint_in_use_is_a_bind_error():
     first = ZmqPublisher("tcp://127.0.0.1:*")
     try:
-        with pytest.raises(ConfigError, match=re.escape("ZeroMQ tcp://127.0.0.1:")):
+        with pytest.raises(BindError, match=re.escape("ZeroMQ tcp://127.0.0.1:")):
             ZmqPublisher(first.endpoint)
     finally:
         first.close()
@@ -306,16 +312,16 @@ def test_line_sink_stdout(capsys):
 
 def test_line_sink_counts_write_errors_instead_of_raising(caplog):
     sink = LineSink("/dev/full", append=True)
-    with caplog.at_level(logging.WARNING, logger="service.output.publish"):
+    with caplog.at_level(logging.WARNING, logger="service.output"):
         for _ in range(3):
             sink.write("x\n")
     sink.close()
-    assert sink.counters["line_write_errors"] == 3
+    assert sink.counters()["line_write_errors"] == 3
     assert len(caplog.records) == 1  # logged once, counted every time
 
 
-def test_line_sink_bad_path_is_a_config_error(tmp_path):
-    with pytest.raises(ConfigError, match="cannot write"):
+def test_line_sink_bad_path_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match="cannot write"):
         LineSink(str(tmp_path / "no-such-dir" / "out.nmea"))
 
 
@@ -339,7 +345,7 @@ def test_serial_sink_writes_nmea_to_a_pty():
     try:
         payload = b"".join(nmea_epoch(k) for k in range(20))
         for k in range(20):
-            sink.write(nmea_epoch(k))
+            sink.write_nmea(nmea_epoch(k))
         got = read_available(master, lambda b: len(b) >= len(payload), "serial bytes")
         assert got == payload
     finally:
@@ -354,14 +360,14 @@ def test_serial_sink_drops_whole_payloads_when_the_port_stalls():
     try:
         accepted = []
         for k in range(100_000):  # nobody reads the pty: its buffer fills, then the queue
-            before = sink.counters.get("nmea_serial_dropped", 0)
+            before = sink.counters().get("nmea_serial_dropped", 0)
             data = nmea_epoch(k)
-            sink.write(data)
-            if sink.counters.get("nmea_serial_dropped", 0) == before:
+            sink.write_nmea(data)
+            if sink.counters().get("nmea_serial_dropped", 0) == before:
                 accepted.append(data)
             elif before >= 20:
                 break
-        assert sink.counters["nmea_serial_dropped"] > 20
+        assert sink.counters()["nmea_serial_dropped"] > 20
         want = b"".join(accepted)
         got = read_available(master, lambda b: len(b) >= len(want), "the accepted payloads")
         assert got == want  # complete sentences only, in order, nothing torn
@@ -382,20 +388,20 @@ def test_serial_sink_counts_a_vanished_device_and_keeps_going():
     os.close(master)  # the device goes away (EIO on the slave)
     try:
         for k in range(50):
-            sink.write(nmea_epoch(k))
-            if sink.counters.get("nmea_serial_errors"):
+            sink.write_nmea(nmea_epoch(k))
+            if sink.counters().get("nmea_serial_errors"):
                 break
             time.sleep(0.01)
-        wait_until(lambda: sink.counters.get("nmea_serial_errors") == 1, "the write error")
-        sink.write(nmea_epoch(99))  # never raises
-        assert sink.counters["nmea_serial_dropped"] >= 1
+        wait_until(lambda: sink.counters().get("nmea_serial_errors") == 1, "the write error")
+        sink.write_nmea(nmea_epoch(99))  # never raises
+        assert sink.counters()["nmea_serial_dropped"] >= 1
     finally:
         sink.close()
         os.close(slave)
 
 
-def test_serial_sink_bad_device_is_a_config_error(tmp_path):
-    with pytest.raises(ConfigError, match="NMEA serial"):
+def test_serial_sink_bad_device_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match="NMEA serial"):
         SerialSink(str(tmp_path / "ttyNONE"), 9600)
 
 
@@ -405,19 +411,14 @@ def test_serial_sink_bad_device_is_a_config_error(tmp_path):
 def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
     jsonl, nmea = tmp_path / "fixes.jsonl", tmp_path / "out.nmea"
     master, slave = os.openpty()
-    out = Publishers(
-        nmea_tcp=NmeaTcpServer("127.0.0.1", 0),
-        nmea_lines=LineSink(str(nmea)),
-        nmea_serial=SerialSink(os.ttyname(slave), 115200),
-        zmq=ZmqPublisher("tcp://127.0.0.1:*"),
-        jsonl=LineSink(str(jsonl)),
-    )
-    assert out.nmea_tcp is not None and out.zmq is not None
-    client = Reader(out.nmea_tcp.address)
-    sub = sub_socket(out.zmq.endpoint)
+    tcp, zpub = NmeaTcpServer("127.0.0.1", 0), ZmqPublisher("tcp://127.0.0.1:*")
+    serial_sink = SerialSink(os.ttyname(slave), 115200)
+    out = Publishers([tcp, NmeaFileSink(str(nmea)), serial_sink, zpub, JsonlSink(str(jsonl))])
+    client = Reader(tcp.address)
+    sub = sub_socket(zpub.endpoint)
     try:
-        wait_until(lambda: out.nmea_tcp.n_clients == 1, "TCP client")
-        join(out.zmq, sub)
+        wait_until(lambda: tcp.n_clients == 1, "TCP client")
+        join(zpub, sub)
         fast = hksc_fix(clock_bias_m=-87_654.321)
         out.track(TrackEvent("C06", "sow", 2161, 444950.0, 0.0, "D1", sow_s=444936.0))
         out.fix(declined_fix(gpst_tow_s=444953.0), since_start_s=3.0)
@@ -485,7 +486,7 @@ def test_gpsd_reads_a_southern_western_fix_at_10_hz(gsa_talker):
     assert shutil.which("gpsd"), "gpsd (Debian package) is required"
     lat0, lon0, alt0 = -22.951916789, -43.210487654, 702.456  # Rio de Janeiro
     server = NmeaTcpServer("127.0.0.1", 0)
-    out = Publishers(nmea_tcp=server, gsa_talker=gsa_talker)
+    out = Publishers([server], gsa_talker=gsa_talker)
     gpsd_port = _free_port()
     gpsd = subprocess.Popen(
         ["gpsd", "-N", "-n", "-S", str(gpsd_port), f"tcp://127.0.0.1:{server.address[1]}"],
@@ -548,3 +549,86 @@ def test_gpsd_reads_a_southern_western_fix_at_10_hz(gsa_talker):
     else:
         # a GNGSA's IDs are read as GPS/SBAS PRNs: gpsd marks none of the BeiDou ones used
         assert not bds_used
+
+
+# ---- the registry and the order of the fan-out -------------------------------------------
+
+
+class Recorder(Sink):
+    """A sink that logs every call into a list shared with other recorders."""
+
+    def __init__(self, name: str, log: list, nmea: str = "", records: frozenset = frozenset()):
+        self.name, self.log = name, log
+        self.nmea, self.records = nmea, records  # type: ignore[misc]
+        self.closed = False
+
+    def write_nmea(self, data: bytes) -> None:
+        self.log.append((self.name, data[3:6].decode(), data.count(b"\r\n")))
+
+    def write_record(self, cls: str, record) -> None:
+        self.log.append((self.name, cls))
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_fan_out_order_puts_gga_first_and_file_blocks_last():
+    calls: list = []
+    every = frozenset({"FIX", "SKY", "TRACK", "STATUS"})
+    sinks = [
+        Recorder("tcp", calls, nmea="live"),
+        Recorder("file", calls, nmea="epoch"),
+        Recorder("serial", calls, nmea="live"),
+        Recorder("zmq", calls, records=every),
+        Recorder("jsonl", calls, records=frozenset({"FIX", "TRACK"})),
+    ]
+    out = Publishers(sinks)
+    out.epoch(SimpleNamespace(fix=hksc_fix(), since_start_s=4.0))
+    n_rest = calls[4][2]
+    assert calls == [
+        ("tcp", "GGA", 1),
+        ("serial", "GGA", 1),
+        ("zmq", "FIX"),
+        ("jsonl", "FIX"),
+        ("tcp", "RMC", n_rest),
+        ("serial", "RMC", n_rest),
+        ("file", "GGA", n_rest + 1),
+        ("zmq", "SKY"),
+    ]
+    calls.clear()
+    out.track(TrackEvent("C06", "full", 2161, 444950.3, 0.3, "D1"))
+    out.status({"x": 1})
+    assert calls == [("zmq", "TRACK"), ("jsonl", "TRACK"), ("zmq", "STATUS")]
+    out.close()
+    assert all(s.closed for s in sinks)
+
+
+def test_every_registered_kind_resolves_to_a_factory():
+    for kind, target in SINKS.items():
+        module, name = target.split(":")
+        assert callable(getattr(__import__(module, fromlist=[name]), name)), kind
+
+
+def test_output_specs_and_open_errors(tmp_path):
+    assert OutputSpec.parse("nmea-tcp:127.0.0.1:0") == OutputSpec("nmea-tcp", "127.0.0.1:0")
+    for bad, why in [("jsonl", "KIND:SPEC"), ("jsonl:", "KIND:SPEC"), ("carrier-pigeon:x", "kind")]:
+        with pytest.raises(ConfigError, match=why):
+            OutputSpec.parse(bad)
+    with pytest.raises(ConfigError, match="unknown output kind 'carrier-pigeon'"):
+        open_sinks([OutputSpec("carrier-pigeon", "x")])
+    with pytest.raises(ConfigError, match="HOST:PORT"):
+        open_sinks([OutputSpec("nmea-tcp", "nope")])
+    # the first outputs are open when the third fails: they are closed, its error raised
+    port = _free_port()
+    specs = [
+        OutputSpec("nmea-tcp", f"127.0.0.1:{port}"),
+        OutputSpec("jsonl", str(tmp_path / "fixes.jsonl")),
+        OutputSpec("nmea-file", str(tmp_path / "no-such-dir" / "out.nmea")),
+    ]
+    with pytest.raises(InputError, match=r"out\.nmea"):
+        open_sinks(specs)
+    # the port is free again: the failed start closed the listener
+    sinks = open_sinks(specs[:2], SinkOptions(append=True))
+    assert [type(s) for s in sinks] == [NmeaTcpServer, JsonlSink]
+    for s in sinks:
+        s.close()

@@ -109,3 +109,19 @@ def test_replay_matches_golden(name, tmp_path, request):
             g,
             w,
         )
+
+
+def test_output_kind_spec_gives_the_same_bytes_as_the_named_flags(tmp_path):
+    """``--output jsonl:F --output nmea-file:G`` opens the same sinks as ``--jsonl-out F
+    --nmea-out G``: byte-identical files."""
+    capture = _args(CASES["tiny-rawx"])
+    named, generic = tmp_path / "named", tmp_path / "generic"
+    for d in (named, generic):
+        d.mkdir()
+    flags = ["--jsonl-out", str(named / "out.jsonl"), "--nmea-out", str(named / "out.nmea")]
+    assert main(["replay", *capture, "--max-speed", *flags]) == 0
+    outputs = ["--output", f"jsonl:{generic / 'out.jsonl'}"]
+    outputs += ["--output", f"nmea-file:{generic / 'out.nmea'}"]
+    assert main(["replay", *capture, "--max-speed", *outputs]) == 0
+    for name in ("out.jsonl", "out.nmea"):
+        assert (generic / name).read_bytes() == (named / name).read_bytes() != b""

@@ -22,8 +22,8 @@ import zmq.auth
 
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
-from service.output.publish import ZmqPublisher
 from service.output.records import fix_record
+from service.output.sinks.zmq_pub import ZmqPublisher
 from service.sim.keplerian import table1_ephemerides
 from tests.test_publish import hksc_fix
 

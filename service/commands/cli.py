@@ -17,6 +17,7 @@ from service.core.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_U
 from service.core.settings import add_flags
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
 from service.engine.solver import SolverConfig
+from service.output.sinks import SINKS
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +112,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--zmq", metavar="ENDPOINT", help="ZeroMQ PUB endpoint")
     r.add_argument("--nmea-out", metavar="FILE|-", help="NMEA to a file or stdout")
     r.add_argument("--jsonl-out", metavar="FILE|-", help="JSONL records to a file or stdout")
+    r.add_argument(
+        "--output",
+        action="append",
+        metavar="KIND:SPEC",
+        help=f"another output (repeatable; kinds: {', '.join(SINKS)})",
+    )
     r.add_argument("--talker", choices=["GN", "GB", "BD", "GP"], default="GN")
     r.add_argument("--seed", type=int, default=0, help="seed of emulated sync delays")
     r.add_argument("--gps-week", type=int, default=None, help="GPS week for RTCM-only files")

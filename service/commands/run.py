@@ -10,7 +10,6 @@ CLI entry configure logging.
 from __future__ import annotations
 
 import argparse
-import errno
 import logging
 import math
 import os
@@ -22,7 +21,7 @@ from typing import Any
 
 from service.commands.options import solver_config
 from service.core.ephemeris import EphemerisStore
-from service.core.errors import BdsfixError, BindError, ConfigError, InputError
+from service.core.errors import BdsfixError, ConfigError, InputError
 from service.daemon.config import (
     DEFAULT_CONFIG,
     STORE_NAME,
@@ -34,75 +33,38 @@ from service.daemon.loop import Runner
 from service.daemon.sdnotify import Notifier
 from service.engine.pipeline import EpochResult, Pipeline, integrity_summary
 from service.engine.solver import IonoSet
-from service.output.publish import (
-    LineSink,
-    NmeaTcpServer,
-    Publishers,
-    SerialSink,
-    ZmqPublisher,
-    parse_host_port,
-)
+from service.output.publish import Publishers
+from service.output.sinks import OutputSpec, SinkOptions, open_sinks
 
 log = logging.getLogger(__name__)
 
 
+OUTPUT_SETTINGS: dict[str, str] = {
+    # the settings (TOML keys and flags of run and replay) that name one output each: kind
+    "nmea_tcp": "nmea-tcp",
+    "nmea_out": "nmea-file",
+    "nmea_serial": "nmea-serial",
+    "zmq": "zmq",
+    "jsonl_out": "jsonl",
+}
+
+
+def output_specs(settings: Any) -> list[OutputSpec]:
+    """The outputs ``settings`` (a DaemonConfig or replay's flags) ask for, in the order
+    they are opened and fed: the named settings that are set, then each ``output``."""
+    specs = [
+        OutputSpec(kind, value)
+        for key, kind in OUTPUT_SETTINGS.items()
+        if (value := getattr(settings, key, None))
+    ]
+    return specs + [OutputSpec.parse(text) for text in getattr(settings, "output", None) or ()]
+
+
 def build_publishers(
-    *,
-    nmea_tcp: str = "",
-    nmea_out: str = "",
-    nmea_serial: str = "",
-    zmq: str = "",
-    jsonl_out: str = "",
-    talker: str = "GN",
-    baud: int = 115200,
-    append: bool = False,
-    zmq_curve_secret_key: str = "",
-    zmq_curve_clients: str = "",
+    specs: list[OutputSpec], talker: str = "GN", options: SinkOptions | None = None
 ) -> Publishers:
-    """Open the requested outputs; a bad one raises ConfigError after closing the others.
-
-    File outputs are truncated unless ``append`` (the daemon appends, replay rewrites).
-    """
-    opened: dict[str, Any] = {}
-    try:
-        if nmea_tcp:
-            opened["nmea_tcp"] = NmeaTcpServer(*parse_host_port(nmea_tcp, "--nmea-tcp"))
-        if nmea_out:
-            opened["nmea_lines"] = LineSink(nmea_out, append=append)
-        if nmea_serial:
-            opened["nmea_serial"] = SerialSink(nmea_serial, baud)
-        if zmq:
-            opened["zmq"] = ZmqPublisher(
-                zmq,
-                curve_secret_key_file=zmq_curve_secret_key,
-                curve_clients_dir=zmq_curve_clients,
-            )
-        if jsonl_out:
-            opened["jsonl"] = LineSink(jsonl_out, append=append)
-    except BdsfixError as exc:
-        for part in opened.values():
-            part.close()
-        asked = {"nmea_tcp": nmea_tcp, "nmea_lines": nmea_out, "nmea_serial": nmea_serial}
-        asked.update(zmq=zmq, jsonl=jsonl_out)
-        failed = next((k for k, v in asked.items() if v and k not in opened), "")
-        raise _output_error(exc, failed) from exc
-    return Publishers(talker=talker, **opened)
-
-
-_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
-
-
-def _output_error(exc: BdsfixError, failed: str) -> BdsfixError:
-    """The error of an output that failed to open, as the class giving its exit code:
-    a listener that cannot bind is a BindError, a file or device an InputError."""
-    if type(exc) is not ConfigError or not isinstance(exc.__cause__, Exception):
-        return exc
-    code = getattr(exc.__cause__, "errno", None)
-    if failed in ("nmea_tcp", "zmq") and code in _BIND_ERRNOS:
-        return BindError(str(exc))
-    if failed in ("nmea_lines", "nmea_serial", "jsonl") and isinstance(exc.__cause__, OSError):
-        return InputError(str(exc))
-    return exc
+    """Open the outputs; one that fails closes the others and raises its own error."""
+    return Publishers(open_sinks(specs, options), talker=talker)
 
 
 def _check_source(spec: str) -> None:
@@ -167,6 +129,7 @@ def main_run(args: argparse.Namespace) -> int:
     logging.getLogger().setLevel(cfg.log_level.upper())
     if not cfg.source:
         raise ConfigError("no receiver source: set 'source' in the config or --source")
+    specs = output_specs(cfg)
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
     _check_state_dir(cfg.resolved_state_dir())
@@ -176,18 +139,13 @@ def main_run(args: argparse.Namespace) -> int:
     transport = getattr(source, "transport", None)
     if isinstance(transport, SerialTransport):
         transport.open_now()  # a missing device at start is an error (exit 3)
-    outputs = build_publishers(
-        nmea_tcp=cfg.nmea_tcp,
-        nmea_out=cfg.nmea_out,
-        nmea_serial=cfg.nmea_serial,
-        zmq=cfg.zmq,
-        jsonl_out=cfg.jsonl_out,
-        talker=cfg.talker,
+    options = SinkOptions(
         baud=cfg.baud,
         append=True,
         zmq_curve_secret_key=cfg.zmq_curve_secret_key,
         zmq_curve_clients=cfg.zmq_curve_clients,
     )
+    outputs = build_publishers(specs, cfg.talker, options)
     state_dir = cfg.resolved_state_dir()
     store = load_store(state_dir, cfg.max_eph_age_s)
     pipeline = Pipeline(
@@ -210,10 +168,9 @@ def main_run(args: argparse.Namespace) -> int:
     _install_signals(runner)
     notifier.ready(f"reading {cfg.source}")
     log.info(
-        "bdsfix running: source %s, NMEA %s, ZMQ %s",
+        "bdsfix running: source %s, outputs %s",
         cfg.source,
-        cfg.nmea_tcp or "-",
-        cfg.zmq or "-",
+        ", ".join(f"{o.kind} {o.spec}" for o in specs) or "-",
     )
     try:
         n = runner.run()
@@ -264,8 +221,7 @@ def main_replay(args: argparse.Namespace) -> int:
 
     if args.speed is not None and not (args.speed > 0 and math.isfinite(args.speed)):
         raise ConfigError(f"--speed must be a positive number, got {args.speed}")
-    outputs_asked = any([args.nmea_tcp, args.zmq, args.nmea_out, args.jsonl_out])
-    nmea_out = args.nmea_out if outputs_asked else "-"
+    specs = output_specs(args) or [OutputSpec("nmea-file", "-")]  # none asked: NMEA to stdout
     cfg = solver_config(args)
     timeline = Timeline()
     offset = 0.0
@@ -289,13 +245,7 @@ def main_replay(args: argparse.Namespace) -> int:
         counters = src.counters
         speed = None if args.max_speed else (args.speed or 1.0)
     pipeline = Pipeline(store, iono, cfg, restart_at_s=args.restart_at, sync_seed=args.seed)
-    outputs = build_publishers(
-        nmea_tcp=args.nmea_tcp or "",
-        nmea_out=nmea_out,
-        zmq=args.zmq or "",
-        jsonl_out=args.jsonl_out or "",
-        talker=args.talker,
-    )
+    outputs = build_publishers(specs, args.talker)
     runner = Runner(
         pace(events, speed),
         pipeline,

@@ -19,6 +19,7 @@ from typing import Any
 from service.core.errors import ConfigError
 from service.core.settings import add_flags, build, given, setting, settings_of
 from service.engine.solver import SolverConfig
+from service.output.sinks import SINKS
 
 DEFAULT_CONFIG = "/etc/bdsfix/bdsfix.toml"
 
@@ -57,6 +58,9 @@ class DaemonConfig:
         kind="str",
     )
     jsonl_out: str = setting("", "JSONL records to a file or - for stdout", kind="str")
+    output: tuple[str, ...] = setting(
+        (), f"more outputs, KIND:SPEC each (kinds: {', '.join(SINKS)})", kind="list"
+    )
     max_eph_age_s: float = setting(
         7200.0, "oldest usable ephemeris, |t - toe| [s]", kind="float", low=0.0, low_open=True
     )

@@ -1,3 +1,4 @@
-"""What leaves the service: NMEA 0183, the JSON/CSV records and the sinks (NMEA TCP, ZeroMQ,
-files).
+"""What leaves the service: NMEA 0183 sentences and JSON records (:mod:`.nmea`,
+:mod:`.records`), the outputs that carry them (:mod:`.sinks`) and the fan-out to those
+(:mod:`.publish`).
 """

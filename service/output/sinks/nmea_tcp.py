@@ -1,0 +1,240 @@
+"""``nmea-tcp``: NMEA 0183 to any number of TCP clients (``HOST:PORT``), gpsd style.
+
+A multi-client server in its own thread (selectors). Each client has a bounded output
+buffer (and a 64 KiB kernel send buffer); a client that does not read until its buffer
+overflows is dropped and counted (``nmea_clients_dropped_slow``), as gpsd does with slow
+clients. Whatever clients send (gpsd's ``?WATCH`` etc.) is read and ignored. Listening on
+anything but loopback logs a warning.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import logging
+import selectors
+import socket
+import threading
+from collections import deque
+from collections.abc import Mapping
+
+from service.core.counters import Counters
+from service.core.errors import BindError, ConfigError
+from service.output.sinks.base import (
+    Sink,
+    SinkOptions,
+    is_loopback,
+    parse_host_port,
+)
+
+log = logging.getLogger(__name__)
+
+_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
+
+
+def open_sink(spec: str, options: SinkOptions) -> NmeaTcpServer:
+    return NmeaTcpServer(*parse_host_port(spec, "NMEA TCP"))
+
+
+class NmeaTcpServer(Sink):
+    """NMEA to any number of TCP clients; slow clients are dropped, never waited for.
+
+    ``write_nmea`` only appends to per-client queues under a lock and wakes the I/O thread,
+    which accepts, writes whatever each socket takes and closes dropped clients.
+    """
+
+    nmea = "live"
+
+    def __init__(
+        self, host: str = "127.0.0.1", port: int = 10110, max_buffer_bytes: int = 256 * 1024
+    ) -> None:
+        self.max_buffer_bytes = max_buffer_bytes
+        self.kernel_sndbuf_bytes = 64 * 1024
+        self._counters = Counters()
+        if not is_loopback(host):
+            log.warning("NMEA TCP server listens on %s:%d, not loopback", host, port)
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        self._srv = socket.socket(family, socket.SOCK_STREAM)
+        self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self._srv.bind((host, port))
+            self._srv.listen(16)
+        except OSError as exc:
+            self._srv.close()
+            why = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror
+            error = BindError if exc.errno in _BIND_ERRNOS else ConfigError
+            raise error(f"NMEA TCP {host}:{port}: {why}") from exc
+        self._srv.setblocking(False)
+        self.address: tuple[str, int] = self._srv.getsockname()[:2]
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(self._srv, selectors.EVENT_READ, "listen")
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self._lock = threading.Lock()
+        self._clients: dict[socket.socket, deque[bytes]] = {}
+        self._sizes: dict[socket.socket, int] = {}
+        self._doomed: list[socket.socket] = []
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="bdsfix-nmea-tcp", daemon=True)
+        self._thread.start()
+
+    def counters(self) -> Mapping[str, int]:
+        return self._counters.snapshot() | {"nmea_clients": self.n_clients}
+
+    @property
+    def n_clients(self) -> int:
+        with self._lock:
+            return len(self._clients)
+
+    def write_nmea(self, data: bytes) -> None:
+        """Send ``data`` to every client; a client whose queue would overflow is dropped.
+
+        A client with nothing queued gets the bytes at once with a non-blocking send from
+        the caller's thread (no hand-off to the I/O thread on the latency path); whatever
+        the kernel does not take is queued for the I/O thread, behind which later data
+        waits, so the order is kept."""
+        queued = False
+        with self._lock:
+            for sock in list(self._clients):
+                q = self._clients[sock]
+                rest = data
+                if not q:
+                    try:
+                        rest = data[sock.send(data) :]
+                    except (BlockingIOError, InterruptedError):
+                        pass
+                    except OSError:
+                        self._doom(sock)
+                        continue
+                    if not rest:
+                        continue
+                if self._sizes[sock] + len(rest) > self.max_buffer_bytes:
+                    self._doom(sock)
+                    self._counters.add("nmea_clients_dropped_slow")
+                    log.warning("NMEA client %s too slow: dropped", _peer(sock))
+                    continue
+                q.append(rest)
+                self._sizes[sock] += len(rest)
+                queued = True
+            queued = queued or bool(self._doomed)
+        if queued:
+            self._wake()
+
+    def _doom(self, sock: socket.socket) -> None:
+        """Forget a client (lock held); the I/O thread closes it."""
+        self._clients.pop(sock, None)
+        self._sizes.pop(sock, None)
+        self._doomed.append(sock)
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):  # a full wake pipe already means "wake up"
+            self._wake_w.send(b"\0")
+
+    def _loop(self) -> None:
+        while not self._closed.is_set():
+            try:
+                events = self._sel.select(timeout=0.5)
+            except (OSError, ValueError):
+                return
+            for key, mask in events:
+                if key.data == "wake":
+                    with contextlib.suppress(OSError):
+                        self._wake_r.recv(4096)
+                elif key.data == "listen":
+                    self._accept()
+                elif mask & selectors.EVENT_READ:
+                    self._readable(key.fileobj)  # type: ignore[arg-type]
+            self._reap()
+            self._flush()
+
+    def _accept(self) -> None:
+        try:
+            sock, addr = self._srv.accept()
+        except OSError:
+            return
+        sock.setblocking(False)
+        # a bounded kernel send buffer, so a client that never reads is found (and dropped)
+        # once our own max_buffer_bytes fills, instead of after megabytes of autotuning
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.kernel_sndbuf_bytes)
+        with self._lock:
+            self._clients[sock] = deque()
+            self._sizes[sock] = 0
+        self._sel.register(sock, selectors.EVENT_READ, "client")
+        self._counters.add("nmea_clients_accepted")
+        log.info("NMEA client %s connected", addr)
+
+    def _readable(self, sock: socket.socket) -> None:
+        try:
+            data = sock.recv(4096)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data = b""
+        if not data:  # the client closed (or reset) its end
+            with self._lock:
+                if sock in self._clients:
+                    self._doom(sock)
+
+    def _reap(self) -> None:
+        with self._lock:
+            doomed, self._doomed = self._doomed, []
+        for sock in doomed:
+            with contextlib.suppress(KeyError, ValueError):
+                self._sel.unregister(sock)
+            sock.close()
+
+    def _flush(self) -> None:
+        with self._lock:
+            items = list(self._clients.items())
+        for sock, q in items:
+            while q:
+                chunk = q[0]
+                try:
+                    n = sock.send(chunk)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    with self._lock:
+                        if sock in self._clients:
+                            self._doom(sock)
+                    break
+                with self._lock:
+                    if sock not in self._clients:
+                        break
+                    self._sizes[sock] -= n
+                    if n < len(chunk):
+                        q[0] = chunk[n:]
+                        break
+                    q.popleft()
+            # ask for write readiness only while bytes wait, so the loop sleeps otherwise
+            with self._lock:
+                if sock not in self._clients:
+                    continue
+                want = selectors.EVENT_READ | (selectors.EVENT_WRITE if q else 0)
+            with contextlib.suppress(KeyError, ValueError):
+                if self._sel.get_key(sock).events != want:
+                    self._sel.modify(sock, want, "client")
+        self._reap()
+
+    def close(self) -> None:
+        """Stop the thread and close every socket."""
+        self._closed.set()
+        self._wake()
+        self._thread.join(timeout=2)
+        with self._lock:
+            for sock in list(self._clients):
+                self._doom(sock)
+        self._reap()
+        self._sel.close()
+        for s in (self._srv, self._wake_r, self._wake_w):
+            s.close()
+
+
+def _peer(sock: socket.socket) -> str:
+    try:
+        return str(sock.getpeername())
+    except OSError:
+        return "?"

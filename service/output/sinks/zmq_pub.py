@@ -1,0 +1,138 @@
+"""``zmq``: every record on a ZeroMQ PUB socket (an endpoint such as ``tcp://127.0.0.1:10111``).
+
+Framing: each message is two frames, ``[topic, body]``: the topic is the record's class in
+ASCII (``FIX``, ``SKY``, ``TRACK``, ``STATUS``), so a SUB socket filters with
+``setsockopt(SUBSCRIBE, b"FIX")``; the body is the record as compact UTF-8 JSON (see
+:mod:`service.output.records`). Sends use ``NOBLOCK``; a send the socket refuses (EAGAIN) is
+dropped and counted (``zmq_dropped``). libzmq's PUB itself drops, silently and per
+subscriber, messages for a subscriber whose queue has reached the high-water mark
+(``sndhwm``); the sender never sees those drops, so they are not in the counters. Binding a
+TCP address other than loopback logs a warning.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import zmq
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+
+from service.core.counters import Counters
+from service.core.errors import BindError, ConfigError
+from service.output.records import dumps
+from service.output.sinks.base import RECORD_CLASSES, Sink, SinkOptions, is_loopback
+
+log = logging.getLogger(__name__)
+
+_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
+
+
+def open_sink(spec: str, options: SinkOptions) -> ZmqPublisher:
+    return ZmqPublisher(
+        spec,
+        curve_secret_key_file=options.zmq_curve_secret_key,
+        curve_clients_dir=options.zmq_curve_clients,
+    )
+
+
+class ZmqPublisher(Sink):
+    """ZeroMQ PUB socket sending ``[topic, JSON]`` messages without ever waiting.
+
+    CURVE (optional): ``curve_secret_key_file`` is the server's secret certificate
+    (``zmq.auth.create_certificates`` format); subscribers must then know the server's
+    public key. ``curve_clients_dir`` holds the public certificates of the subscribers
+    allowed in; without it any client that knows the server key may connect. Clients
+    refused by the handshake or the ZAP authenticator receive nothing.
+    """
+
+    records = frozenset(RECORD_CLASSES)
+
+    def __init__(
+        self,
+        endpoint: str = "tcp://127.0.0.1:10111",
+        sndhwm: int = 1000,
+        linger_ms: int = 100,
+        curve_secret_key_file: str = "",
+        curve_clients_dir: str = "",
+    ) -> None:
+        self._counters = Counters()
+        host = endpoint.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]")
+        if endpoint.startswith("tcp://") and not is_loopback(host):
+            log.warning("ZeroMQ PUB binds %s, not loopback", endpoint)
+        self._auth: Any = None
+        self._own_ctx = bool(curve_secret_key_file)
+        # CURVE: a context of our own, so its ZAP authenticator serves this socket only
+        self._ctx: Any = zmq.Context() if self._own_ctx else zmq.Context.instance()
+        self._sock = self._ctx.socket(zmq.PUB)
+        self._sock.setsockopt(zmq.SNDHWM, sndhwm)
+        self._sock.setsockopt(zmq.LINGER, linger_ms)
+        self._linger_ms = linger_ms
+        try:
+            if curve_secret_key_file:
+                self._setup_curve(curve_secret_key_file, curve_clients_dir)
+            self._sock.bind(endpoint)
+        except zmq.ZMQError as exc:
+            self.close(linger_ms=0)
+            error = BindError if exc.errno in _BIND_ERRNOS else ConfigError
+            raise error(f"ZeroMQ {endpoint}: {exc}") from exc
+        except ConfigError:
+            self.close(linger_ms=0)
+            raise
+        self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
+
+    def _setup_curve(self, secret_file: str, clients_dir: str) -> None:
+        try:
+            public, secret = zmq.auth.load_certificate(secret_file)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"ZeroMQ CURVE secret key {secret_file}: {exc}") from exc
+        if not secret:
+            raise ConfigError(f"ZeroMQ CURVE secret key {secret_file}: no secret-key in file")
+        if clients_dir and not Path(clients_dir).is_dir():
+            raise ConfigError(f"ZeroMQ CURVE clients {clients_dir}: not a directory")
+        self._auth = ThreadAuthenticator(self._ctx, log=log)
+        self._auth.start()
+        if clients_dir:
+            self._auth.configure_curve(domain="*", location=clients_dir)
+            log.info("ZeroMQ CURVE: clients allowed from %s", clients_dir)
+        else:
+            self._auth.configure_curve(domain="*", location=zmq.auth.CURVE_ALLOW_ANY)
+            log.info("ZeroMQ CURVE: any client that knows the server key")
+        self._sock.curve_secretkey = secret
+        self._sock.curve_publickey = public
+        self._sock.curve_server = True
+
+    def send(self, topic: str, record: Mapping[str, Any]) -> bool:
+        """Send ``[topic, JSON]``; False (and counted) when the socket refuses it."""
+        try:
+            self._sock.send_multipart(
+                [topic.encode("ascii"), dumps(record).encode("utf-8")], flags=zmq.NOBLOCK
+            )
+        except zmq.Again:
+            self._counters["zmq_dropped"] += 1
+            return False
+        except zmq.ZMQError as exc:
+            self._counters["zmq_errors"] += 1
+            log.warning("ZeroMQ send failed: %s", exc)
+            return False
+        self._counters[f"zmq_{topic}"] += 1
+        return True
+
+    def write_record(self, cls: str, record: Mapping[str, Any]) -> None:
+        self.send(cls, record)
+
+    def counters(self) -> Mapping[str, int]:
+        return dict(self._counters)
+
+    def close(self, linger_ms: int | None = None) -> None:
+        self._sock.close(linger=self._linger_ms if linger_ms is None else linger_ms)
+        if self._auth is not None:
+            self._auth.stop()
+            self._auth = None
+        if self._own_ctx:
+            self._ctx.term()
+            self._own_ctx = False
