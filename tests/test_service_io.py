@@ -67,7 +67,7 @@ SCHEMA = {
             "gpst_tow_s": float,
             "since_start_s": float,
         },
-        "optional": {"sow_s": float},
+        "optional": {"sow_s": float, "full_since_s": float},
     },
     "STATUS": {"required": {"class": str, "counters": dict}, "optional": {}},
     "SKY": {
