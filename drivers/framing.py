@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 Protocol = Literal["ubx", "rtcm", "nmea"]
 Event = MeasurementEpoch | NavSubframe | Ephemeris | KlobucharParams
-"""What drivers emit (ARCHITECTURE.md, "Data flow")."""
+"""What drivers emit: the event types of :mod:`service.core.types`."""
 
 UBX_SYNC = b"\xb5\x62"
 RTCM_PREAMBLE = 0xD3
