@@ -1,9 +1,12 @@
-"""u-blox UBX messages to bdsfix events.
+"""u-blox UBX frames to bdsfix events: framing, message parsing and mapping.
 
-Sources: u-blox F9 HPG Interface Description, UBX-RXM-RAWX, UBX-RXM-MEASX, UBX-RXM-SFRBX,
-UBX-NAV-TIMEGPS, UBX-NAV-PVT. BDS B1I facts from BDS-SIS-ICD-B1I-3.0 (1 ms ranging code,
-section 3.2; D1/D2 navigation messages, section 5).
+Sources: u-blox F9 HPG Interface Description ("UBX protocol": frame structure, checksum;
+UBX-RXM-RAWX, UBX-RXM-MEASX, UBX-RXM-SFRBX, UBX-NAV-TIMEGPS, UBX-NAV-PVT). BDS B1I facts
+from BDS-SIS-ICD-B1I-3.0 (1 ms ranging code, section 3.2; D1/D2 navigation messages,
+section 5).
 
+- Frame: ``B5 62 class id length(u16 LE) payload ck_a ck_b``, 8-bit Fletcher checksum over
+  class..payload (:data:`FRAMING`).
 - Parsing: RXM-RAWX, RXM-MEASX and RXM-SFRBX, which arrive every epoch, are unpacked with
   :mod:`struct` (:func:`parse_rxm`); any other message the mapper reads, and an RXM payload
   whose length does not match its count, is parsed by pyubx2. Both give the same field
@@ -47,8 +50,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from pyubx2 import UBX_MSGIDS, UBXReader
 
-from drivers.framing import Counters, Event, WeekContext
+from drivers.framing import BinaryFraming, Counters, Event, WeekContext
 from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S, prn_id
 from service.core.timebase import diff_s, gpst_from_utc
@@ -62,6 +66,42 @@ B1I_RANGE_M = C_M_S * B1I_PERIOD_S
 
 # u-blox signal identifiers (gnssId 3) -> RINEX 3 observation code; only B1I is used.
 BDS_SIGNALS: dict[int, str] = {0: "2I", 1: "2I"}  # B1I D1, B1I D2
+
+# --- frame (Interface Description, "UBX frame structure" and "UBX checksum") ---------------
+SYNC = b"\xb5\x62"
+HEADER_LEN = 6  # sync, class, id, length
+DEFAULT_MAX_PAYLOAD = 8192
+"""Longest payload the framer accepts by default [bytes] (the length field allows 65535)."""
+
+
+def fletcher8(data: bytes | bytearray | memoryview) -> bytes:
+    """UBX 8-bit Fletcher checksum ``(ck_a, ck_b)`` of class..payload."""
+    arr = np.frombuffer(bytes(data), dtype=np.uint8).astype(np.int64)
+    n = arr.size
+    ck_a = int(arr.sum()) & 0xFF
+    ck_b = int(np.dot(arr, np.arange(n, 0, -1, dtype=np.int64))) & 0xFF
+    return bytes((ck_a, ck_b))
+
+
+def payload_len(header: bytes) -> int:
+    """Payload length of a frame from its 6-byte header (u16 little-endian)."""
+    return header[4] | (header[5] << 8)
+
+
+def checksum_ok(frame: bytes) -> bool:
+    """The trailing ``ck_a ck_b`` of a whole frame match class..payload."""
+    return fletcher8(frame[2:-2]) == frame[-2:]
+
+
+FRAMING = BinaryFraming(
+    sync=SYNC,
+    header_len=HEADER_LEN,
+    trailer_len=2,
+    payload_len=payload_len,
+    check=checksum_ok,
+    max_payload=DEFAULT_MAX_PAYLOAD,
+)
+
 
 # Messages the mapper reads; everything else is counted by name and ignored.
 RAWX, MEASX, SFRBX = "RXM-RAWX", "RXM-MEASX", "RXM-SFRBX"
@@ -288,8 +328,8 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
 
 
 class UbxMapper:
-    """Stateful mapper: parsed UBX messages (from :func:`parse_rxm` or pyubx2) in stream
-    order -> events.
+    """Stateful mapper: UBX frames (:meth:`on_frame`) or parsed messages (:meth:`on_message`,
+    from :func:`parse_rxm` or pyubx2) in stream order -> events.
 
     Epoch completion follows the stream's own message pattern: the set of measurement
     messages (RAWX, MEASX) seen for the previous epoch is the set an epoch needs, so an
@@ -318,6 +358,18 @@ class UbxMapper:
         self._last_meas_time: tuple[int, float] | None = None
 
     # --- entry points ------------------------------------------------------------------------
+    def on_frame(self, raw: bytes) -> list[Event]:
+        """Map one checksum-valid UBX frame (library errors propagate to the caller).
+
+        Messages outside :data:`USED_MESSAGES` are counted by name and not parsed."""
+        name = UBX_MSGIDS.get(raw[2:4])
+        if name in USED_MESSAGES:
+            return self.on_message(parse_rxm(raw) or UBXReader.parse(raw))
+        label = name if name is not None else f"0x{raw[2]:02x}-0x{raw[3]:02x}"
+        self.counters[f"ubx:{label}"] += 1
+        self.counters["ubx_ignored"] += 1
+        return []
+
     def on_message(self, msg: Any) -> list[Event]:
         """Map one parsed UBX message; returns the events it completes."""
         name = str(msg.identity)
