@@ -1,9 +1,10 @@
-"""RTCM3 messages (parsed by pyrtcm) to bdsfix events.
+"""RTCM3 frames to bdsfix events: framing, and the BDS messages (parsed by pyrtcm) mapped.
 
-Reference: RTCM Standard 10403.3, section 3.5.12 (Multiple Signal Messages, MSM) and
-3.5.13 / Table 3.5-130 ff. (message 1042, BDS satellite ephemeris), with the field
-definitions of section 3.4 (DF397-DF408, DF427, DF488-DF515). BDS facts from
-BDS-SIS-ICD-B1I-3.0.
+Reference: RTCM Standard 10403.3: section 4 (transport layer: ``D3``, 6 reserved zero bits,
+10-bit length, payload, CRC-24Q over header and payload; :data:`FRAMING`), section 3.5.12
+(Multiple Signal Messages, MSM) and 3.5.13 / Table 3.5-130 ff. (message 1042, BDS satellite
+ephemeris), with the field definitions of section 3.4 (DF397-DF408, DF427, DF488-DF515).
+BDS facts from BDS-SIS-ICD-B1I-3.0.
 
 - BDS MSM4/5/6/7 (1124-1127): per satellite the rough range in integer milliseconds (DF397,
   255 = unknown) and modulo 1 ms (DF398); per cell the fine pseudorange (DF400 in MSM4/5,
@@ -35,7 +36,7 @@ from typing import Any
 import numpy as np
 from pyrtcm import RTCMReader
 
-from drivers.framing import Counters, Event, WeekContext
+from drivers.framing import BinaryFraming, Counters, Event, WeekContext
 from service.core.bds_nav import URA_M
 from service.core.constants import C_M_S, F_B1I_HZ, WEEK_S, prn_id
 from service.core.timebase import BDT_GPS_WEEK_OFFSET, BDT_GPST_OFFSET_S, diff_s, normalize
@@ -48,6 +49,59 @@ ICD_PI = 3.1415926535898
 
 MS_RANGE_M = C_M_S * 1e-3
 B1I_WAVELENGTH_M = C_M_S / F_B1I_HZ
+
+# --- frame (section 4, "Transport layer") ---------------------------------------------------
+PREAMBLE = 0xD3
+HEADER_LEN = 3  # preamble, 6 reserved bits, 10-bit length
+MAX_PAYLOAD = 1023
+
+
+def _crc24q_table() -> tuple[int, ...]:
+    poly = 0x1864CFB
+    table = []
+    for i in range(256):
+        crc = i << 16
+        for _ in range(8):
+            crc <<= 1
+            if crc & 0x1000000:
+                crc ^= poly
+        table.append(crc & 0xFFFFFF)
+    return tuple(table)
+
+
+_CRC24Q = _crc24q_table()
+
+
+def crc24q(data: bytes | bytearray | memoryview) -> int:
+    """CRC-24Q (Qualcomm) of ``data``, as used by RTCM3 (RTCM 10403.3 section 4.2)."""
+    crc = 0
+    for octet in bytes(data):
+        crc = ((crc << 8) & 0xFFFFFF) ^ _CRC24Q[(crc >> 16) ^ octet]
+    return crc
+
+
+def payload_len(header: bytes) -> int | None:
+    """Payload length from the 3-byte header; None when a reserved bit is set or the length
+    is zero (a message holds at least its 12-bit number)."""
+    if header[1] & 0xFC:
+        return None
+    n = ((header[1] & 0x03) << 8) | header[2]
+    return n if n > 0 else None
+
+
+def checksum_ok(frame: bytes) -> bool:
+    """The trailing CRC-24Q of a whole frame matches header and payload."""
+    return crc24q(frame[:-3]) == int.from_bytes(frame[-3:], "big")
+
+
+FRAMING = BinaryFraming(
+    sync=bytes((PREAMBLE,)),
+    header_len=HEADER_LEN,
+    trailer_len=3,
+    payload_len=payload_len,
+    check=checksum_ok,
+    max_payload=MAX_PAYLOAD,
+)
 
 BDS_MSM = {1124: 4, 1125: 5, 1126: 6, 1127: 7}
 """BDS MSM message numbers and their MSM level."""

@@ -1,10 +1,10 @@
 """u-blox RXM-SFRBX (BDS B1I D1/D2) to :class:`~service.core.types.NavSubframe`.
 
-u-blox delivers a BDS D1/D2 subframe as 10 dwords, one 30-bit word each in bits 29-0 (bits
-31-30 are padding), in the ICD bit numbering: de-interleaved, parity included, information
-bits first (BDS-SIS-ICD-B1I-3.0 5.1.3). Checked on every real capture under ``shared/data``:
-all BDS words pass BCH(15,11,1) in that form with no correction, bits 31-30 are zero, and
-word 1 opens with the preamble.
+u-blox (F9 HPG Interface Description, UBX-RXM-SFRBX) delivers a BDS D1/D2 subframe as 10
+dwords, one 30-bit word each in bits 29-0 (bits 31-30 are padding), in the ICD bit
+numbering: de-interleaved, parity included, information bits first (BDS-SIS-ICD-B1I-3.0
+5.1.3), so the words pass BCH(15,11,1) as delivered and word 1 opens with the preamble (the
+tests check both on real captures).
 
 u-blox sigId for gnssId 3: 0 B1I D1, 1 B1I D2, 2/3 B2I D1/D2, 4/10 B3I D1/D2 (others are
 B1C/B2a, different messages). B2I and B3I carry the same D1/D2 format (the codec decodes

@@ -3,13 +3,15 @@
 ``open_source(spec)`` accepts a file path (RINEX 3 observation file or a binary capture),
 ``-`` (standard input), ``serial:/dev/ttyX[:baud]`` or a bare ``/dev/...`` path, and
 ``tcp:host:port``. RINEX is recognised by ``RINEX VERSION / TYPE`` in its first line;
-everything else goes through the binary framer, which takes UBX, RTCM3 and NMEA mixed in
-one stream. :class:`StreamDecoder` is the framer plus the UBX and RTCM mappers behind a
-``feed(bytes) -> events`` interface, for an asyncio daemon or any other byte pump.
+everything else goes through :class:`StreamDecoder`: the framer and the mappers of the
+protocols registered in :data:`drivers.protocols.PROTOCOLS` (UBX, RTCM3 and NMEA, mixed in
+one stream) behind a ``feed(bytes) -> events`` interface, for an asyncio daemon or any other
+byte pump.
 
-Counter keys added here: ``decode_errors_ubx``, ``decode_errors_rtcm`` (library parse
-failures of checksum-valid frames), ``map_errors_ubx``/``_rtcm`` (unexpected content),
-``nmea_ignored``, ``events``, ``nav_ephemerides``, ``idle_flushes``.
+Counter keys added here, ``<p>`` being a protocol name: ``decode_errors_<p>`` (library parse
+failures of checksum-valid frames), ``map_errors_<p>`` (unexpected content), ``<p>_ignored``
+for a protocol without a mapper (``nmea_ignored``), ``events``, ``nav_ephemerides``,
+``idle_flushes``.
 """
 
 from __future__ import annotations
@@ -20,14 +22,12 @@ import os
 import stat
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pyubx2 import UBX_MSGIDS, UBXReader
-
-from drivers.framing import DEFAULT_MAX_UBX_PAYLOAD, Counters, Event, Frame, Framer, WeekContext
-from drivers.rtcm import RtcmMapper
+from drivers.framing import Counters, Event, Frame, Framer, WeekContext
+from drivers.protocols import PROTOCOLS, Mapper, ProtocolSpec
 from drivers.transport import (
     FileTransport,
     SerialTransport,
@@ -35,8 +35,6 @@ from drivers.transport import (
     Transport,
     pace,
 )
-from drivers.ubx import USED_MESSAGES as UBX_USED
-from drivers.ubx import UbxMapper, parse_rxm
 from service.core.errors import ConfigError, DecodeError
 from service.core.timebase import gpst_from_utc
 
@@ -57,27 +55,37 @@ READ_SIZE = 4096
 
 
 class StreamDecoder:
-    """Framer + UBX/RTCM mappers: ``feed(data)`` returns the events the bytes complete.
+    """Framer + the mappers of ``protocols``: ``feed(data)`` returns the events the bytes
+    complete.
 
-    ``gps_week`` seeds the week for messages that carry only a time of week (RTCM MSM)
-    until the stream itself gives one. ``measx_offset_m`` presets the RAWX-MEASX
-    calibration (see :mod:`drivers.ubx`). Library exceptions are caught here and counted;
-    they never stop the stream.
+    ``gps_week`` seeds the week for messages that carry only a time of week (RTCM MSM, UBX
+    MEASX) until the stream itself gives one. By protocol name, ``max_payload`` overrides a
+    payload bound and ``mapper_options`` gives a mapper's keyword options (e.g. ``{"ubx":
+    {"measx_offset_m": ...}}`` presets the RAWX-MEASX calibration of :mod:`drivers.ubx`).
+    Library exceptions are caught here and counted; they never stop the stream.
     """
 
     def __init__(
         self,
         *,
         gps_week: int | None = None,
-        max_ubx_payload: int = DEFAULT_MAX_UBX_PAYLOAD,
-        measx_offset_m: float | None = None,
+        max_payload: Mapping[str, int] | None = None,
+        mapper_options: Mapping[str, Mapping[str, Any]] | None = None,
         counters: Counters | None = None,
+        protocols: Sequence[ProtocolSpec] = PROTOCOLS,
     ) -> None:
         self.counters = counters if counters is not None else Counters()
         self.week = WeekContext(gps_week)
-        self.framer = Framer(self.counters, max_ubx_payload=max_ubx_payload)
-        self.ubx = UbxMapper(self.counters, self.week, measx_offset_m=measx_offset_m)
-        self.rtcm = RtcmMapper(self.counters, self.week)
+        self.framer = Framer(protocols, self.counters, max_payload=max_payload)
+        options = dict(mapper_options or {})
+        unknown = options.keys() - {p.name for p in protocols if p.mapper is not None}
+        if unknown:
+            raise ValueError(f"mapper_options: no mapper for {sorted(unknown)}")
+        self.mappers: dict[str, Mapper] = {
+            p.name: p.mapper(self.counters, self.week, **options.get(p.name, {}))
+            for p in protocols
+            if p.mapper is not None
+        }
 
     def feed(self, data: bytes) -> list[Event]:
         """Decode a chunk of bytes; returns complete events in stream order."""
@@ -90,19 +98,18 @@ class StreamDecoder:
 
     def flush_pending(self) -> list[Event]:
         """Emit epochs still waiting for messages (idle line); framing state is kept."""
-        events: list[Event] = [*self.ubx.flush(), *self.rtcm.flush()]
+        events: list[Event] = [e for m in self.mappers.values() for e in m.flush()]
         self.counters["events"] += len(events)
         return events
 
     def decode_frame(self, frame: Frame) -> list[Event]:
         """Events from one frame; a library or mapping failure is counted, not raised."""
-        try:
-            if frame.protocol == "ubx":
-                return self._ubx_frame(frame.raw)
-            if frame.protocol == "rtcm":
-                return self.rtcm.on_frame(frame.raw)
-            self.counters["nmea_ignored"] += 1
+        mapper = self.mappers.get(frame.protocol)
+        if mapper is None:
+            self.counters[f"{frame.protocol}_ignored"] += 1
             return []
+        try:
+            return mapper.on_frame(frame.raw)
         except DecodeError as err:
             self.counters[f"map_errors_{frame.protocol}"] += 1
             log.warning("%s frame at offset %d: %s", frame.protocol, frame.offset, err)
@@ -123,15 +130,6 @@ class StreamDecoder:
             events += self.decode_frame(frame)
         self.counters["events"] += len(events)
         return events
-
-    def _ubx_frame(self, raw: bytes) -> list[Event]:
-        name = UBX_MSGIDS.get(raw[2:4])
-        if name in UBX_USED:
-            return self.ubx.on_message(parse_rxm(raw) or UBXReader.parse(raw))
-        label = name if name is not None else f"0x{raw[2]:02x}-0x{raw[3]:02x}"
-        self.counters[f"ubx:{label}"] += 1
-        self.counters["ubx_ignored"] += 1
-        return []
 
 
 class EventSource:
@@ -277,8 +275,8 @@ def open_source(
     nav: str | Path | Iterable[str | Path] | None = None,
     gps_week: int | None = None,
     baud: int = DEFAULT_BAUD,
-    measx_offset_m: float | None = None,
-    max_ubx_payload: int = DEFAULT_MAX_UBX_PAYLOAD,
+    max_payload: Mapping[str, int] | None = None,
+    mapper_options: Mapping[str, Mapping[str, Any]] | None = None,
     idle_flush_s: float = 0.5,
     reconnect_max_s: float = 2.0,
 ) -> EventSource:
@@ -286,6 +284,7 @@ def open_source(
 
     ``nav`` (RINEX nav file or files) puts its ephemerides and ionosphere parameters at the
     head of the stream, as held ephemerides. Pace a replay with :func:`pace`.
+    ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`.
 
     The GPS week for RTCM MSM times of week comes from ``gps_week``, else from the stream
     (UBX RAWX / NAV-TIMEGPS / NAV-PVT, RTCM 1042); live sources (serial, TCP) are seeded
@@ -319,8 +318,8 @@ def open_source(
         transport = FileTransport(path)
     decoder = StreamDecoder(
         gps_week=gps_week,
-        max_ubx_payload=max_ubx_payload,
-        measx_offset_m=measx_offset_m,
+        max_payload=max_payload,
+        mapper_options=mapper_options,
         counters=counters,
     )
     if gps_week is None and not isinstance(transport, FileTransport):

@@ -1,29 +1,29 @@
-"""u-blox UBX messages (parsed by pyubx2) to bdsfix events.
+"""u-blox UBX frames to bdsfix events: framing, message parsing and mapping.
 
-Sources: u-blox F9 HPG Interface Description, UBX-RXM-RAWX, UBX-RXM-MEASX, UBX-RXM-SFRBX,
-UBX-NAV-TIMEGPS, UBX-NAV-PVT. BDS B1I facts from BDS-SIS-ICD-B1I-3.0 (1 ms ranging code,
-section 3.2; D1/D2 navigation messages, section 5).
+Sources: u-blox F9 HPG Interface Description ("UBX protocol": frame structure, checksum;
+UBX-RXM-RAWX, UBX-RXM-MEASX, UBX-RXM-SFRBX, UBX-NAV-TIMEGPS, UBX-NAV-PVT). BDS B1I facts
+from BDS-SIS-ICD-B1I-3.0 (1 ms ranging code, section 3.2; D1/D2 navigation messages,
+section 5).
 
+- Frame: ``B5 62 class id length(u16 LE) payload ck_a ck_b``, 8-bit Fletcher checksum over
+  class..payload (:data:`FRAMING`).
+- Parsing: RXM-RAWX, RXM-MEASX and RXM-SFRBX, which arrive every epoch, are unpacked with
+  :mod:`struct` (:func:`parse_rxm`); any other message the mapper reads, and an RXM payload
+  whose length does not match its count, is parsed by pyubx2. Both give the same field
+  names and scales (the tests compare the two on every real capture).
 - RXM-RAWX: BDS (gnssId 3) B1I (sigId 0 = B1I D1, 1 = B1I D2) give RINEX signal ``2I``.
   ``prMes`` is a full pseudorange only when trkStat bit 0 (prValid) is set; otherwise NaN.
   The time tag is (``week``, ``rcvTow``) on the GPST scale. MEASX pairs with the RAWX whose
-  ``rcvTow`` is within ``pair_tolerance_s`` (20 ms) of its ``gpsTOW``; an epoch with MEASX
-  only is tagged ``gpsTOW`` (ms, GPST; 1-2 ms from rcvTow on the F9P) with the week of the
-  stream.
+  ``rcvTow`` is within ``pair_tolerance_s`` of its ``gpsTOW``; an epoch with MEASX only is
+  tagged ``gpsTOW`` (ms, GPST) with the week of the stream.
 - RXM-MEASX: the code phase (``codePhase`` in 2^-21 ms, ``intCodePhase`` in ms) is the
-  pseudorange modulo the code period, before the receiver knows time. On a ZED-F9P
-  (``ublox-zed-f9p_hpg1.11.log``, 2663 BDS pairs) ``mod(prMes, c*1ms) - c*codePhase`` is a
-  receiver constant (129.149 m for B1I there, 131.15 m for GPS L1C/A, per-channel values for
-  GLONASS), flat to within one codePhase LSB (2^-21 ms = 0.143 m) over 654 epochs and
-  independent of the receiver clock and of the satellite. No MEASX header field carries
-  it (gpsTOW - bdsTOW = 14 s exactly, TOW accuracies 0), so it is an internal delay
-  calibration applied to prMes only. The mapper therefore calibrates the MEASX fraction
-  against RAWX: the offset is the median over satellites with both a valid prMes and a code
-  phase in the same epoch, and is kept for later epochs. With one satellite's prMes withheld
-  per epoch, its calibrated MEASX fraction matches mod(prMes, c*1ms) to 0.051 m RMS, 0.127 m
-  at most (654 epochs). Before any calibration (no satellite with both) the raw fraction is
-  used and counted (``measx_uncalibrated``): the offset is then common to all fractional
-  rows and goes into the receiver clock bias.
+  pseudorange modulo the code period, but without a receiver-internal delay calibration
+  that is applied to prMes only and carried by no MEASX field. The mapper calibrates it
+  against RAWX: the offset is the median of ``mod(prMes, c*1ms) - c*codePhase`` over the
+  satellites with both in one epoch (refused and counted, ``measx_offset_rejected``, when
+  they spread over 30 m), and is kept for later epochs (``measx_offset_m`` presets it).
+  Before any calibration the raw fraction is used and counted (``measx_uncalibrated``):
+  the offset is then common to all fractional rows and goes into the receiver clock bias.
 - One :class:`MeasurementEpoch` per receive epoch combines RAWX and MEASX: ``pr_m`` from a
   valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
   exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
@@ -50,8 +50,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from pyubx2 import UBX_MSGIDS, UBXReader
 
-from drivers.framing import Counters, Event, WeekContext
+from drivers.framing import BinaryFraming, Counters, Event, WeekContext
 from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S, prn_id
 from service.core.timebase import diff_s, gpst_from_utc
@@ -65,6 +66,42 @@ B1I_RANGE_M = C_M_S * B1I_PERIOD_S
 
 # u-blox signal identifiers (gnssId 3) -> RINEX 3 observation code; only B1I is used.
 BDS_SIGNALS: dict[int, str] = {0: "2I", 1: "2I"}  # B1I D1, B1I D2
+
+# --- frame (Interface Description, "UBX frame structure" and "UBX checksum") ---------------
+SYNC = b"\xb5\x62"
+HEADER_LEN = 6  # sync, class, id, length
+DEFAULT_MAX_PAYLOAD = 8192
+"""Longest payload the framer accepts by default [bytes] (the length field allows 65535)."""
+
+
+def fletcher8(data: bytes | bytearray | memoryview) -> bytes:
+    """UBX 8-bit Fletcher checksum ``(ck_a, ck_b)`` of class..payload."""
+    arr = np.frombuffer(bytes(data), dtype=np.uint8).astype(np.int64)
+    n = arr.size
+    ck_a = int(arr.sum()) & 0xFF
+    ck_b = int(np.dot(arr, np.arange(n, 0, -1, dtype=np.int64))) & 0xFF
+    return bytes((ck_a, ck_b))
+
+
+def payload_len(header: bytes) -> int:
+    """Payload length of a frame from its 6-byte header (u16 little-endian)."""
+    return header[4] | (header[5] << 8)
+
+
+def checksum_ok(frame: bytes) -> bool:
+    """The trailing ``ck_a ck_b`` of a whole frame match class..payload."""
+    return fletcher8(frame[2:-2]) == frame[-2:]
+
+
+FRAMING = BinaryFraming(
+    sync=SYNC,
+    header_len=HEADER_LEN,
+    trailer_len=2,
+    payload_len=payload_len,
+    check=checksum_ok,
+    max_payload=DEFAULT_MAX_PAYLOAD,
+)
+
 
 # Messages the mapper reads; everything else is counted by name and ignored.
 RAWX, MEASX, SFRBX = "RXM-RAWX", "RXM-MEASX", "RXM-SFRBX"
@@ -103,11 +140,8 @@ class _Pending:
 # Layouts from the u-blox F9 HPG Interface Description (UBX-RXM-RAWX: 16-byte header and
 # 32-byte blocks; UBX-RXM-MEASX: 44-byte header and 24-byte blocks; UBX-RXM-SFRBX: 8-byte
 # header and 4-byte data words), the same fields and scales as pyubx2's UBX_PAYLOADS_GET
-# tables (tests compare the two on every real capture). pyubx2 builds a Python attribute
-# per field and bit (~2-4 ms for a 30-satellite RAWX, ~0.1 ms per SFRBX, five of which
-# arrive together at every D2 subframe boundary); these hot messages are unpacked with one
-# struct call per block instead. Everything else, and any payload whose length does not
-# match its count, goes through pyubx2.
+# tables. pyubx2 builds a Python attribute per field and bit, too slow for messages that
+# arrive every epoch; these are unpacked with one struct call per block instead.
 _UBX_CLASS_RXM = 0x02
 _ID_RAWX, _ID_MEASX, _ID_SFRBX = 0x15, 0x14, 0x13
 _RAWX_HEAD = struct.Struct("<dHbBBB2x")  # rcvTow week leapS numMeas recStat version
@@ -294,7 +328,8 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
 
 
 class UbxMapper:
-    """Stateful mapper: pyubx2 messages in stream order -> events.
+    """Stateful mapper: UBX frames (:meth:`on_frame`) or parsed messages (:meth:`on_message`,
+    from :func:`parse_rxm` or pyubx2) in stream order -> events.
 
     Epoch completion follows the stream's own message pattern: the set of measurement
     messages (RAWX, MEASX) seen for the previous epoch is the set an epoch needs, so an
@@ -323,6 +358,18 @@ class UbxMapper:
         self._last_meas_time: tuple[int, float] | None = None
 
     # --- entry points ------------------------------------------------------------------------
+    def on_frame(self, raw: bytes) -> list[Event]:
+        """Map one checksum-valid UBX frame (library errors propagate to the caller).
+
+        Messages outside :data:`USED_MESSAGES` are counted by name and not parsed."""
+        name = UBX_MSGIDS.get(raw[2:4])
+        if name in USED_MESSAGES:
+            return self.on_message(parse_rxm(raw) or UBXReader.parse(raw))
+        label = name if name is not None else f"0x{raw[2]:02x}-0x{raw[3]:02x}"
+        self.counters[f"ubx:{label}"] += 1
+        self.counters["ubx_ignored"] += 1
+        return []
+
     def on_message(self, msg: Any) -> list[Event]:
         """Map one parsed UBX message; returns the events it completes."""
         name = str(msg.identity)
@@ -484,8 +531,8 @@ class UbxMapper:
             d = np.mod(pr[both], B1I_RANGE_M) - raw[both]
             d = np.mod(d + B1I_RANGE_M / 2, B1I_RANGE_M) - B1I_RANGE_M / 2
             if np.ptp(d) < 30.0:
-                # statistics.median: numpy's first median call imports on the spot (~15 ms,
-                # on the first epoch with a full satellite: a receiver loop's worst stall)
+                # statistics.median: numpy's first median call imports a module on the
+                # spot, a stall in the receiver loop
                 self.measx_offset_m = float(statistics.median(d.tolist()))
             else:
                 self.counters["measx_offset_rejected"] += 1

@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 with atheris.instrument_imports(include=["drivers", "service"]):
     from drivers.framing import Framer, WeekContext
+    from drivers.protocols import PROTOCOLS
     from drivers.rinex import RinexObsReader, read_nav
     from drivers.rtcm import RtcmMapper
     from drivers.sfrbx import nav_subframe_from_sfrbx
@@ -83,7 +84,7 @@ def rtcm_frame(payload: bytes) -> bytes:
 
 
 def fuzz_framer(data: bytes) -> None:
-    framer = Framer(max_ubx_payload=65535)
+    framer = Framer(PROTOCOLS, max_payload={"ubx": 65535})
     cut = data[0] * len(data) // 256 if data else 0
     framer.feed(data[:cut])
     framer.feed(data[cut:])

@@ -18,7 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.framing import Framer, fletcher8
+from drivers.framing import Framer
+from drivers.protocols import PROTOCOLS
+from drivers.ubx import fletcher8
 from service.core.geometry import ecef_to_geodetic
 from tests._independent import DATA
 
@@ -51,7 +53,7 @@ def _absurd_rinex(dst: Path) -> list[tuple[str, float]]:
 def _biased_ubx(dst: Path, bias_m: float = 300.0) -> int:
     """The PolyU capture with the first valid BDS prMes of every 10th RAWX off by bias_m."""
     data = (POLYU / "COM18___9600_240925_072456.ubx").read_bytes()
-    frames = Framer().feed(data) + Framer().flush()
+    frames = Framer(PROTOCOLS).feed(data) + Framer(PROTOCOLS).flush()
     out = bytearray(data)
     n_rawx = n_biased = 0
     for fr in frames:

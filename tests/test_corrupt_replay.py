@@ -41,6 +41,7 @@ import zmq
 from pyubx2 import UBXReader
 
 from drivers.framing import Framer
+from drivers.protocols import PROTOCOLS
 from tests._independent import DATA
 
 REPO = Path(__file__).resolve().parents[1]
@@ -339,7 +340,7 @@ def test_bit_flips_keep_the_fixes_whose_frames_survived(runs, name):
         return not any(i in hit for i in range(f.offset, f.offset + len(f.raw)))
 
     # 1) the framer recovers every frame the flips did not touch, at its offset
-    framer = Framer()
+    framer = Framer(PROTOCOLS)
     data = damaged.path.read_bytes()
     found = {(f.offset, f.raw) for f in framer.feed(data) + framer.flush()}
     missing = [f for f in frames if intact(f) and (f.offset, f.raw) not in found]
@@ -435,11 +436,11 @@ def _signature(ev: object) -> tuple:
     return tuple(sig)
 
 
-def _decode(data: bytes, chunk: int, **kw: int) -> tuple[list[bytes], list[tuple]]:
+def _decode(data: bytes, chunk: int, max_ubx_payload: int) -> tuple[list[bytes], list[tuple]]:
     from drivers.source import StreamDecoder
 
-    dec = StreamDecoder(**kw)
-    framer = Framer(**kw)
+    dec = StreamDecoder(max_payload={"ubx": max_ubx_payload})
+    framer = Framer(PROTOCOLS, max_payload={"ubx": max_ubx_payload})
     raws: list[bytes] = []
     events: list = []
     for i in range(0, len(data), chunk):
@@ -458,8 +459,8 @@ def test_valid_frame_right_after_garbage_is_never_lost(capture, max_ubx_payload)
     damaged, n = garbage_before_frames(frames, data, SEED)
     assert n > 100
     lib = [f.raw for f in frames]
-    clean_raws, clean_events = _decode(data, 4096, max_ubx_payload=max_ubx_payload)
-    raws, events = _decode(damaged, 1000, max_ubx_payload=max_ubx_payload)
+    clean_raws, clean_events = _decode(data, 4096, max_ubx_payload)
+    raws, events = _decode(damaged, 1000, max_ubx_payload)
     assert clean_raws == lib  # the framer agrees with pyubx2 on the clean capture
     assert raws == lib  # and every frame survives the garbage in front of it
     assert events == clean_events and len(events) > 20

@@ -28,10 +28,12 @@ from pyrtcm.rtcmhelpers import calc_crc24q
 from pyubx2 import UBXReader
 from pyubx2.ubxhelpers import calc_checksum
 
-from drivers.framing import Counters, Framer, WeekContext, crc24q, fletcher8
-from drivers.rtcm import msm_lock_time_s
+from drivers.framing import Counters, Framer, WeekContext
+from drivers.protocols import PROTOCOLS
+from drivers.rtcm import crc24q, msm_lock_time_s
 from drivers.source import BinarySource, StreamDecoder, is_rinex, open_source
 from drivers.transport import FileTransport, SerialTransport, TcpClientTransport, pace
+from drivers.ubx import fletcher8
 from service.core.errors import ConfigError
 from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
 
@@ -267,7 +269,7 @@ def test_checksums_match_library_helpers():
 def test_framer_finds_exactly_the_library_frames(path: Path):
     ref = library_frames(path)
     data = path.read_bytes()
-    framer = Framer()
+    framer = Framer(PROTOCOLS)
     frames = []
     rng = np.random.default_rng(len(data))
     pos = 0

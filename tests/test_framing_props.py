@@ -18,7 +18,8 @@ from pyrtcm.rtcmhelpers import calc_crc24q
 from pyubx2 import UBXReader
 from pyubx2.ubxhelpers import calc_checksum
 
-from drivers.framing import DEFAULT_MAX_UBX_PAYLOAD, Framer
+from drivers.framing import Framer
+from drivers.protocols import PROTOCOLS
 from drivers.source import StreamDecoder
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
 
@@ -106,7 +107,7 @@ def split_feed(framer: Framer, data: bytes, cuts: list[int]) -> list:
 @given(mixed_streams())
 def test_garbage_never_loses_a_valid_frame(stream):
     data, placed = stream
-    framer = Framer()
+    framer = Framer(PROTOCOLS)
     found = {(f.offset, f.raw) for f in framer.feed(data) + framer.flush()}
     for offset, raw in placed:
         assert (offset, raw) in found
@@ -117,9 +118,9 @@ def test_garbage_never_loses_a_valid_frame(stream):
 @given(mixed_streams(), st.lists(st.integers(0, 5000), max_size=30))
 def test_split_anywhere_equals_one_shot(stream, cuts):
     data, _ = stream
-    one = Framer()
+    one = Framer(PROTOCOLS)
     whole = [(f.protocol, f.offset, f.raw) for f in one.feed(data) + one.flush()]
-    many = Framer()
+    many = Framer(PROTOCOLS)
     parts = [(f.protocol, f.offset, f.raw) for f in split_feed(many, data, cuts)]
     assert parts == whole
     assert many.counters == one.counters
@@ -128,8 +129,9 @@ def test_split_anywhere_equals_one_shot(stream, cuts):
 @SETTINGS
 @given(st.lists(st.binary(max_size=3000), max_size=12))
 def test_each_feed_returns_with_bounded_memory(chunks):
-    framer = Framer()
-    limit = max(DEFAULT_MAX_UBX_PAYLOAD + 8, framer.max_comment, framer.max_nmea + 8)
+    framer = Framer(PROTOCOLS)
+    longest = max(framer.max_payload.values()) + 8  # + header and trailer
+    limit = max(longest, framer.max_comment)
     frames = []
     for chunk in chunks:
         got = framer.feed(chunk)

@@ -43,6 +43,7 @@ from pyubx2 import UBXReader
 from pyubx2.ubxhelpers import calc_checksum
 
 from drivers.framing import Framer, WeekContext
+from drivers.protocols import PROTOCOLS
 from drivers.rinex import RinexObsReader, read_nav
 from drivers.rtcm import RtcmMapper
 from drivers.sfrbx import nav_subframe_from_sfrbx
@@ -191,7 +192,7 @@ def feed_in_chunks(target: Any, data: bytes, cuts: list[int]) -> list[Any]:
 @FUZZ
 @given(streams, st.lists(st.integers(0, 20000), max_size=8))
 def test_framer_never_raises_and_frames_pass_library_checksums(data, cuts):
-    framer = Framer(max_ubx_payload=65535)
+    framer = Framer(PROTOCOLS, max_payload={"ubx": 65535})
     for frame in feed_in_chunks(framer, data, cuts):
         raw = frame.raw
         if frame.protocol == "ubx":
