@@ -11,17 +11,21 @@ to the newline; a valid frame that ends such a line ends the comment where it st
 The framer never blocks and never trusts a claimed length: lengths are bounded, and after a
 failed check it advances one byte, not the claimed length, so a false header cannot swallow
 the valid frames that follow it. Memory is bounded by the longest allowed frame.
+
+Counter keys, ``<p>`` being a registered protocol name (``ubx``, ``rtcm``, ``nmea``):
+``bytes_in``, ``frames_<p>``, ``comment_lines``, ``comment_bytes``, ``bytes_skipped``,
+``resyncs``, ``bad_checksum_<p>``, ``bad_length_<p>``.
 """
 
 from __future__ import annotations
 
 import logging
 import re
-from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
+from service.core.counters import Counters
 from service.core.timebase import diff_s, normalize
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
 
@@ -37,20 +41,6 @@ NOT_A_FRAME = 0
 NEED_MORE = -1
 BAD_LENGTH = -2
 BAD_CHECKSUM = -3
-
-
-class Counters(Counter[str]):
-    """Event and error counts of one stream, by name (exported in ZMQ ``STATUS``).
-
-    Framing keys, ``<p>`` being a registered protocol name (``ubx``, ``rtcm``, ``nmea``):
-    ``bytes_in``, ``frames_<p>``, ``comment_lines``, ``comment_bytes``, ``bytes_skipped``,
-    ``resyncs``, ``bad_checksum_<p>``, ``bad_length_<p>``. Decoding keys are documented in
-    :mod:`drivers.ubx`, :mod:`drivers.rtcm` and :mod:`drivers.source`.
-    """
-
-    def as_dict(self) -> dict[str, int]:
-        """Plain, key-sorted dict (for JSON)."""
-        return {k: int(v) for k, v in sorted(self.items())}
 
 
 @dataclass(frozen=True, slots=True)

@@ -31,7 +31,7 @@ class Mapper(Protocol):
 
 MapperFactory = Callable[..., Mapper]
 """Called as ``factory(counters, week, **options)`` with the stream's
-:class:`~drivers.framing.Counters` and :class:`~drivers.framing.WeekContext`."""
+:class:`~service.core.counters.Counters` and :class:`~drivers.framing.WeekContext`."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -36,18 +36,14 @@ from typing import Any
 import numpy as np
 from pyrtcm import RTCMReader
 
-from drivers.framing import BinaryFraming, Counters, Event, WeekContext
-from service.core.bds_nav import URA_M
-from service.core.constants import C_M_S, F_B1I_HZ, WEEK_S, prn_id
-from service.core.timebase import BDT_GPS_WEEK_OFFSET, BDT_GPST_OFFSET_S, diff_s, normalize
+from drivers.framing import BinaryFraming, Event, WeekContext
+from service.core.constants import C_M_S, F_B1I_HZ, ICD_PI, MS_RANGE_M, URA_M, WEEK_S, prn_id
+from service.core.counters import Counters
+from service.core.timebase import BDT_GPST_OFFSET_S, bdt_to_gpst, diff_s
 from service.core.types import Ephemeris, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
-ICD_PI = 3.1415926535898
-"""pi as the ICD fixes it for semicircle conversions (BDS-SIS-ICD-B1I-3.0, 5.2.4.9)."""
-
-MS_RANGE_M = C_M_S * 1e-3
 B1I_WAVELENGTH_M = C_M_S / F_B1I_HZ
 
 # --- frame (section 4, "Transport layer") ---------------------------------------------------
@@ -226,7 +222,7 @@ def ephemeris_from_1042(msg: Any) -> Ephemeris:
     """Map a pyrtcm 1042 message to :class:`Ephemeris` (BDT week and seconds of week).
 
     DF490 (URAI) becomes the upper bound of its URA interval, URAI 15 (> 6144 m) infinity,
-    as for decoded subframes (:data:`service.core.bds_nav.URA_M`), so that the store refuses it.
+    as for decoded subframes (:data:`service.core.constants.URA_M`), so that the store refuses it.
     """
     values: dict[str, Any] = {}
     for name, df, factor in EPH_1042_FIELDS:
@@ -319,7 +315,7 @@ class RtcmMapper:
             self.counters["eph_bad_prn"] += 1
             return []
         eph = ephemeris_from_1042(msg)
-        gps_week, gps_tow = normalize(eph.week + BDT_GPS_WEEK_OFFSET, eph.toe_sow_s + 14.0)
+        gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
         self.week.set_approx(gps_week, gps_tow)
         self.counters["ephemerides_rtcm"] += 1
         return [eph]

@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from drivers.framing import Counters, Event, Frame, Framer, WeekContext
+from drivers.framing import Event, Frame, Framer, WeekContext
 from drivers.protocols import PROTOCOLS, Mapper, ProtocolSpec
 from drivers.transport import (
     FileTransport,
@@ -35,6 +35,7 @@ from drivers.transport import (
     Transport,
     pace,
 )
+from service.core.counters import Counters
 from service.core.errors import ConfigError, DecodeError
 from service.core.timebase import gpst_from_utc
 

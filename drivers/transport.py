@@ -28,7 +28,7 @@ from typing import IO, Any, Protocol, TypeVar
 
 import serial
 
-from drivers.framing import Counters
+from service.core.counters import Counters
 from service.core.errors import ConfigError, InputError
 from service.core.timebase import diff_s
 from service.core.types import MeasurementEpoch

@@ -52,9 +52,10 @@ from typing import Any
 import numpy as np
 from pyubx2 import UBX_MSGIDS, UBXReader
 
-from drivers.framing import BinaryFraming, Counters, Event, WeekContext
+from drivers.framing import BinaryFraming, Event, WeekContext
 from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S, prn_id
+from service.core.counters import Counters
 from service.core.timebase import diff_s, gpst_from_utc
 from service.core.types import MeasurementEpoch
 

@@ -28,12 +28,13 @@ from pyrtcm.rtcmhelpers import calc_crc24q
 from pyubx2 import UBXReader
 from pyubx2.ubxhelpers import calc_checksum
 
-from drivers.framing import Counters, Framer, WeekContext
+from drivers.framing import Framer, WeekContext
 from drivers.protocols import PROTOCOLS
 from drivers.rtcm import crc24q, msm_lock_time_s
 from drivers.source import BinarySource, StreamDecoder, is_rinex, open_source
 from drivers.transport import FileTransport, SerialTransport, TcpClientTransport, pace
 from drivers.ubx import fletcher8
+from service.core.counters import Counters
 from service.core.errors import ConfigError
 from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
 

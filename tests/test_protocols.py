@@ -8,10 +8,11 @@ from operator import xor
 
 import pytest
 
-from drivers.framing import BinaryFraming, Counters, Framer, WeekContext
+from drivers.framing import BinaryFraming, Framer, WeekContext
 from drivers.protocols import PROTOCOLS, ProtocolSpec
 from drivers.source import StreamDecoder
 from drivers.ubx import fletcher8
+from service.core.counters import Counters
 from service.core.errors import DecodeError
 from service.core.types import KlobucharParams
 
