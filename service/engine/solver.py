@@ -7,15 +7,16 @@ z_j + N_j c T_j (eq. 5); iteration stops when the position/clock step is below t
 rounded dN is zero (eq. 14). The GEO-GDOP eigenvalue gate (eqs. 12, 20-21) is then evaluated
 over the full rows at the converged position, and the state is corrected with the integers
 fixed (eqs. 15-16). With every measurement full there are no N columns and the procedure is
-conventional single-point positioning, which is how :func:`solve_spp` is built.
+conventional single-point positioning: :func:`solve` with ``solver="spp"``.
 
 Two phases, so that fast and SPP share one fixed point:
 1. From the Earth's centre with no corrections and no elevation mask (they mean nothing
    before the position does): the paper's iteration, gate and final correction.
 2. From that position: elevation mask (a masked fractional satellite loses its row; its
-   integer is already fixed), Klobuchar and Saastamoinen corrections, elevation weights,
-   iterated to convergence. A post-fit residual check then refuses any solution whose
-   residuals betray a wrong integer set or an outlier.
+   integer is already fixed), Klobuchar and Saastamoinen corrections, weights from the
+   error model, iterated to convergence. Then the integrity checks of docs/method.md: the
+   chi-square test of the weighted residuals, fault exclusion, the PDOP gate, the plausible
+   shell and the protection levels (:mod:`service.engine.raim`).
 
 With every measurement full and an approximate position given (``x0_ecef_m``), phase 1 has
 nothing to resolve and phase 2 starts there: conventional SPP, the same solution.
