@@ -27,7 +27,7 @@ from pygnssutils.rawnav import RawNav
 from pygnssutils.rawnav_reader import RawNavReader
 
 from drivers.sfrbx import nav_subframe_from_sfrbx
-from service import bds_nav as bn
+from service.core import bds_nav as bn
 from service.core.errors import DecodeError, EphemerisError
 from service.core.types import Ephemeris, KlobucharParams
 from tests._independent import DATA

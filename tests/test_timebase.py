@@ -5,7 +5,7 @@ import datetime as dt
 from hypothesis import given
 from hypothesis import strategies as st
 
-from service import timebase as tb
+from service.core import timebase as tb
 
 
 def test_bdt_epoch_is_gps_week_1356_plus_14s():
