@@ -20,7 +20,7 @@ import pytest
 
 from drivers.framing import Framer, fletcher8
 from service.core.geometry import ecef_to_geodetic
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 HK = DATA / "hksc-2021"

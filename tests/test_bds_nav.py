@@ -30,7 +30,7 @@ from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.core import bds_nav as bn
 from service.core.errors import DecodeError, EphemerisError
 from service.core.types import Ephemeris, KlobucharParams
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 POLYU_UBX = DATA / "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx"
 POLYU_NAV = DATA / "hk-polyu-f9p-ubx-2024/hksc269h.24f"

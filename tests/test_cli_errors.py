@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import zmq
 
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 BDSFIX = str(Path(sys.executable).parent / "bdsfix")
 NAV = DATA / "hksc-2021" / "hksc1610.nav"

@@ -41,7 +41,7 @@ import zmq
 from pyubx2 import UBXReader
 
 from drivers.framing import Framer
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 REPO = Path(__file__).resolve().parents[1]
 POLYU = DATA / "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx"

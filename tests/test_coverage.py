@@ -306,7 +306,7 @@ def test_broadcast_geo_positions_match_georinex_and_the_icd():
     """Nearest-t_oe broadcast GEO positions vs georinex records run through a scalar
     transcription of the ICD algorithm; and they are geostationary (first principles)."""
     from drivers.rinex import read_nav
-    from tests._independent import georinex_bds_ephemerides, icd_position
+    from tests.support.independent import georinex_bds_ephemerides, icd_position
 
     nav = read_nav(NAV_2021)
     c01 = nav.ephemerides["C01"][0]  # sets sorted by (week, toe)

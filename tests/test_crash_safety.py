@@ -20,7 +20,7 @@ from pathlib import Path
 
 from service.commands.run import load_store
 from service.core.ephemeris import EphemerisStore
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 NAV = DATA / "hksc-2021" / "hksc1610.nav"
 BDSFIX = str(Path(sys.executable).parent / "bdsfix")

@@ -22,7 +22,8 @@ from service.core.timebase import gpst_to_bdt
 from service.core.types import MeasurementEpoch
 from service.engine.solver import SolverConfig, fractionalize, solve
 from service.sim.rangegen import true_ranges
-from tests._independent import DATA, eph_from_georinex, georinex_bds_ephemerides
+from tests.support.independent import eph_from_georinex, georinex_bds_ephemerides
+from tests.support.paths import DATA
 
 WEEK, TOW = 2161, 4 * 86400 + 3 * 3600 + 36 * 60 + 18.0  # 2021-06-10 03:36:18 GPST
 # the paper's settings: no corrections, equal weights, no PDOP gate (Table 2 has none)

@@ -35,7 +35,7 @@ from service.core.bds_nav import encode_d1_subframes
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.types import Ephemeris, NavSubframe
 from service.engine.pipeline import Pipeline
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 REAL_NAV = (
     "hksc-2021/hksc1610.nav",

@@ -9,7 +9,7 @@ import pytest
 from drivers.rinex import read_nav
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EphemerisError
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 
 @pytest.fixture(scope="module")

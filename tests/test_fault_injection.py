@@ -29,7 +29,8 @@ from service.core.constants import C_M_S, is_geo
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.solver import fractionalize, solve
-from tests._independent import DATA, HKSC_TRUTH_ECEF_M
+from tests.support.independent import HKSC_TRUTH_ECEF_M
+from tests.support.paths import DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 HK = DATA / "hksc-2021"

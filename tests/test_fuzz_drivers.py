@@ -51,7 +51,7 @@ from drivers.ubx import UbxMapper
 from service.core.bds_nav import EphemerisAssembler, parse_header
 from service.core.errors import DecodeError, FramingError
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 HANG_S = 20.0
 """Per-call wall bound: a hang detector only, far above any normal call."""

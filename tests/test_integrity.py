@@ -27,7 +27,7 @@ import zmq
 from bench.bench_integrity import load_nav, pl_ratio, run_trials, wrong_integers
 from service.core.types import Fix
 from service.engine.solver import SolverConfig
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 HK = DATA / "hksc-2021"

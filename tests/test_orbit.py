@@ -11,8 +11,9 @@ import pytest
 from service.core.constants import is_geo
 from service.core.geometry import ecef_to_geodetic
 from service.core.orbit import EphemerisArrays, sat_pos_clock
-from tests._independent import DATA, georinex_bds_ephemerides, icd_position
-from tests._independent import eph_from_georinex as _eph
+from tests.support.independent import eph_from_georinex as _eph
+from tests.support.independent import georinex_bds_ephemerides, icd_position
+from tests.support.paths import DATA
 
 NAV = DATA / "hksc-2021" / "hksc1610.nav"
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from service.commands.cli import main
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 GOLDEN = Path(__file__).parent / "golden"
 CASES = {

@@ -10,7 +10,8 @@ import pyubx2
 
 from service.commands.cli import main
 from service.core.geometry import geodetic_to_ecef
-from tests._independent import DATA, HKSC_TRUTH_ECEF_M
+from tests.support.independent import HKSC_TRUTH_ECEF_M
+from tests.support.paths import DATA
 
 
 def _replay(tmp_path, *args):

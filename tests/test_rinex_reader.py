@@ -11,7 +11,8 @@ import pytest
 from drivers.rinex import RinexObsReader, merge_nav, read_nav
 from service.core.errors import FramingError
 from service.core.timebase import gpst_from_datetime
-from tests._independent import DATA, georinex_bds_ephemerides
+from tests.support.independent import georinex_bds_ephemerides
+from tests.support.paths import DATA
 
 OBS_FILES = [
     "hksc-2021/hksc1610.obs",

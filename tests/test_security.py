@@ -25,7 +25,7 @@ from service.core.errors import ConfigError
 from service.output.publish import ZmqPublisher
 from service.output.records import fix_record
 from service.sim.keplerian import table1_ephemerides
-from tests.test_publish import hksc_fix
+from tests.support.fixes import hksc_fix
 
 ROOT = Path(__file__).resolve().parents[1]
 BDSFIX = [sys.executable, "-m", "service"]

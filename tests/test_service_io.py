@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import zmq
 
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 HK = DATA / "hksc-2021"
 BDSFIX = [sys.executable, "-m", "service"]

@@ -3,7 +3,7 @@
 import json
 
 from service.commands.cli import main
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 NAV = DATA / "hksc-2021/hksc1610.nav"
 

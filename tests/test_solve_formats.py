@@ -8,7 +8,7 @@ import operator
 import pynmeagps
 
 from service.commands.cli import main
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 HK = DATA / "hksc-2021"
 

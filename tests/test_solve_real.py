@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from service.commands.cli import main
-from tests._independent import DATA, HKSC_TRUTH_ECEF_M
+from tests.support.independent import HKSC_TRUTH_ECEF_M
+from tests.support.paths import DATA
 
 FIELDS_ALWAYS = {"class", "solver", "mode", "gpst_week", "gpst_tow_s", "n_full", "n_frac"}
 FIELDS_FIX = {"x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m", "pdop", "resid_rms_m"}

@@ -8,7 +8,7 @@ for why the median is 2 s with these emulation rules.
 import json
 
 from service.commands.cli import main
-from tests._independent import DATA
+from tests.support.paths import DATA
 
 HK = DATA / "hksc-2021"
 

@@ -11,7 +11,6 @@ import numpy as np
 
 from service.core.types import Ephemeris
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HKSC_TRUTH_ECEF_M = np.array([-2414266.9197, 5386768.9868, 2407460.0314])
 
 
