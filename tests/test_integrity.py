@@ -3,8 +3,8 @@ wrong integer ambiguity.
 
 1. Monte Carlo on the virtual receiver (real 2021 broadcast ephemerides, five places in the
    >= 4-GEO area): single and dual range faults of 10 m to 150 km. The truth (position and
-   integers) comes from the simulator, never from the engine (bench/bench_integrity.py runs
-   the large version and prints the figures).
+   integers) comes from the simulator, never from the engine (service.studies.integrity;
+   bench/bench_integrity.py runs the large version and prints the figures).
 2. The real HKSC replay with emulated restarts at several instants: every ambiguity the fast
    fix recovered is confirmed by the satellite's later D1 SOW (the pipeline's check), read
    from the STATUS counters a ZeroMQ subscriber receives from `bdsfix replay`.
@@ -24,9 +24,10 @@ import numpy as np
 import pytest
 import zmq
 
-from bench.bench_integrity import load_nav, pl_ratio, run_trials, wrong_integers
+from drivers.rinex import read_nav
 from service.core.types import Fix
 from service.engine.solver import SolverConfig
+from service.studies.integrity import pl_ratio, prepare_nav, run_trials, wrong_integers
 from tests.support.paths import DATA
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,7 +36,8 @@ HK = DATA / "hksc-2021"
 
 @pytest.fixture(scope="module")
 def nav():
-    return load_nav()
+    nav = read_nav(HK / "hksc1610.nav")
+    return prepare_nav((e for items in nav.ephemerides.values() for e in items), nav.iono_bds)
 
 
 def test_monte_carlo_faults_stay_within_protection_levels(nav):
