@@ -1,12 +1,12 @@
-"""Load, the short version of bench/bench_load.py: one minute of a simulated 20 Hz receiver
-through `bdsfix run` at full speed with 50 ZeroMQ subscribers, 20 NMEA TCP clients (5 never
-read) and a subscriber that reconnects every 0.2 s. Functional checks only (the timings are
-printed by the bench): no FIX lost for any healthy peer, every non-reader dropped, the
-daemon's RSS flat after warm-up."""
+"""Load, the short version of bench/bench_load.py (harness in tests/support/load.py): one
+minute of a simulated 20 Hz receiver through `bdsfix run` at full speed with 50 ZeroMQ
+subscribers, 20 NMEA TCP clients (5 never read) and a subscriber that reconnects every
+20 FIX. Functional checks only (the timings are printed by the bench): no FIX lost for any
+healthy peer, every non-reader dropped, the daemon's RSS flat after warm-up."""
 
 from __future__ import annotations
 
-from bench.bench_load import make_stream, run_load
+from tests.support.load import make_stream, run_load
 
 
 def test_load_no_fix_lost_slow_clients_dropped_rss_flat(tmp_path):
@@ -27,7 +27,7 @@ def test_load_no_fix_lost_slow_clients_dropped_rss_flat(tmp_path):
     assert st["nmea_clients_accepted"] == 20
     assert st["nmea_clients_dropped_slow"] == 5
     # the reconnecting subscriber came and went many times and got messages in between
-    assert res.reconnects >= 10 and res.reconnect_fixes > 0
+    assert res.reconnects >= 50 and res.reconnect_fixes > 0
     # the loop's own timing made it to STATUS (its values are the bench's business)
     assert st["epoch_loop_p99_ms"] > 0 and st["epoch_publish_p99_ms"] > 0
     # RSS: sampled throughout, flat within 10 % after warm-up (20 % of the epochs)
