@@ -10,7 +10,6 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,8 +27,7 @@ from service.studies.coverage import (
     run_coverage,
     trace_inverse_normal,
 )
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from tests.support.paths import DATA
 
 # The slots the paper gives for G1, G3, G4, G5, G6 (Table 1 order: C01, C03, C04, C05, C02)
 PAPER_GEO_LON_DEG = {"C01": 140.0, "C03": 110.5, "C04": 160.0, "C05": 58.75, "C02": 80.0}

@@ -18,8 +18,8 @@ from pyubx2 import UBXReader
 
 from drivers.ubx import parse_rxm
 from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
+from tests.support.paths import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CAPTURES = sorted(
     [*DATA.glob("tiny-ubx-rtcm/*.log"), *DATA.glob("ublox-logs/*.log"), *DATA.glob("*/*.ubx")]
 )

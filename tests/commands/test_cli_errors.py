@@ -113,7 +113,7 @@ def test_bad_arguments_exit_2(tmp_path, capture, argv, needles):
 
 def test_missing_device_exits_3(tmp_path):
     """A serial device that is not there at start is an error; one that vanishes later is
-    waited for (tests/test_serial_faults.py)."""
+    waited for (tests/system/test_serial_faults.py)."""
     dev = str(tmp_path / "ttyNOPE")
     for spec in ("/dev/ttyBDSFIX-NOPE", f"serial:{dev}:9600"):
         _one_clear_line(tmp_path, INPUT, ["run", "--source", spec, *QUIET], "No such file")

@@ -4,11 +4,11 @@ import re
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 from service.daemon.config import load_config
+from tests.support.paths import ROOT
 
-UNIT = Path(__file__).resolve().parents[1] / "systemd" / "bdsfix.service"
+UNIT = ROOT / "systemd" / "bdsfix.service"
 EXAMPLE = UNIT.with_name("bdsfix.toml")
 
 

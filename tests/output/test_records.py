@@ -8,7 +8,6 @@ import io
 import json
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,8 +26,7 @@ from service.output.records import (
     validate,
 )
 from tests.support.fixes import HKSC_ECEF_M, SKY, declined_fix, ecef_m, geodetic_deg_m, hksc_fix
-
-GOLDEN = Path(__file__).resolve().parent / "golden"
+from tests.support.paths import GOLDEN
 
 # The FIX fields of ARCHITECTURE.md, written out here, plus the stream field since_start_s.
 CONTRACT_FIX_FIELDS = {

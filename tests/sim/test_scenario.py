@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -17,8 +16,7 @@ from service.engine.solver import solve
 from service.sim.keplerian import table1_ephemerides
 from service.sim.scenario import builtin_scenario, scenario_config
 from service.sim.simulator import Simulator
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support.paths import ROOT
 
 
 def test_replay_without_arguments_prints_the_timeline(tmp_path):

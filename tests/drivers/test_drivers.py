@@ -34,8 +34,8 @@ from drivers.source import BinarySource, StreamDecoder, is_rinex, open_source
 from drivers.transport import FileTransport, SerialTransport, TcpClientTransport, pace
 from service.core.errors import ConfigError
 from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
+from tests.support.paths import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 C = 299_792_458.0
 L1MS = C * 1e-3
 

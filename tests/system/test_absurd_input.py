@@ -20,9 +20,8 @@ import pytest
 
 from drivers.framing import Framer, fletcher8
 from service.core.geometry import ecef_to_geodetic
-from tests.support.paths import DATA
+from tests.support.paths import DATA, ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 HK = DATA / "hksc-2021"
 POLYU = DATA / "hk-polyu-f9p-ubx-2024"
 ALT_WINDOW_M = (-1_000.0, 1_100_000.0)  # SolverConfig's default plausible shell

@@ -26,8 +26,8 @@ from service.output.publish import ZmqPublisher
 from service.output.records import fix_record
 from service.sim.keplerian import table1_ephemerides
 from tests.support.fixes import hksc_fix
+from tests.support.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 BDSFIX = [sys.executable, "-m", "service"]
 
 

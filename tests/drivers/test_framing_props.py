@@ -10,7 +10,6 @@ from __future__ import annotations
 import functools
 from functools import reduce
 from operator import xor
-from pathlib import Path
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -21,8 +20,8 @@ from pyubx2.ubxhelpers import calc_checksum
 from drivers.framing import DEFAULT_MAX_UBX_PAYLOAD, Framer
 from drivers.source import StreamDecoder
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from tests.support.paths import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TINY = DATA / "tiny-ubx-rtcm"
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

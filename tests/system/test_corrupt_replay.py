@@ -41,9 +41,9 @@ import zmq
 from pyubx2 import UBXReader
 
 from drivers.framing import Framer
-from tests.support.paths import DATA
+from tests.support.paths import DATA, ROOT
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = ROOT
 POLYU = DATA / "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx"
 POLYU_NAV = DATA / "hk-polyu-f9p-ubx-2024/hksc269h.24f"
 F9R = DATA / "ublox-logs/ublox-zed-f9r.log"

@@ -1,8 +1,8 @@
 """atheris (libFuzzer) harnesses for every driver's byte parser.
 
-Run one target: ``python tests/fuzz_atheris.py TARGET [libFuzzer flags] CORPUS_DIR``; an
+Run one target: ``python tests/drivers/fuzz_atheris.py TARGET [libFuzzer flags] CORPUS_DIR``; an
 empty CORPUS_DIR is first seeded with inputs cut from the real captures under
-``../shared/data`` (``--seed-corpus TARGET DIR`` does only that). ``tests/test_atheris.py``
+``../shared/data`` (``--seed-corpus TARGET DIR`` does only that). ``tests/drivers/test_atheris.py``
 runs every target for a bounded number of executions and time.
 
 What each target allows to escape (anything else is a crash that libFuzzer reports):
@@ -41,7 +41,7 @@ import pyubx2
 from pyrtcm.rtcmhelpers import calc_crc24q
 from pyubx2.ubxhelpers import calc_checksum
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 with atheris.instrument_imports(include=["drivers", "service"]):
     from drivers.framing import Framer, WeekContext
@@ -53,7 +53,7 @@ with atheris.instrument_imports(include=["drivers", "service"]):
     from service.core.bds_nav import EphemerisAssembler, parse_header
     from service.core.errors import DecodeError, FramingError
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CAPTURES = (
     DATA / "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx",
     DATA / "ublox-logs/ublox-zed-f9r.log",

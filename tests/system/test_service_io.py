@@ -15,11 +15,10 @@ from pathlib import Path
 import numpy as np
 import zmq
 
-from tests.support.paths import DATA
+from tests.support.paths import DATA, ROOT
 
 HK = DATA / "hksc-2021"
 BDSFIX = [sys.executable, "-m", "service"]
-ROOT = Path(__file__).resolve().parents[1]
 
 # The contract of ARCHITECTURE.md, written out here (not taken from the code under test).
 SCHEMA = {

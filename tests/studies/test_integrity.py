@@ -18,7 +18,6 @@ import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,9 +27,8 @@ from drivers.rinex import read_nav
 from service.core.types import Fix
 from service.engine.solver import SolverConfig
 from service.studies.integrity import pl_ratio, prepare_nav, run_trials, wrong_integers
-from tests.support.paths import DATA
+from tests.support.paths import DATA, ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 HK = DATA / "hksc-2021"
 
 

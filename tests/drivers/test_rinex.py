@@ -29,8 +29,8 @@ from drivers.rinex import NavData, ObsHeader, RinexObsReader, iter_obs, merge_na
 from service.core.constants import GEO_PRNS
 from service.core.errors import FramingError
 from service.core.types import Ephemeris, MeasurementEpoch
+from tests.support.paths import DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HKSC_OBS = "hksc-2021/hksc1610.obs"
 TWTF_OBS = "twtf-septentrio-2023/TWTF00TWN_R_20232490000_01D_30S_MO.rnx"
 TST_OBS = "hk-tst-urban-2019/COM3_190428_124409.obs"

@@ -30,9 +30,8 @@ from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.solver import fractionalize, solve
 from tests.support.independent import HKSC_TRUTH_ECEF_M
-from tests.support.paths import DATA
+from tests.support.paths import DATA, ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 HK = DATA / "hksc-2021"
 MS_M = C_M_S * 1e-3
 MAGNITUDES_M = (30.0, 100.0, 300.0, 1e3, 3e3, 150e3, MS_M)

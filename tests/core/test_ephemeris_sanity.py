@@ -35,7 +35,7 @@ from service.core.bds_nav import encode_d1_subframes
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.types import Ephemeris, NavSubframe
 from service.engine.pipeline import Pipeline
-from tests.support.paths import DATA
+from tests.support.paths import DATA, ROOT
 
 REAL_NAV = (
     "hksc-2021/hksc1610.nav",
@@ -305,7 +305,7 @@ def test_persisted_store_with_a_nan_set_keeps_the_rest(nav, tmp_path, caplog):
 # 3.04 BDS record (Table A14): data lines are 4X,4D19.12; BROADCAST ORBIT - 2 is the record's
 # third line, with e the second field and sqrt(A) the fourth.
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = ROOT
 HKSC_OBS = DATA / "hksc-2021/hksc1610.obs"
 HKSC_NAV = DATA / "hksc-2021/hksc1610.nav"
 DAMAGED_PRN = "C08"

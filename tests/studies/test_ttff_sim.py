@@ -19,11 +19,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support.paths import ROOT
+
 DATA = ROOT.parent / "shared" / "data"
 BDSFIX = [sys.executable, "-m", "service"]
 

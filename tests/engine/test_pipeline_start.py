@@ -9,7 +9,6 @@ the same fix (same mode, integers and used satellites; position within 1e-6 m).
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
@@ -18,8 +17,9 @@ from drivers.rinex import RinexObsReader
 from service.commands.solve import load_navigation
 from service.engine.pipeline import Pipeline
 from service.engine.solver import solve
+from tests.support.paths import DATA
 
-HKSC = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hksc-2021"
+HKSC = DATA / "hksc-2021"
 
 
 def test_warm_started_spp_equals_the_solve_from_the_earths_centre(monkeypatch):

@@ -1,4 +1,4 @@
-"""Bounded atheris (libFuzzer) runs of every driver harness in ``tests/fuzz_atheris.py``.
+"""Bounded atheris (libFuzzer) runs of every driver harness in ``tests/drivers/fuzz_atheris.py``.
 
 Each target runs in its own process on a corpus seeded from the real captures, bounded by
 ``-runs`` and ``-max_total_time``, with libFuzzer's ``-timeout`` as the per-input hang

@@ -8,14 +8,12 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import pytest
 
 from service.commands.cli import main
-from tests.support.paths import DATA
+from tests.support.paths import DATA, GOLDEN
 
-GOLDEN = Path(__file__).parent / "golden"
 CASES = {
     "polyu-f9p-ubx": [
         "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx",
