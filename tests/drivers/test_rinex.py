@@ -202,6 +202,13 @@ def test_header_fields():
     )
 
 
+def test_b1i_code_by_version():
+    """3.03 (RTKCONV) and 3.04 (Septentrio) files list C2I first for BDS."""
+    assert RinexObsReader(DATA / TST_OBS).header.bds_code == "2I"
+    h = RinexObsReader(DATA / TWTF_OBS).header
+    assert h.bds_code == "2I" and h.obs_types["C"][0] == "C2I"
+
+
 def test_obs_reader_streams():
     reader = RinexObsReader(DATA / TST_OBS)
     it = iter(reader)
@@ -286,6 +293,14 @@ def test_rinex_302_c1i(tmp_path):
     epochs = list(reader)
     assert {s for ep in epochs for s in ep.signal} == {"1I"}
     assert _assert_matches_georinex(epochs, georinex_obs(DATA / HKSC_OBS)) > 3000
+
+
+def test_version_305_obs_header_is_accepted(tmp_path):
+    lines = _lines(HKSC_OBS)
+    lines[0] = lines[0].replace("3.04", "3.05", 1)
+    path = _write(tmp_path, "v305.obs", lines)
+    eps = list(RinexObsReader(path))
+    assert RinexObsReader(path).header.version == 3.05 and len(eps) == 205
 
 
 def test_c2i_preferred_when_c1i_is_also_listed(tmp_path):
@@ -458,8 +473,9 @@ def test_not_rinex3_no_end_of_header_wrong_type(tmp_path):
         RinexObsReader(noend)
     with pytest.raises(FramingError, match=r"file type 'N', expected 'O'"):
         RinexObsReader(DATA / MIXED_NAV[0])
-    with pytest.raises(FramingError, match="not a RINEX file"):
-        read_nav(DATA / "tiny-ubx-rtcm/pygpsdata-RTCM3.log")
+    for capture in ("pygpsdata-RTCM3.log", "pygpsdata-RXMRAWX.log"):  # RTCM3, UBX
+        with pytest.raises(FramingError, match="not a RINEX file"):
+            read_nav(DATA / "tiny-ubx-rtcm" / capture)
     crx = tmp_path / "x.crx"
     crx.write_text(f"{'1.0                 COMPACT RINEX FORMAT':<60s}CRINEX VERS   / TYPE\n")
     with pytest.raises(FramingError, match="Hatanaka"):
@@ -614,6 +630,16 @@ def test_nav_literal_record_run_together_fields():
         -1.039999997232e-08,
     )
     assert c01.toc_sow_s == 6 * 86400 + 23 * 3600  # Saturday 23:00 BDT
+
+
+def test_bds_only_302_nav_literal_record():
+    """georinex reads no BDS record from 3.02 BDS-only files as they are; check one against
+    its text: C01 2024 09 25 06:00:00, af0 9.253375465050D-04, af1 2.944311461306D-12."""
+    nav = read_nav(DATA / "hk-polyu-f9p-ubx-2024/hksc269h.24f")
+    c01 = min(nav.ephemerides["C01"], key=lambda e: e.toc_sow_s)
+    assert c01.af0_s == 9.253375465050e-04 and c01.af1_s_s == 2.944311461306e-12
+    assert c01.toc_sow_s == 3 * 86400 + 6 * 3600  # Wednesday 06:00 BDT
+    assert len(nav.ephemerides) == 50 and nav.iono_bds is not None
 
 
 def test_toc_from_the_bdt_epoch_equals_toe():
