@@ -26,9 +26,10 @@ from service.core.errors import ConfigError
 from service.engine.tracker import TrackEvent
 from service.output.nmea import sentences_for_fix
 from service.output.publish import LineSink, NmeaTcpServer, Publishers, SerialSink, ZmqPublisher
-from service.output.records import fix_record, status_record, validate
+from service.output.records import fix_record, status_record
 from tests.support.fixes import SKY, declined_fix, ecef_m, hksc_fix
 from tests.support.nmea import C_M_S, hand_parse, horiz_err_m, sec_of_day, utc_of_gpst
+from tests.support.schema import validate
 
 
 def wait_until(pred: Callable[[], bool], what: str, timeout_s: float = 30.0) -> None:

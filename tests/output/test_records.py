@@ -1,5 +1,6 @@
-"""JSON/CSV records: the contract of ARCHITECTURE.md, strict JSON, and the schema validator
-checked against hand-written bad records and against every golden replay record."""
+"""JSON/CSV records: the contract of ARCHITECTURE.md, strict JSON, and the JSON Schemas
+(checked with jsonschema) against hand-written good and bad records and against every golden
+replay record."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from jsonschema import Draft202012Validator
 
 from service.core.types import SatView
 from service.output.records import (
@@ -23,10 +25,10 @@ from service.output.records import (
     sky_record,
     status_record,
     track_record,
-    validate,
 )
 from tests.support.fixes import HKSC_ECEF_M, SKY, declined_fix, ecef_m, geodetic_deg_m, hksc_fix
 from tests.support.paths import GOLDEN
+from tests.support.schema import schema_errors, validate
 
 # The FIX fields of ARCHITECTURE.md, written out here, plus the stream field since_start_s.
 CONTRACT_FIX_FIELDS = {
@@ -201,6 +203,7 @@ def test_schema_fields_are_the_contract():
     assert set(SCHEMAS["FIX"]["properties"]) == CONTRACT_FIX_FIELDS | CONDITIONAL_FIX_FIELDS
     for cls, schema in SCHEMAS.items():
         assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+        Draft202012Validator.check_schema(schema)  # a valid schema by the metaschema
         assert schema["properties"]["class"] == {"const": cls}
         json.dumps(schema)  # plain JSON data, publishable as a .json file
 
@@ -248,59 +251,73 @@ GOOD_SKY = {
     "satellites": [{"prn": "C01", "el_deg": 47.3, "az_deg": 123.4, "used": True, "full": True}],
 }
 
-# (record, the validator's message must contain this)
+# (record, where jsonschema must report it, the schema keyword that fails, a fragment of its
+# message or "")
 BAD = [
-    ({k: v for k, v in GOOD_FIX.items() if k != "n_full"}, "missing 'n_full'"),
-    ({**GOOD_FIX, "pdop": None}, "$.pdop: expected number"),
-    ({**GOOD_FIX, "speed_mps": 1.0}, "unexpected property 'speed_mps'"),
-    ({**GOOD_FIX, "gpst_week": "2161"}, "$.gpst_week: expected integer"),
-    ({**GOOD_FIX, "gpst_week": 2161.5}, "$.gpst_week: expected integer"),
-    ({**GOOD_FIX, "n_frac": True}, "$.n_frac: expected integer"),
-    ({**GOOD_FIX, "n_frac": -1}, "violates minimum"),
-    ({**GOOD_FIX, "mode": "rtk"}, "'rtk' not one of"),
-    ({**GOOD_FIX, "solver": "none"}, "'none' not one of"),
-    ({**GOOD_FIX, "lat_deg": 91.0}, "violates maximum"),
-    ({**GOOD_FIX, "gpst_tow_s": 604800.0}, "violates exclusiveMaximum"),
-    ({**GOOD_FIX, "alt_m": float("nan")}, "$.alt_m: expected number"),
-    ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0]}, "fewer than 3 items"),
-    ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0, "3"]}, "$.x_ecef_m[2]: expected number"),
-    ({**GOOD_FIX, "ambiguity": {"G05": 1}}, "unexpected property 'G05'"),
-    ({**GOOD_FIX, "ambiguity": {"C05": 1.5}}, "$.ambiguity.C05: expected integer"),
-    ({**GOOD_FIX, "ambiguity": {}}, "fewer than 1 properties"),
-    ({**GOOD_FIX, "reason": "x"}, "forbidden"),
-    ({k: v for k, v in GOOD_FIX.items() if k != "lat_deg"}, "missing 'lat_deg'"),
-    ({**GOOD_NONE, "lat_deg": 22.0}, "forbidden"),
-    ({k: v for k, v in GOOD_NONE.items() if k != "reason"}, "missing 'reason'"),
-    ({**GOOD_NONE, "reason": ""}, "shorter than 1"),
-    ({**GOOD_TRACK, "event": "lost"}, "'lost' not one of"),
-    ({k: v for k, v in GOOD_TRACK.items() if k != "sow_s"}, "missing 'sow_s'"),
-    ({**GOOD_TRACK, "prn": "G06"}, "does not match"),
-    ({**GOOD_TRACK, "nav_type": "D3"}, "'D3' not one of"),
-    ({**GOOD_SKY, "satellites": [{"prn": "C01", "used": 1, "full": True}]}, "expected boolean"),
+    ({k: v for k, v in GOOD_FIX.items() if k != "n_full"}, "$", "required", "'n_full'"),
+    ({**GOOD_FIX, "pdop": None}, "$.pdop", "type", "'number'"),
+    ({**GOOD_FIX, "speed_mps": 1.0}, "$", "additionalProperties", "'speed_mps'"),
+    ({**GOOD_FIX, "gpst_week": "2161"}, "$.gpst_week", "type", "'integer'"),
+    ({**GOOD_FIX, "gpst_week": 2161.5}, "$.gpst_week", "type", "'integer'"),
+    ({**GOOD_FIX, "n_frac": True}, "$.n_frac", "type", "'integer'"),
+    ({**GOOD_FIX, "n_frac": -1}, "$.n_frac", "minimum", ""),
+    ({**GOOD_FIX, "mode": "rtk"}, "$.mode", "enum", "'rtk'"),
+    ({**GOOD_FIX, "solver": "none"}, "$.solver", "enum", "'none'"),
+    ({**GOOD_FIX, "lat_deg": 91.0}, "$.lat_deg", "maximum", ""),
+    ({**GOOD_FIX, "gpst_tow_s": 604800.0}, "$.gpst_tow_s", "exclusiveMaximum", ""),
+    ({**GOOD_FIX, "alt_m": float("nan")}, "$.alt_m", "type", "'number'"),
+    ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0]}, "$.x_ecef_m", "minItems", ""),
+    ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0, "3"]}, "$.x_ecef_m[2]", "type", "'number'"),
+    ({**GOOD_FIX, "ambiguity": {"G05": 1}}, "$.ambiguity", "additionalProperties", "'G05'"),
+    ({**GOOD_FIX, "ambiguity": {"C05": 1.5}}, "$.ambiguity.C05", "type", "'integer'"),
+    ({**GOOD_FIX, "ambiguity": {}}, "$.ambiguity", "minProperties", ""),
+    ({**GOOD_FIX, "reason": "x"}, "$", "not", ""),  # a fix with a position has no reason
+    ({k: v for k, v in GOOD_FIX.items() if k != "lat_deg"}, "$", "required", "'lat_deg'"),
+    ({**GOOD_NONE, "lat_deg": 22.0}, "$", "not", ""),  # a declined fix has no position
+    ({k: v for k, v in GOOD_NONE.items() if k != "reason"}, "$", "required", "'reason'"),
+    ({**GOOD_NONE, "reason": ""}, "$.reason", "minLength", ""),
+    ({**GOOD_TRACK, "event": "lost"}, "$.event", "enum", "'lost'"),
+    ({k: v for k, v in GOOD_TRACK.items() if k != "sow_s"}, "$", "required", "'sow_s'"),
+    ({**GOOD_TRACK, "prn": "G06"}, "$.prn", "pattern", ""),
+    ({**GOOD_TRACK, "nav_type": "D3"}, "$.nav_type", "enum", "'D3'"),
+    (
+        {**GOOD_SKY, "satellites": [{"prn": "C01", "used": 1, "full": True}]},
+        "$.satellites[0].used",
+        "type",
+        "'boolean'",
+    ),
     (
         {**GOOD_SKY, "satellites": [{"prn": "C01", "az_deg": 360.0, "used": True, "full": True}]},
         "$.satellites[0].az_deg",
+        "exclusiveMaximum",
+        "",
     ),
-    ({"class": "STATUS", "counters": {"frames": "7"}}, "$.counters.frames: expected number"),
-    ({"class": "STATUS", "counters": {}, "extra": [1]}, "$.extra: expected"),
-    ({"class": "STATUS"}, "missing 'counters'"),
-    ({"class": "TPV"}, "not one of"),
-    ([GOOD_FIX], "expected object"),
+    ({"class": "STATUS", "counters": {"frames": "7"}}, "$.counters.frames", "type", "'number'"),
+    ({"class": "STATUS", "counters": {}, "extra": [1]}, "$.extra", "type", ""),
+    ({"class": "STATUS"}, "$", "required", "'counters'"),
+    ({"class": "TPV"}, "$.class", "enum", "'TPV'"),
+    ([GOOD_FIX], "$", "type", "'object'"),
 ]
 
 
 @pytest.mark.parametrize("good", [GOOD_FIX, GOOD_NONE, GOOD_TRACK, GOOD_SKY])
-def test_validator_accepts_hand_written_good_records(good):
+def test_schemas_accept_hand_written_good_records(good):
     assert validate(good) == []
     # JSON Schema: 1.0 is an integer (draft 2020-12, section 6.1.1)
     assert validate({**good, "gpst_week": 2161.0}) == []
 
 
-@pytest.mark.parametrize(("record", "message"), BAD, ids=[m for _, m in BAD])
-def test_validator_rejects_hand_written_bad_records(record, message):
-    errors = validate(record)
+@pytest.mark.parametrize(
+    ("record", "path", "keyword", "fragment"),
+    BAD,
+    ids=[f"{path} {keyword} {fragment}".strip() for _, path, keyword, fragment in BAD],
+)
+def test_schemas_reject_hand_written_bad_records(record, path, keyword, fragment):
+    errors = schema_errors(record)
     assert errors, record
-    assert any(message in e for e in errors), errors
+    assert any(
+        e.json_path == path and e.validator == keyword and fragment in e.message for e in errors
+    ), [(e.json_path, e.validator, e.message) for e in errors]
 
 
 def test_every_golden_replay_record_validates():
