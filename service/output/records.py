@@ -2,8 +2,8 @@
 
 Every record is a flat JSON object with a ``class`` (``FIX``, ``SKY``, ``TRACK``,
 ``STATUS``); on ZeroMQ the class is also the topic. :data:`SCHEMAS` holds a JSON Schema
-(draft 2020-12) for each class and :func:`validate` checks a record against it without
-third-party packages.
+(draft 2020-12) for each class, plain JSON data (the tests check records against it with
+jsonschema).
 
 Field rules, common to all classes:
 
@@ -47,7 +47,6 @@ import csv
 import io
 import json
 import math
-import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -387,119 +386,3 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "additionalProperties": {"type": ["string", "number", "boolean"]},
     },
 }
-
-
-# ---- a small validator for the keywords SCHEMAS uses ---------------------------------------
-
-_TYPES: dict[str, Any] = {
-    "object": lambda v: isinstance(v, dict),
-    "array": lambda v: isinstance(v, list | tuple),
-    "string": lambda v: isinstance(v, str),
-    "boolean": lambda v: isinstance(v, bool),
-    "null": lambda v: v is None,
-    # JSON numbers are finite; 1.0 counts as an integer (draft 2020-12, section 6.1.1)
-    "number": lambda v: isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v),
-    "integer": lambda v: (
-        isinstance(v, int | float)
-        and not isinstance(v, bool)
-        and math.isfinite(v)
-        and float(v).is_integer()
-    ),
-}
-
-
-def _check(value: Any, schema: Mapping[str, Any] | bool, path: str, errors: list[str]) -> None:
-    """Append to ``errors`` every violation of ``schema`` by ``value`` (``path`` names it)."""
-    if schema is True:
-        return
-    if schema is False:
-        errors.append(f"{path}: not allowed")
-        return
-    if "type" in schema:
-        types = schema["type"] if isinstance(schema["type"], list) else [schema["type"]]
-        if not any(_TYPES[t](value) for t in types):
-            errors.append(f"{path}: expected {'/'.join(types)}, got {type(value).__name__}")
-            return
-    if "const" in schema and value != schema["const"]:
-        errors.append(f"{path}: must be {schema['const']!r}, got {value!r}")
-    if "enum" in schema and value not in schema["enum"]:
-        errors.append(f"{path}: {value!r} not one of {schema['enum']}")
-    if _TYPES["number"](value):
-        for key, ok in (
-            ("minimum", lambda v, b: v >= b),
-            ("maximum", lambda v, b: v <= b),
-            ("exclusiveMinimum", lambda v, b: v > b),
-            ("exclusiveMaximum", lambda v, b: v < b),
-        ):
-            if key in schema and not ok(value, schema[key]):
-                errors.append(f"{path}: {value!r} violates {key} {schema[key]}")
-    if isinstance(value, str):
-        if len(value) < schema.get("minLength", 0):
-            errors.append(f"{path}: shorter than {schema['minLength']}")
-        if "pattern" in schema and not re.search(schema["pattern"], value):
-            errors.append(f"{path}: {value!r} does not match {schema['pattern']}")
-    if isinstance(value, list | tuple):
-        if len(value) < schema.get("minItems", 0):
-            errors.append(f"{path}: fewer than {schema['minItems']} items")
-        if "maxItems" in schema and len(value) > schema["maxItems"]:
-            errors.append(f"{path}: more than {schema['maxItems']} items")
-        if "items" in schema:
-            for i, item in enumerate(value):
-                _check(item, schema["items"], f"{path}[{i}]", errors)
-    if isinstance(value, dict):
-        for key in schema.get("required", ()):
-            if key not in value:
-                errors.append(f"{path}: missing {key!r}")
-        if len(value) < schema.get("minProperties", 0):
-            errors.append(f"{path}: fewer than {schema['minProperties']} properties")
-        props = schema.get("properties", {})
-        patterns = schema.get("patternProperties", {})
-        for key, item in value.items():
-            sub = f"{path}.{key}"
-            matched = False
-            if key in props:
-                matched = True
-                _check(item, props[key], sub, errors)
-            for pattern, pschema in patterns.items():
-                if re.search(pattern, key):
-                    matched = True
-                    _check(item, pschema, sub, errors)
-            if not matched and "additionalProperties" in schema:
-                extra = schema["additionalProperties"]
-                if extra is False:
-                    errors.append(f"{path}: unexpected property {key!r}")
-                else:
-                    _check(item, extra, sub, errors)
-    for sub_schema in schema.get("allOf", ()):
-        _check(value, sub_schema, path, errors)
-    if "anyOf" in schema and not any(_ok(value, s) for s in schema["anyOf"]):
-        errors.append(f"{path}: matches none of anyOf")
-    if "not" in schema and _ok(value, schema["not"]):
-        errors.append(f"{path}: matches a forbidden schema {schema['not']}")
-    if "if" in schema:
-        branch = "then" if _ok(value, schema["if"]) else "else"
-        if branch in schema:
-            _check(value, schema[branch], path, errors)
-
-
-def _ok(value: Any, schema: Mapping[str, Any] | bool) -> bool:
-    errors: list[str] = []
-    _check(value, schema, "", errors)
-    return not errors
-
-
-def validate(record: Any) -> list[str]:
-    """Violations of the schema of ``record["class"]``; an empty list means valid.
-
-    Covers the keywords :data:`SCHEMAS` uses: type, const, enum, required, properties,
-    patternProperties, additionalProperties, items, min/maxItems, minProperties,
-    minLength, pattern, minimum/maximum (exclusive too), allOf, anyOf, not, if/then/else.
-    """
-    if not isinstance(record, dict):
-        return [f"$: expected object, got {type(record).__name__}"]
-    cls = record.get("class")
-    if cls not in SCHEMAS:
-        return [f"$.class: {cls!r} not one of {sorted(SCHEMAS)}"]
-    errors: list[str] = []
-    _check(record, SCHEMAS[cls], "$", errors)
-    return errors

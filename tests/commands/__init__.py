@@ -1,0 +1,1 @@
+"""Tests of service.commands: the bdsfix subcommands and their errors."""

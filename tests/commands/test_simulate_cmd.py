@@ -1,0 +1,47 @@
+"""`bdsfix simulate` writes a UBX capture that the replay decodes into fast then SPP fixes."""
+
+import json
+
+from service.commands.cli import main
+from tests.support.paths import DATA
+
+NAV = DATA / "hksc-2021/hksc1610.nav"
+
+
+def test_simulated_capture_replays_fast_then_spp(tmp_path):
+    ubx, out = tmp_path / "sim.ubx", tmp_path / "fixes.jsonl"
+    assert (
+        main(
+            [
+                "simulate",
+                "--nav",
+                str(NAV),
+                "--start",
+                "2021-06-10T03:36:00",
+                "--lat-deg",
+                "22.3",
+                "--lon-deg",
+                "114.2",
+                "--duration-s",
+                "15",
+                "--out",
+                str(ubx),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(["replay", str(ubx), "--nav", str(NAV), "--max-speed", "--jsonl-out", str(out)]) == 0
+    )
+    recs = [json.loads(x) for x in out.read_text().splitlines()]
+    fixes = [r for r in recs if r["class"] == "FIX"]
+    first_fast = next(f["since_start_s"] for f in fixes if f["mode"] == "fast")
+    first_spp = next(f["since_start_s"] for f in fixes if f["mode"] == "spp")
+    assert first_fast <= 1.5 and first_spp >= 6.0
+    sows = [r for r in recs if r["class"] == "TRACK" and r["event"] == "sow"]
+    assert {r["nav_type"] for r in sows} == {"D1", "D2"}
+
+
+def test_simulate_rejects_a_bad_start(tmp_path, capsys):
+    assert main(["simulate", "--start", "yesterday", "--out", str(tmp_path / "x.ubx")]) == 2
+    assert "--start" in capsys.readouterr().err

@@ -1,0 +1,131 @@
+"""`bdsfix solve` on real recordings: the fast fix against SPP and the surveyed truth."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from service.commands.cli import main
+from tests.support.independent import HKSC_TRUTH_ECEF_M
+from tests.support.paths import DATA
+
+FIELDS_ALWAYS = {"class", "solver", "mode", "gpst_week", "gpst_tow_s", "n_full", "n_frac"}
+FIELDS_FIX = {"x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m", "pdop", "resid_rms_m"}
+
+
+def _solve(tmp_path, obs, nav, *extra):
+    out = tmp_path / "fixes.jsonl"
+    rc = main(["solve", str(obs), *[str(n) for n in nav], "--out", str(out), *extra])
+    assert rc == 0
+    recs = [json.loads(line) for line in out.read_text().splitlines()]
+    by_epoch: dict[float, dict[str, dict]] = defaultdict(dict)
+    for r in recs:
+        by_epoch[(r["gpst_week"], r["gpst_tow_s"])][r["solver"]] = r
+    return recs, by_epoch
+
+
+@pytest.fixture(scope="module")
+def hksc(tmp_path_factory):
+    d = DATA / "hksc-2021"
+    return _solve(
+        tmp_path_factory.mktemp("hksc"), d / "hksc1610.obs", [d / "hksc1610.nav"], "--mode", "both"
+    )
+
+
+def test_hksc_fast_fix_at_every_spp_epoch_and_identical(hksc):
+    _, by_epoch = hksc
+    assert len(by_epoch) == 205
+    spp_epochs = [k for k, v in by_epoch.items() if v["spp"]["mode"] == "spp"]
+    assert len(spp_epochs) == 205
+    worst = 0.0
+    for k in spp_epochs:
+        fast, spp = by_epoch[k]["fast"], by_epoch[k]["spp"]
+        assert fast["mode"] == "fast", fast.get("reason")
+        assert fast["n_full"] == 5 and fast["n_frac"] >= 1
+        worst = max(worst, float(np.linalg.norm(np.subtract(fast["x_ecef_m"], spp["x_ecef_m"]))))
+    assert worst <= 1e-3
+
+
+def test_hksc_spp_accuracy_against_the_surveyed_station(hksc):
+    _, by_epoch = hksc
+    err = [
+        np.linalg.norm(np.subtract(v["spp"]["x_ecef_m"], HKSC_TRUTH_ECEF_M))
+        for v in by_epoch.values()
+    ]
+    rms = float(np.sqrt(np.mean(np.square(err))))
+    assert rms <= 2.1, rms
+
+
+def test_hksc_records_follow_the_contract(hksc):
+    recs, _ = hksc
+    for r in recs:
+        assert r.keys() >= FIELDS_ALWAYS
+        assert None not in r.values()
+        assert r["class"] == "FIX"
+        if r["mode"] != "none":
+            assert r.keys() >= FIELDS_FIX
+        if r["solver"] == "fast" and r["mode"] == "fast":
+            assert {"gdop_full", "ambiguity"} <= r.keys()
+            assert len(r["ambiguity"]) == r["n_frac"]
+            assert 50 < r["gdop_full"] < 3000
+
+
+def test_hksc_recovered_ambiguities_are_exact(hksc):
+    """Every recovered N equals floor(P / c*1ms) of the full pseudorange in the file."""
+    from drivers.rinex import RinexObsReader
+
+    _, by_epoch = hksc
+    c_ms = 299_792.458
+    n_checked = 0
+    for ep in RinexObsReader(DATA / "hksc-2021" / "hksc1610.obs"):
+        fast = by_epoch[(ep.gpst_week, ep.gpst_tow_s)]["fast"]
+        for prn, n in fast["ambiguity"].items():
+            pr = float(ep.pr_m[ep.prn.index(prn)])
+            assert n == int(pr // c_ms)
+            n_checked += 1
+    assert n_checked > 2000
+
+
+def test_three_geos_fast_declines_with_reason_spp_fixes(tmp_path):
+    d = DATA / "hk-urban-3geo-2020"
+    _, by_epoch = _solve(
+        tmp_path, d / "rover.obs", [d / "navigation_message.nav"], "--mode", "both"
+    )
+    assert len(by_epoch) == 300
+    n_spp = 0
+    for v in by_epoch.values():
+        assert v["fast"]["mode"] == "none"
+        assert v["fast"]["reason"].startswith("too few full measurements")
+        n_spp += v["spp"]["mode"] == "spp"
+    assert n_spp >= 290
+
+
+def test_urban_moving_no_crash_fast_equals_spp_where_gated(tmp_path):
+    d = DATA / "hk-tst-urban-2019"
+    _, by_epoch = _solve(
+        tmp_path, d / "COM3_190428_124409.obs", [d / "hksc1180.19b"], "--mode", "both"
+    )
+    assert len(by_epoch) == 1760
+    n_fast = n_decline = n_other_subset = 0
+    for v in by_epoch.values():
+        fast, spp = v["fast"], v["spp"]
+        if fast["mode"] == "fast":
+            n_fast += 1
+            if spp["mode"] == "spp" and set(fast.get("excluded", ())) == set(
+                spp.get("excluded", ())
+            ):
+                assert np.linalg.norm(np.subtract(fast["x_ecef_m"], spp["x_ecef_m"])) <= 1e-3
+            else:
+                # fault exclusion left the two solvers different satellites (the fast fix
+                # cannot drop a GEO it needs as one of its four full measurements)
+                n_other_subset += 1
+                assert fast.get("excluded") or spp.get("excluded") or spp["mode"] == "none"
+        else:
+            n_decline += 1
+            assert fast["reason"]
+    assert n_decline > 0
+    assert n_other_subset <= 0.05 * n_fast
+    print(f"hk-tst-urban: {n_fast} fast fixes, {n_decline} declines, {n_other_subset} other subset")

@@ -1,0 +1,1 @@
+"""Tests of service.core: navigation codec, time, orbit, geometry, ephemerides."""

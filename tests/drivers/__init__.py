@@ -1,0 +1,1 @@
+"""Tests of drivers: framing, UBX, RTCM3, RINEX, SFRBX, transports, fuzzing."""

@@ -1,0 +1,135 @@
+"""The struct fast path for RXM-RAWX / MEASX / SFRBX against pyubx2, an independent decoder.
+
+Every RAWX, MEASX and SFRBX frame of every real capture is unpacked both ways and every field the
+fast path exposes must equal pyubx2's attribute of the same name. Frames the simulator
+writes with :func:`service.sim.ubx.rawx_frame` / :func:`service.sim.ubx.measx_frame` are parsed by
+pyubx2 and must carry the values put in (hypothesis over the field ranges).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pyubx2 import UBXReader
+
+from drivers.ubx import parse_rxm
+from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
+from tests.support.paths import DATA
+
+CAPTURES = sorted(
+    [*DATA.glob("tiny-ubx-rtcm/*.log"), *DATA.glob("ublox-logs/*.log"), *DATA.glob("*/*.ubx")]
+)
+
+
+def _rxm_frames(path: Path) -> list[bytes]:
+    with open(path, "rb") as stream:
+        return [
+            raw
+            for raw, _ in UBXReader(stream, protfilter=2, quitonerror=0)
+            if raw[2] == 0x02 and raw[3] in (0x13, 0x14, 0x15)
+        ]
+
+
+def _same(a: object, b: object) -> bool:
+    if isinstance(a, float) or isinstance(b, float):
+        return math.isclose(float(a), float(b), rel_tol=0.0, abs_tol=1e-12) or (  # type: ignore[arg-type]
+            math.isnan(float(a)) and math.isnan(float(b))  # type: ignore[arg-type]
+        )
+    return a == b
+
+
+@pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
+def test_fast_path_equals_pyubx2_on_real_captures(path: Path):
+    frames = _rxm_frames(path)
+    checked = 0
+    for raw in frames:
+        fast = parse_rxm(raw)
+        ref = UBXReader.parse(raw)
+        assert fast is not None and fast.identity == ref.identity
+        for name, value in fast.fields().items():
+            assert _same(value, getattr(ref, name)), (path.name, ref.identity, name)
+            assert _same(getattr(fast, name), value)  # pyubx2's flat names read the same
+            checked += 1
+    if frames:
+        assert checked > 0
+
+
+def test_real_captures_hold_both_messages():
+    kinds = {raw[3] for p in CAPTURES for raw in _rxm_frames(p)}
+    assert kinds == {0x13, 0x14, 0x15}
+
+
+def test_inconsistent_lengths_fall_back():
+    raw = rawx_frame(1.0, 2000, 18, [RawxMeas(2.1e7, 3, 6, 0, 1000, 40, 5, True)])
+    body = bytearray(raw[:-2])
+    body[4] += 1  # length one byte more than numMeas implies
+    assert parse_rxm(bytes(body) + b"\x00\x00\x00") is None
+    assert parse_rxm(b"\xb5\x62\x01\x07\x00\x00\x00\x00") is None  # NAV-PVT: not ours
+
+
+meas = st.builds(
+    RawxMeas,
+    pr_m=st.floats(1.9e7, 4.5e7),
+    gnss_id=st.integers(0, 6),
+    sv_id=st.integers(1, 63),
+    sig_id=st.integers(0, 7),
+    locktime_ms=st.integers(0, 64500),
+    cn0_dbhz=st.integers(0, 60),
+    pr_std_index=st.integers(0, 15),
+    pr_valid=st.booleans(),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    tow=st.floats(0, 604799.999),
+    week=st.integers(0, 4000),
+    ms=st.lists(meas, min_size=0, max_size=40),
+)
+def test_rawx_encoder_read_by_pyubx2(tow, week, ms):
+    msg = UBXReader.parse(rawx_frame(tow, week, 18, ms))
+    assert msg.identity == "RXM-RAWX"
+    assert (msg.rcvTow, msg.week, msg.leapS, msg.numMeas) == (tow, week, 18, len(ms))
+    for i, m in enumerate(ms, start=1):
+        k = f"_{i:02d}"
+        assert getattr(msg, "prMes" + k) == (m.pr_m if m.pr_valid else 0.0)
+        assert getattr(msg, "prValid" + k) == int(m.pr_valid)
+        assert (getattr(msg, "gnssId" + k), getattr(msg, "svId" + k)) == (m.gnss_id, m.sv_id)
+        assert getattr(msg, "sigId" + k) == m.sig_id
+        assert getattr(msg, "locktime" + k) == m.locktime_ms
+        assert getattr(msg, "cno" + k) == m.cn0_dbhz
+        assert getattr(msg, "prStd" + k) == m.pr_std_index
+
+
+svs = st.builds(
+    MeasxSv,
+    gnss_id=st.integers(0, 6),
+    sv_id=st.integers(1, 63),
+    cn0_dbhz=st.integers(0, 60),
+    whole_chips=st.integers(0, 2045),
+    code_phase_units=st.integers(0, (1 << 21) - 1),
+    int_code_phase_ms=st.integers(0, 255),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(tow_ms=st.integers(0, 604_799_999), ss=st.lists(svs, min_size=0, max_size=40))
+def test_measx_encoder_read_by_pyubx2(tow_ms, ss):
+    bds_ms = (tow_ms - 14_000) % 604_800_000
+    msg = UBXReader.parse(measx_frame(tow_ms, bds_ms, ss))
+    assert msg.identity == "RXM-MEASX"
+    assert (msg.gpsTOW, msg.bdsTOW, msg.numSv) == (tow_ms, bds_ms, len(ss))
+    for i, s in enumerate(ss, start=1):
+        k = f"_{i:02d}"
+        assert (getattr(msg, "gnssId" + k), getattr(msg, "svId" + k)) == (s.gnss_id, s.sv_id)
+        assert getattr(msg, "cNo" + k) == s.cn0_dbhz
+        assert getattr(msg, "wholeChips" + k) == s.whole_chips
+        # pyubx2 rounds scaled fields to 12 decimals; the LSB is 4.8e-7 ms
+        assert math.isclose(
+            getattr(msg, "codePhase" + k), s.code_phase_units * 2.0**-21, abs_tol=1e-12
+        )
+        assert getattr(msg, "intCodePhase" + k) == s.int_code_phase_ms

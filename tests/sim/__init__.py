@@ -1,0 +1,1 @@
+"""Tests of service.sim: Keplerian constellations and the simulated scenario."""

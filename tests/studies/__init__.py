@@ -1,0 +1,1 @@
+"""Tests of service.studies: coverage, TTFF and integrity studies."""

@@ -1,0 +1,1 @@
+"""End to end: the daemon and replay with real peers, goldens, damage, security, load."""
