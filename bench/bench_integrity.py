@@ -1,27 +1,6 @@
-"""Integrity Monte Carlo: single and dual range faults of 10 m to 150 km on simulated epochs.
-
-Each trial is one epoch of the virtual receiver (:class:`service.sim.simulator.Simulator`, real
-2021 broadcast ephemerides of ../shared/data/hksc-2021, Klobuchar + Saastamoinen + 1.3 m
-noise) at one of five places in the >= 4-GEO area (Beijing, Hong Kong, Singapore, Sydney,
-Tokyo), a random time of the nav file's six hours and a random receiver clock offset.
-Both solvers run with the daemon's defaults (10 deg mask, error model, chi-square test at
-P_fa 1e-5, up to 2 exclusions, protection levels at P_md 1e-3):
-
-- fast: a restart's view: GEOs full (D2 SOW decoded), each non-GEO full with a per-trial
-  probability in [0, 0.5), the rest fractional (T = 1 ms);
-- spp: every measurement full.
-
-Each view is solved clean and with a fault: one satellite (single, 70 % of the trials) or
-two (dual), chosen at random, each biased by a log-uniform magnitude with a random sign,
-added before the receiver reduces a fractional range modulo c T.
-
-Counted per solver and fault kind, against the simulator's truth (never the engine's):
-- PL exceeded: a published fix whose horizontal error exceeds its HPL or whose vertical
-  error exceeds its VPL (target 0 for single faults);
-- wrong integer: a published fast fix with any integer different from
-  round((pr_true - z) / cT), z the fractional value it solved with (target 0);
-- availability lost: the clean epoch fixed, the faulted one was declined;
-- faulty satellite excluded / used; false exclusions on the clean epochs.
+"""Integrity Monte Carlo figures (the study: :mod:`service.studies.integrity`), on the real
+2021 broadcast ephemerides of hksc-2021, plus HKSC emulated restarts whose recovered integers
+are checked at the D1 SOW.
 
 Run: python bench/bench_integrity.py [--trials N] [--seed S] [--jobs J]   (prints figures)
 """
