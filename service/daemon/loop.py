@@ -200,6 +200,7 @@ class Runner:
         if self.store_path is None or not self._store_dirty:
             return
         try:
+            self.pipeline.prune_store()
             self.pipeline.store.save(self.store_path)
             self._store_dirty = False
             log.info(

@@ -20,7 +20,7 @@ from service.core.bds_nav import EphemerisAssembler
 from service.core.constants import C_M_S
 from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
-from service.core.timebase import diff_s
+from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import (
     Ephemeris,
     Fix,
@@ -35,6 +35,9 @@ from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEven
 log = logging.getLogger(__name__)
 
 WARM_START_MAX_AGE_S = 30.0
+STORE_KEEP_S = 86_400.0
+"""Ephemerides whose t_oe is more than this before the latest measurement are dropped from
+the store when it is saved (BDS broadcasts a new set every hour, ICD 5.2.4.9)."""
 """A fix older than this [s, data time] is not used as the start of the next solve."""
 
 
@@ -122,6 +125,7 @@ class Pipeline:
     tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
     counters: Counters = field(default_factory=Counters)
     _first: tuple[int, float] | None = None
+    _latest: tuple[int, float] | None = None  # GPST of the latest measurement epoch
     _restarted: bool = False
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
@@ -137,6 +141,15 @@ class Pipeline:
             self.counters["ephemeris_refused"] += 1
             if self.store.last_refusal is not None:
                 self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
+
+    def prune_store(self) -> int:
+        """Drop ephemerides older than STORE_KEEP_S before the latest measurement (none
+        before the first one); counted as ``ephemeris_pruned``."""
+        if self._latest is None:
+            return 0
+        dropped = self.store.prune(*gpst_to_bdt(*self._latest), keep_s=STORE_KEEP_S)
+        self.counters["ephemeris_pruned"] += dropped
+        return dropped
 
     def set_iono(self, params: KlobucharParams) -> None:
         """Broadcast ionosphere coefficients (BDS, or GPS as the fallback) for the solver and
@@ -163,6 +176,7 @@ class Pipeline:
         self.counters["epochs"] += 1
         if self._first is None:
             self._first = (epoch.gpst_week, epoch.gpst_tow_s)
+        self._latest = (epoch.gpst_week, epoch.gpst_tow_s)
         if (
             self.restart_at_s is not None
             and not self._restarted

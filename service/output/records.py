@@ -1,4 +1,4 @@
-"""The one place that turns results into the JSON/CSV contract of ARCHITECTURE.md.
+"""The one place that turns results into the JSON/CSV contract of docs/architecture.md.
 
 Every record is a flat JSON object with a ``class`` (``FIX``, ``SKY``, ``TRACK``,
 ``STATUS``); on ZeroMQ the class is also the topic. :data:`SCHEMAS` holds a JSON Schema

@@ -256,7 +256,7 @@ def test_decoded_d1_set_is_refused_and_the_good_one_stays(c08, change, check):
     the same set damaged (fields the D1 message can carry: sqrt(A) >= 0, e < 0.5, URAI 15)."""
     pipe = Pipeline(EphemerisStore())
     sow = int(c08.toe_sow_s) - 1800
-    bdt_week, gpst_week = c08.week, c08.week + 1356  # METHOD.md: GPS week = BDS week + 1356
+    bdt_week, gpst_week = c08.week, c08.week + 1356  # ICD 4.2: GPS week = BDS week + 1356
 
     def feed(eph, sow_s):
         for fra, words in enumerate(encode_d1_subframes(eph, sow_s)[:3], start=1):

@@ -1,4 +1,4 @@
-"""JSON/CSV records: the contract of ARCHITECTURE.md, strict JSON, and the JSON Schemas
+"""JSON/CSV records: the contract of docs/architecture.md, strict JSON, and the JSON Schemas
 (checked with jsonschema) against hand-written good and bad records and against every golden
 replay record."""
 
@@ -30,7 +30,7 @@ from tests.support.fixes import HKSC_ECEF_M, SKY, declined_fix, ecef_m, geodetic
 from tests.support.paths import GOLDEN
 from tests.support.schema import schema_errors, validate
 
-# The FIX fields of ARCHITECTURE.md, written out here, plus the stream field since_start_s.
+# The FIX fields of docs/architecture.md, written out here, plus the stream field since_start_s.
 CONTRACT_FIX_FIELDS = {
     "class",
     "solver",

@@ -20,7 +20,7 @@ from tests.support.paths import DATA, ROOT
 HK = DATA / "hksc-2021"
 BDSFIX = [sys.executable, "-m", "service"]
 
-# The contract of ARCHITECTURE.md, written out here (not taken from the code under test).
+# The contract of docs/architecture.md, written out here (not taken from the code under test).
 SCHEMA = {
     "FIX": {
         "required": {
