@@ -40,10 +40,32 @@ def _float_list(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
 
 
+class _Help(argparse.HelpFormatter):
+    """Every option's help ends with its default (unless it has none or says it already)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        if (
+            "(default" in text
+            or default is None
+            or default is False
+            or default == argparse.SUPPRESS
+            or action.nargs == 0
+        ):
+            return text
+        shown = ", ".join(str(v) for v in default) if isinstance(default, list) else default
+        return f"{text} (default: {shown})"
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse whose usage errors are one line on stderr (exit 2), not a usage dump.
 
     Subcommand parsers inherit the class (``add_subparsers`` uses ``type(self)``)."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("formatter_class", _Help)
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -57,33 +79,89 @@ def build_parser() -> argparse.ArgumentParser:
         "and ZeroMQ contracts: docs/architecture.md in the repository.",
     )
     p.add_argument("--version", action="version", version=f"bdsfix {__version__}")
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
-    sub = p.add_subparsers(dest="command", required=True)
+    p.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)"
+    )
+    # -v is also taken after the subcommand (bdsfix solve -v ...)
+    verbose = _Parser(add_help=False)
+    verbose.add_argument(
+        "-v", "--verbose", action="count", default=argparse.SUPPRESS, help="more log output"
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    s = sub.add_parser("solve", help="batch per-epoch solutions from RINEX 3 obs + nav")
-    s.add_argument("obs")
+    def command(name: str, summary: str, description: str) -> argparse.ArgumentParser:
+        parser: argparse.ArgumentParser = sub.add_parser(
+            name, help=summary, description=description, parents=[verbose]
+        )
+        return parser
+
+    s = command(
+        "solve",
+        "batch per-epoch solutions from RINEX 3 obs + nav",
+        "Solve every epoch of a RINEX 3 observation file with the fast fix and/or SPP and "
+        "write one record per epoch and solver; a summary with the decline reasons goes "
+        "to stderr.",
+    )
+    s.add_argument("obs", help="RINEX 3 observation file (BDS C2I/C1I pseudoranges)")
     s.add_argument("nav", nargs="+", help="one or more RINEX 3 nav files")
-    s.add_argument("--mode", choices=["fast", "spp", "both"], default="both")
-    s.add_argument("--fractional", choices=["non-geo", "none"], default="non-geo")
-    s.add_argument("--period-ms", type=int, choices=[1, 20], default=1)
-    s.add_argument("--format", choices=["jsonl", "csv", "nmea"], default="jsonl")
+    s.add_argument(
+        "--mode",
+        choices=["fast", "spp", "both"],
+        default="both",
+        help="which solver runs on each epoch",
+    )
+    s.add_argument(
+        "--fractional",
+        choices=["non-geo", "none"],
+        default="non-geo",
+        help="non-geo: the fast solver sees non-GEO pseudoranges only modulo c*T, as in the "
+        "paper; none: every range full",
+    )
+    s.add_argument(
+        "--period-ms",
+        type=int,
+        choices=[1, 20],
+        default=1,
+        help="T of the fractional ranges [ms]: 1 (code period) or 20 (D1 bit)",
+    )
+    s.add_argument(
+        "--format", choices=["jsonl", "csv", "nmea"], default="jsonl", help="output format"
+    )
     s.add_argument("--out", default="-", help="output file, - for stdout")
     add_flags(s, SolverConfig, "solver")
 
-    c = sub.add_parser("coverage", help="usability study of the fast fix (paper Table 3)")
-    c.add_argument("--days", type=float, default=8.0)
-    c.add_argument("--step-s", type=float, default=300.0)
-    c.add_argument("--grid-deg", type=float, default=1.0)
-    c.add_argument("--altitudes-m", type=_float_list, default=[0.0, 1_000_000.0])
-    c.add_argument("--beta", type=float, default=3000.0)
-    c.add_argument("--elmask-deg", type=float, default=0.0)
+    c = command(
+        "coverage",
+        "usability study of the fast fix (paper Table 3)",
+        "Where and how often the fast fix is usable: at least 4 GEOs in view and the GEO "
+        "GDOP gate passed, over a global grid and a span of days, from the paper's Table 1 "
+        "constellation or a nav file's GEOs.",
+    )
+    c.add_argument("--days", type=float, default=8.0, help="span of the study [days]")
+    c.add_argument("--step-s", type=float, default=300.0, help="time step [s]")
+    c.add_argument("--grid-deg", type=float, default=1.0, help="grid spacing [deg]")
+    c.add_argument(
+        "--altitudes-m",
+        type=_float_list,
+        default=[0.0, 1_000_000.0],
+        help="user altitudes, comma-separated [m]",
+    )
+    c.add_argument("--beta", type=float, default=3000.0, help="GEO GDOP gate beta (eq. 21)")
+    c.add_argument("--elmask-deg", type=float, default=0.0, help="elevation mask [deg]")
     c.add_argument("--nav", help="RINEX nav file: broadcast constellation instead of Table 1")
     add_start_flag(c, "the study's first epoch (default: Table 1's, 2015-05-19T04:00:00)")
     c.add_argument("--json", dest="json_out", help="write the result as JSON to FILE (- stdout)")
     c.add_argument("--plot", help="write a coverage map PNG (needs the plot extra)")
-    c.add_argument("--no-progress", action="store_true")
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    r = sub.add_parser("replay", help="replay a capture (or the built-in scenario) as a receiver")
+    r = command(
+        "replay",
+        "replay a capture (or the built-in scenario) as a receiver",
+        "Feed a capture through the same stream path as the daemon: a UBX/RTCM3/NMEA "
+        "capture or a RINEX 3 obs file, paced in real time (--max-speed: as fast as "
+        "possible); with no FILE, the built-in virtual receiver near Beijing at full speed. "
+        "NMEA goes to stdout unless another output is asked for; a summary to stderr.",
+    )
     r.add_argument(
         "files",
         nargs="*",
@@ -118,29 +196,43 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KIND:SPEC",
         help=f"another output (repeatable; kinds: {', '.join(SINKS)})",
     )
-    r.add_argument("--talker", choices=["GN", "GB", "BD", "GP"], default="GN")
+    r.add_argument("--talker", choices=["GN", "GB", "BD", "GP"], default="GN", help="NMEA talker")
     r.add_argument("--seed", type=int, default=0, help="seed of emulated sync delays")
     r.add_argument("--gps-week", type=int, default=None, help="GPS week for RTCM-only files")
-    r.add_argument("--status-interval-s", type=float, default=10.0)
+    r.add_argument(
+        "--status-interval-s", type=float, default=10.0, help="period of STATUS records [s]"
+    )
     add_flags(r, SolverConfig, "solver")
 
-    d = sub.add_parser("run", help="the daemon (config file; every key is also a flag)")
+    d = command(
+        "run",
+        "the daemon (config file; every key is also a flag)",
+        "The receiver daemon: reads a receiver (serial, TCP or a file), publishes NMEA on "
+        "TCP, ZeroMQ and files, keeps its ephemeris store in the state directory. Every key "
+        "of the TOML config is also a flag; flags override the file.",
+    )
     d.add_argument(
         "--config", default=None, help=f"TOML config (default {DEFAULT_CONFIG} when it exists)"
     )
     add_config_flags(d)
 
-    m = sub.add_parser("simulate", help="virtual BDS receiver: UBX out")
+    m = command(
+        "simulate",
+        "virtual BDS receiver: UBX out",
+        "A virtual B1I receiver at a known place: UBX RXM-MEASX, RXM-RAWX (prMes valid once "
+        "each satellite's SOW decoded) and RXM-SFRBX with real D1/D2 subframe timing, to a "
+        "file, stdout or a pty.",
+    )
     m.add_argument("--nav", help="RINEX 3 nav file (default: the paper's Table 1 set)")
-    m.add_argument("--lat-deg", type=float, default=39.9)
-    m.add_argument("--lon-deg", type=float, default=116.4)
-    m.add_argument("--alt-m", type=float, default=50.0)
+    m.add_argument("--lat-deg", type=float, default=39.9, help="true latitude [deg]")
+    m.add_argument("--lon-deg", type=float, default=116.4, help="true longitude [deg]")
+    m.add_argument("--alt-m", type=float, default=50.0, help="true ellipsoidal height [m]")
     add_start_flag(m, "the first epoch (default: first toe, or Table 1's epoch)")
-    m.add_argument("--duration-s", type=float, default=60.0)
-    m.add_argument("--rate-hz", type=float, default=10.0)
-    m.add_argument("--clock-offset-s", type=float, default=0.0123)
-    m.add_argument("--noise-m", type=float, default=1.3)
-    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--duration-s", type=float, default=60.0, help="length of the stream [s]")
+    m.add_argument("--rate-hz", type=float, default=10.0, help="measurement rate [Hz]")
+    m.add_argument("--clock-offset-s", type=float, default=0.0123, help="receiver clock offset [s]")
+    m.add_argument("--noise-m", type=float, default=1.3, help="pseudorange noise sigma [m]")
+    m.add_argument("--seed", type=int, default=0, help="random seed (noise, sync delays)")
     dest = m.add_mutually_exclusive_group()
     dest.add_argument("--out", help="file, - for stdout (default)")
     dest.add_argument("--pty", action="store_true", help="write to a new pty (path on stderr)")
@@ -149,11 +241,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
     )
 
-    t = sub.add_parser("ttff", help="time to first fix: fast vs conventional on restarts")
-    t.add_argument("obs", nargs="?")
-    t.add_argument("nav", nargs="*")
-    t.add_argument("--trials", type=int, default=100)
-    t.add_argument("--seed", type=int, default=1)
+    t = command(
+        "ttff",
+        "time to first fix: fast vs conventional on restarts",
+        "Time to first fix after receiver restarts: emulated on real RINEX data (OBS NAV), "
+        "or (--simulate) restarts of the virtual receiver streamed through a pty into "
+        "'bdsfix run'. Fast fix versus conventional SPP and GEO-only SPP.",
+    )
+    t.add_argument("obs", nargs="?", help="RINEX 3 obs file (not with --simulate)")
+    t.add_argument("nav", nargs="*", help="RINEX 3 nav file(s)")
+    t.add_argument("--trials", type=int, default=100, help="number of restarts")
+    t.add_argument("--seed", type=int, default=1, help="random seed of the restart times")
     t.add_argument("--json", action="store_true", help="print the result as JSON")
     t.add_argument("--plot", help="TTFF histograms PNG")
     t.add_argument(
@@ -178,8 +276,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(t, SolverConfig, "solver")
 
-    z = sub.add_parser("sub", help="print ZeroMQ messages")
-    z.add_argument("endpoint", nargs="?", default="tcp://127.0.0.1:10111")
+    z = command(
+        "sub",
+        "print ZeroMQ messages",
+        "Subscribe to a bdsfix ZeroMQ PUB endpoint and print each message as "
+        "'TOPIC JSON' (a running 'bdsfix run', or 'bdsfix replay --zmq ENDPOINT').",
+    )
+    z.add_argument(
+        "endpoint", nargs="?", default="tcp://127.0.0.1:10111", help="ZeroMQ PUB endpoint"
+    )
     z.add_argument("--topic", action="append", help="FIX, SKY, TRACK or STATUS (default all)")
     z.add_argument("--count", type=int, default=None, help="exit after N messages")
     z.add_argument("--timeout-s", type=float, default=None, help="exit after this idle time")
