@@ -51,9 +51,12 @@ line (the ``>`` record identifier of the RINEX 3 data record description):
 from __future__ import annotations
 
 import datetime as dt
+import gzip
+import io
 import logging
 import math
 import weakref
+import zlib
 from collections import Counter
 from collections.abc import Generator, Iterator
 from dataclasses import dataclass, field
@@ -144,11 +147,67 @@ class _Lines:
         return FramingError(f"{self.path}:{self.n if lineno is None else lineno}: {message}")
 
 
-def _open(path: Path) -> IO[str]:
+_GZIP_MAGIC = b"\x1f\x8b"
+_COMPRESS_MAGIC = b"\x1f\x9d"  # Unix compress (.Z), as older IGS archives have it
+_CRINEX_LABEL = b"CRINEX VERS   / TYPE"
+
+
+class _GzipText(io.TextIOWrapper):
+    """gzip text whose damage (truncation, bad CRC) is a FramingError naming the file."""
+
+    def __init__(self, path: Path) -> None:
+        self._path = path
+        super().__init__(gzip.open(path, "rb"), encoding="ascii", errors="replace")  # noqa: SIM115
+
+    def _damaged(self, exc: Exception) -> FramingError:
+        return FramingError(f"{self._path}: damaged gzip file: {exc}")
+
+    def readline(self, size: int = -1, /) -> str:  # type: ignore[override]
+        try:
+            return super().readline(size)
+        except (EOFError, OSError, zlib.error) as exc:
+            raise self._damaged(exc) from exc
+
+    def __next__(self) -> str:  # type: ignore[override]
+        try:
+            return super().__next__()
+        except (EOFError, OSError, zlib.error) as exc:
+            raise self._damaged(exc) from exc
+
+
+def open_text(path: str | Path) -> IO[str]:
+    """A RINEX file as text, whatever the form IGS publishes it in: plain, gzip (``.gz``),
+    Unix compress (``.Z``) or Hatanaka compact RINEX (``.crx``/``.??d``, plain or
+    compressed; decompressed with the ``hatanaka`` package). The form is read from the
+    file's first bytes, not its name. Plain and gzip files stream; the others are expanded
+    in memory."""
+    path = Path(path)
     try:
-        return path.open("r", encoding="ascii", errors="replace")
-    except OSError as exc:
-        raise FramingError(f"{path}: cannot read: {exc.strerror}") from exc
+        with path.open("rb") as fh:
+            head = fh.read(2)
+        if head == _GZIP_MAGIC:
+            with gzip.open(path, "rb") as gz:
+                first = gz.readline(200)
+            if _CRINEX_LABEL not in first:
+                return _GzipText(path)
+        elif head != _COMPRESS_MAGIC:
+            with path.open("rb") as fh:
+                first = fh.readline(200)
+            if _CRINEX_LABEL not in first:
+                return path.open("r", encoding="ascii", errors="replace")
+    except OSError as exc:  # includes gzip.BadGzipFile
+        raise FramingError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    import hatanaka
+
+    try:
+        text = hatanaka.decompress(path).decode("ascii", errors="replace")
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise FramingError(f"{path}: cannot decompress (gzip/.Z/Hatanaka): {exc}") from exc
+    return io.StringIO(text)
+
+
+def _open(path: Path) -> IO[str]:
+    return open_text(path)
 
 
 @dataclass(frozen=True, slots=True)
@@ -169,8 +228,6 @@ def _read_header(lines: _Lines, kind: str) -> _Header:
     first = lines.next()
     if first is None:
         raise lines.error("empty file, not RINEX", 1)
-    if first.startswith("CRINEX") or "CRINEX VERS" in first[60:80]:
-        raise lines.error("Hatanaka-compressed RINEX (CRINEX): decompress it with crx2rnx first")
     if first[60:80].strip() != "RINEX VERSION / TYPE":
         raise lines.error("not a RINEX file (first record is not RINEX VERSION / TYPE)")
     try:

@@ -36,7 +36,7 @@ from drivers.transport import (
     pace,
 )
 from service.core.counters import Counters
-from service.core.errors import ConfigError, DecodeError
+from service.core.errors import ConfigError, DecodeError, FramingError
 from service.core.timebase import gpst_from_utc
 
 log = logging.getLogger(__name__)
@@ -238,9 +238,21 @@ class RinexSource(EventSource):
 
 
 def is_rinex(path: str | Path) -> bool:
-    """True when the file's first line carries the RINEX header label."""
+    """True when the file's first line carries the RINEX header label (also gzip, Unix
+    compress and Hatanaka compact RINEX: :func:`drivers.rinex.open_text`)."""
+    from drivers.rinex import open_text
+
     with open(path, "rb") as f:
-        return b"RINEX VERSION / TYPE" in f.readline(200)
+        head = f.readline(200)
+    if b"RINEX VERSION / TYPE" in head or b"CRINEX VERS" in head:
+        return True
+    if not head.startswith((b"\x1f\x8b", b"\x1f\x9d")):
+        return False
+    try:
+        with open_text(path) as fh:
+            return "RINEX VERSION / TYPE" in fh.readline(200)
+    except FramingError:
+        return False
 
 
 def _nav_events(nav: str | Path | Iterable[str | Path] | None, counters: Counters) -> list[Event]:
