@@ -276,12 +276,21 @@ def main_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+SUB_NOTICE_AFTER_S = 3.0
+"""``bdsfix sub`` says on stderr what it waits for when nothing came in this long [s]."""
+
+
 def main_sub(args: argparse.Namespace) -> int:
+    """Print each ZeroMQ message as ``TOPIC JSON``. While no publisher is there it idles
+    (reconnects back off to 5 s) and says so once on stderr; SIGTERM ends it with 0
+    (Ctrl-C: 130, as every command)."""
     import zmq
 
     ctx: Any = zmq.Context.instance()
     sock = ctx.socket(zmq.SUB)
     sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RECONNECT_IVL, 200)
+    sock.setsockopt(zmq.RECONNECT_IVL_MAX, 5000)  # back off while no publisher listens
     for topic in args.topic or [""]:
         sock.setsockopt_string(zmq.SUBSCRIBE, topic)
     _curve_client(sock, getattr(args, "curve_server_key", None), getattr(args, "curve_key", None))
@@ -290,15 +299,38 @@ def main_sub(args: argparse.Namespace) -> int:
     except zmq.ZMQError as exc:
         sock.close()
         raise ConfigError(f"endpoint {args.endpoint!r}: {exc.strerror}") from exc
+    stop = False
+
+    def on_term(signum: int, frame: Any) -> None:
+        nonlocal stop
+        stop = True
+
+    previous = signal.signal(signal.SIGTERM, on_term)
     n = 0
+    idle_s = 0.0
+    noticed = False
     try:
-        while args.count is None or n < args.count:
-            if not sock.poll(int(args.timeout_s * 1000) if args.timeout_s else None):
-                break
+        while not stop and (args.count is None or n < args.count):
+            slice_s = 0.5
+            if not sock.poll(int(slice_s * 1000)):
+                idle_s += slice_s
+                if args.timeout_s and idle_s >= args.timeout_s:
+                    break
+                if not noticed and n == 0 and idle_s >= SUB_NOTICE_AFTER_S:
+                    noticed = True
+                    print(
+                        f"bdsfix sub: no message from {args.endpoint} yet; waiting for a "
+                        "publisher ('bdsfix run', or 'bdsfix replay --zmq ENDPOINT')",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                continue
+            idle_s = 0.0
             topic, body = sock.recv_multipart()
             print(f"{topic.decode()} {body.decode()}", flush=True)
             n += 1
     finally:
+        signal.signal(signal.SIGTERM, previous)
         sock.close()
     return 0
 
