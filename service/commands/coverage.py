@@ -8,9 +8,9 @@ import logging
 
 import numpy as np
 
-from service.commands.options import parse_start
+from service.commands.options import check_output_path, parse_start
 from service.core.constants import is_geo
-from service.core.errors import ConfigError
+from service.core.errors import ConfigError, InputError
 from service.studies.coverage import (
     CoverageConfig,
     coverage_document,
@@ -35,6 +35,8 @@ def main_coverage(args: argparse.Namespace) -> int:
         beta=args.beta,
         elmask_deg=args.elmask_deg,
     )
+    check_output_path(args.json_out, "--json")
+    check_output_path(args.plot, "--plot")
     if cfg.days <= 0 or cfg.step_s <= 0 or cfg.grid_deg <= 0 or not cfg.altitudes_m:
         raise ConfigError("--days, --step-s and --grid-deg must be positive, with an altitude")
     t_s = np.arange(cfg.n_epochs) * cfg.step_s
@@ -47,7 +49,7 @@ def main_coverage(args: argparse.Namespace) -> int:
         else:
             geo_sets = [e for p, s in nav.ephemerides.items() if is_geo(p) for e in s]
             if not geo_sets:
-                raise ConfigError(f"{args.nav}: no GEO ephemerides")
+                raise InputError(f"{args.nav}: no GEO ephemerides")
             first = min(geo_sets, key=lambda e: (e.week, e.toe_sow_s))
             start = (first.week, first.toe_sow_s)
             log.info("--nav: the study starts at the first GEO t_oe, BDT %d/%.0f", *start)

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import os
+from pathlib import Path
 from typing import Any
 
-from service.core.errors import ConfigError
+from service.core.errors import ConfigError, InputError
 from service.core.settings import build, given
 from service.engine.solver import SolverConfig
 
@@ -32,3 +34,25 @@ def parse_start(text: str) -> dt.datetime:
     if t.tzinfo is not None:
         t = t.astimezone(dt.UTC).replace(tzinfo=None)
     return t
+
+
+def check_output_path(path: str | None, flag: str) -> None:
+    """An output file a command will write after long work can be written: its directory
+    exists and is writable and it is not a directory (InputError, exit 3, before any
+    computing); ``-`` (stdout) and None pass."""
+    if not path or path == "-":
+        return
+    p = Path(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise InputError(f"{flag} {path}: is a directory")
+    if not folder.is_dir():
+        raise InputError(f"{flag} {path}: no such directory {folder}")
+    if not os.access(folder, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise InputError(f"{flag} {path}: permission denied")
+
+
+def check_range(flag: str, value: float, low: float, high: float) -> None:
+    """``low <= value <= high`` (and not NaN), else ConfigError naming the flag (exit 2)."""
+    if not low <= value <= high:
+        raise ConfigError(f"{flag} must be in [{low:g}, {high:g}], got {value}")

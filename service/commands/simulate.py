@@ -14,7 +14,7 @@ import os
 import sys
 import time
 
-from service.commands.options import parse_start
+from service.commands.options import check_range, parse_start
 from service.core.errors import ConfigError, InputError
 from service.core.timebase import bdt_to_gpst, gpst_from_utc
 from service.core.types import Ephemeris, KlobucharParams
@@ -31,7 +31,7 @@ def _ephemerides(nav: str | None) -> tuple[list[Ephemeris], KlobucharParams | No
     data = read_nav(nav)
     ephs = [e for items in data.ephemerides.values() for e in items if ephemeris_problem(e) is None]
     if not ephs:
-        raise ConfigError(f"{nav}: no healthy BDS ephemeris that passes the entry checks")
+        raise InputError(f"{nav}: no healthy BDS ephemeris that passes the entry checks")
     return ephs, data.iono_bds
 
 
@@ -39,6 +39,9 @@ def main_simulate(args: argparse.Namespace) -> int:
     for flag, value in (("--rate-hz", args.rate_hz), ("--duration-s", args.duration_s)):
         if not (value > 0 and value < float("inf")):
             raise ConfigError(f"{flag} must be a positive number, got {value}")
+    check_range("--lat-deg", args.lat_deg, -90.0, 90.0)
+    check_range("--lon-deg", args.lon_deg, -180.0, 360.0)
+    check_range("--alt-m", args.alt_m, -1000.0, 1_100_000.0)
     ephs, iono = _ephemerides(args.nav)
     if args.start:
         week, tow = gpst_from_utc(parse_start(args.start))

@@ -17,7 +17,7 @@ from typing import IO, Literal
 
 from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
-from service.core.errors import ConfigError
+from service.core.errors import InputError
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.solver import IonoSet, SolverConfig, fractionalize, solve
 
@@ -46,7 +46,7 @@ def load_navigation(paths: list[str], max_age_s: float = 7200.0) -> tuple[Epheme
             store.add_all(ephs)
         params += [nav.iono_bds, nav.iono_gps]
     if len(store) == 0:
-        raise ConfigError(f"no usable BDS ephemeris in {', '.join(paths)}")
+        raise InputError(f"no usable BDS ephemeris in {', '.join(paths)}")
     iono = IonoSet.of(params)
     if iono.bds is None and iono.gps is not None:
         log.warning(
@@ -80,7 +80,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
     try:
         fh = open(path, "w", encoding="ascii", newline="")  # noqa: SIM115
     except OSError as exc:
-        raise ConfigError(f"cannot write {path}: {exc.strerror}") from exc
+        raise InputError(f"cannot write {path}: {exc.strerror}") from exc
     with fh:
         yield fh
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from drivers.rinex import RinexObsReader
-from service.commands.options import parse_start, solver_config
+from service.commands.options import check_output_path, parse_start, solver_config
 from service.commands.solve import load_navigation
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
@@ -38,6 +38,9 @@ from service.studies.ttff_sim import (
 
 
 def main_ttff(args: argparse.Namespace) -> int:
+    if args.trials < 1:
+        raise ConfigError(f"--trials must be at least 1, got {args.trials}")
+    check_output_path(args.plot, "--plot")
     if args.simulate:
         doc, sim_trials = run_simulated(args)
         _print(doc, args.json)

@@ -1,0 +1,57 @@
+"""The README's exit-code table, command by command, on the real console script: an input
+that cannot be used is 3 (a GPS-only nav file, an output in a missing directory), a bad
+value is 2 (out-of-range position, no trials); outputs written after long work are
+checked before it starts."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from tests.support.paths import DATA, ROOT
+
+GPS_NAV = str(DATA / "hk-polyu-f9p-ubx-2024" / "hksc269h.24n")  # RINEX 3, GPS only
+HKSC_OBS = str(DATA / "hksc-2021" / "hksc1610.obs")
+HKSC_NAV = str(DATA / "hksc-2021" / "hksc1610.nav")
+MISSING = "/nonexistent-dir/out"
+
+
+def _bdsfix(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "service", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "says"),
+    [
+        (("solve", HKSC_OBS, GPS_NAV), 3, "no usable BDS ephemeris"),
+        (("ttff", HKSC_OBS, GPS_NAV), 3, "no usable BDS ephemeris"),
+        (("simulate", "--nav", GPS_NAV, "--out", "/dev/null"), 3, "no healthy BDS ephemeris"),
+        (("coverage", "--nav", GPS_NAV, "--no-progress"), 3, "no GEO ephemerides"),
+        (("solve", HKSC_OBS, HKSC_NAV, "--out", MISSING), 3, "cannot write"),
+        (("simulate", "--out", MISSING), 3, "cannot write"),
+        (("coverage", "--json", MISSING + ".json", "--no-progress"), 3, "no such directory"),
+        (("coverage", "--plot", MISSING + ".png", "--no-progress"), 3, "no such directory"),
+        (("ttff", HKSC_OBS, HKSC_NAV, "--plot", MISSING + ".png"), 3, "no such directory"),
+        (("ttff", HKSC_OBS, HKSC_NAV, "--trials", "0"), 2, "--trials must be at least 1"),
+        (("ttff", HKSC_OBS, HKSC_NAV, "--trials", "-3"), 2, "--trials must be at least 1"),
+        (("simulate", "--lat-deg", "200", "--out", "/dev/null"), 2, "--lat-deg must be in"),
+        (("simulate", "--lon-deg", "-400", "--out", "/dev/null"), 2, "--lon-deg must be in"),
+        (("replay", "--elmask-deg", "95", "--max-speed"), 2, "elmask_deg"),
+        (("run", "--elmask-deg", "95", "--source", HKSC_OBS), 2, "elmask_deg"),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, tuple) else None,
+)
+def test_exit_code_and_one_line(args, code, says):
+    out = _bdsfix(*args)
+    assert out.returncode == code, (out.returncode, out.stderr[-500:])
+    lines = [ln for ln in out.stderr.splitlines() if "error:" in ln]
+    assert len(lines) == 1 and says in lines[0], out.stderr[-500:]
+    assert "Traceback" not in out.stderr
