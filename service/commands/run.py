@@ -21,7 +21,7 @@ from typing import Any
 
 from service.commands.options import solver_config
 from service.core.ephemeris import EphemerisStore
-from service.core.errors import BdsfixError, ConfigError, InputError
+from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
 from service.daemon.config import (
     DEFAULT_CONFIG,
     STORE_NAME,
@@ -111,11 +111,23 @@ def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
     return EphemerisStore(max_age_s=max_age_s)
 
 
-def _install_signals(runner: Runner) -> None:
-    signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
-    signal.signal(signal.SIGINT, lambda *_: runner.request_stop())
-    if hasattr(signal, "SIGHUP"):
-        signal.signal(signal.SIGHUP, lambda *_: runner.request_reopen())
+class _Signals:
+    """SIGTERM and SIGINT stop the runner cleanly (store saved, final STATUS); the exit code
+    says which: 0 for SIGTERM (systemctl stop), 130 for Ctrl-C. SIGHUP reopens files."""
+
+    def __init__(self, runner: Runner) -> None:
+        self.interrupted = False
+        signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
+        signal.signal(signal.SIGINT, lambda *_: self._interrupt(runner))
+        if hasattr(signal, "SIGHUP"):
+            signal.signal(signal.SIGHUP, lambda *_: runner.request_reopen())
+
+    def _interrupt(self, runner: Runner) -> None:
+        self.interrupted = True
+        runner.request_stop()
+
+    def exit_code(self) -> int:
+        return EXIT_INTERRUPTED if self.interrupted else EXIT_OK
 
 
 def main_run(args: argparse.Namespace) -> int:
@@ -165,7 +177,7 @@ def main_run(args: argparse.Namespace) -> int:
         watchdog=notifier.watchdog,
         watchdog_interval_s=notifier.watchdog_interval_s,
     )
-    _install_signals(runner)
+    signals = _Signals(runner)
     notifier.ready(f"reading {cfg.source}")
     log.info(
         "bdsfix running: source %s, outputs %s",
@@ -179,7 +191,7 @@ def main_run(args: argparse.Namespace) -> int:
         source.close()
         outputs.close()
     log.info("stopped after %d epochs; counters: %s", n, dict(runner.counters()))
-    return 0
+    return signals.exit_code()
 
 
 class Timeline:
@@ -254,7 +266,7 @@ def main_replay(args: argparse.Namespace) -> int:
         status_interval_s=args.status_interval_s,
         on_result=timeline.on_result,
     )
-    _install_signals(runner)
+    signals = _Signals(runner)
     try:
         n = runner.run()
     finally:
@@ -273,7 +285,7 @@ def main_replay(args: argparse.Namespace) -> int:
         print(f"  skipped: {skipped}", file=sys.stderr)
     for line in timeline.lines(offset):
         print(line, file=sys.stderr)
-    return 0
+    return signals.exit_code()
 
 
 SUB_NOTICE_AFTER_S = 3.0

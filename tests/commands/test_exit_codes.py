@@ -5,6 +5,7 @@ checked before it starts."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 
@@ -55,3 +56,25 @@ def test_exit_code_and_one_line(args, code, says):
     lines = [ln for ln in out.stderr.splitlines() if "error:" in ln]
     assert len(lines) == 1 and says in lines[0], out.stderr[-500:]
     assert "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 0)])
+def test_replay_stops_cleanly_on_a_signal_with_the_table_code(sig, code):
+    """Ctrl-C is 130 and SIGTERM 0; both stop cleanly: the summary is still printed."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", "replay", "--speed", "1"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().startswith("$")  # it is publishing NMEA
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == code, err[-500:]
+    assert "bdsfix replay:" in err and "epochs; fixes" in err and "Traceback" not in err
