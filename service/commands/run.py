@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from service.commands.options import solver_config
+from service.commands.summary import NO_EPOCHS_HINT, decline_lines, skipped_line
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
 from service.daemon.config import (
@@ -265,6 +266,7 @@ def main_replay(args: argparse.Namespace) -> int:
         source_counters=counters,
         status_interval_s=args.status_interval_s,
         on_result=timeline.on_result,
+        log_skipped_at_stop=False,
     )
     signals = _Signals(runner)
     try:
@@ -278,11 +280,11 @@ def main_replay(args: argparse.Namespace) -> int:
         f"{c.get('integrity_checks', 0)}, failures {c.get('integrity_failures', 0)}",
         file=sys.stderr,
     )
-    for line in integrity_summary(c):
-        print(f"  {line}", file=sys.stderr)
-    skipped = runner.skipped()
-    if skipped:
-        print(f"  skipped: {skipped}", file=sys.stderr)
+    excluded = [line for line in integrity_summary(c) if line.startswith("excluded")]
+    for line in [*(f"  {x}" for x in excluded), *decline_lines(c), *skipped_line(runner.skipped())]:
+        print(line, file=sys.stderr)
+    if n == 0:
+        print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
     for line in timeline.lines(offset):
         print(line, file=sys.stderr)
     return signals.exit_code()

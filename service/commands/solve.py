@@ -88,6 +88,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
+    from service.commands.summary import NO_EPOCHS_HINT, decline_lines
     from service.output.nmea import fix_utc, sentences_for_fix
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
@@ -97,7 +98,8 @@ def main_solve(args: argparse.Namespace) -> int:
     )
     store, iono = load_navigation(list(args.nav))
     reader = RinexObsReader(args.obs)
-    counts, reasons, excluded = Counters(), Counters(), Counters()
+    counts, excluded = Counters(), Counters()
+    declined = {"fast": Counters(), "spp": Counters()}
     n_epochs = 0
     with _open_out(args.out) as out:
         if args.format == "csv":
@@ -106,8 +108,8 @@ def main_solve(args: argparse.Namespace) -> int:
             n_epochs += 1
             for fix in fixes:
                 counts[f"{fix.solver}:{fix.mode}"] += 1
-                if fix.reason:
-                    reasons[f"{fix.solver}: {fix.reason.split(':')[0]}"] += 1
+                if fix.reason_code:
+                    declined[fix.solver][f"declined_{fix.reason_code}"] += 1
                 for prn in fix.excluded:
                     excluded[f"{fix.solver} {prn}"] += 1
                 if args.format == "jsonl":
@@ -118,11 +120,24 @@ def main_solve(args: argparse.Namespace) -> int:
                 best = next((f for f in fixes if f.ok), fixes[0])
                 for sentence in sentences_for_fix(best, utc=fix_utc(best), time_known=True):
                     out.write(sentence.decode("ascii"))
-    summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
-    print(f"bdsfix solve: {n_epochs} epochs; {summary}", file=sys.stderr)
-    for why, n in reasons.most_common():
-        print(f"  declined ({why}): {n}", file=sys.stderr)
+    parts = []
+    for solver in ("fast", "spp"):
+        ran = sum(n for k, n in counts.items() if k.startswith(f"{solver}:"))
+        if ran:
+            modes = ", ".join(
+                f"{k.split(':')[1]} {n}"
+                for k, n in sorted(counts.items())
+                if k.startswith(f"{solver}:") and not k.endswith(":none")
+            )
+            n_fixes = ran - counts[f"{solver}:none"]
+            parts.append(f"{solver} solver {n_fixes} fixes ({modes or 'none'})")
+    print(f"bdsfix solve: {n_epochs} epochs; " + "; ".join(parts), file=sys.stderr)
+    for solver, c in declined.items():
+        for line in decline_lines(c, indent=f"  {solver} solver "):
+            print(line, file=sys.stderr)
     if excluded:
-        parts = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
-        print(f"  excluded by fault detection: {parts}", file=sys.stderr)
+        parts_ex = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
+        print(f"  excluded by fault detection: {parts_ex}", file=sys.stderr)
+    if n_epochs == 0:
+        print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
     return 0

@@ -63,6 +63,7 @@ class Runner:
     watchdog: Callable[[], Any] | None = None
     watchdog_interval_s: float | None = None
     on_result: Callable[[EpochResult], None] | None = None
+    log_skipped_at_stop: bool = True  # replay prints its own summary instead
     queue_size: int = 4096
     _stop: threading.Event = field(default_factory=threading.Event)
     _reopen: threading.Event = field(default_factory=threading.Event)
@@ -154,7 +155,8 @@ class Runner:
             self._stop.set()
             self.save_store()
             self.outputs.status(self.counters())
-            self.log_skipped()
+            if self.log_skipped_at_stop:
+                self.log_skipped()
         if self._error is not None:
             raise self._error
         return n
@@ -193,8 +195,6 @@ class Runner:
         skipped = self.skipped()
         if skipped:
             log.warning("input skipped: %s", ", ".join(f"{k}={v}" for k, v in skipped.items()))
-        else:
-            log.info("input skipped: nothing")
 
     def save_store(self) -> None:
         if self.store_path is None or not self._store_dirty:

@@ -1,0 +1,55 @@
+"""What a run tells its user at the end, in words: fixes by solver, the top decline
+reasons with a hint of the fix, what input was skipped (replay, run and solve share it)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from service.engine.solver import REASONS
+
+HINTS: dict[str, str] = {
+    "no_ephemeris": "give the satellites' ephemerides: a RINEX 3 nav file of the same day "
+    "(--nav NAV), or a capture that carries them (UBX RXM-SFRBX, RTCM 1042)",
+    "no_measurements": "the input has no BDS B1I pseudoranges",
+    "no_time": "the GPS week is not known yet: give --gps-week N (RTCM without ephemerides)",
+    "too_few_full": "fewer than 4 full pseudoranges: the fast fix needs 4 GEOs in view, SPP "
+    "waits for each satellite's SOW",
+    "pdop_gate": "poor geometry (PDOP above --pdop-max)",
+    "gdop_gate": "GEO geometry too poor for the integer search (the paper's GDOP gate)",
+    "chi2": "inconsistent pseudoranges that fault exclusion could not resolve",
+}
+"""A hint per decline code (:data:`service.engine.solver.REASONS`), for the summaries."""
+
+TOP_REASONS = 3
+
+
+def decline_lines(counters: Mapping[str, int | float], indent: str = "  ") -> list[str]:
+    """The top decline reasons (``declined_<code>`` counters) in words with counts, and a
+    hint for the commonest when it has one."""
+    declined = {k[9:]: int(v) for k, v in counters.items() if k.startswith("declined_") and v}
+    if not declined:
+        return []
+    ranked = sorted(declined.items(), key=lambda i: (-i[1], i[0]))
+    parts = ", ".join(f"{REASONS.get(code, code)} {n}" for code, n in ranked[:TOP_REASONS])
+    more = len(ranked) - TOP_REASONS
+    if more > 0:
+        parts += f", and {more} other reason{'s' if more > 1 else ''}"
+    lines = [f"{indent}declined: {parts}"]
+    top = ranked[0][0]
+    if top in HINTS:
+        lines.append(f"{indent}hint: {HINTS[top]}")
+    return lines
+
+
+def skipped_line(skipped: Mapping[str, int], indent: str = "  ") -> list[str]:
+    """One line naming the skipped input counters, or none."""
+    if not skipped:
+        return []
+    return [f"{indent}skipped input: " + ", ".join(f"{k} {v}" for k, v in skipped.items())]
+
+
+NO_EPOCHS_HINT = (
+    "no measurement epoch in the input: it needs BDS raw measurements (UBX RXM-RAWX/MEASX, "
+    "RTCM3 MSM 1124-1127, or a RINEX 3 obs file with C2I/C1I); for RTCM without ephemerides "
+    "give --gps-week"
+)
