@@ -97,7 +97,10 @@ class EphemerisProblem:
 
 
 def _finite(value: object) -> bool:
-    return isinstance(value, Real) and math.isfinite(value)
+    try:
+        return isinstance(value, Real) and math.isfinite(value)
+    except OverflowError:  # an int beyond any float
+        return False
 
 
 def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
@@ -384,6 +387,29 @@ class EphemerisStore:
         store.iono = iono
         return store
 
+    @staticmethod
+    def set_aside(path: str | Path, problem: object) -> Path | None:
+        """Move a store that cannot be loaded out of the way, to ``<name>.corrupt-<UTC time>``
+        beside it, with one WARNING line; the daemon then starts empty and its next save writes
+        a fresh store. Returns the new path (None if the move failed: the line says so)."""
+        path = Path(path)
+        stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+        target = path.with_name(f"{path.name}.corrupt-{stamp}")
+        n = 0
+        while target.exists() or target.is_symlink():
+            n += 1
+            target = path.with_name(f"{path.name}.corrupt-{stamp}-{n}")
+        reason = " ".join(str(problem).split())  # one line whatever the message holds
+        try:
+            os.rename(path, target)
+        except OSError as exc:
+            log.warning(
+                "%s; cannot move it aside (%s); starting with an empty store", reason, exc.strerror
+            )
+            return None
+        log.warning("%s; moved aside to %s; starting with an empty store", reason, target)
+        return target
+
 
 _FIELDS = tuple(f.name for f in dataclasses.fields(Ephemeris))
 _REQUIRED = frozenset(
@@ -471,26 +497,3 @@ def write_store(path: str | Path, snapshot: StoreSnapshot) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-
-
-def set_aside(path: str | Path, problem: object) -> Path | None:
-    """Move a store that cannot be loaded out of the way, to ``<name>.corrupt-<UTC time>``
-    beside it, with one WARNING line; the daemon then starts empty and its next save writes
-    a fresh store. Returns the new path (None if the move failed: the line says so)."""
-    path = Path(path)
-    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-    target = path.with_name(f"{path.name}.corrupt-{stamp}")
-    n = 0
-    while target.exists() or target.is_symlink():
-        n += 1
-        target = path.with_name(f"{path.name}.corrupt-{stamp}-{n}")
-    reason = " ".join(str(problem).split())  # one line whatever the message holds
-    try:
-        os.rename(path, target)
-    except OSError as exc:
-        log.warning(
-            "%s; cannot move it aside (%s); starting with an empty store", reason, exc.strerror
-        )
-        return None
-    log.warning("%s; moved aside to %s; starting with an empty store", reason, target)
-    return target

@@ -9,7 +9,7 @@ import stat
 import pytest
 
 from drivers.rinex import read_nav
-from service.core.ephemeris import STORE_FILE_MODE, EphemerisStore, set_aside
+from service.core.ephemeris import STORE_FILE_MODE, EphemerisStore
 from service.core.errors import EphemerisError
 from tests.support.paths import DATA
 
@@ -178,6 +178,11 @@ def test_wrongly_shaped_stores_are_damage(nav, tmp_path):
         with pytest.raises(EphemerisError) as err:
             EphemerisStore.load(path)
         assert "ephemeris store" in str(err.value) or "version" in str(err.value), name
+    # well shaped, but a value no float holds: that set is refused, the rest load
+    doc = _good_doc(nav)
+    doc["ephemerides"][0]["af0_s"] = 10**400
+    path.write_text(json.dumps(doc))
+    assert len(EphemerisStore.load(path)) == len(doc["ephemerides"]) - 1
     for raw in (b"", b"\xff\xfe\x00garbage", b"[" * 100_000, b'{"version": 1, "ephem'):
         path.write_bytes(raw)
         with pytest.raises(EphemerisError):
@@ -191,10 +196,10 @@ def test_a_damaged_store_is_moved_aside_with_one_warning(tmp_path, caplog):
         try:
             EphemerisStore.load(path)
         except EphemerisError as exc:
-            target = set_aside(path, exc)
+            target = EphemerisStore.set_aside(path, exc)
     assert target is not None and not path.exists()
     assert target.name.startswith("ephemeris.json.corrupt-") and target.read_text() == "[1, 2]"
     assert len(caplog.records) == 1 and "\n" not in caplog.records[0].getMessage()
     assert caplog.records[0].levelno == logging.WARNING
     path.write_text("{}")
-    assert set_aside(path, "again") != target  # the same second: a new name
+    assert EphemerisStore.set_aside(path, "again") != target  # the same second: a new name
