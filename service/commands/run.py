@@ -108,7 +108,7 @@ def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
             log.info("warm start: %d ephemerides from %s", len(store), path)
             return store
         except BdsfixError as exc:
-            log.error("%s; starting with an empty store", exc)
+            EphemerisStore.set_aside(path, exc)  # one WARNING line; the daemon starts empty
     return EphemerisStore(max_age_s=max_age_s)
 
 

@@ -1,29 +1,36 @@
-"""Ephemeris store: entry checks, selection by toe, health and age, and an atomically
-persisted copy.
+"""Ephemeris store: entry checks, selection by toe, health and age, a bound on what is
+held, and an atomically persisted copy.
 
 Selection follows common receiver practice for BDS (ICD B1I 5.2.4.9: ephemerides are
 referenced to t_oe and updated hourly): the healthy set whose t_oe is nearest to the
 requested time, within ``max_age_s``. Every ephemeris, whatever its source (RINEX, decoded
 D1/D2, RTCM 1042, the persisted store), enters through :meth:`EphemerisStore.add`, which
 refuses a set that :func:`ephemeris_problem` finds fault with.
+
+The store is bounded by design, so that months of unattended running cost what an hour
+does: at most MAX_SETS_PER_PRN sets per satellite (the oldest t_oe goes first), and
+:meth:`EphemerisStore.prune` keeps only the sets of the last KEEP_S (see there).
+Selection is a binary search in each satellite's sets sorted by t_oe.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import json
 import logging
 import math
 import os
-import tempfile
+import secrets
 import time
-from collections.abc import Callable, Iterable, Sequence
+from bisect import bisect_left
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from numbers import Real
 from pathlib import Path
 
 import numpy as np
 
-from service.core.constants import prn_number
+from service.core.constants import WEEK_S, prn_number
 from service.core.counters import Counters
 from service.core.errors import EphemerisError
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -34,6 +41,21 @@ log = logging.getLogger(__name__)
 
 STORE_VERSION = 1
 ARRAYS_CACHE_SIZE = 256
+STORE_FILE_MODE = 0o600
+"""Mode of the saved store whatever the umask (it lives in the daemon's 0700 state
+directory)."""
+STORE_WRITE_BATCH = 64
+"""Sets JSON-encoded per call when saving: each call holds the interpreter lock briefly, so
+a save in a background thread never stalls the receiver loop."""
+
+KEEP_S = 86_400.0
+""":meth:`EphemerisStore.prune` keeps a satellite's sets whose t_oe is less than this [s]
+before the reference time (a day: BDS uploads a new set every hour, ICD B1I 5.2.4.9, and
+a receiver selects one within ``max_age_s``, 2 h by default)."""
+MAX_SETS_PER_PRN = 64
+"""Most sets held per satellite (the oldest t_oe goes first): a day before and a day after
+the reference at one set an hour (49) with room for off-hour uploads. This bounds the
+store whatever the times it is fed."""
 
 SQRT_A_MIN_SQRT_M = 5000.0
 SQRT_A_MAX_SQRT_M = 6700.0
@@ -75,7 +97,10 @@ class EphemerisProblem:
 
 
 def _finite(value: object) -> bool:
-    return isinstance(value, Real) and math.isfinite(value)
+    try:
+        return isinstance(value, Real) and math.isfinite(value)
+    except OverflowError:  # an int beyond any float
+        return False
 
 
 def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
@@ -139,20 +164,86 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
     return None
 
 
+_Key = tuple[int, float]  # (BDT week, t_oe [s of week])
+
+
+class _Sets:
+    """One satellite's sets: by (week, t_oe) in insertion order (which breaks ties between
+    equally near sets, as it always has) and sorted by t_oe for the binary search."""
+
+    __slots__ = ("by_key", "order", "seq")
+
+    def __init__(self) -> None:
+        self.by_key: dict[_Key, Ephemeris] = {}
+        self.order: list[tuple[float, int, _Key]] = []  # (t_oe [s since BDT 0], seq, key)
+        self.seq = 0
+
+    def put(self, eph: Ephemeris) -> None:
+        key = (eph.week, eph.toe_sow_s)
+        if key not in self.by_key:
+            self.seq += 1
+            t_s = eph.week * WEEK_S + eph.toe_sow_s
+            self.order.insert(bisect_left(self.order, (t_s, self.seq)), (t_s, self.seq, key))
+        self.by_key[key] = eph
+
+    def drop_oldest(self, n: int) -> int:
+        """Drop the ``n`` sets with the oldest t_oe; returns ``n``."""
+        for _, _, key in self.order[:n]:
+            del self.by_key[key]
+        del self.order[:n]
+        return n
+
+    def drop_until(self, t_s: float) -> int:
+        """Drop the sets whose t_oe [s since BDT 0] is at or before ``t_s``; returns how many."""
+        return self.drop_oldest(bisect_left(self.order, (t_s, math.inf)))
+
+    def nearest(self, bdt_week: int, bdt_sow_s: float) -> Ephemeris:
+        """The set whose t_oe is nearest the BDT time (the earliest received on a tie)."""
+        order = self.order
+        i = bisect_left(order, (bdt_week * WEEK_S + bdt_sow_s,))
+        cands = []
+        if i < len(order):
+            cands.append(order[i])  # the first at or after the time (lowest seq of its t_oe)
+        if i > 0:
+            cands.append(order[bisect_left(order, (order[i - 1][0],))])  # the last t_oe before
+        return min(
+            (self.by_key[key] for _, _, key in sorted(cands, key=lambda o: o[1])),
+            key=lambda e: abs(diff_s(bdt_week, bdt_sow_s, e.week, e.toe_sow_s)),
+        )
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class StoreSnapshot:
+    """What the store holds at one moment, immutable: taken in the receiver loop (a tuple of
+    references, cheap) and written by :func:`write_store` in any thread."""
+
+    ephemerides: tuple[Ephemeris, ...]
+    iono: KlobucharParams | None = None
+
+    def __len__(self) -> int:
+        return len(self.ephemerides)
+
+
 class EphemerisStore:
     """Ephemerides per PRN plus the latest broadcast ionosphere coefficients."""
 
     def __init__(
-        self, max_age_s: float = 7200.0, clock: Callable[[], float] = time.monotonic
+        self,
+        max_age_s: float = 7200.0,
+        clock: Callable[[], float] = time.monotonic,
+        max_sets_per_prn: int = MAX_SETS_PER_PRN,
     ) -> None:
         self.max_age_s = max_age_s
-        self._by_prn: dict[str, dict[tuple[int, float], Ephemeris]] = {}
+        self.max_sets_per_prn = max_sets_per_prn
+        self._by_prn: dict[str, _Sets] = {}
         self.iono: KlobucharParams | None = None
         self.refused = 0
         self.refused_by_reason = Counters()
         """Refusals per :class:`EphemerisProblem` check name."""
         self.last_refusal: EphemerisProblem | None = None
         """Why the latest refused set was refused."""
+        self.evicted = 0
+        """Sets dropped to keep MAX_SETS_PER_PRN (not counting :meth:`prune`)."""
         self._clock = clock
         # (prn, check) -> [wall time of its last log line, refusals not logged since]
         self._refusal_log: dict[tuple[str, str], list[float]] = {}
@@ -161,7 +252,7 @@ class EphemerisStore:
         self._arrays: dict[tuple[int, ...], tuple[tuple[Ephemeris, ...], EphemerisArrays]] = {}
 
     def __len__(self) -> int:
-        return sum(len(v) for v in self._by_prn.values())
+        return sum(len(v.order) for v in self._by_prn.values())
 
     @property
     def prns(self) -> list[str]:
@@ -170,7 +261,8 @@ class EphemerisStore:
     def add(self, eph: Ephemeris) -> bool:
         """Hold ``eph`` unless :func:`ephemeris_problem` refuses it; returns whether it was
         kept. A refused set is counted (``refused``, ``refused_by_reason``) and logged, and
-        never replaces a set already held."""
+        never replaces a set already held. A set with the (week, t_oe) of one held replaces
+        it; beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``)."""
         problem = ephemeris_problem(eph)
         if problem is not None:
             self.refused += 1
@@ -178,7 +270,13 @@ class EphemerisStore:
             self.last_refusal = problem
             self._log_refusal(eph, problem)
             return False
-        self._by_prn.setdefault(eph.prn, {})[(eph.week, eph.toe_sow_s)] = eph
+        sets = self._by_prn.get(eph.prn)
+        if sets is None:
+            sets = self._by_prn[eph.prn] = _Sets()
+        sets.put(eph)
+        excess = len(sets.order) - self.max_sets_per_prn
+        if excess > 0:
+            self.evicted += sets.drop_oldest(excess)
         return True
 
     def _log_refusal(self, eph: Ephemeris, problem: EphemerisProblem) -> None:
@@ -219,80 +317,183 @@ class EphemerisStore:
         return sum(self.add(e) for e in ephs)
 
     def select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
-        """Healthy ephemeris of ``prn`` with t_oe nearest the BDT time, or None if too old."""
-        cands = self._by_prn.get(prn)
-        if not cands:
+        """Healthy ephemeris of ``prn`` with t_oe nearest the BDT time, or None if too old.
+
+        A binary search among the satellite's sets: the cost does not grow with them."""
+        sets = self._by_prn.get(prn)
+        if not sets:
             return None
-        best = min(
-            cands.values(), key=lambda e: abs(diff_s(bdt_week, bdt_sow_s, e.week, e.toe_sow_s))
-        )
+        best = sets.nearest(bdt_week, bdt_sow_s)
         if abs(diff_s(bdt_week, bdt_sow_s, best.week, best.toe_sow_s)) > self.max_age_s:
             return None
         return best
 
-    def prune(self, bdt_week: int, bdt_sow_s: float, keep_s: float = 86400.0) -> int:
-        """Drop ephemerides whose t_oe is more than ``keep_s`` before the given time."""
+    def prune(self, bdt_week: int, bdt_sow_s: float, keep_s: float = KEEP_S) -> int:
+        """Keep what can still be used at the given BDT time (the latest measurement): per
+        satellite, the sets whose t_oe is less than ``keep_s`` before that time or before the
+        satellite's newest t_oe, whichever is earlier. Returns how many sets were dropped.
+
+        BDS uploads a set every hour (ICD B1I 5.2.4.9) and a receiver uses the one nearest
+        its time within ``max_age_s``; with ``keep_s`` a day, each satellite keeps its last
+        day (24 hourly sets) however long the history. The newest t_oe guards against one
+        bad time tag: a satellite always keeps its latest day, and sets ahead of the time
+        (a day's navigation file loaded at start) stay until the count bound evicts them."""
+        t_s = bdt_week * WEEK_S + bdt_sow_s
         dropped = 0
         for prn in list(self._by_prn):
-            d = self._by_prn[prn]
-            for key in [k for k in d if diff_s(bdt_week, bdt_sow_s, *k) > keep_s]:
-                del d[key]
-                dropped += 1
-            if not d:
+            sets = self._by_prn[prn]
+            dropped += sets.drop_until(min(t_s, sets.order[-1][0]) - keep_s)
+            if not sets.order:
                 del self._by_prn[prn]
         return dropped
 
     def all(self) -> list[Ephemeris]:
-        return [e for prn in self.prns for e in self._by_prn[prn].values()]
+        """Every set held: by PRN, each satellite's in the order first received."""
+        return [e for prn in self.prns for e in self._by_prn[prn].by_key.values()]
 
     # --- persistence -------------------------------------------------------------------
+    def snapshot(self) -> StoreSnapshot:
+        """The content to save, taken in O(sets) reference copies (no encoding)."""
+        return StoreSnapshot(tuple(self.all()), self.iono)
+
     def save(self, path: str | Path) -> None:
-        """Write the store atomically: temp file in the same directory, fsync, rename, fsync
-        of the directory. A crash (even SIGKILL or power loss) leaves either the old or the
-        new store, never a torn one; temp files a crash left behind are removed here."""
-        path = Path(path)
-        doc = {
-            "version": STORE_VERSION,
-            "ephemerides": [dataclasses.asdict(e) for e in self.all()],
-            "iono": None if self.iono is None else dataclasses.asdict(self.iono),
-        }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        for stale in path.parent.glob(f".{path.name}.*"):  # one writer: these are crash debris
-            stale.unlink(missing_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                json.dump(doc, fh)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-            dir_fd = os.open(path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        """Write the store now (see :func:`write_store`)."""
+        write_store(path, self.snapshot())
 
     @classmethod
     def load(cls, path: str | Path, max_age_s: float = 7200.0) -> EphemerisStore:
-        """Read a store written by :meth:`save`; a damaged file raises EphemerisError.
+        """Read a store written by :meth:`save`. A file that cannot be read, is not JSON or
+        is not shaped as :meth:`save` writes it (a list, ``ephemerides`` not a list of
+        objects, a field missing, unknown or of the wrong type) raises EphemerisError.
 
         Each set goes through :meth:`add`, so one that fails the entry checks is refused
         and logged, and the rest are kept."""
         store = cls(max_age_s=max_age_s)
         try:
             doc = json.loads(Path(path).read_text(encoding="utf-8"))
-            if doc.get("version") != STORE_VERSION:
-                raise EphemerisError(f"{path}: unsupported store version {doc.get('version')!r}")
-            for item in doc["ephemerides"]:
-                store.add(Ephemeris(**{**item, "source": "store"}))
-            if doc.get("iono"):
-                io = doc["iono"]
-                store.iono = KlobucharParams(
-                    alpha=tuple(io["alpha"]), beta=tuple(io["beta"]), system=io["system"]
-                )
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+            if not isinstance(doc, dict):
+                raise ValueError(f"a JSON {type(doc).__name__}, not an object")
+            version = doc.get("version")
+            if version != STORE_VERSION or isinstance(version, bool):
+                raise EphemerisError(f"{path}: unsupported store version {version!r}")
+            items = doc.get("ephemerides")
+            if not isinstance(items, list):
+                raise ValueError(f"'ephemerides' is {type(items).__name__}, not a list")
+            ephs = [_ephemeris_from_json(item) for item in items]
+            iono = _iono_from_json(doc.get("iono"))
+        except (OSError, ValueError, RecursionError) as exc:
             raise EphemerisError(f"{path}: cannot read ephemeris store: {exc}") from exc
+        store.add_all(ephs)
+        store.iono = iono
         return store
+
+    @staticmethod
+    def set_aside(path: str | Path, problem: object) -> Path | None:
+        """Move a store that cannot be loaded out of the way, to ``<name>.corrupt-<UTC time>``
+        beside it, with one WARNING line; the daemon then starts empty and its next save writes
+        a fresh store. Returns the new path (None if the move failed: the line says so)."""
+        path = Path(path)
+        stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+        target = path.with_name(f"{path.name}.corrupt-{stamp}")
+        n = 0
+        while target.exists() or target.is_symlink():
+            n += 1
+            target = path.with_name(f"{path.name}.corrupt-{stamp}-{n}")
+        reason = " ".join(str(problem).split())  # one line whatever the message holds
+        try:
+            os.rename(path, target)
+        except OSError as exc:
+            log.warning(
+                "%s; cannot move it aside (%s); starting with an empty store", reason, exc.strerror
+            )
+            return None
+        log.warning("%s; moved aside to %s; starting with an empty store", reason, target)
+        return target
+
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(Ephemeris))
+_REQUIRED = frozenset(
+    f.name
+    for f in dataclasses.fields(Ephemeris)
+    if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+)
+_TEXT_FIELDS = frozenset({"prn", "source"})
+
+
+def _number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _ephemeris_from_json(item: object) -> Ephemeris:
+    """One stored set, its shape checked (values are checked by :meth:`EphemerisStore.add`);
+    ValueError says what is wrong."""
+    if not isinstance(item, dict):
+        raise ValueError(f"an ephemeris is a JSON {type(item).__name__}, not an object")
+    unknown = item.keys() - set(_FIELDS)
+    missing = _REQUIRED - item.keys()
+    if unknown or missing:
+        raise ValueError(f"ephemeris fields unknown {sorted(unknown)}, missing {sorted(missing)}")
+    for name, value in item.items():
+        if not (isinstance(value, str) if name in _TEXT_FIELDS else _number(value)):
+            raise ValueError(f"ephemeris field {name} is {value!r}")
+    return Ephemeris(**{**item, "source": "store"})
+
+
+def _iono_from_json(io: object) -> KlobucharParams | None:
+    if io is None:
+        return None
+    if not (
+        isinstance(io, dict)
+        and io.keys() == {"alpha", "beta", "system"}
+        and io["system"] in ("BDS", "GPS")
+        and all(
+            isinstance(io[k], list) and len(io[k]) == 4 and all(map(_number, io[k]))
+            for k in ("alpha", "beta")
+        )
+    ):
+        raise ValueError(f"'iono' is not Klobuchar coefficients: {io!r:.80}")
+    return KlobucharParams(alpha=tuple(io["alpha"]), beta=tuple(io["beta"]), system=io["system"])
+
+
+def _store_chunks(snapshot: StoreSnapshot) -> Iterator[str]:
+    """The store's JSON document in pieces of STORE_WRITE_BATCH sets."""
+    yield f'{{"version": {STORE_VERSION}, "ephemerides": ['
+    ephs = snapshot.ephemerides
+    for start in range(0, len(ephs), STORE_WRITE_BATCH):
+        batch = ephs[start : start + STORE_WRITE_BATCH]
+        yield ("" if start == 0 else ", ") + ", ".join(
+            json.dumps({name: getattr(e, name) for name in _FIELDS}) for e in batch
+        )
+    iono = None if snapshot.iono is None else dataclasses.asdict(snapshot.iono)
+    yield f'], "iono": {json.dumps(iono)}}}'
+
+
+def write_store(path: str | Path, snapshot: StoreSnapshot) -> None:
+    """Write ``snapshot`` atomically: a temp file in the same directory (created with
+    O_EXCL | O_NOFOLLOW and mode STORE_FILE_MODE whatever the umask), fsync, rename, fsync of
+    the directory. A crash (even SIGKILL or power loss) leaves either the old or the new
+    store, never a torn one; temp files a crash left behind are removed here (one writer at
+    a time: the daemon's store writer thread, or the caller)."""
+    path = Path(path)
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    for stale in path.parent.glob(f".{path.name}.*"):  # one writer: these are crash debris
+        stale.unlink(missing_ok=True)
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}"
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+    fd = os.open(tmp, flags, STORE_FILE_MODE)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            os.fchmod(fh.fileno(), STORE_FILE_MODE)
+            for chunk in _store_chunks(snapshot):
+                fh.write(chunk)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

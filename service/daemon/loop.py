@@ -3,8 +3,9 @@
 A reader thread pulls events from a driver source (paced for replay) into a bounded queue;
 the main thread feeds them to the :class:`~service.engine.pipeline.Pipeline` and hands results to
 the outputs, none of which may block. Between events the main thread keeps time for STATUS
-messages, the systemd watchdog and periodic saves of the ephemeris store, and it stops
-cleanly on request (SIGTERM) after saving the store.
+messages, the systemd watchdog and periodic saves of the ephemeris store (it prunes the
+store and takes a snapshot; a :class:`~service.daemon.store_writer.StoreWriter` thread
+encodes and writes it), and it stops cleanly on request (SIGTERM) after saving the store.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.daemon.store_writer import StoreWriter
 from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.tracker import TrackEvent
 
@@ -69,6 +71,7 @@ class Runner:
     _reopen: threading.Event = field(default_factory=threading.Event)
     _error: BaseException | None = None
     _store_dirty: bool = False
+    _store_writer: StoreWriter | None = None
     _latency: LatencyStats = field(default_factory=lambda: LatencyStats())
 
     def request_stop(self) -> None:
@@ -81,6 +84,9 @@ class Runner:
         out: dict[str, int | float] = {f"source_{k}": v for k, v in self.source_counters.items()}
         out.update(self.pipeline.counters)
         out.update(self._latency.counters())
+        if self._store_writer is not None:
+            out["store_saves"] = self._store_writer.saves
+            out["store_save_errors"] = self._store_writer.save_errors
         return out
 
     def _reader(self, q: queue.Queue[Any]) -> None:
@@ -153,7 +159,7 @@ class Runner:
         finally:
             gc.unfreeze()  # the caller's heap is its own again (tests run many loops)
             self._stop.set()
-            self.save_store()
+            self.save_store(final=True)
             self.outputs.status(self.counters())
             if self.log_skipped_at_stop:
                 self.log_skipped()
@@ -196,18 +202,25 @@ class Runner:
         if skipped:
             log.warning("input skipped: %s", ", ".join(f"{k}={v}" for k, v in skipped.items()))
 
-    def save_store(self) -> None:
-        if self.store_path is None or not self._store_dirty:
+    def save_store(self, final: bool = False) -> None:
+        """Save the ephemeris store if it changed (or the last write failed): prune it, take
+        a snapshot and hand it to the writer thread; the loop's share is well under a
+        millisecond for the bounded store. ``final`` (at shutdown) writes before returning
+        and stops the writer."""
+        if self.store_path is None:
             return
-        try:
+        writer = self._store_writer
+        if writer is None or writer.closed:
+            writer = self._store_writer = StoreWriter(self.store_path)
+        snapshot = None
+        if self._store_dirty or writer.failed:
             self.pipeline.prune_store()
-            self.pipeline.store.save(self.store_path)
+            snapshot = self.pipeline.store.snapshot()
             self._store_dirty = False
-            log.info(
-                "ephemeris store saved: %d entries in %s", len(self.pipeline.store), self.store_path
-            )
-        except OSError as exc:
-            log.error("cannot save ephemeris store %s: %s", self.store_path, exc)
+        if final:
+            writer.close(snapshot)
+        elif snapshot is not None:
+            writer.submit(snapshot)
 
 
 class LatencyStats:

@@ -19,7 +19,7 @@ import numpy as np
 from service.core.bds_nav import EphemerisAssembler
 from service.core.constants import C_M_S
 from service.core.counters import Counters
-from service.core.ephemeris import EphemerisStore
+from service.core.ephemeris import KEEP_S, EphemerisStore
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import (
     Ephemeris,
@@ -35,10 +35,11 @@ from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEven
 log = logging.getLogger(__name__)
 
 WARM_START_MAX_AGE_S = 30.0
-STORE_KEEP_S = 86_400.0
-"""Ephemerides whose t_oe is more than this before the latest measurement are dropped from
-the store when it is saved (BDS broadcasts a new set every hour, ICD 5.2.4.9)."""
 """A fix older than this [s, data time] is not used as the start of the next solve."""
+STORE_KEEP_S = KEEP_S
+"""Ephemerides whose t_oe is this long [s] before the latest measurement (and before their
+satellite's newest set) are dropped from the store when it is saved (BDS broadcasts a new
+set every hour, ICD B1I 5.2.4.9; see EphemerisStore.prune)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -134,17 +135,22 @@ class Pipeline:
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
         """Offer ``eph`` to the store; counts ``ephemeris_<source>`` when kept, else
-        ``ephemeris_refused`` and ``ephemeris_refused_<check>`` (see ephemeris_problem)."""
+        ``ephemeris_refused`` and ``ephemeris_refused_<check>`` (see ephemeris_problem);
+        ``ephemeris_evicted`` counts the sets the store's count bound let go."""
+        evicted = self.store.evicted
         if self.store.add(eph):
             self.counters[f"ephemeris_{eph.source}"] += 1
+            if self.store.evicted != evicted:
+                self.counters["ephemeris_evicted"] += self.store.evicted - evicted
         else:
             self.counters["ephemeris_refused"] += 1
             if self.store.last_refusal is not None:
                 self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
 
     def prune_store(self) -> int:
-        """Drop ephemerides older than STORE_KEEP_S before the latest measurement (none
-        before the first one); counted as ``ephemeris_pruned``."""
+        """Drop ephemerides older than STORE_KEEP_S before the latest measurement and their
+        satellite's newest set (none before the first measurement: without a time, only the
+        store's count bound applies); counted as ``ephemeris_pruned``."""
         if self._latest is None:
             return 0
         dropped = self.store.prune(*gpst_to_bdt(*self._latest), keep_s=STORE_KEEP_S)

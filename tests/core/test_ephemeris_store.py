@@ -3,11 +3,13 @@
 import dataclasses
 import json
 import logging
+import os
+import stat
 
 import pytest
 
 from drivers.rinex import read_nav
-from service.core.ephemeris import EphemerisStore
+from service.core.ephemeris import STORE_FILE_MODE, EphemerisStore
 from service.core.errors import EphemerisError
 from tests.support.paths import DATA
 
@@ -58,3 +60,146 @@ def test_persisted_store_round_trips_and_damage_is_reported(nav, tmp_path):
     path.write_text(json.dumps({"version": 99, "ephemerides": []}))
     with pytest.raises(EphemerisError, match="unsupported store version"):
         EphemerisStore.load(path)
+
+
+def _hourly(eph, hours):
+    """``eph`` re-issued every hour for ``hours`` hours from its t_oe (BDT week carried)."""
+    out = []
+    for k in range(hours):
+        t_s = eph.toe_sow_s + 3600.0 * k
+        week = eph.week + int(t_s // 604800.0)
+        sow = t_s % 604800.0
+        out.append(dataclasses.replace(eph, week=week, toe_sow_s=sow, toc_sow_s=sow))
+    return out
+
+
+def test_each_satellite_holds_at_most_max_sets_oldest_go_first(nav):
+    sets = _hourly(nav.ephemerides["C11"][0], 100)
+    store = EphemerisStore(max_sets_per_prn=64)
+    assert store.add_all(sets) == 100
+    assert len(store) == 64 and store.evicted == 36
+    kept = [(e.week, e.toe_sow_s) for e in store.all()]
+    assert kept == [(e.week, e.toe_sow_s) for e in sets[36:]]
+    last = sets[-1]
+    assert store.select("C11", last.week, last.toe_sow_s + 100.0) is last
+
+
+def test_prune_keeps_each_satellites_last_day(nav):
+    c11 = _hourly(nav.ephemerides["C11"][0], 60)
+    c12 = _hourly(nav.ephemerides["C12"][0], 12)  # stopped 48 h before the end
+    store = EphemerisStore()
+    store.add_all(c11 + c12)
+    end = c11[-1]
+    dropped = store.prune(end.week, end.toe_sow_s + 1800.0)
+    held = {p: [e.toe_sow_s for e in store.all() if e.prn == p] for p in store.prns}
+    assert held["C11"] == [e.toe_sow_s for e in c11[-24:]]  # less than a day before
+    assert held["C12"] == [e.toe_sow_s for e in c12]  # its newest day, though old
+    assert dropped == 36
+    # a time tag a week in the past drops nothing: each satellite keeps its newest day
+    assert store.prune(end.week - 1, end.toe_sow_s) == 0
+    assert len(store) == 36
+
+
+def test_selection_is_nearest_toe_earliest_received_on_a_tie(nav):
+    a, b = _hourly(nav.ephemerides["C11"][0], 2)
+    store = EphemerisStore()
+    store.add_all([b, a])
+    mid = a.toe_sow_s + 1800.0
+    assert store.select("C11", a.week, mid) is b  # equally near: the first received
+    assert store.select("C11", a.week, mid - 1e-3) is a
+    assert store.select("C11", a.week, mid + 1e-3) is b
+
+
+@pytest.mark.parametrize("umask", [0o000, 0o077, 0o277])
+def test_saved_store_mode_is_fixed_whatever_the_umask(nav, tmp_path, umask):
+    store = EphemerisStore()
+    store.add_all(nav.ephemerides["C11"])
+    path = tmp_path / "ephemeris.json"
+    old = os.umask(umask)
+    try:
+        store.save(path)
+        store.save(path)  # over an existing file too
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(path.stat().st_mode) == STORE_FILE_MODE
+    assert len(EphemerisStore.load(path)) == len(store)
+
+
+def test_saving_never_follows_a_symlink_planted_as_its_temp_file(nav, tmp_path):
+    store = EphemerisStore()
+    store.add_all(nav.ephemerides["C11"])
+    victim = tmp_path / "victim"
+    victim.write_text("keep")
+    path = tmp_path / "ephemeris.json"
+    (tmp_path / ".ephemeris.json.planted").symlink_to(victim)
+    store.save(path)
+    assert victim.read_text() == "keep"
+    assert len(EphemerisStore.load(path)) == len(store)
+
+
+def _good_doc(nav):
+    store = EphemerisStore()
+    store.add_all(nav.ephemerides["C11"])
+    store.iono = nav.iono_bds
+    return {
+        "version": 1,
+        "ephemerides": [dataclasses.asdict(e) for e in store.all()],
+        "iono": dataclasses.asdict(store.iono),
+    }
+
+
+def _bad_docs(nav):
+    doc = _good_doc(nav)
+    item = doc["ephemerides"][0]
+    return {
+        "list": [1, 2],
+        "number": 5,
+        "ephemerides number": {"version": 1, "ephemerides": 5},
+        "no version": {"ephemerides": 5},
+        "no ephemerides": {"version": 1},
+        "item a list": {**doc, "ephemerides": [[1, 2]]},
+        "week a string": {**doc, "ephemerides": [{**item, "week": "805"}]},
+        "e null": {**doc, "ephemerides": [{**item, "e": None}]},
+        "health true": {**doc, "ephemerides": [{**item, "health": True}]},
+        "prn a number": {**doc, "ephemerides": [{**item, "prn": 11}]},
+        "field missing": {**doc, "ephemerides": [{k: v for k, v in item.items() if k != "e"}]},
+        "field unknown": {**doc, "ephemerides": [{**item, "extra": 1}]},
+        "iono a string": {**doc, "iono": "BDS"},
+        "iono short": {**doc, "iono": {**doc["iono"], "alpha": [0.0]}},
+    }
+
+
+def test_wrongly_shaped_stores_are_damage(nav, tmp_path):
+    path = tmp_path / "ephemeris.json"
+    path.write_text(json.dumps(_good_doc(nav)))
+    assert len(EphemerisStore.load(path)) == len(nav.ephemerides["C11"])
+    for name, doc in _bad_docs(nav).items():
+        path.write_text(json.dumps(doc))
+        with pytest.raises(EphemerisError) as err:
+            EphemerisStore.load(path)
+        assert "ephemeris store" in str(err.value) or "version" in str(err.value), name
+    # well shaped, but a value no float holds: that set is refused, the rest load
+    doc = _good_doc(nav)
+    doc["ephemerides"][0]["af0_s"] = 10**400
+    path.write_text(json.dumps(doc))
+    assert len(EphemerisStore.load(path)) == len(doc["ephemerides"]) - 1
+    for raw in (b"", b"\xff\xfe\x00garbage", b"[" * 100_000, b'{"version": 1, "ephem'):
+        path.write_bytes(raw)
+        with pytest.raises(EphemerisError):
+            EphemerisStore.load(path)
+
+
+def test_a_damaged_store_is_moved_aside_with_one_warning(tmp_path, caplog):
+    path = tmp_path / "ephemeris.json"
+    path.write_text("[1, 2]")
+    with caplog.at_level(logging.WARNING, logger="service.core.ephemeris"):
+        try:
+            EphemerisStore.load(path)
+        except EphemerisError as exc:
+            target = EphemerisStore.set_aside(path, exc)
+    assert target is not None and not path.exists()
+    assert target.name.startswith("ephemeris.json.corrupt-") and target.read_text() == "[1, 2]"
+    assert len(caplog.records) == 1 and "\n" not in caplog.records[0].getMessage()
+    assert caplog.records[0].levelno == logging.WARNING
+    path.write_text("{}")
+    assert EphemerisStore.set_aside(path, "again") != target  # the same second: a new name

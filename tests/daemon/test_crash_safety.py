@@ -3,7 +3,8 @@
 Most kills hit a forked child that saves the store in a tight loop (alternating two
 different contents, so a torn or mixed file would show); the rest hit the real daemon
 (``bdsfix run`` with ``--nav`` and ``--store-save-interval-s 0``, which saves after every
-ephemeris it takes in: a burst of writes at start-up). After every kill the store must load
+ephemeris it takes in: a burst of writes at start-up, which its writer thread folds into a
+few). After every kill the store must load
 intact with one of the contents that were written, and the next daemon start must warm-start
 from it. Temp files a kill leaves behind are removed by the next save.
 """
@@ -119,7 +120,11 @@ def test_sigkill_of_the_daemon_while_it_saves_then_warm_start(tmp_path):
                 assert proc.poll() is None and time.monotonic() < deadline
                 time.sleep(0.002)
             if i < KILLS_DAEMON:
-                time.sleep(rng.uniform(0.0, 0.15))
+                # The daemon's writer thread folds the burst into a few writes: every other
+                # kill aims at a temp file seen on disk (a write in progress).
+                aim = time.monotonic() + rng.uniform(0.0, 0.15)
+                while time.monotonic() < aim and not (i % 2 and set(_temp_files(state)) - debris):
+                    time.sleep(0.0002)
                 proc.kill()
             else:  # the last start takes in the whole nav file, then stops cleanly
                 while len(EphemerisStore.load(state / "ephemeris.json")) < n_seed + n_nav:
