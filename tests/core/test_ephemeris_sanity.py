@@ -495,7 +495,7 @@ def test_a_nav_file_with_no_usable_set_is_a_clear_error(tmp_path):
     prns = {line[:3] for line in text.splitlines() if line[:1] == "C" and line[1:3].isdigit()}
     nav, _ = _damaged_nav(tmp_path / "all.nav", prns, "sqrt_a", " .000000000000D+00")
     run = _run("solve", str(HKSC_OBS), str(nav), "--mode", "spp")
-    assert run.returncode == 2  # ConfigError (service/core/errors.py EXIT_USAGE)
+    assert run.returncode == 3  # InputError: the nav file cannot be used (EXIT_INPUT)
     assert run.stdout == ""
     logs, other = _stderr_lines(run.stderr)
     assert sorted(x.split()[4] for x in logs) == sorted(prns)  # one line per satellite
