@@ -160,6 +160,7 @@ def main_run(args: argparse.Namespace) -> int:
     )
     outputs = build_publishers(specs, cfg.talker, options)
     state_dir = cfg.resolved_state_dir()
+    log.info("state directory %s (ephemeris store)", state_dir.resolve())
     store = load_store(state_dir, cfg.max_eph_age_s)
     pipeline = Pipeline(
         store,
@@ -183,7 +184,7 @@ def main_run(args: argparse.Namespace) -> int:
     log.info(
         "bdsfix running: source %s, outputs %s",
         cfg.source,
-        ", ".join(f"{o.kind} {o.spec}" for o in specs) or "-",
+        ", ".join(f"{o.kind} {o.spec}" for o in specs) or "none",
     )
     try:
         n = runner.run()
@@ -234,7 +235,8 @@ def main_replay(args: argparse.Namespace) -> int:
 
     if args.speed is not None and not (args.speed > 0 and math.isfinite(args.speed)):
         raise ConfigError(f"--speed must be a positive number, got {args.speed}")
-    specs = output_specs(args) or [OutputSpec("nmea-file", "-")]  # none asked: NMEA to stdout
+    asked = output_specs(args)
+    specs = asked or [OutputSpec("nmea-file", "-")]  # none asked: NMEA to stdout
     cfg = solver_config(args)
     timeline = Timeline()
     offset = 0.0
@@ -259,6 +261,15 @@ def main_replay(args: argparse.Namespace) -> int:
         speed = None if args.max_speed else (args.speed or 1.0)
     pipeline = Pipeline(store, iono, cfg, restart_at_s=args.restart_at, sync_seed=args.seed)
     outputs = build_publishers(specs, args.talker)
+    # what was opened, once it opened (an error stays the only line)
+    if args.files:
+        pacing = "as fast as possible" if speed is None else f"paced at {speed:g}x real time"
+        hint = "" if speed is None else " (--max-speed: as fast as possible)"
+        print(f"bdsfix replay: reading {args.files[0]}, {pacing}{hint}", file=sys.stderr)
+    if asked and not any(o.kind == "nmea-file" and o.spec == "-" for o in asked):
+        outs = ", ".join(f"{o.kind} {o.spec}" for o in asked)
+        note = "no NMEA on stdout: add --nmea-out -"
+        print(f"bdsfix replay: outputs {outs} ({note})", file=sys.stderr)
     runner = Runner(
         pace(events, speed),
         pipeline,

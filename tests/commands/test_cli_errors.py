@@ -5,6 +5,7 @@ README "Exit codes") and never a traceback. Ports in use are held by real socket
 from __future__ import annotations
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -221,5 +222,5 @@ def test_replay_stops_when_the_reader_of_its_only_output_leaves():
     for noise in ("Traceback", "Exception ignored", "Broken pipe"):
         assert noise not in err, err
     # 205 epochs of NMEA (~140 kB) cannot pass a 64 kB pipe nobody reads: it stopped early
-    epochs = int(err.split("bdsfix replay: ")[1].split()[0])
+    epochs = int(re.search(r"bdsfix replay: (\d+) epochs", err).group(1))
     assert epochs < 205
