@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import math
 import tempfile
 from collections import Counter
 from collections.abc import Sequence
@@ -67,15 +66,27 @@ def main_ttff(args: argparse.Namespace) -> int:
     return 0
 
 
+ROWS = {
+    "fast": "fast fix (this method)",
+    "conventional": "conventional SPP (4 full ranges)",
+    "geo_only": "GEO-only SPP (4+ GEOs, no gate)",
+}
+
+
 def _print(doc: dict[str, Any], as_json: bool) -> None:
+    """The TTFF table (times from the restart to the first fix, in data time), or JSON."""
     if as_json:
         print(json.dumps(doc))
         return
-    for key in ("fast", "conventional", "geo_only"):
+
+    def sec(v: dict[str, Any], key: str) -> str:
+        return f"{v[key]:5.1f} s" if key in v else "    n/a"
+
+    for key, label in ROWS.items():
         v = doc[key]
         print(
-            f"{key:>12}: median {v.get('median_s', math.nan):5.1f} s, p95 "
-            f"{v.get('p95_s', math.nan):5.1f} s, success {v['success_pct']:.0f} %"
+            f"{label:>34}: median {sec(v, 'median_s')}, p95 {sec(v, 'p95_s')}, "
+            f"success {v['success_pct']:.0f} %"
             + (f", median error {v['median_err_m']:.1f} m" if "median_err_m" in v else "")
         )
 

@@ -104,8 +104,8 @@ def _stats(values: list[float | None], n: int) -> dict[str, Any]:
     ok = [v for v in values if v is not None]
     out: dict[str, Any] = {"success_pct": round(100.0 * len(ok) / max(n, 1), 2)}
     if ok:
-        out["median_s"] = float(np.median(ok))
-        out["p95_s"] = float(np.percentile(ok, 95))
+        out["median_s"] = round(float(np.median(ok)), 3)
+        out["p95_s"] = round(float(np.percentile(ok, 95)), 3)
     return out
 
 
