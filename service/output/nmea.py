@@ -29,7 +29,8 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
   gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only GGA with quality 0 and an
   empty position and RMC with status V (gpsd: no fix); pynmeagps fills the hemisphere
   fields with N/E even then. Its time is the receiver's unsolved tag, so no ZDA follows.
-- ZDA only with ``time_known`` (the caller knows UTC, e.g. after a first fix).
+- ZDA only with ``time_known`` (the caller knows UTC, e.g. after a first fix); day and month
+  are two digits (``$GNZDA,hhmmss.ss,dd,mm,yyyy,00,00``, NMEA 0183 field format ``xx``).
 """
 
 from __future__ import annotations
@@ -300,8 +301,8 @@ def sentences_after_gga(
                 talker,
                 "ZDA",
                 time=t,
-                day=when.day,
-                month=when.month,
+                day=f"{when.day:02d}",
+                month=f"{when.month:02d}",
                 year=when.year,
                 ltzh="00",
                 ltzn="00",
