@@ -63,6 +63,7 @@ from typing import IO, Literal
 import numpy as np
 
 from service.core.errors import FramingError
+from service.core.ratelog import RateLimitedLog
 from service.core.timebase import (
     BDT_GPS_WEEK_OFFSET,
     BDT_GPST_OFFSET_S,
@@ -331,6 +332,7 @@ class RinexObsReader:
         self._header_lines = lines.n
         self.header = _parse_obs_header(raw, self.path)
         self.counters: Counter[str] = Counter()
+        self._log = RateLimitedLog(log)  # a damaged file: one line a minute per kind
         self._live: weakref.WeakSet[Generator[MeasurementEpoch, None, None]] = weakref.WeakSet()
 
     def __iter__(self) -> Iterator[MeasurementEpoch]:
@@ -387,7 +389,7 @@ class RinexObsReader:
                     if not self.lenient:
                         raise err
                     if not stray:
-                        log.warning("%s; skipping to the next epoch line", err)
+                        self._log.warning("stray", "%s; skipping to the next epoch line", err)
                     stray += 1
                     counters["lines_skipped"] += 1
                     continue
@@ -408,7 +410,7 @@ class RinexObsReader:
                     if not self.lenient:
                         raise
                     counters["epochs_skipped"] += 1
-                    log.warning("%s; epoch skipped", exc)
+                    self._log.warning("epoch", "%s; epoch skipped", exc)
                     stray = 1  # its records follow: skipped without another warning
                     continue
                 counters["epochs"] += 1
@@ -521,7 +523,7 @@ class RinexObsReader:
                 if not self.lenient:
                     raise err from exc
                 self.counters["records_skipped"] += 1
-                log.warning("%s; record skipped", err)
+                self._log.warning("record", "%s; record skipped", err)
                 continue
             prn.append(sat)
             pr.append(value)

@@ -37,6 +37,7 @@ from drivers.transport import (
 )
 from service.core.counters import Counters
 from service.core.errors import ConfigError, DecodeError
+from service.core.ratelog import RateLimitedLog
 from service.core.timebase import gpst_from_utc
 
 log = logging.getLogger(__name__)
@@ -78,6 +79,7 @@ class StreamDecoder:
         self.counters = counters if counters is not None else Counters()
         self.week = WeekContext(gps_week)
         self.framer = Framer(protocols, self.counters, max_payload=max_payload)
+        self._log = RateLimitedLog(log)
         options = dict(mapper_options or {})
         unknown = options.keys() - {p.name for p in protocols if p.mapper is not None}
         if unknown:
@@ -113,7 +115,9 @@ class StreamDecoder:
             return mapper.on_frame(frame.raw)
         except DecodeError as err:
             self.counters[f"map_errors_{frame.protocol}"] += 1
-            log.warning("%s frame at offset %d: %s", frame.protocol, frame.offset, err)
+            self._log.warning(
+                frame.protocol, "%s frame at offset %d: %s", frame.protocol, frame.offset, err
+            )
         except Exception as err:  # library parse errors of any kind stop here
             self.counters[f"decode_errors_{frame.protocol}"] += 1
             log.debug(

@@ -56,6 +56,7 @@ from drivers.framing import BinaryFraming, Event, WeekContext
 from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S, prn_id
 from service.core.counters import Counters
+from service.core.ratelog import RateLimitedLog
 from service.core.timebase import diff_s, gpst_from_utc
 from service.core.types import MeasurementEpoch
 
@@ -357,6 +358,7 @@ class UbxMapper:
         self._pending: _Pending | None = None
         self._last_emitted: tuple[int, float] | None = None
         self._last_meas_time: tuple[int, float] | None = None
+        self._log = RateLimitedLog(log)
 
     # --- entry points ------------------------------------------------------------------------
     def on_frame(self, raw: bytes) -> list[Event]:
@@ -537,7 +539,8 @@ class UbxMapper:
                 self.measx_offset_m = float(statistics.median(d.tolist()))
             else:
                 self.counters["measx_offset_rejected"] += 1
-                log.warning(
+                self._log.warning(
+                    "measx_offset_rejected",
                     "MEASX/RAWX offsets disagree by %.1f m at GPST %d %.3f; kept %s",
                     float(np.ptp(d)),
                     p.week,

@@ -12,6 +12,7 @@ import collections
 import datetime as dt
 import functools
 import itertools
+import logging
 import math
 import os
 import socket
@@ -458,6 +459,29 @@ def test_measx_fraction_recovers_withheld_prmes():
     assert len(resid) == 654
     assert np.max(np.abs(resid)) < 0.15  # one codePhase LSB is 0.143 m
     assert dec.counters["measx_uncalibrated"] == 0
+
+
+def test_measx_offsets_that_disagree_are_counted_every_epoch_and_logged_once(caplog):
+    """Every MEASX satellite's code phase moved by its own multiple of 0.1 ms: the
+    calibration is refused in each of the 654 epochs (counted), and the warning is one
+    line, not 654."""
+    data = bytearray(HPG.read_bytes())
+    for frame in ubx_frames(HPG, MEASX_ID):
+        edited = bytearray(frame)
+        for k in range(len(struct_measx(frame)[1])):
+            at = 6 + 44 + 24 * k + 16
+            code = struct.unpack_from("<I", edited, at)[0]
+            struct.pack_into("<I", edited, at, (code + int(0.1 * k * 2**21)) % 2**21)
+        pos = data.find(frame)
+        data[pos : pos + len(frame)] = reseal_ubx(edited)
+    dec = StreamDecoder()
+    dec.mappers["ubx"]._log.clock = lambda: 0.0  # all within one interval, whatever the speed
+    with caplog.at_level(logging.WARNING, logger="drivers.ubx"):
+        epochs = epochs_of(dec.feed(bytes(data)) + dec.flush())
+    assert len(epochs) == 654
+    assert dec.counters["measx_offset_rejected"] == 654
+    lines = [r.getMessage() for r in caplog.records if "offsets disagree" in r.getMessage()]
+    assert len(lines) == 1 and "more since" not in lines[0]
 
 
 def _feed_frames(dec: StreamDecoder, frames: list[bytes]) -> list[list]:
