@@ -15,7 +15,9 @@ section 5).
   ``prMes`` is a full pseudorange only when trkStat bit 0 (prValid) is set; otherwise NaN.
   The time tag is (``week``, ``rcvTow``) on the GPST scale. MEASX pairs with the RAWX whose
   ``rcvTow`` is within ``pair_tolerance_s`` of its ``gpsTOW``; an epoch with MEASX only is
-  tagged ``gpsTOW`` (ms, GPST) with the week of the stream.
+  tagged ``gpsTOW`` (ms, GPST) with the week of the stream, or
+  :data:`~service.core.types.UNKNOWN_WEEK` before the stream has given one (counted,
+  ``epoch_no_week``; the pipeline declines it, ``no_time``).
 - RXM-MEASX: the code phase (``codePhase`` in 2^-21 ms, ``intCodePhase`` in ms) is the
   pseudorange modulo the code period, but without a receiver-internal delay calibration
   that is applied to prMes only and carried by no MEASX field. The mapper calibrates it
@@ -58,7 +60,7 @@ from service.core.constants import C_M_S, WEEK_S, prn_id
 from service.core.counters import Counters
 from service.core.ratelog import RateLimitedLog
 from service.core.timebase import diff_s, gpst_from_utc
-from service.core.types import MeasurementEpoch
+from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +117,6 @@ BDS-SIS-ICD-B1I-3.0 section 3, space constellation) is at most ~42,000 km from a
 the Earth, and u-blox keeps its receiver clock within 1 ms (300 km). A prMes flagged valid
 but NaN, infinite or outside (0, PR_MAX_M) is counted (``rawx_pr_implausible``), not used."""
 MEASX_INVALID_INT_MS = 255
-UNKNOWN_WEEK = -1
 MEASX_INVALID_CHIPS = 65535
 
 
@@ -517,8 +518,7 @@ class UbxMapper:
         self._expected = frozenset(p.kinds) if learn else self._expected | p.kinds
         self._last_emitted = (p.week, p.tow_s)
         if p.week == UNKNOWN_WEEK:
-            self.counters["epoch_no_week"] += 1
-            return []
+            self.counters["epoch_no_week"] += 1  # passed on: the pipeline declines it
         epoch = self._build(p)
         if epoch is None:
             return []
@@ -574,16 +574,20 @@ class UbxMapper:
 
     # --- time ----------------------------------------------------------------------------------
     def _on_nav_pvt(self, msg: Any) -> None:
-        if not (msg.validDate and msg.validTime) or self.week.exact:
+        if not (msg.validDate and msg.validTime):
             return
         try:
             utc = dt.datetime(msg.year, msg.month, msg.day, msg.hour, msg.min, msg.second)
         except ValueError:
             return
-        week, _ = gpst_from_utc(utc)
+        week, utc_tow = gpst_from_utc(utc)
         tow = int(msg.iTOW) * 1e-3
-        if 0.0 <= tow < WEEK_S:
-            self.week.set_approx(week, tow)
+        if not 0.0 <= tow < WEEK_S:
+            return
+        # the week of iTOW: the UTC date's GPST is within seconds of it, but may sit on the
+        # other side of a week boundary
+        week += round((utc_tow - tow) / WEEK_S)
+        self.week.set_approx(week, tow, "UBX NAV-PVT")
 
     # --- navigation subframes ---------------------------------------------------------------
     def _on_sfrbx(self, msg: Any) -> list[Event]:

@@ -77,6 +77,12 @@ CASES = {
         "ZED-F9R UBX + NMEA + RTCM3 (MSM5 1125, 1042 ephemerides): declined until the "
         "ephemerides arrive, SPP fixes after",
     ),
+    "hiroshima-rtcm": Case(
+        ["hiroshima-oem729-rtcm-2022/20221213-010900.rtcm"],
+        "NovAtel OEM729 RTCM3 (MSM7, 7 GEOs, in-stream ephemerides) without --gps-week: the "
+        "week from the first ephemeris in the stream (Galileo 1045), the 6 epochs before it "
+        "declined no_time, no_ephemeris until the first 1042, SPP fixes after; all 60 epochs",
+    ),
     "tiny-ntrip": Case(
         ["tiny-ubx-rtcm/pygpsdata-NTRIP-USCL00CHL0.log"],
         "pyrtcm NTRIP capture (MSM 1126/1127, one 1042): one epoch, declined (too few full)",
