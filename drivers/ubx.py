@@ -30,7 +30,9 @@ section 5).
   valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
   exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
 - RXM-SFRBX (BDS) becomes a :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
-  the latest measurement time.
+  the latest measurement time, or, in a stream without RAWX/MEASX, with the latest
+  navigation epoch of UBX-NAV-TIMEGPS (week and time of week valid) or UBX-NAV-PVT (date
+  and time valid). A subframe before any of them is counted (``sfrbx_no_time``).
 
 Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``rawx_meas_other_gnss``, ``rawx_bds_other_signal``, ``rawx_pr_invalid``,
@@ -59,7 +61,7 @@ from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S, prn_id
 from service.core.counters import Counters
 from service.core.ratelog import RateLimitedLog
-from service.core.timebase import diff_s, gpst_from_utc
+from service.core.timebase import diff_s, gpst_from_utc, normalize
 from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 
 log = logging.getLogger(__name__)
@@ -359,6 +361,7 @@ class UbxMapper:
         self._pending: _Pending | None = None
         self._last_emitted: tuple[int, float] | None = None
         self._last_meas_time: tuple[int, float] | None = None
+        self._last_nav_time: tuple[int, float] | None = None  # NAV-TIMEGPS / NAV-PVT
         self._log = RateLimitedLog(log)
 
     # --- entry points ------------------------------------------------------------------------
@@ -393,6 +396,7 @@ class UbxMapper:
             tow = msg.iTOW * 1e-3 + msg.fTOW * 1e-9
             if msg.weekValid and msg.towValid and 0.0 <= tow < WEEK_S:
                 self.week.set_exact(int(msg.week), tow)
+                self._last_nav_time = normalize(int(msg.week), tow)
         elif name == "NAV-PVT":
             self._on_nav_pvt(msg)
         else:
@@ -587,6 +591,7 @@ class UbxMapper:
         # the week of iTOW: the UTC date's GPST is within seconds of it, but may sit on the
         # other side of a week boundary
         week += round((utc_tow - tow) / WEEK_S)
+        self._last_nav_time = (week, tow)
         self.week.set_approx(week, tow, "UBX NAV-PVT")
 
     # --- navigation subframes ---------------------------------------------------------------
@@ -595,10 +600,11 @@ class UbxMapper:
             self.counters["sfrbx_other_gnss"] += 1
             return []
         self.counters["sfrbx_bds"] += 1
-        if self._last_meas_time is None:
+        when = self._last_meas_time or self._last_nav_time
+        if when is None:
             self.counters["sfrbx_no_time"] += 1
             return []
-        sub = nav_subframe_from_sfrbx(msg, *self._last_meas_time)
+        sub = nav_subframe_from_sfrbx(msg, *when)
         if sub is None:
             self.counters["sfrbx_unmapped"] += 1
             return []

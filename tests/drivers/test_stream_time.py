@@ -4,6 +4,8 @@
   ephemerides (1042 BDS, 1019 GPS, 1044 QZSS, 1045/1046 Galileo), their truncated weeks
   resolved against the system clock or a sane epoch; an epoch before any week is passed on
   without one (the pipeline declines it), never dropped.
+- u-blox SFRBX without RAWX: subframes take the time of the latest NAV-TIMEGPS (or
+  NAV-PVT) navigation epoch.
 
 Independent references: pyrtcm's and pyubx2's own stream readers.
 """
@@ -15,17 +17,21 @@ from pathlib import Path
 
 import pytest
 from pyrtcm import RTCMReader
+from pyubx2 import UBXReader
 
 from drivers.framing import Framer, WeekContext
 from drivers.protocols import PROTOCOLS
 from drivers.rtcm import message_number
 from drivers.source import StreamDecoder
 from service.core.timebase import MIN_SANE_GPS_WEEK, nearest_week
-from service.core.types import MeasurementEpoch
+from service.core.types import MeasurementEpoch, NavSubframe
 from tests.support.paths import DATA
 
 HIROSHIMA = DATA / "hiroshima-oem729-rtcm-2022" / "20221213-010900.rtcm"
 HIROSHIMA_WEEK = 2240  # 2022-12-13 (the capture's README)
+F9P_SFRBX = DATA / "ublox-logs" / "ublox-zed-f9p-sfrbx.log"
+X20P = DATA / "ublox-logs" / "ublox-x20p.log"
+NAV_TIMEGPS = b"\x01\x20"
 
 
 def decode(data: bytes, dec: StreamDecoder | None = None) -> tuple[list, StreamDecoder]:
@@ -116,3 +122,55 @@ def test_week_sources_by_rank(caplog):
     assert wc.exact and wc.resolve(11.0) == 2241 and wc.source == "receiver time"
     fresh = WeekContext()
     assert not fresh.known and fresh.resolve(5.0) is None
+
+
+# --- u-blox: SFRBX time from the navigation epoch --------------------------------------------
+def _nav_times(path: Path) -> list[tuple[str, int, float]]:
+    out = []
+    with open(path, "rb") as stream:
+        for _, msg in UBXReader(stream, protfilter=2, quitonerror=0):
+            if msg.identity == "NAV-TIMEGPS":
+                out.append(("T", msg.week, msg.iTOW * 1e-3 + msg.fTOW * 1e-9))
+            elif msg.identity == "RXM-SFRBX" and msg.gnssId == 3:
+                out.append(("S", 0, 0.0))
+    return out
+
+
+def test_sfrbx_without_rawx_takes_the_time_of_nav_timegps():
+    """ZED-F9P log with SFRBX and no RAWX: all 11 BDS B1I subframes come out, each tagged
+    with the NAV-TIMEGPS before it (pyubx2's reading), and each such time is one subframe
+    after its SOW (GPST = BDT + 14 s; the SOW marks the subframe's start)."""
+    events, dec = decode(F9P_SFRBX.read_bytes())
+    subs = [e for e in events if isinstance(e, NavSubframe)]
+    assert len(subs) == dec.counters["sfrbx_bds"] == 11 and dec.counters["sfrbx_no_time"] == 0
+    want, last = [], None
+    for kind, week, tow in _nav_times(F9P_SFRBX):
+        if kind == "T":
+            last = (week, tow)
+        else:
+            want.append(last)
+    assert [s.gpst_week for s in subs] == [w for w, _ in want]
+    assert [s.gpst_tow_s for s in subs] == pytest.approx([t for _, t in want], abs=1e-9)
+    for s in subs:
+        assert 0.0 <= s.gpst_tow_s - 14.0 - (s.sow_s + 6.0) <= 0.2
+
+
+def test_sfrbx_takes_the_time_of_nav_pvt_without_nav_timegps():
+    """The same log with every NAV-TIMEGPS frame taken out: NAV-PVT (date and time valid)
+    gives the same times, to its millisecond."""
+    with_timegps = [e for e in decode(F9P_SFRBX.read_bytes())[0] if isinstance(e, NavSubframe)]
+    data = b"".join(f.raw for f in frames_of(F9P_SFRBX) if f.raw[2:4] != NAV_TIMEGPS)
+    events, dec = decode(data)
+    subs = [e for e in events if isinstance(e, NavSubframe)]
+    assert dec.counters["ubx:NAV-TIMEGPS"] == 0 and dec.counters["ubx:NAV-PVT"] == 19
+    assert [s.words for s in subs] == [s.words for s in with_timegps]
+    for a, b in zip(subs, with_timegps, strict=True):
+        assert a.gpst_week == b.gpst_week and abs(a.gpst_tow_s - b.gpst_tow_s) < 1e-3
+
+
+def test_x20p_subframes_get_their_time_but_are_not_b1i():
+    """X20P log: NAV-TIMEGPS times its 100 BDS subframes, which are B3I D1 (sigId 4) and
+    B-CNAV (sigId 6, 8): counted as unmapped, as the service decodes B1I only."""
+    events, dec = decode(X20P.read_bytes())
+    assert dec.counters["sfrbx_bds"] == dec.counters["sfrbx_unmapped"] == 100
+    assert dec.counters["sfrbx_no_time"] == 0 and not events
