@@ -63,7 +63,6 @@ from typing import IO, Literal
 import numpy as np
 
 from service.core.errors import FramingError
-from service.core.ratelog import RateLimitedLog
 from service.core.timebase import (
     BDT_GPS_WEEK_OFFSET,
     BDT_GPST_OFFSET_S,
@@ -332,7 +331,6 @@ class RinexObsReader:
         self._header_lines = lines.n
         self.header = _parse_obs_header(raw, self.path)
         self.counters: Counter[str] = Counter()
-        self._log = RateLimitedLog(log)  # a damaged file: one line a minute per kind
         self._live: weakref.WeakSet[Generator[MeasurementEpoch, None, None]] = weakref.WeakSet()
 
     def __iter__(self) -> Iterator[MeasurementEpoch]:
@@ -389,7 +387,7 @@ class RinexObsReader:
                     if not self.lenient:
                         raise err
                     if not stray:
-                        self._log.warning("stray", "%s; skipping to the next epoch line", err)
+                        log.warning("%s; skipping to the next epoch line", err)
                     stray += 1
                     counters["lines_skipped"] += 1
                     continue
@@ -410,7 +408,7 @@ class RinexObsReader:
                     if not self.lenient:
                         raise
                     counters["epochs_skipped"] += 1
-                    self._log.warning("epoch", "%s; epoch skipped", exc)
+                    log.warning("%s; epoch skipped", exc)
                     stray = 1  # its records follow: skipped without another warning
                     continue
                 counters["epochs"] += 1
@@ -523,7 +521,7 @@ class RinexObsReader:
                 if not self.lenient:
                     raise err from exc
                 self.counters["records_skipped"] += 1
-                self._log.warning("record", "%s; record skipped", err)
+                log.warning("%s; record skipped", err)
                 continue
             prn.append(sat)
             pr.append(value)
