@@ -326,8 +326,13 @@ class WeekContext:
                     self._ref[0],
                     self.source,
                 )
-            elif self._rank < self.HINT:
-                log.info("GPS week %d from %s", week, source)
+            else:  # the first week, or one that confirms the hint: news, not trouble
+                log.log(
+                    logging.DEBUG if rank == self.HINT else logging.INFO,
+                    "GPS week %d from %s",
+                    week,
+                    source,
+                )
             self._rank, self.source = rank, source
         self._ref = (week, tow)
 
