@@ -26,7 +26,13 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from service.core.counters import Counters
-from service.core.timebase import diff_s, normalize
+from service.core.timebase import (
+    MIN_SANE_GPS_WEEK,
+    diff_s,
+    nearest_week,
+    normalize,
+    system_clock_gps_week,
+)
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
 
 log = logging.getLogger(__name__)
@@ -258,29 +264,85 @@ class Framer:
 class WeekContext:
     """The GPS week for messages that carry only a time of week (RTCM MSM, UBX MEASX).
 
-    Exact sources (UBX RXM-RAWX, NAV-TIMEGPS) set it; approximate ones (RTCM 1042 toe week,
-    a constructor hint) only seed it. A time of week is resolved to the week (of the
-    reference week and its neighbours) that puts it nearest the last known time, which also
-    carries the week across a rollover.
+    Sources by rank, each replacing the reference unless a higher rank has set it:
+
+    - ``HINT``: ``--gps-week`` (the constructor) or the system clock of a live stream
+      (:meth:`set_hint`);
+    - ``STREAM``: a week the stream gives with a time near now: a broadcast ephemeris's week
+      and t_oe (RTCM 1019, 1042, 1044, 1045, 1046), a UBX NAV-PVT date (:meth:`set_approx`);
+    - ``EXACT``: the receiver's own time tag (UBX RXM-RAWX, NAV-TIMEGPS; :meth:`set_exact`).
+
+    A time of week is resolved to the week (of the reference week and its neighbours) that
+    puts it nearest the last known time, which also carries the week across a rollover. A
+    truncated broadcast week (GPS 10 bits) is resolved by :meth:`broadcast_week` against the
+    reference, else the system clock (``clock_week``), else a sane epoch. When the stream's
+    week replaces a hint more than a week away, that is logged (a wrong system clock or
+    ``--gps-week``).
     """
 
-    def __init__(self, gps_week: int | None = None) -> None:
+    HINT, STREAM, EXACT = 0, 1, 2
+
+    def __init__(
+        self,
+        gps_week: int | None = None,
+        *,
+        clock_week: Callable[[], int | None] = system_clock_gps_week,
+    ) -> None:
         self._ref: tuple[int, float | None] | None = None
+        self._rank = -1
+        self.source = ""
+        """What set the reference (for the log and the tests)."""
+        self.clock_week = clock_week
         if gps_week is not None:
-            self._ref = (gps_week, None)
-        self.exact = False
+            self._ref, self._rank, self.source = (gps_week, None), self.HINT, "--gps-week"
 
     @property
     def known(self) -> bool:
         return self._ref is not None
 
-    def set_exact(self, gps_week: int, tow_s: float) -> None:
-        self._ref = normalize(gps_week, tow_s)
-        self.exact = True
+    @property
+    def exact(self) -> bool:
+        return self._rank == self.EXACT
 
-    def set_approx(self, gps_week: int, tow_s: float) -> None:
-        if not self.exact:
-            self._ref = normalize(gps_week, tow_s)
+    def set_exact(self, gps_week: int, tow_s: float) -> None:
+        self._set(self.EXACT, gps_week, tow_s, "receiver time")
+
+    def set_approx(self, gps_week: int, tow_s: float, source: str = "stream") -> None:
+        self._set(self.STREAM, gps_week, tow_s, source)
+
+    def set_hint(self, gps_week: int, tow_s: float, source: str = "system clock") -> None:
+        self._set(self.HINT, gps_week, tow_s, source)
+
+    def _set(self, rank: int, gps_week: int, tow_s: float, source: str) -> None:
+        if rank < self._rank:
+            return
+        week, tow = normalize(gps_week, tow_s)
+        if self._rank < rank:
+            if self._rank == self.HINT and self._ref is not None and abs(week - self._ref[0]) > 1:
+                log.warning(
+                    "GPS week %d from %s replaces week %d from %s",
+                    week,
+                    source,
+                    self._ref[0],
+                    self.source,
+                )
+            else:  # the first week, or one that confirms the hint: news, not trouble
+                log.log(
+                    logging.DEBUG if rank == self.HINT else logging.INFO,
+                    "GPS week %d from %s",
+                    week,
+                    source,
+                )
+            self._rank, self.source = rank, source
+        self._ref = (week, tow)
+
+    def broadcast_week(self, week_mod: int, modulus: int, offset: int = 0) -> int:
+        """The GPS week of a week broadcast modulo ``modulus`` and counted from GPS week
+        ``offset`` (GPS/QZSS: 1024 and 0; Galileo: 4096 and 1024)."""
+        ref = self._ref[0] if self._ref is not None else None
+        if ref is None:
+            ref = self.clock_week() or MIN_SANE_GPS_WEEK
+        return offset + nearest_week(week_mod, modulus, ref - offset)
 
     def resolve(self, tow_s: float) -> int | None:
         """GPS week of a GPST time of week, or None when no week is known yet."""

@@ -14,8 +14,14 @@ BDS facts from BDS-SIS-ICD-B1I-3.0.
   Only B1I cells (signal ID 2, RINEX ``2I``; Table 3.5-108) enter the epoch.
 - The BDS MSM epoch time DF427 is BDT milliseconds of week; GPST = BDT + 14 s. The GPS week
   comes from a :class:`~drivers.framing.WeekContext` shared with the other mappers of the
-  stream: a constructor hint, the latest exact week (UBX RXM-RAWX / NAV-TIMEGPS) or the week
-  of the latest 1042 toe, and the time of week is put in the week nearest that reference.
+  stream: the latest exact week (UBX RXM-RAWX / NAV-TIMEGPS), else the week and t_oe of the
+  latest broadcast ephemeris in the stream (:data:`EPH_WEEKS`: 1042 BDS, 1019 GPS, 1044
+  QZSS, 1045/1046 Galileo, whichever comes first), else a hint (``--gps-week``, the system
+  clock of a live stream); the time of week is put in the week nearest that reference. A
+  truncated broadcast week is resolved by :meth:`~drivers.framing.WeekContext.broadcast_week`.
+  An MSM epoch before any week is known is passed on with
+  :data:`~service.core.types.UNKNOWN_WEEK` (counted, ``msm_no_week``): the pipeline declines
+  it (``no_time``) rather than the stream losing it.
 - 1042 becomes an :class:`~service.core.types.Ephemeris` (``source="rtcm"``). pyrtcm applies the
   scale factors (toe/toc in s, angles in semicircles, TGD in ns); angles and rates are turned
   into radians with the ICD's pi = 3.1415926535898 (ICD 5.2.4.9).
@@ -23,7 +29,8 @@ BDS facts from BDS-SIS-ICD-B1I-3.0.
 Counter keys: ``rtcm:<number>`` per message, ``rtcm_ignored``, ``msm_bds``,
 ``msm_cells_b1i``, ``msm_cells_other_signal``, ``msm_cells_fractional``,
 ``msm_cells_invalid``, ``msm_duplicate_cells``, ``msm_no_week``, ``msm_bad_time``, ``epochs_rtcm``,
-``ephemerides_rtcm``, ``eph_bad_prn``.
+``ephemerides_rtcm``, ``eph_bad_prn``, ``eph_week_<number>`` (a week taken from a non-BDS
+ephemeris), ``eph_bad_toe``.
 """
 
 from __future__ import annotations
@@ -39,8 +46,8 @@ from pyrtcm import RTCMReader
 from drivers.framing import BinaryFraming, Event, WeekContext
 from service.core.constants import C_M_S, F_B1I_HZ, ICD_PI, MS_RANGE_M, URA_M, WEEK_S, prn_id
 from service.core.counters import Counters
-from service.core.timebase import BDT_GPST_OFFSET_S, bdt_to_gpst, diff_s
-from service.core.types import Ephemeris, MeasurementEpoch
+from service.core.timebase import BDT_GPST_OFFSET_S, GST_GPS_WEEK_OFFSET, bdt_to_gpst, diff_s
+from service.core.types import UNKNOWN_WEEK, Ephemeris, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +110,29 @@ BDS_MSM = {1124: 4, 1125: 5, 1126: 6, 1127: 7}
 """BDS MSM message numbers and their MSM level."""
 
 EPH_BDS = 1042
-USED_MESSAGES = frozenset({*BDS_MSM, EPH_BDS})
+
+
+@dataclass(frozen=True, slots=True)
+class EphWeek:
+    """Where a non-BDS ephemeris message carries its week and t_oe (RTCM 10403.3 section
+    3.5.6 ff.): the week field modulo ``modulus`` counts from GPS week ``offset``."""
+
+    system: str
+    week_df: str
+    toe_df: str
+    modulus: int
+    offset: int = 0
+
+
+EPH_WEEKS: dict[int, EphWeek] = {
+    1019: EphWeek("GPS", "DF076", "DF093", 1024),  # DF076 10 bits
+    1044: EphWeek("QZSS", "DF452", "DF442", 1024),  # DF452 10 bits, GPS week numbering
+    1045: EphWeek("Galileo F/NAV", "DF289", "DF304", 4096, GST_GPS_WEEK_OFFSET),  # 12 bits
+    1046: EphWeek("Galileo I/NAV", "DF289", "DF304", 4096, GST_GPS_WEEK_OFFSET),
+}
+"""Ephemerides of other systems read only for their week, while the stream's week is not
+exact (the 1042 BDS week, 13 bits from BDT week 0, comes with the ephemeris itself)."""
+USED_MESSAGES = frozenset({*BDS_MSM, EPH_BDS, *EPH_WEEKS})
 MSM_RANGE = range(1071, 1138)
 """All MSM numbers (GPS 107x ... IRNSS 113x); their header layout is common."""
 
@@ -237,6 +266,13 @@ def ephemeris_from_1042(msg: Any) -> Ephemeris:
     )
 
 
+def _same_time(week_a: int, tow_a: float, week_b: int, tow_b: float) -> bool:
+    """Two MSM times are one epoch (times of week only while a week is unknown)."""
+    if UNKNOWN_WEEK in (week_a, week_b):
+        return abs((tow_a - tow_b + WEEK_S / 2) % WEEK_S - WEEK_S / 2) <= 1e-6
+    return abs(diff_s(week_a, tow_a, week_b, tow_b)) <= 1e-6
+
+
 class RtcmMapper:
     """Stateful mapper: RTCM3 frames in stream order -> events.
 
@@ -263,6 +299,8 @@ class RtcmMapper:
         """Map one checksum-valid RTCM3 frame (library errors propagate to the caller)."""
         number = message_number(raw)
         self.counters[f"rtcm:{number}"] += 1
+        if number in EPH_WEEKS and self.week.exact:
+            number = 0  # the week is the receiver's own: nothing to read there
         if number in USED_MESSAGES:
             return self.on_message(RTCMReader.parse(raw))
         self.counters["rtcm_ignored"] += 1
@@ -277,6 +315,8 @@ class RtcmMapper:
             return self._on_1042(msg)
         if number in BDS_MSM:
             return self._on_msm(msg, BDS_MSM[number])
+        if number in EPH_WEEKS:
+            self._on_eph_week(msg, number)
         return []
 
     def flush(self) -> list[Event]:
@@ -316,9 +356,19 @@ class RtcmMapper:
             return []
         eph = ephemeris_from_1042(msg)
         gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
-        self.week.set_approx(gps_week, gps_tow)
+        self.week.set_approx(gps_week, gps_tow, "RTCM 1042 (BDS ephemeris)")
         self.counters["ephemerides_rtcm"] += 1
         return [eph]
+
+    def _on_eph_week(self, msg: Any, number: int) -> None:
+        spec = EPH_WEEKS[number]
+        toe = float(getattr(msg, spec.toe_df))
+        if not 0.0 <= toe < WEEK_S:
+            self.counters["eph_bad_toe"] += 1
+            return
+        week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
+        self.week.set_approx(week, toe, f"RTCM {number} ({spec.system} ephemeris)")
+        self.counters[f"eph_week_{number}"] += 1
 
     # --- MSM ------------------------------------------------------------------------------
     def _on_msm(self, msg: Any, level: int) -> list[Event]:
@@ -331,11 +381,11 @@ class RtcmMapper:
         week = self.week.resolve(tow)
         if week is None:
             self.counters["msm_no_week"] += 1
-            return []
+            week = UNKNOWN_WEEK
         out: list[Event] = []
-        if self._time is not None and abs(diff_s(week, tow, *self._time)) > 1e-6:
+        if self._time is not None and not _same_time(week, tow, *self._time):
             out = self.flush()
-        self._time = (week, tow)
+        self._time = (week, tow)  # a week that became known within the epoch is kept
         self._merge(msg, level)
         if not int(msg.DF393):
             out += self.flush()

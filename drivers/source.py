@@ -37,7 +37,8 @@ from drivers.transport import (
 )
 from service.core.counters import Counters
 from service.core.errors import ConfigError, DecodeError, FramingError
-from service.core.timebase import gpst_from_utc
+from service.core.ratelog import RateLimitedLog
+from service.core.timebase import MIN_SANE_GPS_WEEK, gpst_from_utc
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +79,7 @@ class StreamDecoder:
         self.counters = counters if counters is not None else Counters()
         self.week = WeekContext(gps_week)
         self.framer = Framer(protocols, self.counters, max_payload=max_payload)
+        self._log = RateLimitedLog(log)
         options = dict(mapper_options or {})
         unknown = options.keys() - {p.name for p in protocols if p.mapper is not None}
         if unknown:
@@ -113,7 +115,9 @@ class StreamDecoder:
             return mapper.on_frame(frame.raw)
         except DecodeError as err:
             self.counters[f"map_errors_{frame.protocol}"] += 1
-            log.warning("%s frame at offset %d: %s", frame.protocol, frame.offset, err)
+            self._log.warning(
+                frame.protocol, "%s frame at offset %d: %s", frame.protocol, frame.offset, err
+            )
         except Exception as err:  # library parse errors of any kind stop here
             self.counters[f"decode_errors_{frame.protocol}"] += 1
             log.debug(
@@ -299,10 +303,12 @@ def open_source(
     head of the stream, as held ephemerides. Pace a replay with :func:`pace`.
     ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`.
 
-    The GPS week for RTCM MSM times of week comes from ``gps_week``, else from the stream
-    (UBX RAWX / NAV-TIMEGPS / NAV-PVT, RTCM 1042); live sources (serial, TCP) are seeded
-    from the system clock. BDS MSM epochs seen before any week is known are dropped and
-    counted (``msm_no_week``).
+    The GPS week for RTCM MSM times of week comes from the stream (UBX RAWX / NAV-TIMEGPS /
+    NAV-PVT, the ephemerides RTCM 1019/1042/1044/1045/1046), with ``gps_week`` or, for live
+    sources (serial, TCP), the system clock as a hint until then (:class:`WeekContext`).
+    Epochs seen before any week is known are passed on with
+    :data:`~service.core.types.UNKNOWN_WEEK` (counted, ``msm_no_week``) and declined by the
+    pipeline (``no_time``).
     """
     counters = Counters()
     prefix = _nav_events(nav, counters)
@@ -336,7 +342,12 @@ def open_source(
         counters=counters,
     )
     if gps_week is None and not isinstance(transport, FileTransport):
-        # A live stream happens now: the system clock gives the week until the data does.
+        # A live stream happens now: the system clock hints the week until the data gives
+        # it, unless the clock is unset. A file may be years old: its week comes from itself.
         now = dt.datetime.now(dt.UTC).replace(tzinfo=None)
-        decoder.week.set_approx(*gpst_from_utc(now))
+        week, tow = gpst_from_utc(now)
+        if week >= MIN_SANE_GPS_WEEK:
+            decoder.week.set_hint(week, tow)
+        else:
+            log.warning("system clock reads %s UTC, not set: the GPS week waits for the data", now)
     return BinarySource(transport, decoder, prefix=prefix, idle_flush_s=idle_flush_s)

@@ -15,7 +15,9 @@ section 5).
   ``prMes`` is a full pseudorange only when trkStat bit 0 (prValid) is set; otherwise NaN.
   The time tag is (``week``, ``rcvTow``) on the GPST scale. MEASX pairs with the RAWX whose
   ``rcvTow`` is within ``pair_tolerance_s`` of its ``gpsTOW``; an epoch with MEASX only is
-  tagged ``gpsTOW`` (ms, GPST) with the week of the stream.
+  tagged ``gpsTOW`` (ms, GPST) with the week of the stream, or
+  :data:`~service.core.types.UNKNOWN_WEEK` before the stream has given one (counted,
+  ``epoch_no_week``; the pipeline declines it, ``no_time``).
 - RXM-MEASX: the code phase (``codePhase`` in 2^-21 ms, ``intCodePhase`` in ms) is the
   pseudorange modulo the code period, but without a receiver-internal delay calibration
   that is applied to prMes only and carried by no MEASX field. The mapper calibrates it
@@ -28,7 +30,9 @@ section 5).
   valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
   exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
 - RXM-SFRBX (BDS) becomes a :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
-  the latest measurement time.
+  the latest measurement time, or, in a stream without RAWX/MEASX, with the latest
+  navigation epoch of UBX-NAV-TIMEGPS (week and time of week valid) or UBX-NAV-PVT (date
+  and time valid). A subframe before any of them is counted (``sfrbx_no_time``).
 
 Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``rawx_meas_other_gnss``, ``rawx_bds_other_signal``, ``rawx_pr_invalid``,
@@ -56,8 +60,9 @@ from drivers.framing import BinaryFraming, Event, WeekContext
 from drivers.sfrbx import nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S, prn_id
 from service.core.counters import Counters
-from service.core.timebase import diff_s, gpst_from_utc
-from service.core.types import MeasurementEpoch
+from service.core.ratelog import RateLimitedLog
+from service.core.timebase import diff_s, gpst_from_utc, normalize
+from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +119,6 @@ BDS-SIS-ICD-B1I-3.0 section 3, space constellation) is at most ~42,000 km from a
 the Earth, and u-blox keeps its receiver clock within 1 ms (300 km). A prMes flagged valid
 but NaN, infinite or outside (0, PR_MAX_M) is counted (``rawx_pr_implausible``), not used."""
 MEASX_INVALID_INT_MS = 255
-UNKNOWN_WEEK = -1
 MEASX_INVALID_CHIPS = 65535
 
 
@@ -357,6 +361,8 @@ class UbxMapper:
         self._pending: _Pending | None = None
         self._last_emitted: tuple[int, float] | None = None
         self._last_meas_time: tuple[int, float] | None = None
+        self._last_nav_time: tuple[int, float] | None = None  # NAV-TIMEGPS / NAV-PVT
+        self._log = RateLimitedLog(log)
 
     # --- entry points ------------------------------------------------------------------------
     def on_frame(self, raw: bytes) -> list[Event]:
@@ -390,6 +396,7 @@ class UbxMapper:
             tow = msg.iTOW * 1e-3 + msg.fTOW * 1e-9
             if msg.weekValid and msg.towValid and 0.0 <= tow < WEEK_S:
                 self.week.set_exact(int(msg.week), tow)
+                self._last_nav_time = normalize(int(msg.week), tow)
         elif name == "NAV-PVT":
             self._on_nav_pvt(msg)
         else:
@@ -515,8 +522,7 @@ class UbxMapper:
         self._expected = frozenset(p.kinds) if learn else self._expected | p.kinds
         self._last_emitted = (p.week, p.tow_s)
         if p.week == UNKNOWN_WEEK:
-            self.counters["epoch_no_week"] += 1
-            return []
+            self.counters["epoch_no_week"] += 1  # passed on: the pipeline declines it
         epoch = self._build(p)
         if epoch is None:
             return []
@@ -537,7 +543,8 @@ class UbxMapper:
                 self.measx_offset_m = float(statistics.median(d.tolist()))
             else:
                 self.counters["measx_offset_rejected"] += 1
-                log.warning(
+                self._log.warning(
+                    "measx_offset_rejected",
                     "MEASX/RAWX offsets disagree by %.1f m at GPST %d %.3f; kept %s",
                     float(np.ptp(d)),
                     p.week,
@@ -571,16 +578,21 @@ class UbxMapper:
 
     # --- time ----------------------------------------------------------------------------------
     def _on_nav_pvt(self, msg: Any) -> None:
-        if not (msg.validDate and msg.validTime) or self.week.exact:
+        if not (msg.validDate and msg.validTime):
             return
         try:
             utc = dt.datetime(msg.year, msg.month, msg.day, msg.hour, msg.min, msg.second)
         except ValueError:
             return
-        week, _ = gpst_from_utc(utc)
+        week, utc_tow = gpst_from_utc(utc)
         tow = int(msg.iTOW) * 1e-3
-        if 0.0 <= tow < WEEK_S:
-            self.week.set_approx(week, tow)
+        if not 0.0 <= tow < WEEK_S:
+            return
+        # the week of iTOW: the UTC date's GPST is within seconds of it, but may sit on the
+        # other side of a week boundary
+        week += round((utc_tow - tow) / WEEK_S)
+        self._last_nav_time = (week, tow)
+        self.week.set_approx(week, tow, "UBX NAV-PVT")
 
     # --- navigation subframes ---------------------------------------------------------------
     def _on_sfrbx(self, msg: Any) -> list[Event]:
@@ -588,10 +600,11 @@ class UbxMapper:
             self.counters["sfrbx_other_gnss"] += 1
             return []
         self.counters["sfrbx_bds"] += 1
-        if self._last_meas_time is None:
+        when = self._last_meas_time or self._last_nav_time
+        if when is None:
             self.counters["sfrbx_no_time"] += 1
             return []
-        sub = nav_subframe_from_sfrbx(msg, *self._last_meas_time)
+        sub = nav_subframe_from_sfrbx(msg, *when)
         if sub is None:
             self.counters["sfrbx_unmapped"] += 1
             return []

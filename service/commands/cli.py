@@ -198,7 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--talker", choices=["GN", "GB", "BD", "GP"], default="GN", help="NMEA talker")
     r.add_argument("--seed", type=int, default=0, help="seed of emulated sync delays")
-    r.add_argument("--gps-week", type=int, default=None, help="GPS week for RTCM-only files")
+    r.add_argument(
+        "--gps-week",
+        type=int,
+        default=None,
+        help="GPS week hint for RTCM-only files (else the stream's own ephemerides give it)",
+    )
     r.add_argument(
         "--status-interval-s", type=float, default=10.0, help="period of STATUS records [s]"
     )

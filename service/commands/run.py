@@ -209,6 +209,8 @@ class Timeline:
         for ev in r.track:
             kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
             self.mark(f"first {kind} SOW decoded", ev.since_start_s)
+        if r.since_start_s is None:
+            return
         if r.fix.mode == "fast":
             self.mark("first fast fix", r.since_start_s)
         if r.fix.mode == "spp":

@@ -34,6 +34,7 @@ from service.core.constants import WEEK_S, prn_number
 from service.core.counters import Counters
 from service.core.errors import EphemerisError
 from service.core.orbit import EphemerisArrays, sat_pos_clock
+from service.core.ratelog import RateLimitedLog
 from service.core.timebase import diff_s
 from service.core.types import Ephemeris, KlobucharParams
 
@@ -244,9 +245,7 @@ class EphemerisStore:
         """Why the latest refused set was refused."""
         self.evicted = 0
         """Sets dropped to keep MAX_SETS_PER_PRN (not counting :meth:`prune`)."""
-        self._clock = clock
-        # (prn, check) -> [wall time of its last log line, refusals not logged since]
-        self._refusal_log: dict[tuple[str, str], list[float]] = {}
+        self._refusal_log = RateLimitedLog(log, LOG_INTERVAL_S, clock)  # per (PRN, check)
         # column form of recently used ephemeris sets (the same set serves many epochs);
         # keyed by object identity, the entry holds the objects so identities stay unique
         self._arrays: dict[tuple[int, ...], tuple[tuple[Ephemeris, ...], EphemerisArrays]] = {}
@@ -282,23 +281,15 @@ class EphemerisStore:
     def _log_refusal(self, eph: Ephemeris, problem: EphemerisProblem) -> None:
         """One line per (PRN, check) per LOG_INTERVAL_S: WARNING, or INFO for SatH1 != 0
         (a satellite flagged unhealthy is normal operation, not damaged data)."""
-        now = self._clock()
-        key = (str(eph.prn), problem.check)
-        state = self._refusal_log.get(key)
-        if state is not None and now - state[0] < LOG_INTERVAL_S:
-            state[1] += 1
-            return
-        more = f" ({state[1]:.0f} more since the last line)" if state and state[1] else ""
-        self._refusal_log[key] = [now, 0]
-        log.log(
+        self._refusal_log.log(
             logging.INFO if problem.check == "unhealthy" else logging.WARNING,
-            "refused ephemeris %s week %s toe %s from %s: %s%s",
+            (str(eph.prn), problem.check),
+            "refused ephemeris %s week %s toe %s from %s: %s",
             eph.prn,
             eph.week,
             eph.toe_sow_s,
             eph.source,
             problem,
-            more,
         )
 
     def arrays(self, ephs: Sequence[Ephemeris]) -> EphemerisArrays:

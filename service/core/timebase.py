@@ -104,3 +104,27 @@ def gmst_rad(epoch_utc: dt.datetime, dt_s: np.ndarray | float = 0.0) -> np.ndarr
 def gpst_from_utc(utc: dt.datetime) -> tuple[int, float]:
     """Naive UTC datetime to GPST (week, tow)."""
     return gpst_from_datetime(utc + dt.timedelta(seconds=leap_seconds(utc)))
+
+
+GST_GPS_WEEK_OFFSET = 1024
+"""Galileo System Time week 0 began at GPS week 1024 (1999-08-22; Galileo OS SIS ICD 5.1.2),
+and GST runs with GPST (no leap seconds, no offset at this resolution)."""
+MIN_SANE_GPS_WEEK = 2296
+"""GPS week of 2024-01-07: a system clock before it is taken as unset (a board without a
+real-time clock), and a truncated broadcast week is resolved against this week then."""
+
+
+def nearest_week(week_mod: int, modulus: int, ref_week: int) -> int:
+    """The week congruent to ``week_mod`` modulo ``modulus`` nearest ``ref_week`` (the
+    rollover of a truncated broadcast week: GPS/QZSS 10 bits, Galileo 12, BDS 13)."""
+    base = ref_week - (ref_week - week_mod) % modulus
+    return base if ref_week - base <= modulus // 2 else base + modulus
+
+
+def system_clock_gps_week(now_utc: dt.datetime | None = None) -> int | None:
+    """GPS week of the system clock (naive UTC ``now_utc``, default now), or None when the
+    clock reads before :data:`MIN_SANE_GPS_WEEK` (unset)."""
+    if now_utc is None:
+        now_utc = dt.datetime.now(dt.UTC).replace(tzinfo=None)
+    week, _ = gpst_from_utc(now_utc)
+    return week if week >= MIN_SANE_GPS_WEEK else None

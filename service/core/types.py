@@ -12,6 +12,11 @@ import numpy as np
 
 FixMode = Literal["fast", "spp", "none"]
 
+UNKNOWN_WEEK = -1
+"""``gpst_week`` of an epoch whose source gives only a time of week while no week is known
+yet (RTCM MSM or UBX MEASX before any ephemeris or time message): the epoch still reaches
+the pipeline, which declines it (``no_time``), and ``gpst_tow_s`` is the time of week."""
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class MeasurementEpoch:
@@ -19,7 +24,8 @@ class MeasurementEpoch:
 
     Times are the receiver's time tag on the GPST scale. ``pr_m`` is the full pseudorange or
     NaN when the satellite's transmit time is not yet known; ``frac_pr_m`` is the pseudorange
-    modulo c*T with T = ``period_s`` (0.001 or 0.020), NaN when unknown.
+    modulo c*T with T = ``period_s`` (0.001 or 0.020), NaN when unknown. ``gpst_week`` is
+    :data:`UNKNOWN_WEEK` while the source knows only the time of week.
     """
 
     gpst_week: int
@@ -36,6 +42,11 @@ class MeasurementEpoch:
 
     def __len__(self) -> int:
         return len(self.prn)
+
+    @property
+    def week_known(self) -> bool:
+        """False while the source knows only the time of week (:data:`UNKNOWN_WEEK`)."""
+        return self.gpst_week >= 0
 
     @classmethod
     def from_columns(

@@ -5,6 +5,12 @@ from all usable ones (the fast fix, which is SPP when everything is full), and i
 bookkeeping compares every recovered pseudorange with the full one that arrives once the
 satellite's SOW decodes. A refused solution is passed on as ``mode="none"`` with its reason,
 never as a position.
+
+Two kinds of epoch are declined before the tracker and the solver see them, so that every
+epoch a source delivers is published: one without a GPS week (``no_time``: the source gave
+only a time of week, e.g. RTCM MSM before any ephemeris), and one that is not after the
+previous epoch (``out_of_order``: a duplicate or a step back in time, which a relay or a
+receiver restart can produce); neither changes the pipeline's state.
 """
 
 from __future__ import annotations
@@ -29,7 +35,15 @@ from service.core.types import (
     NavSubframe,
     SatView,
 )
-from service.engine.solver import REASONS, IonoSet, SolverConfig, sky_view, solve
+from service.engine.solver import (
+    NO_TIME_REASON,
+    REASONS,
+    IonoSet,
+    SolverConfig,
+    declined,
+    sky_view,
+    solve,
+)
 from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
 
 log = logging.getLogger(__name__)
@@ -40,6 +54,8 @@ STORE_KEEP_S = KEEP_S
 """Ephemerides whose t_oe is this long [s] before the latest measurement (and before their
 satellite's newest set) are dropped from the store when it is saved (BDS broadcasts a new
 set every hour, ICD B1I 5.2.4.9; see EphemerisStore.prune)."""
+SAME_EPOCH_S = 1e-6
+"""Two epochs closer than this [s] are the same epoch (records carry 1 us)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,7 +80,7 @@ class EpochResult:
 
     epoch: MeasurementEpoch
     fix: Fix
-    since_start_s: float
+    since_start_s: float | None  # None while the time is unknown (no_time)
     track: tuple[TrackEvent, ...] = ()
     integrity: tuple[IntegrityCheck, ...] = ()
     sky: Callable[[Fix], tuple[SatView, ...]] | None = None
@@ -180,6 +196,13 @@ class Pipeline:
     # --- measurements ---------------------------------------------------------------------
     def on_epoch(self, epoch: MeasurementEpoch) -> EpochResult:
         self.counters["epochs"] += 1
+        early = self._early_decline(epoch)
+        if early is not None:
+            count_fix(self.counters, early)
+            since = None
+            if epoch.week_known:
+                since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
+            return EpochResult(epoch, early, since)
         if self._first is None:
             self._first = (epoch.gpst_week, epoch.gpst_tow_s)
         self._latest = (epoch.gpst_week, epoch.gpst_tow_s)
@@ -207,6 +230,19 @@ class Pipeline:
         return EpochResult(
             view, fix, since, tuple(events), tuple(checks), partial(sky_view, view, self.store)
         )
+
+    def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
+        """The declined fix of an epoch without a week or not after the latest one."""
+        if not epoch.week_known:
+            return declined(epoch, "no_time", NO_TIME_REASON)
+        last = self._latest
+        if last is not None:
+            step = diff_s(epoch.gpst_week, epoch.gpst_tow_s, *last)
+            if step < SAME_EPOCH_S:
+                what = "repeats" if step > -SAME_EPOCH_S else f"is {-step:.3f} s before"
+                why = f"epoch {what} the previous one (GPST {last[0]} {last[1]:.3f})"
+                return declined(epoch, "out_of_order", why)
+        return None
 
     def restart(self, epoch: MeasurementEpoch, rng: np.random.Generator) -> None:
         """Emulate a receiver restart at ``epoch``: frame sync is lost, every satellite is

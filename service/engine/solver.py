@@ -369,8 +369,11 @@ REASONS: dict[str, str] = {
     "implausible": "implausible solution",
     "pdop_gate": "PDOP gate",
     "numerical": "numerical failure",
+    "no_time": "time unknown (no GPS week yet)",
+    "out_of_order": "epoch not after the previous one",
 }
 """Decline codes (``Fix.reason_code``) and their meaning in words."""
+NO_TIME_REASON = "GPS week not known yet: the source gave only the time of week"
 
 
 def _phase1(rows: _Rows, ctx: _Context) -> _State | _Decline:
@@ -899,6 +902,24 @@ def select_rows(
     return rows, missing
 
 
+def declined(
+    epoch: MeasurementEpoch,
+    code: str,
+    reason: str,
+    solver: Literal["fast", "spp"] = "fast",
+) -> Fix:
+    """A declined fix for ``epoch`` (``mode="none"``) with ``reason`` and ``code`` (one of
+    :data:`REASONS`)."""
+    return Fix(
+        solver=solver,
+        mode="none",
+        gpst_week=epoch.gpst_week,
+        gpst_tow_s=epoch.gpst_tow_s,
+        reason=reason,
+        reason_code=code,
+    )
+
+
 def solve(
     epoch: MeasurementEpoch,
     store: EphemerisStore,
@@ -911,6 +932,8 @@ def solve(
     be trusted comes back as ``mode="none"`` with a reason (and ``reason_code``)."""
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
+    if not epoch.week_known:
+        return declined(epoch, "no_time", NO_TIME_REASON, solver)
     with np.errstate(all="ignore"):
         try:
             rows, missing = select_rows(epoch, store, solver)
@@ -920,14 +943,7 @@ def solve(
                     code = "no_ephemeris"
                 else:
                     why, code = "no measurements", "no_measurements"
-                return Fix(
-                    solver=solver,
-                    mode="none",
-                    gpst_week=epoch.gpst_week,
-                    gpst_tow_s=epoch.gpst_tow_s,
-                    reason=why,
-                    reason_code=code,
-                )
+                return declined(epoch, code, why, solver)
             bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
             ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
             fix = _solve_rows(rows, ctx)
@@ -937,14 +953,8 @@ def solve(
             log.debug(
                 "solver failure at GPST %d %.3f", epoch.gpst_week, epoch.gpst_tow_s, exc_info=True
             )
-            return Fix(
-                solver=solver,
-                mode="none",
-                gpst_week=epoch.gpst_week,
-                gpst_tow_s=epoch.gpst_tow_s,
-                reason=f"numerical failure in the solver: {type(exc).__name__}: {exc}",
-                reason_code="numerical",
-            )
+            why = f"numerical failure in the solver: {type(exc).__name__}: {exc}"
+            return declined(epoch, "numerical", why, solver)
     return fix
 
 

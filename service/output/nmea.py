@@ -28,8 +28,10 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
 - Fix quality: fast and SPP fixes are both GGA quality 1 (autonomous) with GSA mode 3, so
   gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only GGA with quality 0 and an
   empty position and RMC with status V (gpsd: no fix); pynmeagps fills the hemisphere
-  fields with N/E even then. Its time is the receiver's unsolved tag, so no ZDA follows.
-- ZDA only with ``time_known`` (the caller knows UTC, e.g. after a first fix).
+  fields with N/E even then. Its time is the receiver's unsolved tag, so no ZDA follows;
+  while no GPS week is known (``no_time``) the time and date fields are empty.
+- ZDA only with ``time_known`` (the caller knows UTC, e.g. after a first fix); day and month
+  are two digits (``$GNZDA,hhmmss.ss,dd,mm,yyyy,00,00``, NMEA 0183 field format ``xx``).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from pynmeagps import GET, NMEAMessage
 
 from service.core.constants import C_M_S, prn_number
 from service.core.timebase import utc_from_gpst
-from service.core.types import Fix, SatView
+from service.core.types import UNKNOWN_WEEK, Fix, SatView
 
 TALKERS = ("GN", "GB", "BD", "GP")
 BDS_SYSTEM_ID = "4"
@@ -56,9 +58,12 @@ def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
     return bytes(NMEAMessage(talker, msg_id, GET, hpnmeamode=True, **fields).serialize())
 
 
-def fix_utc(fix: Fix) -> dt.datetime:
+def fix_utc(fix: Fix) -> dt.datetime | None:
     """The time NMEA gives a fix (naive UTC): the receiver's time tag minus the solved clock
-    bias for a published fix; a declined fix has no trusted clock, so its tag as is."""
+    bias for a published fix; a declined fix has no trusted clock, so its tag as is; None
+    when the tag has no GPS week (``no_time``), so no date either."""
+    if fix.gpst_week == UNKNOWN_WEEK:
+        return None
     bias_s = (fix.clock_bias_m or 0.0) / C_M_S if fix.ok else 0.0
     return utc_from_gpst(fix.gpst_week, fix.gpst_tow_s - bias_s)
 
@@ -136,7 +141,7 @@ def gsv_sentences(sky: Sequence[SatView], talker: str = "GB") -> list[bytes]:
     return out
 
 
-def _gga(talker: str, t: dt.time, fix: Fix, has_fix: bool) -> bytes:
+def _gga(talker: str, t: dt.time | str, fix: Fix, has_fix: bool) -> bytes:
     if not has_fix:
         return _msg(
             talker,
@@ -182,14 +187,15 @@ def _gga(talker: str, t: dt.time, fix: Fix, has_fix: bool) -> bytes:
 def sentences_for_fix(
     fix: Fix,
     *,
-    utc: dt.datetime,
+    utc: dt.datetime | None,
     talker: str = "GN",
     time_known: bool = True,
     gsa_talker: str | None = None,
 ) -> list[bytes]:
     """Sentences for one epoch's fix, in the order GGA, RMC, GSA, GSV, GST, ZDA.
 
-    ``utc`` is the fix's own time (naive UTC); ``time_known`` allows ZDA; ``gsa_talker``
+    ``utc`` is the fix's own time (naive UTC; None: unknown, for a declined fix only, gives
+    empty time fields); ``time_known`` allows ZDA; ``gsa_talker``
     (default: ``talker``) is GSA's talker. A publisher may send :func:`gga_sentence` first
     and :func:`sentences_after_gga` later: together they are this list.
     """
@@ -208,6 +214,25 @@ def _check_talkers(talker: str, gsa_talker: str | None) -> None:
             raise ValueError(f"NMEA talker must be one of {', '.join(TALKERS)}, got {name!r}")
 
 
+def _rmc_void(talker: str) -> bytes:
+    """RMC status V with empty time and date (no GPS week known yet)."""
+    return _msg(
+        talker,
+        "RMC",
+        time="",
+        status="V",
+        lat="",
+        lon="",
+        spd="",
+        cog="",
+        date="",
+        mv="",
+        mvEW="",
+        posMode="N",
+        navStatus="V",
+    )
+
+
 def _has_fix(fix: Fix) -> bool:
     return (
         fix.ok
@@ -219,26 +244,35 @@ def _has_fix(fix: Fix) -> bool:
 
 
 def gga_sentence(
-    fix: Fix, *, utc: dt.datetime, talker: str = "GN", gsa_talker: str | None = None
+    fix: Fix, *, utc: dt.datetime | None, talker: str = "GN", gsa_talker: str | None = None
 ) -> bytes:
     """The GGA of :func:`sentences_for_fix` (quality 0 and no position without a fix)."""
     _check_talkers(talker, gsa_talker)
-    return _gga(talker, nmea_time(utc).time(), fix, _has_fix(fix))
+    has_fix = _has_fix(fix)
+    if utc is None:
+        if has_fix:
+            raise ValueError("a fix with a position needs its time")
+        return _gga(talker, "", fix, False)
+    return _gga(talker, nmea_time(utc).time(), fix, has_fix)
 
 
 def sentences_after_gga(
     fix: Fix,
     *,
-    utc: dt.datetime,
+    utc: dt.datetime | None,
     talker: str = "GN",
     time_known: bool = True,
     gsa_talker: str | None = None,
 ) -> list[bytes]:
     """The sentences of :func:`sentences_for_fix` that follow its GGA."""
     _check_talkers(talker, gsa_talker)
+    has_fix = _has_fix(fix)
+    if utc is None:
+        if has_fix:
+            raise ValueError("a fix with a position needs its time")
+        return [_rmc_void(talker)]
     when = nmea_time(utc)
     t = when.time()
-    has_fix = _has_fix(fix)
     pos: dict[str, object] = {"lat": "", "lon": ""}
     if has_fix:
         # signed degrees: pynmeagps derives N/S and E/W from the sign
@@ -300,8 +334,8 @@ def sentences_after_gga(
                 talker,
                 "ZDA",
                 time=t,
-                day=when.day,
-                month=when.month,
+                day=f"{when.day:02d}",
+                month=f"{when.month:02d}",
                 year=when.year,
                 ltzh="00",
                 ltzn="00",

@@ -16,7 +16,9 @@ Field rules, common to all classes:
   ``alt_m``/``clock_bias_m``/``resid_rms_m`` 0.1 mm, DOPs 0.001.
 
 ``FIX`` (one per epoch and solver; ``solver`` is which ran, ``mode`` what it achieved):
-  always ``class solver mode gpst_week gpst_tow_s n_full n_frac``;
+  always ``class solver mode gpst_week gpst_tow_s n_full n_frac``, except that a fix
+  declined because no GPS week is known yet (``reason_code`` ``no_time``) has no
+  ``gpst_week`` (its ``gpst_tow_s`` is the source's time of week);
   with a position (mode ``fast``/``spp``): ``x_ecef_m lat_deg lon_deg alt_m clock_bias_m``
   and, when computed, ``pdop resid_rms_m``; ``gdop_full`` when the solver computed it
   (the fast solver, also on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
@@ -50,7 +52,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from service.core.types import Fix, SatView
+from service.core.types import UNKNOWN_WEEK, Fix, SatView
 
 CSV_COLUMNS = (
     "solver",
@@ -98,6 +100,8 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
         "gpst_week": int(fix.gpst_week),
         "gpst_tow_s": round(float(fix.gpst_tow_s), 6),
     }
+    if fix.gpst_week == UNKNOWN_WEEK:
+        del rec["gpst_week"]
     _put(rec, "since_start_s", since_start_s, 6)
     if fix.ok:
         if fix.x_ecef_m is not None and all(_finite(v) for v in fix.x_ecef_m):
@@ -264,7 +268,11 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "$schema": _DIALECT,
         "title": "bdsfix FIX",
         "type": "object",
-        "required": ["class", "solver", "mode", "gpst_week", "gpst_tow_s", "n_full", "n_frac"],
+        "required": ["class", "solver", "mode", "gpst_tow_s", "n_full", "n_frac"],
+        "anyOf": [
+            {"required": ["gpst_week"]},
+            {"required": ["reason_code"], "properties": {"reason_code": {"const": "no_time"}}},
+        ],
         "properties": {
             "class": {"const": "FIX"},
             "solver": {"enum": ["fast", "spp"]},

@@ -54,4 +54,4 @@ def test_nmea_sentences_parse_and_checksum(tmp_path):
     assert abs(first.lat - 22.3222) < 1e-3 and abs(first.lon - 114.1412) < 1e-3
     assert first.quality == 1 and first.numSV == 16
     assert any(ln.startswith("$GBGSV") and ln.split("*")[0].endswith(",1") for ln in lines)
-    assert any(ln.startswith("$GNZDA,033536.00,10,6,2021") for ln in lines)
+    assert any(ln.startswith("$GNZDA,033536.00,10,06,2021") for ln in lines)

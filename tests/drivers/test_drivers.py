@@ -12,6 +12,7 @@ import collections
 import datetime as dt
 import functools
 import itertools
+import logging
 import math
 import os
 import socket
@@ -36,7 +37,7 @@ from drivers.transport import FileTransport, SerialTransport, TcpClientTransport
 from drivers.ubx import fletcher8
 from service.core.counters import Counters
 from service.core.errors import ConfigError
-from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
+from service.core.types import UNKNOWN_WEEK, Ephemeris, MeasurementEpoch, NavSubframe
 from tests.support.paths import DATA
 
 C = 299_792_458.0
@@ -460,6 +461,29 @@ def test_measx_fraction_recovers_withheld_prmes():
     assert dec.counters["measx_uncalibrated"] == 0
 
 
+def test_measx_offsets_that_disagree_are_counted_every_epoch_and_logged_once(caplog):
+    """Every MEASX satellite's code phase moved by its own multiple of 0.1 ms: the
+    calibration is refused in each of the 654 epochs (counted), and the warning is one
+    line, not 654."""
+    data = bytearray(HPG.read_bytes())
+    for frame in ubx_frames(HPG, MEASX_ID):
+        edited = bytearray(frame)
+        for k in range(len(struct_measx(frame)[1])):
+            at = 6 + 44 + 24 * k + 16
+            code = struct.unpack_from("<I", edited, at)[0]
+            struct.pack_into("<I", edited, at, (code + int(0.1 * k * 2**21)) % 2**21)
+        pos = data.find(frame)
+        data[pos : pos + len(frame)] = reseal_ubx(edited)
+    dec = StreamDecoder()
+    dec.mappers["ubx"]._log.clock = lambda: 0.0  # all within one interval, whatever the speed
+    with caplog.at_level(logging.WARNING, logger="drivers.ubx"):
+        epochs = epochs_of(dec.feed(bytes(data)) + dec.flush())
+    assert len(epochs) == 654
+    assert dec.counters["measx_offset_rejected"] == 654
+    lines = [r.getMessage() for r in caplog.records if "offsets disagree" in r.getMessage()]
+    assert len(lines) == 1 and "more since" not in lines[0]
+
+
 def _feed_frames(dec: StreamDecoder, frames: list[bytes]) -> list[list]:
     return [dec.feed(f) for f in frames]
 
@@ -520,9 +544,13 @@ def test_msm7_tiny_capture_against_bit_decode():
     assert counters["msm_cells_other_signal"] == len(msm["cells"]) - len(exp)
 
 
-def test_msm_without_week_is_counted_not_guessed():
+def test_msm_without_week_is_passed_on_without_a_week_not_guessed():
     events, counters = decode_all(TINY_RTCM)
-    assert epochs_of(events) == [] and counters["msm_no_week"] == 1
+    (ep,) = epochs_of(events)
+    assert ep.gpst_week == UNKNOWN_WEEK and not ep.week_known and counters["msm_no_week"] == 1
+    with_week = epochs_of(decode_all(TINY_RTCM, gps_week=2200)[0])[0]
+    assert ep.gpst_tow_s == with_week.gpst_tow_s and ep.prn == with_week.prn
+    assert np.array_equal(ep.pr_m, with_week.pr_m)
 
 
 @pytest.mark.parametrize("path", [F9R, NTRIP], ids=lambda p: p.name)
@@ -538,18 +566,16 @@ def test_msm_epochs_against_bit_decode(path: Path):
             old = by_time[msm["bdt_ms"]].get(prn)
             if old is None or old[0] < msm["level"]:  # the higher MSM level wins
                 by_time[msm["bdt_ms"]][prn] = (msm["level"], pr)
-    checked = 0
+    no_week = 0
     for bdt_ms, sats in by_time.items():
         matches = [e for (w, t), e in epochs.items() if abs(t - (bdt_ms * 1e-3 + 14.0)) < 1e-6]
-        if not matches:
-            continue  # before any week is known (counted below)
-        (ep,) = matches
+        (ep,) = matches  # every MSM time is an epoch, with or without its week
+        no_week += not ep.week_known
         assert ep.prn == tuple(sorted(sats))
         for i, p in enumerate(ep.prn):
             assert ep.pr_m[i] == pytest.approx(sats[p][1], abs=1e-6)
-        checked += 1
-    assert checked + counters["msm_no_week"] == len(by_time)
-    assert checked >= len(by_time) - 1
+    assert len(epochs) == len(by_time)
+    assert no_week <= 1 and counters["msm_no_week"] >= no_week
 
 
 def test_f9r_msm_times_and_weeks_match_nav_timegps():
@@ -561,10 +587,12 @@ def test_f9r_msm_times_and_weeks_match_nav_timegps():
             if p.identity == "NAV-TIMEGPS"
         }
     epochs = epochs_of(events)
-    assert len(epochs) == 29  # 30 x 1125; the first precedes any week information
-    assert all((e.gpst_week, e.gpst_tow_s) in nav for e in epochs)
+    assert len(epochs) == 30  # 30 x 1125; the first precedes any week information
+    assert not epochs[0].week_known
+    assert any(abs(t - epochs[0].gpst_tow_s) < 1.5 for _, t in nav)  # its time of week
+    assert all((e.gpst_week, e.gpst_tow_s) in nav for e in epochs[1:])
     assert all(e.source == "rtcm" for e in epochs)
-    assert "C05" in epochs[0].prn  # the GEO in this capture
+    assert "C05" in epochs[1].prn  # the GEO in this capture
 
 
 def test_msm_unknown_integer_ms_becomes_fractional():

@@ -181,6 +181,17 @@ def test_unknown_talker_is_refused():
         sentences_for_fix(hksc_fix(), utc=dt.datetime(2021, 6, 10), talker="GL")
 
 
+def test_zda_day_and_month_have_two_digits():
+    """A hand-written sentence: ``dd,mm`` zero-padded, as NMEA 0183 writes ZDA."""
+    utc = dt.datetime(2024, 9, 5, 7, 25, 1, 0)
+    zda = sentences_for_fix(hksc_fix(), utc=utc)[-1]
+    body = "GNZDA,072501.00,05,09,2024,00,00"
+    checksum = 0
+    for ch in body.encode():
+        checksum ^= ch
+    assert zda == f"${body}*{checksum:02X}\r\n".encode()
+
+
 def test_zda_only_when_time_is_known():
     fix = hksc_fix()
     without = [

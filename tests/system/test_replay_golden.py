@@ -7,9 +7,11 @@ closes with the run's final ``STATUS`` record (the daemon publishes it on ZeroMQ
 taken from the receiver loop) without the loop timings, which vary from run to run. The NMEA
 golden opens with the same two records as ``#`` comment lines.
 
-A golden without a FIX record fails, unless its header says no fixes are expected because
-of a known defect; such a golden must then hold no FIX at all, so fixing the defect fails
-the test until the golden is regenerated with the note removed from :data:`CASES`.
+A golden without a FIX record fails, unless its header says no fixes are expected: because
+of a known defect, or because the capture holds no measurements at all (then whether its
+subframes give TRACK records is stated too). Such a golden must then hold no FIX at all, so
+fixing the defect fails the test until the golden is regenerated with the note removed
+from :data:`CASES`.
 
 A change to a golden file must say why in its commit. Numbers compare within the last
 printed digit, so a different libm cannot fail the test while any real change does;
@@ -36,6 +38,13 @@ DECLINED = "expected, all declined"
 """FIX records expected, every one declined (the capture cannot give a position)."""
 NO_FIXES = "no fixes: known defect "
 """No FIX record, because of the known defect named after this (and its issue)."""
+SUBFRAMES_ONLY = "no fixes: no measurements in the capture; TRACK from its B1I subframes"
+"""No FIX record (nothing to solve), but TRACK records: the capture's B1I subframes decode."""
+NOTHING_MAPPED = (
+    "no fixes: no measurements in the capture, and no B1I subframe (its BDS subframes are "
+    "B3I D1 and B-CNAV, not mapped)"
+)
+"""Neither FIX nor TRACK records: the golden checks the driver's counters only."""
 
 
 @dataclass(frozen=True)
@@ -45,7 +54,6 @@ class Case:
     fixes: str = POSITIONED
 
 
-NO_FIXES_SFRBX = NO_FIXES + "sfrbx_no_time (issue 10)"
 CASES = {
     "polyu-f9p-ubx": Case(
         [
@@ -58,13 +66,15 @@ CASES = {
     ),
     "ublox-x20p": Case(
         ["ublox-logs/ublox-x20p.log"],
-        "X20P SFRBX with BDS D1 subframes (gpsd regression log): subframes to ephemerides",
-        NO_FIXES_SFRBX,
+        "X20P SFRBX (gpsd regression log), time from NAV-TIMEGPS: its BDS subframes are "
+        "B3I D1 (sigId 4) and B-CNAV, counted as unmapped (the service decodes B1I)",
+        NOTHING_MAPPED,
     ),
     "ublox-zed-f9p-sfrbx": Case(
         ["ublox-logs/ublox-zed-f9p-sfrbx.log"],
-        "ZED-F9P SFRBX with BDS D1 subframes (gpsd regression log): subframes to ephemerides",
-        NO_FIXES_SFRBX,
+        "ZED-F9P SFRBX with BDS B1I D1 subframes and no RAWX (gpsd regression log): time "
+        "from NAV-TIMEGPS/NAV-PVT, a TRACK sow event per subframe",
+        SUBFRAMES_ONLY,
     ),
     "ublox-zed-f9p-hpg111": Case(
         ["ublox-logs/ublox-zed-f9p_hpg1.11.log"],
@@ -76,6 +86,12 @@ CASES = {
         ["ublox-logs/ublox-zed-f9r.log"],
         "ZED-F9R UBX + NMEA + RTCM3 (MSM5 1125, 1042 ephemerides): declined until the "
         "ephemerides arrive, SPP fixes after",
+    ),
+    "hiroshima-rtcm": Case(
+        ["hiroshima-oem729-rtcm-2022/20221213-010900.rtcm"],
+        "NovAtel OEM729 RTCM3 (MSM7, 7 GEOs, in-stream ephemerides) without --gps-week: the "
+        "week from the first ephemeris in the stream (Galileo 1045), the 6 epochs before it "
+        "declined no_time, no_ephemeris until the first 1042, SPP fixes after; all 60 epochs",
     ),
     "tiny-ntrip": Case(
         ["tiny-ubx-rtcm/pygpsdata-NTRIP-USCL00CHL0.log"],
@@ -214,8 +230,11 @@ def test_replay_matches_golden(name, tmp_path, request, final_counters):
     # an empty golden passes only where its header says why no fix is expected
     fixes = [r for r in map(json.loads, want_lines) if r["class"] == "FIX"]
     positioned = [r for r in fixes if r["mode"] != "none"]
-    if head["fixes"].startswith(NO_FIXES):
+    tracks = [r for r in map(json.loads, want_lines) if r["class"] == "TRACK"]
+    if head["fixes"].startswith(NO_FIXES) or head["fixes"] in (SUBFRAMES_ONLY, NOTHING_MAPPED):
         assert not fixes, f"{name}: FIX in a golden whose header says {head['fixes']!r}"
+        if head["fixes"] in (SUBFRAMES_ONLY, NOTHING_MAPPED):
+            assert bool(tracks) == (head["fixes"] == SUBFRAMES_ONLY), (name, len(tracks))
     else:
         assert fixes, f"{name}: empty golden (no FIX) although its header expects fixes"
         assert head["fixes"] in (POSITIONED, DECLINED), head["fixes"]

@@ -24,6 +24,7 @@ from zmq.auth.thread import ThreadAuthenticator
 
 from service.core.counters import Counters
 from service.core.errors import BindError, ConfigError
+from service.core.ratelog import RateLimitedLog
 from service.output.records import dumps
 from service.output.sinks.base import RECORD_CLASSES, Sink, SinkOptions, is_loopback
 
@@ -61,6 +62,7 @@ class ZmqPublisher(Sink):
         curve_clients_dir: str = "",
     ) -> None:
         self._counters = Counters()
+        self._log = RateLimitedLog(log)  # a failing send fails every record
         host = endpoint.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]")
         if endpoint.startswith("tcp://") and not is_loopback(host):
             log.warning("ZeroMQ PUB binds %s, not loopback", endpoint)
@@ -117,7 +119,7 @@ class ZmqPublisher(Sink):
             return False
         except zmq.ZMQError as exc:
             self._counters["zmq_errors"] += 1
-            log.warning("ZeroMQ send failed: %s", exc)
+            self._log.warning(type(exc).__name__, "ZeroMQ send failed: %s", exc)
             return False
         self._counters[f"zmq_{topic}"] += 1
         return True
