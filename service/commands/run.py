@@ -216,14 +216,15 @@ class Timeline:
         if r.fix.mode == "spp":
             self.mark("first conventional fix", r.since_start_s)
 
-    def lines(self, offset_s: float = 0.0) -> list[str]:
+    def lines(self, offset_s: float = 0.0, restarted: bool = False) -> list[str]:
+        since = "the emulated restart" if restarted else "the first measurement"
         order = [
             "first GEO SOW decoded",
             "first fast fix",
             "first non-GEO SOW decoded",
             "first conventional fix",
         ]
-        return [
+        return [f"  timeline (t: data time since {since}):"] + [
             f"  {k:<28} t = {self.first[k] + offset_s:6.2f} s"
             if k in self.first
             else f"  {k:<28} (not reached)"
@@ -298,7 +299,7 @@ def main_replay(args: argparse.Namespace) -> int:
         print(line, file=sys.stderr)
     if n == 0:
         print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
-    for line in timeline.lines(offset):
+    for line in timeline.lines(offset, restarted=args.restart_at is not None):
         print(line, file=sys.stderr)
     return signals.exit_code()
 
