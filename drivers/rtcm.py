@@ -44,8 +44,9 @@ import numpy as np
 from pyrtcm import RTCMReader
 
 from drivers.framing import BinaryFraming, Event, WeekContext
-from service.core.constants import C_M_S, F_B1I_HZ, ICD_PI, MS_RANGE_M, URA_M, WEEK_S, prn_id
+from service.core.constants import C_M_S, F_B1I_HZ, MS_RANGE_M, URA_M, WEEK_S, prn_id
 from service.core.counters import Counters
+from service.core.rtcm1042 import EPH_1042_FIELDS, EPH_1042_INT_FIELDS
 from service.core.timebase import BDT_GPST_OFFSET_S, GST_GPS_WEEK_OFFSET, bdt_to_gpst, diff_s
 from service.core.types import UNKNOWN_WEEK, Ephemeris, MeasurementEpoch
 
@@ -166,37 +167,6 @@ FINE_PR_INVALID_MS = -(2.0**-10)  # DF400 raw -2^14 * 2^-24 ms; DF405 raw -2^19 
 ROUGH_RATE_INVALID_M_S = -8192  # DF399 raw 0x2000
 FINE_RATE_INVALID_M_S = -16384 * 1e-4  # DF404 raw 0x4000
 
-# (Ephemeris field, 1042 data field, factor applied to pyrtcm's scaled value)
-EPH_1042_FIELDS: tuple[tuple[str, str, float], ...] = (
-    ("week", "DF489", 1.0),
-    ("toe_sow_s", "DF505", 1.0),
-    ("toc_sow_s", "DF493", 1.0),
-    ("af0_s", "DF496", 1.0),
-    ("af1_s_s", "DF495", 1.0),
-    ("af2_s_s2", "DF494", 1.0),
-    ("sqrt_a_sqrt_m", "DF504", 1.0),
-    ("e", "DF502", 1.0),
-    ("i0_rad", "DF509", ICD_PI),
-    ("omega0_rad", "DF507", ICD_PI),
-    ("omega_rad", "DF511", ICD_PI),
-    ("m0_rad", "DF500", ICD_PI),
-    ("delta_n_rad_s", "DF499", ICD_PI),
-    ("omega_dot_rad_s", "DF512", ICD_PI),
-    ("idot_rad_s", "DF491", ICD_PI),
-    ("cuc_rad", "DF501", 1.0),
-    ("cus_rad", "DF503", 1.0),
-    ("crc_m", "DF510", 1.0),
-    ("crs_m", "DF498", 1.0),
-    ("cic_rad", "DF506", 1.0),
-    ("cis_rad", "DF508", 1.0),
-    ("tgd1_s", "DF513", 1e-9),
-    ("tgd2_s", "DF514", 1e-9),
-    ("health", "DF515", 1.0),
-    ("aode", "DF492", 1.0),
-    ("aodc", "DF497", 1.0),
-)
-_INT_FIELDS = frozenset({"week", "health", "aode", "aodc"})
-
 
 def message_number(raw: bytes) -> int:
     """RTCM3 message number (DF002, first 12 payload bits) of a complete frame."""
@@ -256,7 +226,7 @@ def ephemeris_from_1042(msg: Any) -> Ephemeris:
     values: dict[str, Any] = {}
     for name, df, factor in EPH_1042_FIELDS:
         v = getattr(msg, df)
-        values[name] = int(v) if name in _INT_FIELDS else float(v) * factor
+        values[name] = int(v) if name in EPH_1042_INT_FIELDS else float(v) * factor
     ura_index = int(msg.DF490)
     return Ephemeris(
         prn=prn_id(int(msg.DF488)),

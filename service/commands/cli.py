@@ -243,6 +243,13 @@ def build_parser() -> argparse.ArgumentParser:
     dest.add_argument("--pty", action="store_true", help="write to a new pty (path on stderr)")
     m.add_argument("--realtime", action="store_true", help="pace file/stdout output in real time")
     m.add_argument(
+        "--no-ephemerides",
+        dest="ephemerides",
+        action="store_false",
+        help="do not start the stream with the ephemerides it was made with (RTCM 1042), so "
+        "a replay must learn them from the subframes or a nav file",
+    )
+    m.add_argument(
         "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
     )
 

@@ -9,22 +9,22 @@ unless ``--max-speed``.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import os
 import sys
 import time
 
 from service.commands.options import check_range, parse_start
 from service.core.errors import ConfigError, InputError
-from service.core.timebase import bdt_to_gpst, gpst_from_utc
+from service.core.timebase import gpst_from_utc
 from service.core.types import Ephemeris, KlobucharParams
-from service.sim.keplerian import TABLE1_EPOCH_UTC, table1_ephemerides
+from service.sim.rtcm import broadcast_sets, frame_1042
+from service.sim.scenario import broadcast_table1, default_start_gpst
 from service.sim.simulator import SimConfig, Simulator
 
 
 def _ephemerides(nav: str | None) -> tuple[list[Ephemeris], KlobucharParams | None]:
     if nav is None:
-        return table1_ephemerides(0.0), None
+        return broadcast_table1(), None
     from drivers.rinex import read_nav
     from service.core.ephemeris import ephemeris_problem
 
@@ -45,11 +45,8 @@ def main_simulate(args: argparse.Namespace) -> int:
     ephs, iono = _ephemerides(args.nav)
     if args.start:
         week, tow = gpst_from_utc(parse_start(args.start))
-    elif args.nav:
-        first = min(ephs, key=lambda e: (e.week, e.toe_sow_s))
-        week, tow = bdt_to_gpst(first.week, first.toe_sow_s)
     else:
-        week, tow = gpst_from_utc(dt.datetime(*TABLE1_EPOCH_UTC))
+        week, tow = default_start_gpst(ephs if args.nav else None)
     cfg = SimConfig(
         lat_deg=args.lat_deg,
         lon_deg=args.lon_deg,
@@ -80,6 +77,8 @@ def main_simulate(args: argparse.Namespace) -> int:
         write = fh.write
     t0 = time.monotonic()
     try:
+        if args.ephemerides:  # what the stream was made with, as an assisted receiver has it
+            write(b"".join(frame_1042(e) for e in broadcast_sets(ephs, sim.prns, week, tow)))
         for ep, data in sim.ubx_epochs():
             if not args.max_speed and (args.pty or args.realtime):
                 delay = t0 + ep.t_s - time.monotonic()

@@ -4,10 +4,8 @@ streamed into ``bdsfix run`` (``--simulate``)."""
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import tempfile
-from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -19,11 +17,12 @@ from service.commands.options import check_output_path, parse_start, solver_conf
 from service.commands.solve import load_navigation
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
-from service.core.timebase import bdt_to_gpst, gpst_from_utc
+from service.core.timebase import gpst_from_utc
 from service.core.types import Ephemeris, KlobucharParams
 from service.daemon.config import STORE_NAME
 from service.engine.solver import IonoSet
-from service.sim.keplerian import TABLE1_EPOCH_UTC, table1_ephemerides
+from service.sim.keplerian import table1_ephemerides
+from service.sim.scenario import default_start_gpst
 from service.sim.simulator import SimConfig
 from service.studies.ttff import plot_trials, run_trial, summarize
 from service.studies.ttff_sim import (
@@ -108,14 +107,10 @@ def _navigation(
 def _start_time(
     start_utc: str | None, from_nav: bool, ephs: Sequence[Ephemeris]
 ) -> tuple[int, float]:
-    """``--start``, else 10 min after the nav file's commonest toe, else Table 1's epoch."""
+    """``--start``, else the simulation's default start (:func:`default_start_gpst`)."""
     if start_utc:
         return gpst_from_utc(parse_start(start_utc))
-    if from_nav:
-        # the toe most satellites share: every one of them has a fresh ephemeris there
-        (w, t), _ = Counter((e.week, e.toe_sow_s) for e in ephs).most_common(1)[0]
-        return bdt_to_gpst(w, t + 600.0)
-    return gpst_from_utc(dt.datetime(*TABLE1_EPOCH_UTC))
+    return default_start_gpst(ephs if from_nav else None)
 
 
 def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTrial]]:

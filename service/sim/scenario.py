@@ -9,10 +9,12 @@ path as a receiver on a serial port.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterator
+from collections import Counter
+from collections.abc import Iterator, Sequence
 
 from service.core.ephemeris import EphemerisStore
-from service.core.timebase import gpst_from_utc
+from service.core.timebase import bdt_to_gpst, gpst_from_utc
+from service.core.types import Ephemeris
 from service.engine.solver import IonoSet
 from service.sim.keplerian import TABLE1_EPOCH_UTC, table1_ephemerides
 from service.sim.simulator import SimConfig, Simulator
@@ -59,3 +61,20 @@ def builtin_scenario(
     )
     chunks = (data for _ep, data in sim.ubx_epochs())
     return chunks, cfg.start_gpst_week, store, IonoSet(), 1.0 / cfg.rate_hz, info
+
+
+def default_start_gpst(ephs: Sequence[Ephemeris] | None) -> tuple[int, float]:
+    """Where a simulation starts by default: 10 min after the t_oe most satellites of a nav
+    file share (every one of them has a fresh set there), else Table 1's epoch."""
+    if ephs:
+        (week, toe), _ = Counter((e.week, e.toe_sow_s) for e in ephs).most_common(1)[0]
+        return bdt_to_gpst(week, toe + 600.0)
+    return gpst_from_utc(dt.datetime(*TABLE1_EPOCH_UTC))
+
+
+def broadcast_table1() -> list[Ephemeris]:
+    """Table 1 as broadcast ephemerides: propagated to the first t_oe at or after its epoch
+    that the broadcast can carry (a multiple of 8 s: ICD 5.2.4.12, RTCM DF505), so that the
+    sets a simulated stream carries are the ones it was made with."""
+    toe = table1_ephemerides(0.0)[0].toe_sow_s
+    return table1_ephemerides((-toe) % 8.0)
