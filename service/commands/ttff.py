@@ -54,9 +54,11 @@ def main_ttff(args: argparse.Namespace) -> int:
     cfg = solver_config(args)
     rng = np.random.default_rng(args.seed)
     last = len(epochs) - 30
-    trials = [
+    from tqdm import tqdm
+
+    trials = [  # progress on a terminal only (disable=None), on stderr
         run_trial(epochs, int(rng.integers(0, last)), store, iono, cfg, rng)
-        for _ in range(args.trials)
+        for _ in tqdm(range(args.trials), desc="ttff restarts", unit="trial", disable=None)
     ]
     doc = summarize(trials)
     _print(doc, args.json)

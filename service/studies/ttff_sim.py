@@ -130,7 +130,10 @@ class SimStream:
         self.last_key: tuple[int, int] | None = None
 
     def chunks(self) -> Iterator[bytes]:
-        for plan in self.plans:
+        from tqdm import tqdm
+
+        # progress on a terminal only (disable=None), on stderr
+        for plan in tqdm(self.plans, desc="ttff restarts", unit="trial", disable=None):
             cfg = SimConfig(
                 lat_deg=self.base.lat_deg,
                 lon_deg=self.base.lon_deg,
