@@ -87,12 +87,33 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
+STATE_DIR_MODE = 0o700  # the state directory, when the daemon creates it
+
+
 def _check_state_dir(state_dir: Path) -> None:
-    """The ephemeris store's directory must be (or become) a writable directory."""
+    """The ephemeris store's directory must be (or become) a writable directory.
+
+    Created :data:`STATE_DIR_MODE` whatever the umask (its missing parents get the umask's
+    default); an existing one open to group or others is left as it is, with a warning."""
     if state_dir.exists() and not state_dir.is_dir():
         raise InputError(f"state directory {state_dir}: not a directory")
     try:
-        state_dir.mkdir(parents=True, exist_ok=True)
+        state_dir.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.mkdir(state_dir, STATE_DIR_MODE)
+        except FileExistsError:
+            mode = state_dir.stat().st_mode & 0o777
+            if mode & ~STATE_DIR_MODE:
+                log.warning(
+                    "state directory %s has mode %04o: others may read or replace the "
+                    "ephemeris store (chmod %04o %s)",
+                    state_dir,
+                    mode,
+                    STATE_DIR_MODE,
+                    state_dir,
+                )
+        else:
+            os.chmod(state_dir, STATE_DIR_MODE)  # exactly 0700: the umask may have narrowed it
     except OSError as exc:
         raise InputError(f"state directory {state_dir}: {exc.strerror}") from exc
     if not os.access(state_dir, os.W_OK | os.X_OK):
