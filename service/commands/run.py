@@ -165,6 +165,7 @@ def main_run(args: argparse.Namespace) -> int:
         append=True,
         zmq_curve_secret_key=cfg.zmq_curve_secret_key,
         zmq_curve_clients=cfg.zmq_curve_clients,
+        nmea_tcp_max_clients=cfg.nmea_tcp_max_clients,
     )
     outputs = build_publishers(specs, cfg.talker, options)
     state_dir = cfg.resolved_state_dir()
@@ -266,7 +267,8 @@ def main_replay(args: argparse.Namespace) -> int:
         counters = src.counters
         speed = None if args.max_speed else (args.speed or 1.0)
     pipeline = Pipeline(store, iono, cfg, restart_at_s=args.restart_at, sync_seed=args.seed)
-    outputs = build_publishers(specs, args.talker)
+    options = SinkOptions(nmea_tcp_max_clients=args.nmea_tcp_max_clients)
+    outputs = build_publishers(specs, args.talker, options)
     runner = Runner(
         pace(events, speed),
         pipeline,
