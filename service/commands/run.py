@@ -105,12 +105,14 @@ def _check_state_dir(state_dir: Path) -> None:
             mode = state_dir.stat().st_mode & 0o777
             if mode & ~STATE_DIR_MODE:
                 log.warning(
-                    "state directory %s has mode %04o: others may read or replace the "
-                    "ephemeris store (chmod %04o %s)",
+                    "state directory %s has mode %04o: open to %s (the daemon creates it "
+                    "%04o); left as it is",
                     state_dir,
                     mode,
+                    "group or others, who may replace the ephemeris store"
+                    if mode & 0o022
+                    else "group or others",
                     STATE_DIR_MODE,
-                    state_dir,
                 )
         else:
             os.chmod(state_dir, STATE_DIR_MODE)  # exactly 0700: the umask may have narrowed it
