@@ -14,6 +14,12 @@ import textwrap
 import time
 from collections.abc import Callable
 
+import pytest
+
+from service.commands.cli import build_parser
+from service.core.errors import ConfigError
+from service.daemon.config import load_config
+from service.output.sinks import OutputSpec, SinkOptions, open_sinks
 from service.output.sinks.nmea_tcp import ACCEPT_BACKOFF_MIN_S, NmeaTcpServer
 from tests.support.paths import ROOT
 
@@ -130,3 +136,26 @@ def test_accept_failing_for_want_of_descriptors_backs_off_and_recovers():
     assert 1 <= stuck["nmea_accept_errors"] <= 2.5 / ACCEPT_BACKOFF_MIN_S
     # descriptors free again: the waiting connections are served
     assert after["nmea_clients"] == 41
+
+
+def test_the_cap_is_a_setting_of_run_and_a_flag_of_replay(tmp_path):
+    assert load_config(None).nmea_tcp_max_clients == 64
+    toml = tmp_path / "bdsfix.toml"
+    toml.write_text('source = "x"\nnmea_tcp_max_clients = 3\n')
+    assert load_config(toml).nmea_tcp_max_clients == 3
+    for bad in (0, -1, 2.5):
+        with pytest.raises(ConfigError, match="nmea_tcp_max_clients"):
+            load_config(None, {"nmea_tcp_max_clients": bad})
+    parser = build_parser()
+    assert parser.parse_args(["replay"]).nmea_tcp_max_clients == 64
+    assert parser.parse_args(["replay", "--nmea-tcp-max-clients", "5"]).nmea_tcp_max_clients == 5
+    with pytest.raises(SystemExit) as exit_info:
+        parser.parse_args(["replay", "--nmea-tcp-max-clients", "0"])
+    assert exit_info.value.code == 2
+    (sink,) = open_sinks(
+        [OutputSpec("nmea-tcp", "127.0.0.1:0")], SinkOptions(nmea_tcp_max_clients=7)
+    )
+    try:
+        assert isinstance(sink, NmeaTcpServer) and sink.max_clients == 7
+    finally:
+        sink.close()
