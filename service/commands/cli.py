@@ -18,6 +18,7 @@ from service.core.settings import add_flags
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
+from service.output.sinks.base import NMEA_TCP_MAX_CLIENTS
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +57,16 @@ class _Help(argparse.HelpFormatter):
             return text
         shown = ", ".join(str(v) for v in default) if isinstance(default, list) else default
         return f"{text} (default: {shown})"
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
 
 
 class _Parser(argparse.ArgumentParser):
@@ -187,6 +198,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
     )
     r.add_argument("--nmea-tcp", metavar="HOST:PORT", help="NMEA TCP server")
+    r.add_argument(
+        "--nmea-tcp-max-clients",
+        type=_positive_int,
+        default=NMEA_TCP_MAX_CLIENTS,
+        metavar="N",
+        help="NMEA TCP clients served at once; more are accepted and closed "
+        f"(default {NMEA_TCP_MAX_CLIENTS})",
+    )
     r.add_argument("--zmq", metavar="ENDPOINT", help="ZeroMQ PUB endpoint")
     r.add_argument("--nmea-out", metavar="FILE|-", help="NMEA to a file or stdout")
     r.add_argument("--jsonl-out", metavar="FILE|-", help="JSONL records to a file or stdout")

@@ -11,6 +11,7 @@ import numpy as np
 from service.commands.options import check_output_path, parse_start
 from service.core.constants import is_geo
 from service.core.errors import ConfigError, InputError
+from service.core.files import open_output
 from service.studies.coverage import (
     CoverageConfig,
     coverage_document,
@@ -71,7 +72,7 @@ def main_coverage(args: argparse.Namespace) -> int:
         if args.json_out == "-":
             print(text)
         else:
-            with open(args.json_out, "w", encoding="utf-8") as fh:
+            with open_output(args.json_out) as fh:  # never through a symlink
                 fh.write(text + "\n")
     if args.json_out != "-":
         print(f"{'':>12} {'max %':>8} {'min %':>8} {'all %':>8}  >= 4-GEO area (first epoch)")

@@ -88,12 +88,35 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
+STATE_DIR_MODE = 0o700  # the state directory, when the daemon creates it
+
+
 def _check_state_dir(state_dir: Path) -> None:
-    """The ephemeris store's directory must be (or become) a writable directory."""
+    """The ephemeris store's directory must be (or become) a writable directory.
+
+    Created :data:`STATE_DIR_MODE` whatever the umask (its missing parents get the umask's
+    default); an existing one open to group or others is left as it is, with a warning."""
     if state_dir.exists() and not state_dir.is_dir():
         raise InputError(f"state directory {state_dir}: not a directory")
     try:
-        state_dir.mkdir(parents=True, exist_ok=True)
+        state_dir.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.mkdir(state_dir, STATE_DIR_MODE)
+        except FileExistsError:
+            mode = state_dir.stat().st_mode & 0o777
+            if mode & ~STATE_DIR_MODE:
+                log.warning(
+                    "state directory %s has mode %04o: open to %s (the daemon creates it "
+                    "%04o); left as it is",
+                    state_dir,
+                    mode,
+                    "group or others, who may replace the ephemeris store"
+                    if mode & 0o022
+                    else "group or others",
+                    STATE_DIR_MODE,
+                )
+        else:
+            os.chmod(state_dir, STATE_DIR_MODE)  # exactly 0700: the umask may have narrowed it
     except OSError as exc:
         raise InputError(f"state directory {state_dir}: {exc.strerror}") from exc
     if not os.access(state_dir, os.W_OK | os.X_OK):
@@ -157,10 +180,11 @@ def main_run(args: argparse.Namespace) -> int:
         append=True,
         zmq_curve_secret_key=cfg.zmq_curve_secret_key,
         zmq_curve_clients=cfg.zmq_curve_clients,
+        nmea_tcp_max_clients=cfg.nmea_tcp_max_clients,
     )
     outputs = build_publishers(specs, cfg.talker, options)
     state_dir = cfg.resolved_state_dir()
-    log.info("state directory %s (ephemeris store)", state_dir.resolve())
+    log.info("ephemeris store kept in %s", state_dir.resolve())
     store = load_store(state_dir, cfg.max_eph_age_s)
     pipeline = Pipeline(
         store,
@@ -263,7 +287,8 @@ def main_replay(args: argparse.Namespace) -> int:
         counters = src.counters
         speed = None if args.max_speed else (args.speed or 1.0)
     pipeline = Pipeline(store, iono, cfg, restart_at_s=args.restart_at, sync_seed=args.seed)
-    outputs = build_publishers(specs, args.talker)
+    options = SinkOptions(nmea_tcp_max_clients=args.nmea_tcp_max_clients)
+    outputs = build_publishers(specs, args.talker, options)
     # what was opened, once it opened (an error stays the only line)
     if args.files:
         pacing = "as fast as possible" if speed is None else f"paced at {speed:g}x real time"

@@ -15,6 +15,7 @@ import time
 
 from service.commands.options import check_range, parse_start
 from service.core.errors import ConfigError, InputError
+from service.core.files import open_output
 from service.core.timebase import gpst_from_utc
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rtcm import broadcast_sets, frame_1042
@@ -70,10 +71,7 @@ def main_simulate(args: argparse.Namespace) -> int:
     elif args.out in (None, "-"):
         write = sys.stdout.buffer.write
     else:
-        try:
-            fh = open(args.out, "wb")  # noqa: SIM115
-        except OSError as exc:
-            raise InputError(f"cannot write {args.out}: {exc.strerror}") from exc
+        fh = open_output(args.out, binary=True)  # InputError: unwritable or a symlink
         write = fh.write
     t0 = time.monotonic()
     try:

@@ -18,6 +18,7 @@ from typing import IO, Literal
 from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
+from service.core.files import open_output
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.solver import IonoSet, SolverConfig, fractionalize, solve
 
@@ -77,11 +78,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
     if path == "-":
         yield sys.stdout
         return
-    try:
-        fh = open(path, "w", encoding="ascii", newline="")  # noqa: SIM115
-    except OSError as exc:
-        raise InputError(f"cannot write {path}: {exc.strerror}") from exc
-    with fh:
+    with open_output(path, encoding="ascii", newline="") as fh:  # InputError (exit 3)
         yield fh
 
 

@@ -20,6 +20,7 @@ from service.core.errors import ConfigError
 from service.core.settings import add_flags, build, given, setting, settings_of
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
+from service.output.sinks.base import NMEA_TCP_MAX_CLIENTS
 
 DEFAULT_CONFIG = "/etc/bdsfix/bdsfix.toml"
 
@@ -43,6 +44,14 @@ class DaemonConfig:
     )
     nmea_tcp: str = setting(
         "127.0.0.1:10110", "NMEA TCP server HOST:PORT ('' disables)", kind="str"
+    )
+    nmea_tcp_max_clients: int = setting(
+        NMEA_TCP_MAX_CLIENTS,
+        "NMEA TCP clients served at once; a connection over the cap is accepted and closed "
+        "at once (counted as nmea_clients_refused)",
+        kind="int",
+        low=1,
+        high=100_000,
     )
     nmea_out: str = setting("", "NMEA to a file or - for stdout", kind="str")
     nmea_serial: str = setting("", "NMEA to a serial device or pty", kind="str")

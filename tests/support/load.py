@@ -124,7 +124,7 @@ def run_load(
 ) -> LoadResult:
     res = LoadResult(epochs_expected=epochs)
     state = workdir / "state"
-    state.mkdir(exist_ok=True)
+    state.mkdir(mode=0o700, exist_ok=True)
     store = EphemerisStore()
     store.add_all(table1_ephemerides(0.0))
     store.save(state / "ephemeris.json")  # warm start, as on a receiver host

@@ -15,6 +15,10 @@ RECORD_CLASSES = ("FIX", "SKY", "TRACK", "STATUS")
 
 NmeaMode = Literal["", "live", "epoch"]
 
+NMEA_TCP_MAX_CLIENTS = 64
+"""NMEA TCP clients served at once by default; more connections are accepted and closed
+(setting ``nmea_tcp_max_clients``, see :mod:`service.output.sinks.nmea_tcp`)."""
+
 
 @dataclass(frozen=True, slots=True)
 class SinkOptions:
@@ -24,6 +28,7 @@ class SinkOptions:
     append: bool = False  # file outputs: append (the daemon) rather than truncate (replay)
     zmq_curve_secret_key: str = ""
     zmq_curve_clients: str = ""
+    nmea_tcp_max_clients: int = NMEA_TCP_MAX_CLIENTS  # nmea-tcp: more clients are refused
 
 
 class Sink:

@@ -1,5 +1,7 @@
 """``nmea-file`` and ``jsonl``: NMEA sentences or JSON records as lines to a file or ``-``
-(stdout). Files are truncated at open unless the options ask to append (the daemon does).
+(stdout). Files are truncated at open unless the options ask to append (the daemon does);
+they are never opened through a symlink and are created 0644 whatever the umask
+(:mod:`service.core.files`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import IO, Any
 
 from service.core.counters import Counters
 from service.core.errors import InputError
+from service.core.files import open_output
 from service.output.records import dumps
 from service.output.sinks.base import Sink, SinkOptions
 
@@ -41,26 +44,29 @@ class LineSink(Sink):
         self.reader_gone = False  # a pipe whose reader closed it (EPIPE)
         self._fh: IO[str] | None = None
         self._failing = False
-        self._open("a" if append else "w")
+        self._open(append)
 
     def counters(self) -> Mapping[str, int]:
         return dict(self._counters)
 
     def reopen(self) -> None:
-        self._open("a")
+        """Open the path again (SIGHUP); when that fails (a symlink planted there, a
+        directory gone) the error is logged and counted and the old file stays in use."""
+        try:
+            self._open(append=True)
+        except InputError as exc:
+            self._counters["line_reopen_errors"] += 1
+            log.error("%s; still writing to the file opened before", exc)
 
     def gone(self) -> bool:
         return self.reader_gone
 
-    def _open(self, mode: str) -> None:
+    def _open(self, append: bool) -> None:
         if self.target == "-":
             self._fh = sys.stdout
             return
         old = self._fh
-        try:
-            self._fh = open(self.target, mode, encoding="utf-8", buffering=1)  # noqa: SIM115
-        except OSError as exc:
-            raise InputError(f"cannot write {self.target}: {exc.strerror}") from exc
+        self._fh = open_output(self.target, append=append, buffering=1)  # InputError
         if old is not None:
             with contextlib.suppress(OSError):
                 old.close()

@@ -5,6 +5,15 @@ buffer (and a 64 KiB kernel send buffer); a client that does not read until its 
 overflows is dropped and counted (``nmea_clients_dropped_slow``), as gpsd does with slow
 clients. Whatever clients send (gpsd's ``?WATCH`` etc.) is read and ignored. Listening on
 anything but loopback logs a warning.
+
+At most ``max_clients`` (setting ``nmea_tcp_max_clients``, default
+:data:`MAX_CLIENTS_DEFAULT`) are served at once: a connection over the cap is accepted and
+closed at once (``nmea_clients_refused``), so a flood neither fills the listen backlog
+nor takes the process's descriptors. When accept itself fails for want of resources
+(EMFILE, ENFILE, ENOBUFS, ENOMEM) the listener is set aside for a growing pause
+(:data:`ACCEPT_BACKOFF_MIN_S` to :data:`ACCEPT_BACKOFF_MAX_S`) instead of being polled
+again at once, and counted (``nmea_accept_errors``). Both are logged at most once a
+minute.
 """
 
 from __future__ import annotations
@@ -12,15 +21,18 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
+import math
 import selectors
 import socket
 import threading
+import time
 from collections import deque
 from collections.abc import Mapping
 
 from service.core.counters import Counters
 from service.core.errors import BindError, ConfigError
 from service.output.sinks.base import (
+    NMEA_TCP_MAX_CLIENTS,
     Sink,
     SinkOptions,
     is_loopback,
@@ -30,10 +42,25 @@ from service.output.sinks.base import (
 log = logging.getLogger(__name__)
 
 _BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
+_RESOURCE_ERRNOS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
+
+MAX_CLIENTS_DEFAULT = NMEA_TCP_MAX_CLIENTS
+"""NMEA TCP clients served at once unless configured (``nmea_tcp_max_clients``)."""
+LISTEN_BACKLOG = 128
+"""Connections the kernel holds until accepted (each is accepted, then served or refused)."""
+ACCEPT_BATCH = 64
+"""Connections accepted per turn of the I/O loop, so a flood cannot starve the clients."""
+ACCEPT_BACKOFF_MIN_S = 0.05
+ACCEPT_BACKOFF_MAX_S = 1.0
+"""Pause of the listener after accept failed for want of resources, doubling while it does."""
+LOG_EVERY_S = 60.0
+"""Refusals and accept errors are logged at most this often (all are counted)."""
 
 
 def open_sink(spec: str, options: SinkOptions) -> NmeaTcpServer:
-    return NmeaTcpServer(*parse_host_port(spec, "NMEA TCP"))
+    return NmeaTcpServer(
+        *parse_host_port(spec, "NMEA TCP"), max_clients=options.nmea_tcp_max_clients
+    )
 
 
 class NmeaTcpServer(Sink):
@@ -46,9 +73,16 @@ class NmeaTcpServer(Sink):
     nmea = "live"
 
     def __init__(
-        self, host: str = "127.0.0.1", port: int = 10110, max_buffer_bytes: int = 256 * 1024
+        self,
+        host: str = "127.0.0.1",
+        port: int = 10110,
+        max_buffer_bytes: int = 256 * 1024,
+        max_clients: int = MAX_CLIENTS_DEFAULT,
     ) -> None:
+        if max_clients < 1:
+            raise ConfigError(f"NMEA TCP: at most {max_clients} clients: expected >= 1")
         self.max_buffer_bytes = max_buffer_bytes
+        self.max_clients = max_clients
         self.kernel_sndbuf_bytes = 64 * 1024
         self._counters = Counters()
         if not is_loopback(host):
@@ -58,7 +92,7 @@ class NmeaTcpServer(Sink):
         self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             self._srv.bind((host, port))
-            self._srv.listen(16)
+            self._srv.listen(LISTEN_BACKLOG)
         except OSError as exc:
             self._srv.close()
             why = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror
@@ -76,6 +110,10 @@ class NmeaTcpServer(Sink):
         self._clients: dict[socket.socket, deque[bytes]] = {}
         self._sizes: dict[socket.socket, int] = {}
         self._doomed: list[socket.socket] = []
+        self._accept_paused_until: float | None = None  # monotonic; listener set aside
+        self._accept_backoff_s = ACCEPT_BACKOFF_MIN_S
+        self._logged_at = {"refused": -math.inf, "accept": -math.inf}
+        self._unlogged = {"refused": 0, "accept": 0}
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="bdsfix-nmea-tcp", daemon=True)
         self._thread.start()
@@ -134,10 +172,20 @@ class NmeaTcpServer(Sink):
 
     def _loop(self) -> None:
         while not self._closed.is_set():
+            timeout_s = 0.5
+            if self._accept_paused_until is not None:
+                timeout_s = max(0.0, min(timeout_s, self._accept_paused_until - time.monotonic()))
             try:
-                events = self._sel.select(timeout=0.5)
+                events = self._sel.select(timeout=timeout_s)
             except (OSError, ValueError):
                 return
+            if (
+                self._accept_paused_until is not None
+                and time.monotonic() >= self._accept_paused_until
+            ):
+                self._accept_paused_until = None
+                with contextlib.suppress(KeyError, ValueError):
+                    self._sel.register(self._srv, selectors.EVENT_READ, "listen")
             for key, mask in events:
                 if key.data == "wake":
                     with contextlib.suppress(OSError):
@@ -150,10 +198,59 @@ class NmeaTcpServer(Sink):
             self._flush()
 
     def _accept(self) -> None:
-        try:
-            sock, addr = self._srv.accept()
-        except OSError:
+        """Accept what waits (up to :data:`ACCEPT_BATCH`): serve it, or refuse it over the cap."""
+        for _ in range(ACCEPT_BATCH):
+            try:
+                sock, addr = self._srv.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                if exc.errno in _RESOURCE_ERRNOS:
+                    self._pause_accept(exc)
+                    return
+                continue  # this connection's own trouble (ECONNABORTED ...): the next one
+            self._accept_backoff_s = ACCEPT_BACKOFF_MIN_S
+            if self.n_clients >= self.max_clients:
+                sock.close()  # at once: it takes neither a slot nor a descriptor
+                self._counters.add("nmea_clients_refused")
+                self._log_rarely(
+                    "refused",
+                    "NMEA client %s refused: %d clients connected, the most allowed "
+                    "(nmea_tcp_max_clients)",
+                    addr,
+                    self.max_clients,
+                )
+                continue
+            self._serve(sock, addr)
+
+    def _pause_accept(self, exc: OSError) -> None:
+        """Set the listener aside for a while: it stays readable while accept fails, and
+        polling it again at once would spin the I/O thread."""
+        self._counters.add("nmea_accept_errors")
+        self._log_rarely(
+            "accept",
+            "NMEA TCP accept failed: %s; not accepting for %.2f s",
+            exc.strerror,
+            self._accept_backoff_s,
+        )
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(self._srv)
+        self._accept_paused_until = time.monotonic() + self._accept_backoff_s
+        self._accept_backoff_s = min(2.0 * self._accept_backoff_s, ACCEPT_BACKOFF_MAX_S)
+
+    def _log_rarely(self, kind: str, msg: str, *args: object) -> None:
+        """A warning at most every :data:`LOG_EVERY_S` per kind, with how many went unlogged."""
+        now = time.monotonic()
+        if now - self._logged_at[kind] < LOG_EVERY_S:
+            self._unlogged[kind] += 1
             return
+        more = self._unlogged[kind]
+        self._logged_at[kind], self._unlogged[kind] = now, 0
+        if more:
+            msg += f" ({more} more since the last report)"
+        log.warning(msg, *args)
+
+    def _serve(self, sock: socket.socket, addr: object) -> None:
         sock.setblocking(False)
         # a bounded kernel send buffer, so a client that never reads is found (and dropped)
         # once our own max_buffer_bytes fills, instead of after megabytes of autotuning
