@@ -36,7 +36,7 @@ from drivers.transport import (
     pace,
 )
 from service.core.counters import Counters
-from service.core.errors import ConfigError, DecodeError, FramingError
+from service.core.errors import ConfigError, DecodeError, FramingError, InputError
 from service.core.ratelog import RateLimitedLog
 from service.core.timebase import MIN_SANE_GPS_WEEK, gpst_from_utc
 
@@ -239,6 +239,34 @@ class RinexSource(EventSource):
         closer: Callable[[], None] | None = getattr(self._reader, "close", None)
         if closer is not None:
             closer()
+
+
+CAPTURE_SCAN_BYTES = 1 << 20
+"""How much of a capture file :func:`check_capture` reads for a first frame."""
+
+
+def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> None:
+    """A capture file must hold something bdsfix reads: a RINEX header, or at least one
+    frame of a registered protocol in its first ``scan_bytes``. Otherwise InputError
+    (exit 3) with one line saying what was expected."""
+    from drivers.protocols import PROTOCOLS
+
+    path = Path(path)
+    if is_rinex(path):
+        return
+    with open(path, "rb") as fh:
+        head = fh.read(scan_bytes)
+    expected = (
+        f"expected a capture of {', '.join(p.name.upper() for p in PROTOCOLS)} frames "
+        "or a RINEX 3 obs file"
+    )
+    if not head:
+        raise InputError(f"{path}: empty file; {expected}")
+    if head.startswith((b"\x1f\x8b", b"\x1f\x9d", b"BZh", b"PK\x03\x04", b"\xfd7zXZ")):
+        raise InputError(f"{path}: a compressed archive, not a capture: decompress it first")
+    framer = Framer(PROTOCOLS)
+    if not framer.feed(head) and not framer.flush():
+        raise InputError(f"{path}: no frame found in its first {len(head)} bytes; {expected}")
 
 
 def is_rinex(path: str | Path) -> bool:

@@ -69,7 +69,8 @@ def build_publishers(
 
 
 def _check_source(spec: str) -> None:
-    """A capture file given as the source must be there and readable (one-line error).
+    """A capture file given as the source must be there, readable and hold something bdsfix
+    reads (:func:`drivers.source.check_capture`): one-line error, exit 3.
 
     Serial devices are opened at start by the caller (a device that vanishes later is
     waited for); TCP sources are retried, since the server may start after the daemon."""
@@ -81,9 +82,10 @@ def _check_source(spec: str) -> None:
     if os.path.isdir(path):
         raise InputError(f"source {spec!r}: is a directory")
     if os.path.isfile(path):
+        from drivers.source import check_capture
+
         try:
-            with open(path, "rb"):
-                pass
+            check_capture(path)
         except OSError as exc:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
@@ -202,6 +204,7 @@ def main_run(args: argparse.Namespace) -> int:
         store_save_interval_s=cfg.store_save_interval_s,
         watchdog=notifier.watchdog,
         watchdog_interval_s=notifier.watchdog_interval_s,
+        silence_warn_s=cfg.silence_warn_s,
     )
     signals = _Signals(runner)
     notifier.ready(f"reading {cfg.source}")

@@ -83,6 +83,13 @@ class DaemonConfig:
         low=0.0,
         high=86400.0,
     )
+    silence_warn_s: float = setting(
+        30.0,
+        "warn (once per this interval) while the source sends nothing recognisable for this "
+        "long [s]; 0: never",
+        kind="float",
+        low=0.0,
+    )
     log_level: str = setting(
         "info", "log level", kind="str", choices=("debug", "info", "warning", "error")
     )

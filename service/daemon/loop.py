@@ -66,6 +66,9 @@ class Runner:
     watchdog_interval_s: float | None = None
     on_result: Callable[[EpochResult], None] | None = None
     log_skipped_at_stop: bool = True  # replay prints its own summary instead
+    silence_warn_s: float = 0.0  # warn while the source gives nothing recognisable; 0: never
+    _recognised: tuple[int, float] = (0, 0.0)  # (frames + RINEX epochs, since when)
+    _silence_warned_at: float = -math.inf
     queue_size: int = 4096
     _stop: threading.Event = field(default_factory=threading.Event)
     _reopen: threading.Event = field(default_factory=threading.Event)
@@ -153,6 +156,8 @@ class Runner:
                 if now >= next_save + (slack if self.store_save_interval_s > 0 else 0.0):
                     self.save_store()
                     next_save = now + self.store_save_interval_s
+                if self.silence_warn_s > 0:
+                    self._watch_silence(now)
                 if self.watchdog is not None and now >= next_dog:
                     self.watchdog()
                     next_dog = now + (self.watchdog_interval_s or 1e18)
@@ -187,6 +192,30 @@ class Runner:
         elif isinstance(ev, KlobucharParams):
             self.pipeline.set_iono(ev)
         return 0
+
+    def _watch_silence(self, now: float) -> None:
+        """A live source that sends nothing recognisable (no frame, no RINEX epoch) for
+        ``silence_warn_s`` gets a WARNING, repeated once per interval while it lasts
+        (counted ``source_silent``); the daemon keeps reading."""
+        c = self.source_counters
+        seen = sum(int(v) for k, v in c.items() if k.startswith("frames_")) + int(
+            c.get("epochs_rinex", 0)
+        )
+        last, since = self._recognised
+        if seen != last or since == 0.0:
+            self._recognised = (seen, now)
+            return
+        if now - since >= self.silence_warn_s and now - self._silence_warned_at >= (
+            self.silence_warn_s
+        ):
+            self._silence_warned_at = now
+            self.pipeline.counters["source_silent"] += 1
+            log.warning(
+                "source: nothing recognisable for %.0f s (%d bytes received in all); "
+                "check the receiver's output protocol and baud rate; still reading",
+                now - since,
+                int(c.get("bytes_in", 0)),
+            )
 
     def skipped(self) -> dict[str, int]:
         """Source counters of input that was dropped (bad bytes, frames, RINEX lines/epochs)."""

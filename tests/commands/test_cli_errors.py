@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import zmq
 
+from drivers.ubx import fletcher8
 from tests.support.paths import DATA
 
 BDSFIX = str(Path(sys.executable).parent / "bdsfix")
@@ -49,9 +50,11 @@ def _one_clear_line(cwd: Path, code: int, argv: list[str], *needles: str) -> str
 
 @pytest.fixture
 def capture(tmp_path: Path) -> Path:
-    """A readable (tiny) capture file, so that checks after the source are reached."""
+    """A readable (tiny) capture file, so that checks after the source are reached: one UBX
+    NAV-PVT poll frame (empty payload)."""
     p = tmp_path / "capture.ubx"
-    p.write_bytes(b"\xb5\x62\x01\x07")
+    body = b"\x01\x07\x00\x00"
+    p.write_bytes(b"\xb5\x62" + body + fletcher8(body))
     return p
 
 

@@ -5,10 +5,12 @@ checked before it starts."""
 
 from __future__ import annotations
 
+import gzip
 import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from tests.support.paths import DATA, ROOT
@@ -78,3 +80,27 @@ def test_replay_stops_cleanly_on_a_signal_with_the_table_code(sig, code):
             proc.wait()
     assert proc.returncode == code, err[-500:]
     assert "bdsfix replay:" in err and "epochs; fixes" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("kind", ["empty", "random", "text", "gzip"])
+@pytest.mark.parametrize("command", ["replay", "run"])
+def test_a_file_with_nothing_to_read_is_an_input_error(tmp_path, command, kind):
+    """Empty, random, text or compressed: exit 3 with one line saying what was expected."""
+    rng = np.random.default_rng(3)
+    content = {
+        "empty": b"",
+        "random": bytes(b for b in rng.integers(0, 256, 20_000, dtype=np.uint8) if b != 0xB5),
+        "text": b"hello, this is not a receiver capture\n" * 100,
+        "gzip": gzip.compress(b"\xb5\x62" * 1000),
+    }[kind]
+    path = tmp_path / f"capture.{kind}"
+    path.write_bytes(content)
+    args = [command, str(path)] if command == "replay" else [command, "--source", str(path)]
+    if command == "run":
+        args += ["--state-dir", str(tmp_path / "state"), "--nmea-tcp", "", "--zmq", ""]
+    out = _bdsfix(*args)
+    assert out.returncode == 3, (out.returncode, out.stderr)
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    expected = "decompress it first" if kind == "gzip" else "expected a capture of UBX"
+    assert expected in lines[0]
