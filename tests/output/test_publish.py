@@ -11,9 +11,7 @@ import logging
 import os
 import re
 import select
-import shutil
 import socket
-import subprocess
 import threading
 import time
 from collections.abc import Callable
@@ -34,6 +32,8 @@ from service.output.sinks.nmea_serial import SerialSink
 from service.output.sinks.nmea_tcp import NmeaTcpServer
 from service.output.sinks.zmq_pub import ZmqPublisher
 from tests.support.fixes import SKY, declined_fix, ecef_m, hksc_fix
+from tests.support.gpsd import free_port as _free_port
+from tests.support.gpsd import gpsd_watching
 from tests.support.nmea import C_M_S, hand_parse, horiz_err_m, sec_of_day, utc_of_gpst
 from tests.support.schema import validate
 
@@ -473,67 +473,41 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
 # ---- gpsd as a consumer ------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
+@pytest.mark.needs("gpsd")
 @pytest.mark.parametrize("gsa_talker", [None, "GB"])
 def test_gpsd_reads_a_southern_western_fix_at_10_hz(gsa_talker):
     """gpsd (an independent NMEA parser) connected to our TCP server reports our fixes:
     mode 3, position within 1 cm, time within 0.01 s; with a GB talker on GSA it also
-    marks exactly our used satellites."""
-    assert shutil.which("gpsd"), "gpsd (Debian package) is required"
+    marks exactly our used satellites. Epochs are sent once gpsd is our client, so none is
+    lost to its start-up; up to 600 epochs (60 s of data) for 10 timed TPV reports."""
     lat0, lon0, alt0 = -22.951916789, -43.210487654, 702.456  # Rio de Janeiro
     server = NmeaTcpServer("127.0.0.1", 0)
     out = Publishers([server], gsa_talker=gsa_talker)
-    gpsd_port = _free_port()
-    gpsd = subprocess.Popen(
-        ["gpsd", "-N", "-n", "-S", str(gpsd_port), f"tcp://127.0.0.1:{server.address[1]}"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
     fixes = {}
     tpv: list[dict] = []
     sky: list[dict] = []
     try:
-        client = None
-        for _ in range(100):
-            try:
-                client = socket.create_connection(("127.0.0.1", gpsd_port), timeout=1)
-                break
-            except OSError:
-                time.sleep(0.1)
-        assert client is not None, "gpsd did not start"
-        client.sendall(b'?WATCH={"enable":true,"json":true};\n')
-        client.settimeout(0.05)
-        buf = b""
-        for k in range(600):
-            if len(tpv) >= 10 and sky:
-                break
-            fix = hksc_fix(
-                x_ecef_m=ecef_m(lat0, lon0, alt0),
-                gpst_tow_s=444954.0 + 0.1 * k,
-                clock_bias_m=3_000.0,
-            )
-            utc = utc_of_gpst(fix.gpst_week, fix.gpst_tow_s - fix.clock_bias_m / C_M_S)
-            shown = utc + dt.timedelta(microseconds=5_000)  # NMEA rounds to 0.01 s
-            fixes[shown.strftime("%H:%M:%S.") + f"{shown.microsecond // 10_000:02d}"] = fix
-            out.fix(fix, since_start_s=0.1 * k)
-            with contextlib.suppress(TimeoutError):
-                buf += client.recv(65536)
-            *lines, buf = buf.split(b"\n")
-            for line in lines:
-                msg = json.loads(line)
-                if msg.get("class") == "TPV" and msg.get("mode") == 3 and "time" in msg:
-                    tpv.append(msg)
-                elif msg.get("class") == "SKY" and msg.get("satellites"):
-                    sky.append(msg)
-        client.close()
+        with gpsd_watching(f"tcp://127.0.0.1:{server.address[1]}") as gpsd:
+            wait_until(lambda: server.n_clients == 1, "gpsd to connect to our NMEA server", 60)
+            for k in range(600):
+                if len(tpv) >= 10 and sky:
+                    break
+                fix = hksc_fix(
+                    x_ecef_m=ecef_m(lat0, lon0, alt0),
+                    gpst_tow_s=444954.0 + 0.1 * k,
+                    clock_bias_m=3_000.0,
+                )
+                utc = utc_of_gpst(fix.gpst_week, fix.gpst_tow_s - fix.clock_bias_m / C_M_S)
+                shown = utc + dt.timedelta(microseconds=5_000)  # NMEA rounds to 0.01 s
+                fixes[shown.strftime("%H:%M:%S.") + f"{shown.microsecond // 10_000:02d}"] = fix
+                out.fix(fix, since_start_s=0.1 * k)
+                for msg in gpsd.messages(0.05):
+                    if msg.get("class") == "TPV" and msg.get("mode") == 3 and "time" in msg:
+                        tpv.append(msg)
+                    elif msg.get("class") == "SKY" and msg.get("satellites"):
+                        sky.append(msg)
+            assert server.n_clients == 1, f"gpsd was dropped: {gpsd.output()}"
     finally:
-        gpsd.terminate()
-        gpsd.wait(10)
         out.close()
     assert len(tpv) >= 10 and sky
     for t in tpv:
