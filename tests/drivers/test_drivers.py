@@ -793,7 +793,10 @@ def test_pace_follows_data_time_with_a_fake_clock():
         list(pace(events, 0.0))
 
 
-def _epochs_from(transport, n: int, timeout_s: float = 30.0) -> list[MeasurementEpoch]:
+HANG_S = 60.0  # waits end here only for a hung run
+
+
+def _epochs_from(transport, n: int, timeout_s: float = HANG_S) -> list[MeasurementEpoch]:
     dec = StreamDecoder()
     epochs: list[MeasurementEpoch] = []
     deadline = time.monotonic() + timeout_s
@@ -866,7 +869,7 @@ def test_serial_over_pty_reconnects(tmp_path: Path):
         first = _epochs_from(t, 5)
         os.close(master)  # unplug: the read side sees EIO
         os.close(slave)
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + HANG_S
         while t.counters["disconnects"] == 0 and time.monotonic() < deadline:
             t.read(4096)
         assert t.counters["disconnects"] == 1 and not t.connected
@@ -876,7 +879,7 @@ def test_serial_over_pty_reconnects(tmp_path: Path):
             t.read(4096)
         assert t.counters["open_failures"] >= 1
         master, slave = plug()
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + HANG_S
         while not t.connected and time.monotonic() < deadline:
             t.read(1)
         assert t.connected and t.counters["reconnects"] == 1
