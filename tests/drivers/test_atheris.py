@@ -60,6 +60,7 @@ def results(tmp_path_factory) -> dict[str, tuple[int, str, int]]:
         return dict(zip(TARGETS, pool.map(lambda t: _fuzz(t, workdir), TARGETS), strict=True))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("target", TARGETS)
 def test_atheris_finds_no_crash_or_hang(results, target):
     rc, stderr, runs = results[target]

@@ -37,6 +37,7 @@ def nav():
     return prepare_nav((e for items in nav.ephemerides.values() for e in items), nav.iono_bds)
 
 
+@pytest.mark.slow
 def test_monte_carlo_faults_stay_within_protection_levels(nav):
     tallies = run_trials(500, seed=3, nav=nav)
     for key, t in tallies.items():

@@ -198,6 +198,7 @@ class SocatPty:
         _wait(lambda: not self.link.is_symlink(), HANG_S, "the link to go")
 
 
+@pytest.mark.slow
 @pytest.mark.needs("socat")
 def test_device_node_vanishes_and_returns_many_times(tmp_path, epochs):
     """socat's pty node goes away and comes back 12 times (outages of 0.2-0.6 s, and two
