@@ -26,7 +26,6 @@ import warnings
 from pathlib import Path
 
 import pytest
-import zmq
 from pyrtcm import RTCMReader
 
 from drivers.rinex import read_nav
@@ -36,6 +35,7 @@ from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.types import Ephemeris, NavSubframe
 from service.engine.pipeline import Pipeline
 from tests.support.paths import DATA, ROOT
+from tests.support.replay import replay_with_status
 
 REAL_NAV = (
     "hksc-2021/hksc1610.nav",
@@ -438,34 +438,12 @@ def clean_replay(tmp_path_factory):
 
 
 def _replay_with_status(nav: Path, workdir: Path) -> tuple[subprocess.CompletedProcess, dict]:
-    """``bdsfix replay`` with a ZeroMQ STATUS subscriber; returns the run and the last STATUS."""
-    out, endpoint = workdir / "fixes.jsonl", f"ipc://{workdir / 'pub.ipc'}"
-    sub = zmq.Context.instance().socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    sub.setsockopt(zmq.RECONNECT_IVL, 5)  # connect before the short replay's final STATUS
-    sub.setsockopt(zmq.SUBSCRIBE, b"STATUS")
-    sub.connect(endpoint)
-    status: dict = {}
-    try:
-        run = _run(
-            "replay",
-            str(HKSC_OBS),
-            "--nav",
-            str(nav),
-            "--max-speed",
-            "--jsonl-out",
-            str(out),
-            "--zmq",
-            endpoint,
-            "--status-interval-s",
-            "0.2",
-        )
-        while sub.poll(200):  # the PUB socket lingers 100 ms at exit
-            status = json.loads(sub.recv_multipart()[1])
-    finally:
-        sub.close()
-    run.stdout = out.read_text() if out.exists() else ""
-    return run, status
+    """``bdsfix replay`` with a ZeroMQ STATUS subscriber; returns the run and its last
+    STATUS, received without racing the exit (tests/support/replay.py)."""
+    out = workdir / "fixes.jsonl"
+    res = replay_with_status(HKSC_OBS, "--nav", str(nav), "--jsonl-out", str(out))
+    stdout = out.read_text() if out.exists() else ""
+    return subprocess.CompletedProcess([], res.rc, stdout, res.stderr), res.final
 
 
 @pytest.mark.parametrize("case", DAMAGE)

@@ -821,7 +821,10 @@ def test_pace_follows_data_time_with_a_fake_clock():
         list(pace(events, 0.0))
 
 
-def _epochs_from(transport, n: int, timeout_s: float = 30.0) -> list[MeasurementEpoch]:
+HANG_S = 60.0  # waits end here only for a hung run
+
+
+def _epochs_from(transport, n: int, timeout_s: float = HANG_S) -> list[MeasurementEpoch]:
     dec = StreamDecoder()
     epochs: list[MeasurementEpoch] = []
     deadline = time.monotonic() + timeout_s
@@ -894,7 +897,7 @@ def test_serial_over_pty_reconnects(tmp_path: Path):
         first = _epochs_from(t, 5)
         os.close(master)  # unplug: the read side sees EIO
         os.close(slave)
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + HANG_S
         while t.counters["disconnects"] == 0 and time.monotonic() < deadline:
             t.read(4096)
         assert t.counters["disconnects"] == 1 and not t.connected
@@ -904,7 +907,7 @@ def test_serial_over_pty_reconnects(tmp_path: Path):
             t.read(4096)
         assert t.counters["open_failures"] >= 1
         master, slave = plug()
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + HANG_S
         while not t.connected and time.monotonic() < deadline:
             t.read(1)
         assert t.connected and t.counters["reconnects"] == 1
@@ -916,3 +919,63 @@ def test_serial_over_pty_reconnects(tmp_path: Path):
         os.close(slave)
     assert [e.gpst_tow_s for e in first + second] == [struct_rawx(f)[1] for f in frames]
     assert _pty_fds() == fds_before  # nothing leaked across the reconnect
+
+
+class _FakeClock:
+    """monotonic() and sleep() of a clock that moves only when slept on."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        self.now += max(0.0, s)
+
+
+@pytest.mark.parametrize("outage_s", [0.15, 0.3, 1.7, 3.2, 10.0, 300.0])
+def test_returning_serial_device_is_reopened_within_the_backoff_cap(monkeypatch, outage_s):
+    """Issue 5's "fixes resume within 2 s of the device returning", the transport's half, on
+    a fake clock (tests/system/test_serial_faults.py has the other: the first epoch after
+    the reopen gives a fix). However long the device was gone, the daemon's serial
+    transport (its defaults, RECONNECT_MAX_S) has reopened it and read once no later than
+    the backoff cap plus one read timeout after it came back."""
+    import errno
+
+    import drivers.transport as transport_module
+
+    clock = _FakeClock()
+    gone_at, back_at = 1.0, 1.0 + outage_s
+
+    def present() -> bool:
+        return not gone_at <= clock.now < back_at
+
+    class FakeSerial:
+        in_waiting = 0
+
+        def __init__(self, device: str, baud: int, timeout: float) -> None:
+            if not present():
+                raise OSError(errno.ENOENT, "No such file or directory")
+            self.timeout = timeout
+
+        def read(self, n: int) -> bytes:
+            if not present():
+                raise OSError(errno.EIO, "Input/output error")
+            clock.sleep(self.timeout)  # an idle line: nothing within the timeout
+            return b""
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(transport_module, "time", clock)
+    monkeypatch.setattr(transport_module.serial, "Serial", FakeSerial)
+    t = SerialTransport("/dev/ttyFAKE", 115200)
+    t.open_now()
+    while not t.counters["reconnects"]:
+        assert clock.now < back_at + 3600, "never reopened"
+        t.read(4096)
+    assert t.counters["disconnects"] == 1
+    late_s = clock.now - back_at
+    assert 0 <= late_s <= transport_module.RECONNECT_MAX_S + t.timeout_s + 1e-9, late_s
+    assert transport_module.RECONNECT_MAX_S + t.timeout_s <= 2.0

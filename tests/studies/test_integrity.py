@@ -14,20 +14,19 @@ from __future__ import annotations
 
 import json
 import re
-import socket
 import subprocess
 import sys
-import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-import zmq
 
 from drivers.rinex import read_nav
 from service.core.types import Fix
 from service.engine.solver import SolverConfig
 from service.studies.integrity import pl_ratio, prepare_nav, run_trials, wrong_integers
 from tests.support.paths import DATA, ROOT
+from tests.support.replay import LiveReplay, StatusRun
 
 HK = DATA / "hksc-2021"
 
@@ -38,6 +37,7 @@ def nav():
     return prepare_nav((e for items in nav.ephemerides.values() for e in items), nav.iono_bds)
 
 
+@pytest.mark.slow
 def test_monte_carlo_faults_stay_within_protection_levels(nav):
     tallies = run_trials(500, seed=3, nav=nav)
     for key, t in tallies.items():
@@ -80,73 +80,23 @@ def test_monte_carlo_judges_against_the_truth():
     assert wrong_integers(bad, pr, z, ["C01", "C06"]) == ["C06"]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 RESTARTS = [(5.0, 0), (40.0, 1), (80.0, 2), (120.0, 3), (160.0, 4), (185.0, 5)]
 
 
 def test_hksc_restarts_every_recovered_ambiguity_confirmed_by_d1_sow():
-    ctx = zmq.Context()
-    runs = []
-    for restart_s, seed in RESTARTS:
-        endpoint = f"tcp://127.0.0.1:{_free_port()}"
-        sub = ctx.socket(zmq.SUB)
-        sub.setsockopt(zmq.LINGER, 0)
-        sub.setsockopt(zmq.SUBSCRIBE, b"STATUS")
-        sub.connect(endpoint)  # before the replay binds: no STATUS is missed
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "service",
-                "replay",
-                str(HK / "hksc1610.obs"),
-                "--nav",
-                str(HK / "hksc1610.nav"),
-                "--restart-at",
-                str(restart_s),
-                "--seed",
-                str(seed),
-                "--speed",
-                "100",
-                "--zmq",
-                endpoint,
-                "--nmea-out",
-                "/dev/null",
-                "--status-interval-s",
-                "0.2",
-            ],
-            cwd=ROOT,
-            stderr=subprocess.PIPE,
-            stdout=subprocess.DEVNULL,
-        )
-        runs.append((restart_s, sub, proc, []))
-    try:
-        deadline = time.monotonic() + 120
-        while any(p.poll() is None for _, _, p, _ in runs) and time.monotonic() < deadline:
-            for _, sub, _, got in runs:
-                while sub.poll(10):
-                    _topic, body = sub.recv_multipart()
-                    got.append(json.loads(body)["counters"])
-        time.sleep(0.3)
-        for _, sub, _, got in runs:
-            while sub.poll(100):
-                got.append(json.loads(sub.recv_multipart()[1])["counters"])
-    finally:
-        for _, sub, proc, _ in runs:
-            proc.kill()
-            sub.close(0)
-        ctx.term()
+    def replay(restart_s: float, seed: int) -> StatusRun:
+        args = ["replay", str(HK / "hksc1610.obs"), "--nav", str(HK / "hksc1610.nav")]
+        args += ["--restart-at", str(restart_s), "--seed", str(seed), "--speed", "100"]
+        with LiveReplay([*args, "--nmea-out", "/dev/null"]) as run:
+            return run.finish()
+
+    with ThreadPoolExecutor(max_workers=len(RESTARTS)) as pool:
+        runs = list(pool.map(lambda rs: replay(*rs), RESTARTS))
     total_checks = 0
-    for restart_s, _, proc, got in runs:
-        err = proc.stderr.read().decode() if proc.stderr else ""
-        assert proc.wait() == 0, err
-        assert got, f"restart {restart_s}: no STATUS received"
-        final = got[-1]
+    for (restart_s, _), run in zip(RESTARTS, runs, strict=True):
+        err = run.stderr
+        assert run.rc == 0, err
+        final = run.final["counters"]
         summary = re.search(r"fixes fast (\d+).*integrity checks (\d+), failures (\d+)", err)
         assert summary, err
         fast, checks, failures = map(int, summary.groups())

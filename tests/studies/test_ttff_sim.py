@@ -21,6 +21,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from tests.support.paths import ROOT
 
@@ -71,6 +72,7 @@ def _result(proc: subprocess.Popen) -> dict:
     return json.loads(out)
 
 
+@pytest.mark.slow
 def test_simulated_streams_through_a_pty_give_the_fast_first_fix():
     # all five at once: the machine's two cores share them; times are data times
     procs = {

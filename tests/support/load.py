@@ -10,8 +10,10 @@ simulated receiver over TCP at full speed, with many real peers in this process.
 What it gathers (:class:`LoadResult`): FIX records received by each healthy subscriber and
 the daemon's JSONL, GGA per healthy NMEA client, the daemon's last STATUS counters and its
 RSS sampled from /proc/PID/status. Both the RSS samples and the reconnections follow the
-run's progress, not the clock, so their number does not depend on the machine's speed. The
-timeouts here only stop a hung run; nothing is judged by the time it took.
+run's progress, not the clock, so their number does not depend on the machine's speed. After
+the daemon's exit every healthy peer is read to its end (the publisher's disconnect, the TCP
+EOF), so the last STATUS and the last records are counted however loaded the machine is.
+The timeouts here only stop a hung run (``HANG_S``); nothing is judged by the time it took.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import zmq
+from zmq.utils.monitor import recv_monitor_message
 
 from service.core.ephemeris import EphemerisStore
 from service.sim.keplerian import table1_ephemerides
@@ -35,6 +38,8 @@ from tests.support.paths import ROOT
 
 BDSFIX = [sys.executable, "-m", "service"]
 RATE_HZ = 20.0
+HANG_S = 60.0
+"""No progress for this long (peers joining, fixes flowing, the end of a stream) is a hang."""
 
 
 def make_stream(path: Path, minutes: float, rate_hz: float = RATE_HZ) -> int:
@@ -110,6 +115,47 @@ def _connect_tcp(port: int, rcvbuf: int | None, deadline: float) -> socket.socke
             time.sleep(0.1)
 
 
+def _read_to_the_end(
+    subs: list[zmq.Socket],
+    monitors: list[zmq.Socket],
+    tcp: list[socket.socket],
+    tails: list[bytes],
+    res: LoadResult,
+) -> None:
+    """After the daemon's exit: every subscriber until the publisher's disconnect and every
+    healthy NMEA client until EOF, counting what was still on its way."""
+    deadline = time.monotonic() + HANG_S
+    left = set(range(len(subs)))
+    while left:
+        assert time.monotonic() < deadline, f"no disconnect seen by subscribers {sorted(left)}"
+        for i in list(left):
+            if monitors[i].poll(0):
+                recv_monitor_message(monitors[i])
+                left.discard(i)
+        for i, s in enumerate(subs):
+            while s.poll(0):
+                topic, body = s.recv_multipart()
+                if topic == b"FIX":
+                    res.sub_fixes[i] += 1
+                elif i == 0:
+                    res.status = json.loads(body)["counters"]
+        time.sleep(0.01)
+    for i, s in enumerate(subs):  # delivered before the disconnect event was seen
+        while s.poll(100):
+            topic, body = s.recv_multipart()
+            if topic == b"FIX":
+                res.sub_fixes[i] += 1
+            elif i == 0:
+                res.status = json.loads(body)["counters"]
+    for k, s in enumerate(tcp):
+        s.setblocking(True)
+        s.settimeout(HANG_S)
+        while data := s.recv(1 << 16):
+            buf = tails[k] + data
+            res.nmea_gga[k] += buf.count(b"GGA,")
+            tails[k] = buf[-3:]
+
+
 def run_load(
     stream: Path,
     epochs: int,
@@ -162,11 +208,12 @@ def run_load(
     tcp: list[socket.socket] = []
     slow: list[socket.socket] = []
     again: zmq.Socket | None = None
+    monitors: list[zmq.Socket] = []
     fixes_seen = [0]
     try:
-        rx.settimeout(30)
+        rx.settimeout(HANG_S)
         receiver, _ = rx.accept()  # the daemon's source connection
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + HANG_S
         for i in range(n_nmea):
             if i < n_slow:
                 slow.append(_connect_tcp(nport, 4096, deadline))
@@ -178,6 +225,7 @@ def run_load(
             s.setsockopt(zmq.RCVHWM, 0)  # a healthy reader: whatever arrives is kept
             s.setsockopt(zmq.SUBSCRIBE, b"FIX")
             s.setsockopt(zmq.SUBSCRIBE, b"STATUS")
+            monitors.append(s.get_monitor_socket(zmq.EVENT_DISCONNECTED))
             s.connect(endpoint)
             subs.append(s)
         # join: every subscriber has a STATUS and the daemon counts every NMEA client
@@ -270,24 +318,25 @@ def run_load(
             if fixes_seen[0] != last_progress[1]:
                 last_progress = (now, fixes_seen[0])
             finished = fixes_seen[0] >= epochs or (
-                not sender.is_alive() and now - last_progress[0] > 10.0
+                not sender.is_alive() and now - last_progress[0] > HANG_S
             )
             if stopping_at is None and (finished or now - t_start > timeout_s):
                 res.wall_s = now - t_start
                 daemon.send_signal(signal.SIGTERM)  # its last STATUS comes after this
                 stopping_at = now
-            if stopping_at is not None and daemon.poll() is not None and now - stopping_at > 1:
+            if stopping_at is not None and daemon.poll() is not None:
                 break
-            if stopping_at is not None and now - stopping_at > 30:
+            if stopping_at is not None and now - stopping_at > HANG_S:
                 daemon.kill()
                 break
-        res.daemon_rc = daemon.wait(timeout=30)
+        res.daemon_rc = daemon.wait(timeout=HANG_S)
+        _read_to_the_end(subs, monitors, tcp, tails, res)
     finally:
         if daemon.poll() is None:
             daemon.kill()
             daemon.wait()
         err_fh.close()
-        for s in [*subs, *([again] if again is not None else [])]:
+        for s in [*monitors, *subs, *([again] if again is not None else [])]:
             s.close(0)
         ctx.term()
         for t in [*tcp, *slow]:

@@ -1,10 +1,11 @@
 """Replay of damaged copies of real captures (issue 5, "Corrupted streams").
 
-Damage, seeded, written to tmp_path only: random bit flips on 0.5 % of the bytes, inserted
+Damage, seeded, written to tmp_path only: random bit flips on 0.01 % or 0.5 % of the bytes, inserted
 blocks of random bytes, false UBX headers claiming a 64 KiB payload (``B5 62 02 15 FF FF``)
 in front of chosen frames, a tail cut in the middle of a frame, and RINEX observation files
 with broken epoch lines or a cut tail. Each damaged file goes through
-``bdsfix replay FILE --max-speed --jsonl-out ... --zmq ipc://...`` in a subprocess.
+``bdsfix replay --jsonl-out ... --zmq ipc://...`` in a subprocess, binary captures through
+stdin (tests/support/replay.py: the last STATUS is received without racing the exit).
 
 Expected values come from the clean run and from where the damage physically landed, with
 frame boundaries found by pyubx2's own stream reader, never by the code under test:
@@ -14,12 +15,12 @@ frame boundaries found by pyubx2's own stream reader, never by the code under te
 - damage between frames (false headers) or after them (cut tail) loses no fix at all;
 - blocks inserted at random offsets lose at most the frames they land in, and the run keeps
   >= 80 % of the clean run's fixes;
-- bit flips: a fix needs its measurement frame intact, and at 0.5 % of the bytes a
-  1.4-2 kB UBX RXM-RAWX frame survives with probability 0.995^1778 = 1.3e-4 (an RTCM BDS
-  MSM5 of 370 B with 0.16), so 80 % of the clean fixes cannot be reached by any receiver
-  that checks checksums. The test asserts the framer recovers every frame the flips did
-  not touch, and that the replay keeps >= 80 % of the fixes whose measurement frames are
-  intact; the same is run at 0.01 % (where 84 % of the RAWX frames survive);
+- bit flips (one bit in a fixed-seed random 0.01 % or 0.5 % of the bytes): at 0.01 % the
+  PolyU replay keeps >= 80 % of the clean fixes (84 % of its RAWX frames survive). At
+  0.5 % a 1.4-2 kB UBX RXM-RAWX frame survives with probability 0.995^1778 = 1.3e-4 (an
+  RTCM BDS MSM5 of 370 B with 0.16), so 80 % of the clean fixes cannot be reached by any
+  receiver that checks checksums: there the framer must recover every frame the flips did
+  not touch, and the replay keep >= 80 % of the fixes whose measurement frame is intact;
 - RINEX: a broken epoch costs that epoch only, is logged with file:line and counted, and
   every other epoch gives exactly the clean fix.
 """
@@ -37,12 +38,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-import zmq
 from pyubx2 import UBXReader
 
 from drivers.framing import Framer
 from drivers.protocols import PROTOCOLS
 from tests.support.paths import DATA, ROOT
+from tests.support.replay import replay_with_status
 
 REPO = ROOT
 POLYU = DATA / "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx"
@@ -145,41 +146,17 @@ class Run:
 
 
 def replay(path: Path, extra: list[str], workdir: Path) -> Run:
+    """The replay at full speed (RINEX: paced), its fixes from the JSONL it wrote and its
+    last STATUS, received without racing its exit (tests/support/replay.py)."""
     out = workdir / f"{path.name}.jsonl"
-    endpoint = f"ipc://{workdir / (path.name + '.ipc')}"
-    ctx = zmq.Context.instance()
-    sub = ctx.socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    # The daemon binds only once it starts; retry the connection every 5 ms (default
-    # 100 ms) so the subscription is in place before a short replay's final STATUS.
-    sub.setsockopt(zmq.RECONNECT_IVL, 5)
-    sub.setsockopt(zmq.SUBSCRIBE, b"STATUS")
-    sub.connect(endpoint)
-    try:
-        cmd = [
-            sys.executable,
-            "-m",
-            "service",
-            "replay",
-            str(path),
-            *extra,
-            "--max-speed",
-        ]
-        cmd += ["--jsonl-out", str(out), "--zmq", endpoint, "--status-interval-s", "0.2"]
-        proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
-        status = None
-        while sub.poll(200):  # the PUB socket lingers 100 ms at exit
-            _topic, body = sub.recv_multipart()
-            status = json.loads(body)
-    finally:
-        sub.close()
+    res = replay_with_status(path, *extra, "--jsonl-out", str(out))
     fixes = []
     if out.exists():
         for line in out.read_text().splitlines():
             rec = json.loads(line)
             if rec["class"] == "FIX" and rec["mode"] != "none":
                 fixes.append(rec)
-    return Run(proc.returncode, proc.stderr, fixes, status)
+    return Run(res.rc, res.stderr, fixes, res.statuses[-1] if res.statuses else None)
 
 
 CASES: dict[str, tuple[str, str]] = {
@@ -296,7 +273,8 @@ def test_damaged_replay_exits_cleanly_and_counts_what_it_skipped(runs, name):
     _, run = runs[name]
     assert run.rc == 0, run.stderr[-2000:]
     assert "Traceback" not in run.stderr
-    assert run.status is not None and run.status["class"] == "STATUS"
+    assert run.status is not None, "no STATUS received:\n" + run.stderr[-2000:]
+    assert run.status["class"] == "STATUS"
     counters = run.status["counters"]
     skipped = {k: v for k, v in counters.items() if k.endswith(("_skipped", "resyncs")) and v}
     assert skipped, counters
@@ -329,33 +307,48 @@ def test_damaged_binary_replay_keeps_the_fixes(runs, name):
         assert f["x_ecef_m"] == pytest.approx(clean_fix[k]["x_ecef_m"], abs=1e-3)
 
 
-@pytest.mark.parametrize("name", ["polyu-flip", "polyu-flip-1e-4", "f9r-flip"])
-def test_bit_flips_keep_the_fixes_whose_frames_survived(runs, name):
+def _intact(frame: LibFrame, hit: set[int]) -> bool:
+    return not any(i in hit for i in range(frame.offset, frame.offset + len(frame.raw)))
+
+
+def test_bit_flips_at_0_01_percent_keep_80_percent_of_the_clean_fixes(runs):
+    """0.01 % of the bytes with one bit flipped (seed 5): the PolyU replay keeps >= 80 % of
+    the clean run's fixes, each of them the clean run's fix."""
+    _, run = runs["polyu-flip-1e-4"]
+    clean = runs["polyu-clean"][1]
+    kept = _report("polyu-flip-1e-4", run, clean)
+    assert kept >= 0.8
+    clean_fix = _fix_table(clean)
+    for k, f in _fix_table(run).items():
+        assert f["x_ecef_m"] == pytest.approx(clean_fix[k]["x_ecef_m"], abs=1e-3)
+
+
+@pytest.mark.parametrize("name", ["polyu-flip", "f9r-flip", "polyu-flip-1e-4"])
+def test_bit_flips_lose_no_frame_that_survived_intact(runs, name):
+    """0.5 % (and 0.01 %) of the bytes with one bit flipped: the framer recovers every frame
+    the flips did not touch, at its offset, and the replay keeps >= 80 % of the clean fixes
+    whose measurement frame is intact (at 0.5 % hardly any RAWX frame is: see the top)."""
     capture = CASES[name][0]
     damaged, run = runs[name]
     clean = runs[f"{capture}-clean"][1]
     _report(name, run, clean)
     frames: tuple[LibFrame, ...] = damaged.info["frames"]
     hit: set[int] = damaged.info["hit"]
-
-    def intact(f: LibFrame) -> bool:
-        return not any(i in hit for i in range(f.offset, f.offset + len(f.raw)))
-
     # 1) the framer recovers every frame the flips did not touch, at its offset
     framer = Framer(PROTOCOLS)
     data = damaged.path.read_bytes()
     found = {(f.offset, f.raw) for f in framer.feed(data) + framer.flush()}
-    missing = [f for f in frames if intact(f) and (f.offset, f.raw) not in found]
+    missing = [f for f in frames if _intact(f, hit) and (f.offset, f.raw) not in found]
     assert not missing
     # 2) the replay keeps >= 80 % of the clean fixes whose measurement frame is intact
     kind = measurement_kind(frames)
     meas = [f for f in frames if f.kind == kind]
-    survived = sum(intact(f) for f in meas) / len(meas)
+    survived = sum(_intact(f, hit) for f in meas) / len(meas)
     expected = survived * len(clean.fixes)
     print(f"{name}: {kind} frames intact {survived:.1%}, fixes expected ~{expected:.1f}")
     assert len(run.fixes) >= 0.8 * expected - 1  # -1: one epoch of rounding on tiny counts
     clean_fix = _fix_table(clean)
-    for k, f in _fix_table(run).items():
+    for k in _fix_table(run):
         assert k in clean_fix  # no fix at a time the clean run did not have
 
 

@@ -1,7 +1,15 @@
 """Serial faults on real pseudo-terminals, with the real daemon (``bdsfix run``) reading
 through pyserial: the device node disappears and comes back (socat ``pty,link=``, many
-times: resume time and file-descriptor count), the writer vanishes in the middle of a UBX
+times: resumption and file-descriptor count), the writer vanishes in the middle of a UBX
 frame, and the line speed changes.
+
+Issue 5's "fixes resume within 2 s of the device returning" is tested in two halves, neither
+of them timed on the wall clock of a loaded machine: the transport reopens a returning
+device within its backoff cap (tests/drivers/test_drivers.py, with a fake clock), and here,
+once the daemon has reopened the device (its "reconnected after" log line), the first epoch
+the device sends gives a fix (``RESUME_EPOCHS``). Fixes are read from the daemon's JSONL,
+and every wait is for an event (a log line, a fix, an empty input queue), bounded only
+against a hung run (``HANG_S``).
 
 What a pty can and cannot emulate: a pty carries bytes whatever its termios speed, so a
 speed change on a live port is a real tcsetattr on the line the daemon holds open, but the
@@ -12,13 +20,13 @@ does show is that the daemon re-applies its configured speed whenever it reopens
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import random
 import re
-import shutil
 import signal
-import socket
+import struct
 import subprocess
 import sys
 import termios
@@ -28,11 +36,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import zmq
 
 BDSFIX = str(Path(sys.executable).parent / "bdsfix")
 EPOCH_S = 0.1  # the simulated receiver's 10 Hz, written in real time after every return
-RESUME_LIMIT_S = 2.0  # issue 5: fixes resume within 2 s of the device returning
+RESUME_EPOCHS = 1  # the first epoch sent after the daemon reopened the device gives a fix
+HANG_S = 60.0  # waits for an event end only a hung run
 
 
 @pytest.fixture(scope="module")
@@ -45,67 +53,69 @@ def epochs() -> list[tuple[float, bytes]]:
     return [(ep.tag_gpst_tow_s, data) for ep, data in sim.ubx_epochs()]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 class Daemon:
-    """``bdsfix run`` on ``source`` with a warm store, ZMQ FIX records timed on arrival and
-    stderr collected by a thread."""
+    """``bdsfix run`` on ``source`` with a warm store, fixes in its JSONL and stderr collected
+    by a thread."""
 
     def __init__(self, tmp_path: Path, source: str, *extra: str) -> None:
         from service.core.ephemeris import EphemerisStore
         from service.sim.keplerian import table1_ephemerides
 
-        state = tmp_path / "state"
+        self.state = tmp_path / "state"
         store = EphemerisStore()
         store.add_all(table1_ephemerides(0.0))
-        store.save(state / "ephemeris.json")
-        self.endpoint = f"tcp://127.0.0.1:{_free_port()}"
-        self.fixes: list[tuple[float, dict[str, Any]]] = []
+        store.save(self.state / "ephemeris.json")
+        self.jsonl = tmp_path / "fixes.jsonl"
         self.err: list[str] = []
-        self._sub = zmq.Context.instance().socket(zmq.SUB)
-        self._sub.setsockopt(zmq.SUBSCRIBE, b"FIX")
-        self._sub.connect(self.endpoint)
-        argv = [BDSFIX, "run", "--source", source, "--state-dir", str(state)]
-        argv += ["--nmea-tcp", "", "--zmq", self.endpoint, "--log-level", "info", *extra]
+        argv = [BDSFIX, "run", "--source", source, "--state-dir", str(self.state)]
+        argv += ["--nmea-tcp", "", "--zmq", "", "--jsonl-out", str(self.jsonl)]
+        argv += ["--log-level", "info", *extra]
         self.proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
-        self._done = threading.Event()
-        self._threads = [
-            threading.Thread(target=self._read_err, daemon=True),
-            threading.Thread(target=self._read_zmq, daemon=True),
-        ]
-        for t in self._threads:
-            t.start()
+        self._reader = threading.Thread(target=self._read_err, daemon=True)
+        self._reader.start()
 
     def _read_err(self) -> None:
         assert self.proc.stderr is not None
         for line in self.proc.stderr:
             self.err.append(line.rstrip("\n"))
 
-    def _read_zmq(self) -> None:
-        while not self._done.is_set():
-            if self._sub.poll(50):
-                _topic, body = self._sub.recv_multipart()
-                self.fixes.append((time.monotonic(), json.loads(body)))
+    def fixes(self) -> list[dict[str, Any]]:
+        """The FIX records written so far (whole lines only)."""
+        if not self.jsonl.exists():
+            return []
+        text = self.jsonl.read_text()
+        lines = text.splitlines()[: text.count("\n")]
+        return [r for r in map(json.loads, lines) if r["class"] == "FIX"]
 
-    def fix_at_or_after(self, tow_s: float) -> float | None:
-        """Arrival time of the first real fix of data at or after ``tow_s``."""
-        for t, rec in list(self.fixes):
+    def fix_at_or_after(self, tow_s: float) -> dict[str, Any] | None:
+        """The first real fix of data at or after ``tow_s``."""
+        for rec in self.fixes():
             if rec["mode"] != "none" and rec["gpst_tow_s"] >= tow_s - 1e-6:
-                return t
+                return rec
         return None
 
+    def wait_running(self) -> None:
+        """Until the daemon has opened its source (flushing its input) and starts reading."""
+        _wait(lambda: self.logged("bdsfix running"), HANG_S, "the daemon to start")
+
+    def wait_reopened(self, n_before: int) -> None:
+        """Until the daemon has reopened the device once more than ``n_before`` times."""
+        _wait(lambda: self.count("reconnected after") > n_before, HANG_S, "the reopen")
+
+    def count(self, text: str) -> int:
+        return sum(text in line for line in list(self.err))
+
     def fds(self) -> list[str]:
+        """What the daemon's descriptors point at, but the store, open only while saved."""
         fd_dir = Path(f"/proc/{self.proc.pid}/fd")
         out = []
         for p in fd_dir.iterdir():
             try:
-                out.append(os.readlink(p))
+                target = os.readlink(p)
             except OSError:  # closed while listing
                 continue
+            if not target.startswith(str(self.state)):
+                out.append(target)
         return sorted(out)
 
     def holds(self, device: str) -> bool:
@@ -118,14 +128,11 @@ class Daemon:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
         try:
-            rc = self.proc.wait(timeout=20)
+            rc = self.proc.wait(timeout=HANG_S)
         finally:
             if self.proc.poll() is None:
                 self.proc.kill()
-            self._done.set()
-            for t in self._threads:
-                t.join(timeout=5)
-            self._sub.close(0)
+            self._reader.join(timeout=HANG_S)
         return rc, "\n".join(self.err)
 
     def counters(self) -> dict[str, int]:
@@ -139,15 +146,31 @@ class Daemon:
 def _wait(pred: Any, timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not pred():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        assert time.monotonic() < deadline, f"hung: no {what} within {timeout_s:.0f} s"
         time.sleep(0.01)
+
+
+def _resume_after_reopen(daemon: Daemon, epochs: Any, write: Any) -> int:
+    """Write epochs (at the receiver's rate) from the device's return until a fix of one of
+    them is out; the index, among the epochs written, of the first epoch with a fix."""
+    written: list[float] = []
+    for tow, data in epochs:
+        write(data)
+        written.append(tow)
+        time.sleep(EPOCH_S)
+        if daemon.fix_at_or_after(written[0]) is not None or len(written) > 5 * RESUME_EPOCHS:
+            break
+    _wait(lambda: daemon.fix_at_or_after(written[0]) is not None, HANG_S, "a fix after return")
+    fix = daemon.fix_at_or_after(written[0])
+    assert fix is not None
+    later = [k for k, tow in enumerate(written) if tow <= fix["gpst_tow_s"] + 1e-6]
+    return later[-1] if later else len(written)
 
 
 class SocatPty:
     """A pty made by socat at ``link``; stopping socat removes the link and closes the pty."""
 
     def __init__(self, link: Path) -> None:
-        assert shutil.which("socat"), "socat (Debian package) is required"
         self.link = link
         self.proc: subprocess.Popen[bytes] | None = None
 
@@ -157,7 +180,7 @@ class SocatPty:
             stdin=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
         )
-        _wait(self.link.exists, 10, "socat's link")
+        _wait(self.link.exists, HANG_S, "socat's link")
 
     def write(self, data: bytes) -> None:
         assert self.proc is not None and self.proc.stdin is not None
@@ -169,17 +192,19 @@ class SocatPty:
             return
         assert self.proc.stdin is not None
         self.proc.terminate()
-        self.proc.wait(10)
+        self.proc.wait(HANG_S)
         self.proc.stdin.close()
         self.proc = None
-        _wait(lambda: not self.link.is_symlink(), 10, "the link to go")
+        _wait(lambda: not self.link.is_symlink(), HANG_S, "the link to go")
 
 
+@pytest.mark.slow
+@pytest.mark.needs("socat")
 def test_device_node_vanishes_and_returns_many_times(tmp_path, epochs):
     """socat's pty node goes away and comes back 12 times (outages of 0.2-0.6 s, and two
     of 1.7 s and 3.2 s that take the backoff to its cap): each time the daemon logs the
-    disconnect, backs off, reopens and publishes fixes again within 2 s; its descriptor
-    count after all the cycles equals the count before."""
+    disconnect, backs off and reopens, and the first epoch sent after the reopen gives a
+    fix; its descriptor count after all the cycles equals the count before."""
     rng = random.Random(11)
     outages_s = [rng.uniform(0.2, 0.6) for _ in range(10)] + [1.7, 3.2]
     rng.shuffle(outages_s)
@@ -189,10 +214,9 @@ def test_device_node_vanishes_and_returns_many_times(tmp_path, epochs):
     pty.start()
     daemon = Daemon(tmp_path, str(link))
     it = iter(epochs)
-    resume_s: list[float] = []
+    resume: list[int] = []
     try:
-        _wait(lambda: daemon.holds(os.path.realpath(link)), 10, "the daemon to open the pty")
-        time.sleep(0.2)
+        daemon.wait_running()
         first_tow = None
         for tow, data in it:  # warm up: until fixes flow
             first_tow = first_tow or tow
@@ -200,37 +224,25 @@ def test_device_node_vanishes_and_returns_many_times(tmp_path, epochs):
             time.sleep(EPOCH_S)
             if daemon.fix_at_or_after(first_tow) is not None:
                 break
-        time.sleep(0.3)
         fds_before = daemon.fds()
         for outage_s in outages_s:
+            n_back = daemon.count("reconnected after")
             pty.stop()
             time.sleep(outage_s)  # the node is gone; the daemon retries with backoff
             pty.start()
-            t_back = time.monotonic()
-            tow_back = None
-            t_seen = None
-            for tow, data in it:
-                tow_back = tow_back or tow
-                pty.write(data)
-                time.sleep(EPOCH_S)
-                t_seen = daemon.fix_at_or_after(tow_back)
-                if t_seen is not None or time.monotonic() - t_back > 3 * RESUME_LIMIT_S:
-                    break
-            assert t_seen is not None, "no fix after the device came back"
-            resume_s.append(t_seen - t_back)
-        time.sleep(0.3)
+            daemon.wait_reopened(n_back)
+            resume.append(_resume_after_reopen(daemon, it, pty.write))
         fds_after = daemon.fds()
     finally:
         rc, err = daemon.stop()
         pty.stop()
     print(
-        f"resume after the device returned: max {max(resume_s):.2f} s, "
-        f"median {sorted(resume_s)[len(resume_s) // 2]:.2f} s over {cycles} cycles; "
+        f"first fix after each reopen: epoch {resume} of those sent after it; "
         f"daemon fds {len(fds_before)} before, {len(fds_after)} after"
     )
     assert rc == 0, err[-3000:]
     assert "Traceback" not in err
-    assert max(resume_s) < RESUME_LIMIT_S, resume_s
+    assert max(resume) < RESUME_EPOCHS, resume
     assert len(fds_after) == len(fds_before), (fds_before, fds_after)
     assert sum("disconnected" in line for line in daemon.err) == cycles
     assert sum("reconnected after" in line for line in daemon.err) == cycles
@@ -254,6 +266,10 @@ class OsPty:
         tmp.replace(self.link)
         return os.ttyname(self.slave)
 
+    def unread(self) -> int:
+        """Bytes written to the device that nobody has read yet (its input queue)."""
+        return int(struct.unpack("i", fcntl.ioctl(self.slave, termios.FIONREAD, b"\0" * 4))[0])
+
     def unplug(self) -> None:
         self.link.unlink(missing_ok=True)
         for fd in (self.master, self.slave):
@@ -269,35 +285,31 @@ def test_writer_vanishes_in_the_middle_of_a_frame(tmp_path, epochs):
     dev = pty.plug()
     daemon = Daemon(tmp_path, str(pty.link))
     try:
-        _wait(lambda: daemon.holds(dev), 10, "the daemon to open the pty")
-        time.sleep(0.2)
-        for tow, data in epochs[:30]:
+        daemon.wait_running()
+        for _tow, data in epochs[:30]:
             os.write(pty.master, data)
             time.sleep(EPOCH_S / 2)
-        _wait(lambda: daemon.fix_at_or_after(epochs[20][0]) is not None, 10, "fixes")
+        _wait(lambda: daemon.fix_at_or_after(epochs[20][0]) is not None, HANG_S, "fixes")
         cut = epochs[30][1]
         os.write(pty.master, cut[: len(cut) // 2 + 7])  # mid-frame (RAWX or MEASX)
-        time.sleep(0.05)
-        n_err = len(daemon.err)
+        _wait(lambda: pty.unread() == 0, HANG_S, "the daemon to read the half frame")
+        n_back = daemon.count("reconnected after")
         pty.unplug()
-        time.sleep(0.6)
+        time.sleep(0.6)  # the outage
         dev = pty.plug()
-        t_back = time.monotonic()
         # logged once open (pyserial has flushed the input queue): what follows is read
-        _wait(lambda: daemon.logged("reconnected after", n_err), 5, "the daemon to reopen")
+        daemon.wait_reopened(n_back)
         assert daemon.holds(dev)
         tow_first = epochs[31][0]
-        for tow, data in epochs[31:45]:
-            os.write(pty.master, data)
-            time.sleep(EPOCH_S)
-        _wait(lambda: daemon.fix_at_or_after(tow_first) is not None, 5, "a fix after return")
-        t_seen = daemon.fix_at_or_after(tow_first)
+        resume = _resume_after_reopen(
+            daemon, iter(epochs[31:45]), lambda data: os.write(pty.master, data)
+        )
     finally:
         rc, err = daemon.stop()
         pty.unplug()
     assert rc == 0 and "Traceback" not in err, err[-3000:]
-    assert t_seen is not None and t_seen - t_back < RESUME_LIMIT_S
-    first = [r for _t, r in daemon.fixes if abs(r["gpst_tow_s"] - tow_first) < 1e-6]
+    assert resume < RESUME_EPOCHS, resume
+    first = [r for r in daemon.fixes() if abs(r["gpst_tow_s"] - tow_first) < 1e-6]
     assert any(r["mode"] != "none" for r in first), first  # nothing lost after the cut
     c = daemon.counters()
     assert c["source_disconnects"] == 1 and c["source_reconnects"] == 1
@@ -319,8 +331,8 @@ def test_line_speed_changes(tmp_path, epochs):
     daemon = Daemon(tmp_path, f"serial:{pty.link}:115200")
     rng = random.Random(3)
     try:
-        _wait(lambda: daemon.holds(dev), 10, "the daemon to open the pty")
-        time.sleep(0.2)
+        daemon.wait_running()
+        assert daemon.holds(dev)
         assert _speed(pty.master) == (termios.B115200, termios.B115200)
         for _tow, data in epochs[:20]:
             os.write(pty.master, data)
@@ -334,21 +346,21 @@ def test_line_speed_changes(tmp_path, epochs):
         for _tow, data in epochs[20:40]:
             os.write(pty.master, data)
             time.sleep(EPOCH_S / 2)
-        _wait(lambda: daemon.fix_at_or_after(tow_after) is not None, 5, "fixes after garbage")
-        after = [r for _t, r in daemon.fixes if abs(r["gpst_tow_s"] - tow_after) < 1e-6]
+        _wait(lambda: daemon.fix_at_or_after(tow_after) is not None, HANG_S, "fixes after garbage")
+        after = [r for r in daemon.fixes() if abs(r["gpst_tow_s"] - tow_after) < 1e-6]
         assert any(r["mode"] != "none" for r in after), after  # the next valid frame decodes
-        n_err = len(daemon.err)
+        n_back = daemon.count("reconnected after")
         pty.unplug()  # the device returns with the kernel's default speed ...
         dev = pty.plug()
         assert _speed(pty.master) != (termios.B115200, termios.B115200)
-        _wait(lambda: daemon.logged("reconnected after", n_err), 5, "the daemon to reopen")
+        daemon.wait_reopened(n_back)
         assert daemon.holds(dev)
         assert _speed(pty.master) == (termios.B115200, termios.B115200)  # ... and gets ours
         tow_back = epochs[41][0]
         for _tow, data in epochs[41:55]:
             os.write(pty.master, data)
             time.sleep(EPOCH_S / 2)
-        _wait(lambda: daemon.fix_at_or_after(tow_back) is not None, 5, "fixes after return")
+        _wait(lambda: daemon.fix_at_or_after(tow_back) is not None, HANG_S, "fixes after return")
     finally:
         rc, err = daemon.stop()
         pty.unplug()

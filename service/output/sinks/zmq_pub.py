@@ -8,6 +8,13 @@ dropped and counted (``zmq_dropped``). libzmq's PUB itself drops, silently and p
 subscriber, messages for a subscriber whose queue has reached the high-water mark
 (``sndhwm``); the sender never sees those drops, so they are not in the counters. Binding a
 TCP address other than loopback logs a warning.
+
+Closing flushes: the publisher has a ZeroMQ context of its own and terminates it in
+:meth:`ZmqPublisher.close`, which waits (up to ``linger_ms``) until what was sent, such as
+the STATUS at shutdown, has been handed to the subscribers' connections. A socket closed in
+a shared context that the process never terminates (pyzmq does not at exit) loses
+whatever its I/O thread had not written yet when the process ends. ``inproc://`` endpoints
+use the shared ``zmq.Context.instance()``, since an in-process peer must share the context.
 """
 
 from __future__ import annotations
@@ -57,7 +64,7 @@ class ZmqPublisher(Sink):
         self,
         endpoint: str = "tcp://127.0.0.1:10111",
         sndhwm: int = 1000,
-        linger_ms: int = 100,
+        linger_ms: int = 1000,
         curve_secret_key_file: str = "",
         curve_clients_dir: str = "",
     ) -> None:
@@ -67,8 +74,10 @@ class ZmqPublisher(Sink):
         if endpoint.startswith("tcp://") and not is_loopback(host):
             log.warning("ZeroMQ PUB binds %s, not loopback", endpoint)
         self._auth: Any = None
-        self._own_ctx = bool(curve_secret_key_file)
-        # CURVE: a context of our own, so its ZAP authenticator serves this socket only
+        # A context of our own, terminated in close() so that the last records are flushed
+        # before the process exits (with CURVE, its ZAP authenticator serves this socket
+        # only); inproc peers must share the process's context.
+        self._own_ctx = bool(curve_secret_key_file) or not endpoint.startswith("inproc://")
         self._ctx: Any = zmq.Context() if self._own_ctx else zmq.Context.instance()
         self._sock = self._ctx.socket(zmq.PUB)
         self._sock.setsockopt(zmq.SNDHWM, sndhwm)
@@ -131,6 +140,8 @@ class ZmqPublisher(Sink):
         return dict(self._counters)
 
     def close(self, linger_ms: int | None = None) -> None:
+        """Close the socket; with our own context, wait (up to the linger time) until the
+        records already sent have been written to the subscribers' connections."""
         self._sock.close(linger=self._linger_ms if linger_ms is None else linger_ms)
         if self._auth is not None:
             self._auth.stop()
