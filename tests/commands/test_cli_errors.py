@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import zmq
 
-from drivers.ubx import fletcher8
+from tests.support.captures import ubx_poll_capture
 from tests.support.paths import DATA
 
 BDSFIX = str(Path(sys.executable).parent / "bdsfix")
@@ -52,10 +52,7 @@ def _one_clear_line(cwd: Path, code: int, argv: list[str], *needles: str) -> str
 def capture(tmp_path: Path) -> Path:
     """A readable (tiny) capture file, so that checks after the source are reached: one UBX
     NAV-PVT poll frame (empty payload)."""
-    p = tmp_path / "capture.ubx"
-    body = b"\x01\x07\x00\x00"
-    p.write_bytes(b"\xb5\x62" + body + fletcher8(body))
-    return p
+    return ubx_poll_capture(tmp_path / "capture.ubx")
 
 
 def _toml(tmp_path: Path, text: str) -> str:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.captures import ubx_poll_capture
 from tests.support.paths import DATA, ROOT
 
 BDSFIX = [sys.executable, "-m", "service"]
@@ -36,9 +37,7 @@ def _bdsfix(cwd: Path, *argv: str, mask: int | None = None) -> subprocess.Comple
 
 @pytest.fixture
 def capture(tmp_path: Path) -> Path:
-    p = tmp_path / "capture.ubx"
-    p.write_bytes(b"\xb5\x62\x01\x07")
-    return p
+    return ubx_poll_capture(tmp_path / "capture.ubx")
 
 
 def _mode(p: Path) -> int:
