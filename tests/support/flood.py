@@ -33,9 +33,7 @@ from pathlib import Path
 
 import zmq
 
-from service.core.ephemeris import EphemerisStore
-from service.sim.keplerian import table1_ephemerides
-from tests.support.load import BDSFIX, RATE_HZ
+from tests.support.load import BDSFIX, RATE_HZ, start_daemon
 from tests.support.paths import ROOT
 
 DAEMON_NOFILE = 1024
@@ -70,12 +68,6 @@ def raise_nofile(want: int) -> int:
         resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
         soft = target
     return soft
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _daemon_limits() -> None:  # in the child, before exec
@@ -162,43 +154,13 @@ def run_flood(
     res = FloodResult(epochs_expected=epochs)
     if flood:
         res.flood_size = max(0, min(n_flood, raise_nofile(n_flood + FD_MARGIN) - FD_MARGIN))
-    state = workdir / "state"
-    state.mkdir(mode=0o700, exist_ok=True)
-    store = EphemerisStore()
-    store.add_all(table1_ephemerides(0.0))
-    store.save(state / "ephemeris.json")  # warm start, as on a receiver host
-    jsonl = workdir / "fixes.jsonl"
-    rx = socket.create_server(("127.0.0.1", 0))
-    zport, nport = _free_port(), _free_port()
-    endpoint = f"tcp://127.0.0.1:{zport}"
-    err_path = workdir / "daemon.err"
-    err_fh = err_path.open("wb")
-    daemon = subprocess.Popen(
-        [
-            *BDSFIX,
-            "run",
-            "--source",
-            f"tcp:127.0.0.1:{rx.getsockname()[1]}",
-            "--state-dir",
-            str(state),
-            "--zmq",
-            endpoint,
-            "--nmea-tcp",
-            f"127.0.0.1:{nport}",
-            "--nmea-tcp-max-clients",
-            str(max_clients),
-            "--jsonl-out",
-            str(jsonl),
-            "--status-interval-s",
-            "0.5",
-            "--log-level",
-            "warning",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=err_fh,
+    d = start_daemon(
+        workdir,
+        ["--nmea-tcp-max-clients", str(max_clients)],
         preexec_fn=_daemon_limits,  # only setrlimit, before exec
     )
+    daemon, rx, nport, endpoint = d.proc, d.rx, d.nmea_port, d.endpoint
+    jsonl, err_path, err_fh = d.jsonl, d.err_path, d.err_fh
     ctx = zmq.Context()
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)

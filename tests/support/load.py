@@ -26,8 +26,10 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import zmq
 from zmq.utils.monitor import recv_monitor_message
@@ -156,6 +158,48 @@ def _read_to_the_end(
             tails[k] = buf[-3:]
 
 
+@dataclass
+class Daemon:
+    """A ``bdsfix run`` reading a local TCP source, with ZeroMQ, NMEA TCP and JSONL outputs."""
+
+    proc: subprocess.Popen[bytes]
+    rx: socket.socket  # the listening source: the daemon connects to it
+    nmea_port: int
+    endpoint: str  # ZeroMQ PUB
+    jsonl: Path
+    err_path: Path
+    err_fh: Any
+
+
+def start_daemon(
+    workdir: Path, extra: Sequence[str] = (), preexec_fn: Callable[[], None] | None = None
+) -> Daemon:
+    """Start ``bdsfix run`` warm (Table 1 ephemerides held in its state directory) on a
+    local TCP source, STATUS every 0.5 s; ``extra`` flags are appended."""
+    state = workdir / "state"
+    state.mkdir(mode=0o700, exist_ok=True)
+    store = EphemerisStore()
+    store.add_all(table1_ephemerides(0.0))
+    store.save(state / "ephemeris.json")  # warm start, as on a receiver host
+    jsonl = workdir / "fixes.jsonl"
+    rx = socket.create_server(("127.0.0.1", 0))
+    zport, nport = _free_port(), _free_port()
+    endpoint = f"tcp://127.0.0.1:{zport}"
+    err_path = workdir / "daemon.err"
+    err_fh = err_path.open("wb")
+    argv = [*BDSFIX, "run", "--source", f"tcp:127.0.0.1:{rx.getsockname()[1]}"]
+    argv += ["--state-dir", str(state), "--zmq", endpoint, "--nmea-tcp", f"127.0.0.1:{nport}"]
+    argv += ["--jsonl-out", str(jsonl), "--status-interval-s", "0.5", "--log-level", "warning"]
+    proc = subprocess.Popen(
+        [*argv, *extra],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=err_fh,
+        preexec_fn=preexec_fn,  # only setrlimit (flood), before exec
+    )
+    return Daemon(proc, rx, nport, endpoint, jsonl, err_path, err_fh)
+
+
 def run_load(
     stream: Path,
     epochs: int,
@@ -169,40 +213,9 @@ def run_load(
     timeout_s: float = 3600.0,
 ) -> LoadResult:
     res = LoadResult(epochs_expected=epochs)
-    state = workdir / "state"
-    state.mkdir(mode=0o700, exist_ok=True)
-    store = EphemerisStore()
-    store.add_all(table1_ephemerides(0.0))
-    store.save(state / "ephemeris.json")  # warm start, as on a receiver host
-    jsonl = workdir / "fixes.jsonl"
-    rx = socket.create_server(("127.0.0.1", 0))
-    zport, nport = _free_port(), _free_port()
-    endpoint = f"tcp://127.0.0.1:{zport}"
-    err_path = workdir / "daemon.err"
-    err_fh = err_path.open("wb")
-    daemon = subprocess.Popen(
-        [
-            *BDSFIX,
-            "run",
-            "--source",
-            f"tcp:127.0.0.1:{rx.getsockname()[1]}",
-            "--state-dir",
-            str(state),
-            "--zmq",
-            endpoint,
-            "--nmea-tcp",
-            f"127.0.0.1:{nport}",
-            "--jsonl-out",
-            str(jsonl),
-            "--status-interval-s",
-            "0.5",
-            "--log-level",
-            "warning",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=err_fh,
-    )
+    d = start_daemon(workdir)
+    daemon, rx, nport, endpoint = d.proc, d.rx, d.nmea_port, d.endpoint
+    jsonl, err_path, err_fh = d.jsonl, d.err_path, d.err_fh
     ctx = zmq.Context()
     subs: list[zmq.Socket] = []
     tcp: list[socket.socket] = []
