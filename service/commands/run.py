@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from service.commands.options import solver_config
-from service.commands.summary import NO_EPOCHS_HINT, decline_lines, skipped_line
+from service.commands.summary import NO_EPOCHS_HINT, decline_lines, excluded_lines, skipped_line
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
 from service.daemon.config import (
@@ -32,7 +32,7 @@ from service.daemon.config import (
 )
 from service.daemon.loop import Runner
 from service.daemon.sdnotify import Notifier
-from service.engine.pipeline import EpochResult, Pipeline, integrity_summary
+from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.solver import IonoSet
 from service.output.publish import Publishers
 from service.output.sinks import OutputSpec, SinkOptions, open_sinks
@@ -322,8 +322,7 @@ def main_replay(args: argparse.Namespace) -> int:
         f"{c.get('integrity_checks', 0)}, failures {c.get('integrity_failures', 0)}",
         file=sys.stderr,
     )
-    excluded = [line for line in integrity_summary(c) if line.startswith("excluded")]
-    for line in [*(f"  {x}" for x in excluded), *decline_lines(c), *skipped_line(runner.skipped())]:
+    for line in [*excluded_lines(c), *decline_lines(c), *skipped_line(runner.skipped())]:
         print(line, file=sys.stderr)
     if n == 0:
         print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)

@@ -41,6 +41,16 @@ def decline_lines(counters: Mapping[str, int | float], indent: str = "  ") -> li
     return lines
 
 
+def excluded_lines(counters: Mapping[str, int | float], indent: str = "  ") -> list[str]:
+    """The satellites fault exclusion removed (``excluded_<PRN>``), commonest first."""
+    excluded = {k[9:]: int(v) for k, v in counters.items() if k.startswith("excluded_") and v}
+    if not excluded:
+        return []
+    parts = ", ".join(f"{p} {n}" for p, n in sorted(excluded.items(), key=lambda i: -i[1]))
+    n_fixes = int(counters.get("fixes_with_exclusions", 0))
+    return [f"{indent}excluded by fault detection: {parts} (in {n_fixes} published fixes)"]
+
+
 def skipped_line(skipped: Mapping[str, int], indent: str = "  ") -> list[str]:
     """One line naming the skipped input counters, or none."""
     if not skipped:

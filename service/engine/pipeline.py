@@ -16,7 +16,7 @@ receiver restart can produce); neither changes the pipeline's state.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -37,7 +37,6 @@ from service.core.types import (
 )
 from service.engine.solver import (
     NO_TIME_REASON,
-    REASONS,
     IonoSet,
     SolverConfig,
     declined,
@@ -99,26 +98,6 @@ def count_fix(counters: Counters, fix: Fix) -> None:
         counters["fixes_with_exclusions" if fix.ok else "declines_with_exclusions"] += 1
         for prn in fix.excluded:
             counters[f"excluded_{prn}"] += 1
-
-
-def integrity_summary(counters: Mapping[str, int | float]) -> list[str]:
-    """Human lines for a run's end: satellites excluded and why fixes were declined."""
-    lines = []
-    excluded = {k[9:]: int(v) for k, v in counters.items() if k.startswith("excluded_") and v}
-    if excluded:
-        parts = ", ".join(f"{p} {n}" for p, n in sorted(excluded.items(), key=lambda i: -i[1]))
-        lines.append(
-            f"excluded by fault detection: {parts} "
-            f"(in {int(counters.get('fixes_with_exclusions', 0))} published fixes)"
-        )
-    declined = {k[9:]: int(v) for k, v in counters.items() if k.startswith("declined_") and v}
-    if declined:
-        parts = ", ".join(
-            f"{REASONS.get(code, code)} {n}"
-            for code, n in sorted(declined.items(), key=lambda i: -i[1])
-        )
-        lines.append(f"declined: {parts}")
-    return lines
 
 
 @dataclass(slots=True)
