@@ -137,6 +137,16 @@ def header(name: str, skipped: dict[str, int]) -> dict:
     }
 
 
+def replay_summary(stderr: str) -> str:
+    """The summary ``bdsfix replay`` prints at its end: its ``N epochs`` line and the
+    indented lines under it (log lines before it are not part of it)."""
+    lines = stderr.splitlines()
+    start = next(i for i, x in enumerate(lines) if re.match(r"bdsfix replay: \d+ epochs", x))
+    block = [lines[start]]
+    block += [x for x in lines[start + 1 :] if x.startswith("  ")]
+    return "\n".join(block) + "\n"
+
+
 def read_jsonl_golden(name: str) -> tuple[dict, list[str], dict]:
     """(header, the replay's JSONL lines, final STATUS) of a JSONL golden."""
     lines = (GOLDEN / f"{name}.jsonl").read_text().splitlines()
@@ -200,7 +210,7 @@ def _same_json(got, want) -> bool:
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_replay_matches_golden(name, tmp_path, request, final_counters):
+def test_replay_matches_golden(name, tmp_path, request, final_counters, capsys):
     jsonl, nmea = tmp_path / "out.jsonl", tmp_path / "out.nmea"
     rc = main(
         [
@@ -214,12 +224,15 @@ def test_replay_matches_golden(name, tmp_path, request, final_counters):
         ]
     )
     assert rc == 0
+    summary = replay_summary(capsys.readouterr().err)
     counters = {k: v for k, v in final_counters["counters"].items() if not TIMING.fullmatch(k)}
     head_line = dumps(header(name, final_counters["skipped"]))
     status_line = dumps(status_record(counters))
     g_jsonl, g_nmea = GOLDEN / f"{name}.jsonl", GOLDEN / f"{name}.nmea"
+    g_summary = GOLDEN / f"{name}.summary"
     if request.config.getoption("--regen-golden"):
         GOLDEN.mkdir(exist_ok=True)
+        g_summary.write_text(summary)
         g_jsonl.write_text(f"{head_line}\n{jsonl.read_text()}{status_line}\n")
         g_nmea.write_text(f"# {head_line}\n# {status_line}\n{nmea.read_text()}")
         pytest.skip("golden files regenerated")
@@ -241,6 +254,10 @@ def test_replay_matches_golden(name, tmp_path, request, final_counters):
         assert bool(positioned) == (head["fixes"] == POSITIONED), (name, len(positioned))
     # the run's final counters, skip counts included, exactly
     assert want_status == json.loads(status_line)
+    # what the user reads at the end: fixes, decline reasons in words with a hint, skipped
+    # input, the timeline
+    assert summary == g_summary.read_text(), "replay summary differs: regenerate and say why"
+    assert summary.startswith("bdsfix replay: ") and "epochs; fixes" in summary
 
     got = [json.loads(x) for x in jsonl.read_text().splitlines()]
     want = [json.loads(x) for x in want_lines]
