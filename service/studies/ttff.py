@@ -143,7 +143,8 @@ def summarize(trials: Sequence[TrialTimes]) -> dict[str, Any]:
 
 
 def plot_trials(trials: Sequence[TrialTimes], path: str) -> None:
-    """Histograms of the trials' TTFFs."""
+    """Histograms of the trials' TTFFs, the three side by side in each bin so that none
+    hides another (the fast fix and GEO-only SPP often fall in the same bins)."""
     try:
         import matplotlib
 
@@ -153,14 +154,17 @@ def plot_trials(trials: Sequence[TrialTimes], path: str) -> None:
         raise ConfigError("--plot needs matplotlib: pip install 'bdsfix[plot]'") from exc
     fig, ax = plt.subplots(figsize=(7, 4))
     data = {
-        "fast": [t.fast_s for t in trials],
-        "conventional": [t.conventional_s for t in trials],
-        "GEO-only SPP": [t.geo_only_s for t in trials],
+        "fast fix": [t.fast_s for t in trials],
+        "conventional SPP": [t.conventional_s for t in trials],
+        "GEO-only SPP (no gate)": [t.geo_only_s for t in trials],
     }
     top = max((v for vals in data.values() for v in vals if v is not None), default=10.0)
     bins = [0.5 * k for k in range(int(2 * top) + 4)]
-    for name, vals in data.items():
-        ax.hist([v for v in vals if v is not None], bins=bins, alpha=0.6, label=name)
+    ax.hist(
+        [[v for v in vals if v is not None] for vals in data.values()],
+        bins=bins,
+        label=list(data),
+    )
     ax.set_xlabel("time to first fix after restart [s]")
     ax.set_ylabel("trials")
     ax.legend()
