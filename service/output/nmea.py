@@ -243,15 +243,22 @@ def _has_fix(fix: Fix) -> bool:
     )
 
 
+def _checked(fix: Fix, utc: dt.datetime | None, talker: str, gsa_talker: str | None) -> bool:
+    """Whether ``fix`` has a position to report, after checking the talkers and that a fix
+    with a position comes with its time (ValueError otherwise)."""
+    _check_talkers(talker, gsa_talker)
+    has_fix = _has_fix(fix)
+    if utc is None and has_fix:
+        raise ValueError("a fix with a position needs its time")
+    return has_fix
+
+
 def gga_sentence(
     fix: Fix, *, utc: dt.datetime | None, talker: str = "GN", gsa_talker: str | None = None
 ) -> bytes:
     """The GGA of :func:`sentences_for_fix` (quality 0 and no position without a fix)."""
-    _check_talkers(talker, gsa_talker)
-    has_fix = _has_fix(fix)
+    has_fix = _checked(fix, utc, talker, gsa_talker)
     if utc is None:
-        if has_fix:
-            raise ValueError("a fix with a position needs its time")
         return _gga(talker, "", fix, False)
     return _gga(talker, nmea_time(utc).time(), fix, has_fix)
 
@@ -265,11 +272,8 @@ def sentences_after_gga(
     gsa_talker: str | None = None,
 ) -> list[bytes]:
     """The sentences of :func:`sentences_for_fix` that follow its GGA."""
-    _check_talkers(talker, gsa_talker)
-    has_fix = _has_fix(fix)
+    has_fix = _checked(fix, utc, talker, gsa_talker)
     if utc is None:
-        if has_fix:
-            raise ValueError("a fix with a position needs its time")
         return [_rmc_void(talker)]
     when = nmea_time(utc)
     t = when.time()

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import zmq
 
-from tests.support.load import BDSFIX, RATE_HZ, start_daemon
+from tests.support.load import BDSFIX, RATE_HZ, finish_daemon, start_daemon
 from tests.support.paths import ROOT
 
 DAEMON_NOFILE = 1024
@@ -160,7 +160,6 @@ def run_flood(
         preexec_fn=_daemon_limits,  # only setrlimit, before exec
     )
     daemon, rx, nport, endpoint = d.proc, d.rx, d.nmea_port, d.endpoint
-    jsonl, err_path, err_fh = d.jsonl, d.err_path, d.err_fh
     ctx = zmq.Context()
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
@@ -256,17 +255,9 @@ def run_flood(
             flooder.join(timeout=30)
             res.waves, res.flood_connected = flooder.waves, flooder.connected
             res.flood_failed, res.flood_slow = flooder.failed, flooder.slow
-        if daemon.poll() is None:
-            daemon.kill()
-            daemon.wait()
-        err_fh.close()
         sub.close(0)
         ctx.term()
         if healthy is not None:
             healthy.close()
-        rx.close()
-    res.daemon_stderr = err_path.read_text(errors="replace")
-    res.jsonl_fixes = sum(
-        1 for line in jsonl.read_text().splitlines() if line.startswith('{"class":"FIX"')
-    )
+        res.daemon_stderr, res.jsonl_fixes = finish_daemon(d)
     return res

@@ -200,6 +200,18 @@ def start_daemon(
     return Daemon(proc, rx, nport, endpoint, jsonl, err_path, err_fh)
 
 
+def finish_daemon(d: Daemon) -> tuple[str, int]:
+    """Kill the daemon if it still runs, close its source and log; its stderr and the
+    number of FIX records in its JSONL."""
+    if d.proc.poll() is None:
+        d.proc.kill()
+        d.proc.wait()
+    d.err_fh.close()
+    d.rx.close()
+    fixes = sum(1 for x in d.jsonl.read_text().splitlines() if x.startswith('{"class":"FIX"'))
+    return d.err_path.read_text(errors="replace"), fixes
+
+
 def run_load(
     stream: Path,
     epochs: int,
@@ -215,7 +227,6 @@ def run_load(
     res = LoadResult(epochs_expected=epochs)
     d = start_daemon(workdir)
     daemon, rx, nport, endpoint = d.proc, d.rx, d.nmea_port, d.endpoint
-    jsonl, err_path, err_fh = d.jsonl, d.err_path, d.err_fh
     ctx = zmq.Context()
     subs: list[zmq.Socket] = []
     tcp: list[socket.socket] = []
@@ -345,18 +356,10 @@ def run_load(
         res.daemon_rc = daemon.wait(timeout=HANG_S)
         _read_to_the_end(subs, monitors, tcp, tails, res)
     finally:
-        if daemon.poll() is None:
-            daemon.kill()
-            daemon.wait()
-        err_fh.close()
         for s in [*monitors, *subs, *([again] if again is not None else [])]:
             s.close(0)
         ctx.term()
         for t in [*tcp, *slow]:
             t.close()
-        rx.close()
-    res.daemon_stderr = err_path.read_text(errors="replace")
-    res.jsonl_fixes = sum(
-        1 for line in jsonl.read_text().splitlines() if line.startswith('{"class":"FIX"')
-    )
+        res.daemon_stderr, res.jsonl_fixes = finish_daemon(d)
     return res
