@@ -25,7 +25,7 @@ import numpy as np
 from service.core.bds_nav import EphemerisAssembler
 from service.core.constants import C_M_S
 from service.core.counters import Counters
-from service.core.ephemeris import KEEP_S, EphemerisStore
+from service.core.ephemeris import EphemerisStore
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import (
     Ephemeris,
@@ -49,10 +49,6 @@ log = logging.getLogger(__name__)
 
 WARM_START_MAX_AGE_S = 30.0
 """A fix older than this [s, data time] is not used as the start of the next solve."""
-STORE_KEEP_S = KEEP_S
-"""Ephemerides whose t_oe is this long [s] before the latest measurement (and before their
-satellite's newest set) are dropped from the store when it is saved (BDS broadcasts a new
-set every hour, ICD B1I 5.2.4.9; see EphemerisStore.prune)."""
 SAME_EPOCH_S = 1e-6
 """Two epochs closer than this [s] are the same epoch (records carry 1 us)."""
 
@@ -143,12 +139,12 @@ class Pipeline:
                 self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
 
     def prune_store(self) -> int:
-        """Drop ephemerides older than STORE_KEEP_S before the latest measurement and their
-        satellite's newest set (none before the first measurement: without a time, only the
-        store's count bound applies); counted as ``ephemeris_pruned``."""
+        """Drop ephemerides a day older than the latest measurement and their satellite's
+        newest set (:meth:`EphemerisStore.prune`; none before the first measurement: without
+        a time, only the store's count bound applies); counted as ``ephemeris_pruned``."""
         if self._latest is None:
             return 0
-        dropped = self.store.prune(*gpst_to_bdt(*self._latest), keep_s=STORE_KEEP_S)
+        dropped = self.store.prune(*gpst_to_bdt(*self._latest))
         self.counters["ephemeris_pruned"] += dropped
         return dropped
 
