@@ -149,6 +149,8 @@ class _Lines:
 
 _GZIP_MAGIC = b"\x1f\x8b"
 _COMPRESS_MAGIC = b"\x1f\x9d"  # Unix compress (.Z), as older IGS archives have it
+COMPRESSED_MAGICS = (_GZIP_MAGIC, _COMPRESS_MAGIC)
+"""First bytes of the compressed forms :func:`open_text` reads (gzip, Unix compress)."""
 _CRINEX_LABEL = b"CRINEX VERS   / TYPE"
 
 

@@ -250,6 +250,7 @@ def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> Non
     frame of a registered protocol in its first ``scan_bytes``. Otherwise InputError
     (exit 3) with one line saying what was expected."""
     from drivers.protocols import PROTOCOLS
+    from drivers.rinex import COMPRESSED_MAGICS
 
     path = Path(path)
     if is_rinex(path):
@@ -262,7 +263,7 @@ def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> Non
     )
     if not head:
         raise InputError(f"{path}: empty file; {expected}")
-    if head.startswith((b"\x1f\x8b", b"\x1f\x9d", b"BZh", b"PK\x03\x04", b"\xfd7zXZ")):
+    if head.startswith((*COMPRESSED_MAGICS, b"BZh", b"PK\x03\x04", b"\xfd7zXZ")):
         raise InputError(f"{path}: a compressed archive, not a capture: decompress it first")
     framer = Framer(PROTOCOLS)
     if not framer.feed(head) and not framer.flush():
@@ -272,13 +273,13 @@ def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> Non
 def is_rinex(path: str | Path) -> bool:
     """True when the file's first line carries the RINEX header label (also gzip, Unix
     compress and Hatanaka compact RINEX: :func:`drivers.rinex.open_text`)."""
-    from drivers.rinex import open_text
+    from drivers.rinex import COMPRESSED_MAGICS, open_text
 
     with open(path, "rb") as f:
         head = f.readline(200)
     if b"RINEX VERSION / TYPE" in head or b"CRINEX VERS" in head:
         return True
-    if not head.startswith((b"\x1f\x8b", b"\x1f\x9d")):
+    if not head.startswith(COMPRESSED_MAGICS):
         return False
     try:
         with open_text(path) as fh:
