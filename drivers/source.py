@@ -265,6 +265,11 @@ def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> Non
         raise InputError(f"{path}: empty file; {expected}")
     if head.startswith((*COMPRESSED_MAGICS, b"BZh", b"PK\x03\x04", b"\xfd7zXZ")):
         raise InputError(f"{path}: a compressed archive, not a capture: decompress it first")
+    if b"Raw,ElapsedRealtimeMillis," in head[:65536]:
+        raise InputError(
+            f"{path}: an Android GnssLogger text log (Raw records), which bdsfix does not "
+            f"read; {expected}"
+        )
     framer = Framer(PROTOCOLS)
     if not framer.feed(head) and not framer.flush():
         raise InputError(f"{path}: no frame found in its first {len(head)} bytes; {expected}")

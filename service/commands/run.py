@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from service.commands.options import solver_config
-from service.commands.summary import NO_EPOCHS_HINT, decline_lines, excluded_lines, skipped_line
+from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
 from service.daemon.config import (
@@ -219,7 +219,8 @@ def main_run(args: argparse.Namespace) -> int:
         notifier.stopping()
         source.close()
         outputs.close()
-    log.info("stopped after %d epochs; counters: %s", n, dict(runner.counters()))
+    for line in stream_lines("run", n, runner.counters(), runner.skipped()):
+        print(line, file=sys.stderr)
     return signals.exit_code()
 
 
@@ -308,24 +309,14 @@ def main_replay(args: argparse.Namespace) -> int:
         source_counters=counters,
         status_interval_s=args.status_interval_s,
         on_result=timeline.on_result,
-        log_skipped_at_stop=False,
     )
     signals = _Signals(runner)
     try:
         n = runner.run()
     finally:
         outputs.close()
-    c = runner.counters()
-    print(
-        f"bdsfix replay: {n} epochs; fixes fast {c.get('fix_fast', 0)}, "
-        f"spp {c.get('fix_spp', 0)}, none {c.get('fix_none', 0)}; integrity checks "
-        f"{c.get('integrity_checks', 0)}, failures {c.get('integrity_failures', 0)}",
-        file=sys.stderr,
-    )
-    for line in [*excluded_lines(c), *decline_lines(c), *skipped_line(runner.skipped())]:
+    for line in stream_lines("replay", n, runner.counters(), runner.skipped()):
         print(line, file=sys.stderr)
-    if n == 0:
-        print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
     for line in timeline.lines(offset, restarted=args.restart_at is not None):
         print(line, file=sys.stderr)
     return signals.exit_code()
