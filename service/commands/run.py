@@ -219,7 +219,10 @@ def main_run(args: argparse.Namespace) -> int:
         notifier.stopping()
         source.close()
         outputs.close()
-    for line in stream_lines("run", n, runner.counters(), runner.skipped()):
+    counters = runner.counters()
+    # every counter, for the journal (a subscriber had them in the last STATUS record)
+    log.info("final counters: %s", " ".join(f"{k}={v}" for k, v in sorted(counters.items())))
+    for line in stream_lines("run", n, counters, runner.skipped()):
         print(line, file=sys.stderr)
     return signals.exit_code()
 
