@@ -63,8 +63,9 @@ class _FdStream:
 
 @dataclass
 class ServeStats:
-    """What a configurable run did: epochs sent, bytes written and lost, restarts."""
+    """What a configurable run did: epochs made and sent, bytes written and lost, restarts."""
 
+    epochs_made: int = 0
     epochs_sent: int = 0
     bytes_written: int = 0
     dropped_bytes: int = 0
@@ -169,6 +170,7 @@ class ConfigurableReceiver:
                 return False
             if self._answer_until(t0 + ep.t_s):
                 return True
+            self.stats.epochs_made += 1
             held.extend(ep.subframes)
             period = self.responder.meas_period_ms
             if round(ep.t_s * 1000.0) % period:

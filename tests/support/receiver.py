@@ -14,6 +14,7 @@ import tty
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from service.sim.cfg import CfgResponder
 from service.sim.configurable import ConfigurableReceiver
@@ -86,3 +87,39 @@ def simulate_wait_config(tmp_path: Path, *extra: str) -> Iterator[SimProcess]:
     finally:
         proc.terminate()
         proc.wait(HANG_S)
+
+
+def read_stream(device: str, n_rawx: int) -> list[tuple[bytes, object]]:
+    """Frames read from ``device`` (pyserial, pyubx2 with every protocol) until ``n_rawx``
+    RXM-RAWX have come: (raw, parsed) each."""
+    import serial
+    from pyubx2 import UBXReader
+
+    out: list[tuple[bytes, object]] = []
+    deadline = time.monotonic() + HANG_S
+    with serial.Serial(device, 115200, timeout=0.2) as link:
+        reader = UBXReader(link, quitonerror=0)
+        while sum(getattr(m, "identity", "") == "RXM-RAWX" for _, m in out) < n_rawx:
+            assert time.monotonic() < deadline, f"hung: {len(out)} frames"
+            raw, msg = reader.read()
+            if raw is not None:
+                out.append((raw, msg))
+    return out
+
+
+def rawx_svs(msg: Any) -> dict[int, bool]:
+    """BeiDou svId -> prValid of one RXM-RAWX."""
+    n = int(msg.numMeas)
+    return {
+        int(getattr(msg, f"svId_{i:02d}")): bool(getattr(msg, f"prValid_{i:02d}"))
+        for i in range(1, n + 1)
+        if int(getattr(msg, f"gnssId_{i:02d}")) == 3
+    }
+
+
+def wait_for(pred: object, what: str) -> None:
+    """Until ``pred()``; only a hung run (``HANG_S``) fails here."""
+    deadline = time.monotonic() + HANG_S
+    while not pred():  # type: ignore[operator]
+        assert time.monotonic() < deadline, f"hung: no {what} within {HANG_S:.0f} s"
+        time.sleep(0.01)
