@@ -277,15 +277,6 @@ def run_setup(
     return result
 
 
-def serial_device(spec: str, baud: int) -> tuple[str, int]:
-    """(device, baud) of a serial source spec: ``serial:DEV[:BAUD]`` or a device path."""
-    rest = spec.removeprefix("serial:")
-    device, sep, rate = rest.rpartition(":")
-    if not sep or not rate.isdigit():
-        return rest, baud
-    return device, int(rate)
-
-
 def configure_device(
     device: str, baud: int, setup: ReceiverSetup, *, save: bool = False
 ) -> SetupResult:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import stat
 import sys
 
 from service.core.errors import ConfigError, InputError
@@ -25,18 +26,15 @@ log = logging.getLogger(__name__)
 
 def _device(source: str, baud: int) -> tuple[str, int]:
     """(device, baud) of a serial source; a source that is not one is a ConfigError."""
-    from drivers.ubx_setup import serial_device
+    from drivers.source import serial_device
 
     if source.startswith(("tcp:", "file:")) or source == "-":
         raise ConfigError(f"source {source!r}: configure needs a serial device or pty")
     device, rate = serial_device(source, baud)
     if not os.path.exists(device):
         raise InputError(f"{device}: no such device")
-    if not source.startswith("serial:") and not device.startswith("/dev/"):
-        import stat
-
-        if not stat.S_ISCHR(os.stat(device).st_mode):
-            raise ConfigError(f"source {source!r}: configure needs a serial device or pty")
+    if not stat.S_ISCHR(os.stat(device).st_mode):
+        raise ConfigError(f"source {source!r}: configure needs a serial device or pty")
     return device, rate
 
 
@@ -55,7 +53,8 @@ def setup_receiver(source: str, baud: int, setup: ReceiverSetup, *, save: bool =
 
 
 def main_configure(args: argparse.Namespace) -> int:
-    from drivers.ubx_setup import save_step, serial_device, setup_steps
+    from drivers.source import serial_device
+    from drivers.ubx_setup import save_step, setup_steps
 
     setup = build(ReceiverSetup, given(args, ReceiverSetup), {})
     if args.dry_run:
