@@ -183,6 +183,8 @@ class Link(Protocol):
 
     def flush(self) -> None: ...
 
+    def reset_input_buffer(self) -> None: ...
+
 
 @dataclass(slots=True)
 class SetupResult:
@@ -207,6 +209,9 @@ def _answer(reader: UBXReader, step: CfgStep, timeout_s: float) -> str | None:
 
 
 def _exchange(link: Link, reader: UBXReader, step: CfgStep, timeout_s: float) -> str | None:
+    # what came before (the stream, a late answer to an earlier message of the same class
+    # and id) is not the answer to this one
+    link.reset_input_buffer()
     for attempt in (1, 2):
         link.write(step.raw)
         link.flush()

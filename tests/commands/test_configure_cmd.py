@@ -19,6 +19,7 @@ from service.core.ephemeris import EphemerisStore
 from service.sim.scenario import broadcast_table1
 from tests.support.paths import ROOT
 from tests.support.receiver import (
+    ACK_WAIT_S,
     BEIJING_TRUE,
     HANG_S,
     rawx_svs,
@@ -30,6 +31,7 @@ from tests.support.receiver import (
 BDSFIX = [sys.executable, "-m", "service"]
 GEOS = {1, 2, 3, 4, 5}
 REFUSED, INPUT = 5, 3  # README "Exit codes", written out
+WAIT = ("--timeout-s", str(ACK_WAIT_S))
 
 
 def _bdsfix(*args: str) -> subprocess.CompletedProcess[str]:
@@ -41,7 +43,7 @@ def _bdsfix(*args: str) -> subprocess.CompletedProcess[str]:
 @pytest.mark.parametrize("model", ["f9", "m8"])
 def test_configure_then_the_stream_has_rawx_measx_sfrbx_with_geos(tmp_path, model):
     with simulate_wait_config(tmp_path) as sim:
-        out = _bdsfix("configure", "--source", sim.device, "--model", model)
+        out = _bdsfix("configure", "--source", sim.device, "--model", model, *WAIT)
         assert out.returncode == 0, out.stderr
         lines = out.stderr.strip().splitlines()
         assert len(lines) == 1 and "messages acknowledged" in lines[0], out.stderr
@@ -82,11 +84,12 @@ def test_run_with_configure_true_sets_the_receiver_up_and_fixes_fast(tmp_path):
     jsonl = tmp_path / "fixes.jsonl"
     err = tmp_path / "run.err"
     with simulate_wait_config(tmp_path) as sim:
-        assert _bdsfix("configure", "--source", sim.device).returncode == 0
+        assert _bdsfix("configure", "--source", sim.device, *WAIT).returncode == 0
         conf = tmp_path / "bdsfix.toml"
         conf.write_text(
             f'source = "{sim.device}"\nconfigure = true\nconfigure_model = "f9"\n'
-            f'configure_rate_hz = 10.0\nstate_dir = "{state}"\nnmea_tcp = ""\nzmq = ""\n'
+            f"configure_rate_hz = 10.0\nconfigure_timeout_s = {ACK_WAIT_S}\n"
+            f'state_dir = "{state}"\nnmea_tcp = ""\nzmq = ""\n'
             f'jsonl_out = "{jsonl}"\nlog_level = "info"\n',
             encoding="utf-8",
         )
@@ -116,11 +119,12 @@ def test_run_with_configure_true_sets_the_receiver_up_and_fixes_fast(tmp_path):
 
 def test_a_receiver_that_refuses_a_key(tmp_path):
     with simulate_wait_config(tmp_path, "--nak", "CFG_BDS_USE_GEO_PRN") as sim:
-        out = _bdsfix("configure", "--source", sim.device)
+        out = _bdsfix("configure", "--source", sim.device, *WAIT)
         frames = read_stream(sim.device, 20)
         state = _warm_state(tmp_path)
         run = _bdsfix(
             "run", "--source", sim.device, "--configure", "true", "--state-dir", str(state),
+            "--configure-timeout-s", str(ACK_WAIT_S),
             "--nmea-tcp", "", "--zmq", "", "--log-level", "warning",
         )  # fmt: skip
     assert out.returncode == REFUSED, out.stderr

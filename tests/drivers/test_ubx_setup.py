@@ -10,7 +10,7 @@ from pyubx2 import SET, UBXReader
 from drivers.ubx_setup import configure_device, save_step, setup_steps
 from service.core.errors import InputError, ReceiverRefusedError, ReceiverSilentError
 from service.core.receiver_setup import ReceiverSetup
-from tests.support.receiver import receiver_thread
+from tests.support.receiver import ACK_WAIT_S, receiver_thread
 
 
 def _parsed(step):
@@ -93,7 +93,8 @@ def test_save_messages():
 @pytest.mark.parametrize("model", ["f9", "m8"])
 def test_every_message_acknowledged_and_in_effect(model):
     with receiver_thread(port="uart1") as rx:
-        result = configure_device(rx.device, 115200, ReceiverSetup(model=model, rate_hz=5.0))
+        setup = ReceiverSetup(model=model, rate_hz=5.0, timeout_s=ACK_WAIT_S)
+        result = configure_device(rx.device, 115200, setup)
         assert [s.what for s in result.acked] == [
             s.what for s in setup_steps(ReceiverSetup(model=model, rate_hz=5.0), "uart1")
         ]
@@ -106,13 +107,13 @@ def test_every_message_acknowledged_and_in_effect(model):
 
 def test_saved_only_after_every_ack():
     with receiver_thread() as rx:
-        result = configure_device(rx.device, 115200, ReceiverSetup(), save=True)
+        result = configure_device(rx.device, 115200, ReceiverSetup(timeout_s=ACK_WAIT_S), save=True)
         assert result.saved
         assert rx.responder.answered[-1] == ("CFG-VALSET", True)
         assert len(rx.responder.answered) == 7
     with receiver_thread(nak=["CFG_BDS_USE_GEO_PRN"]) as rx:
         with pytest.raises(ReceiverRefusedError) as exc:
-            configure_device(rx.device, 115200, ReceiverSetup(), save=True)
+            configure_device(rx.device, 115200, ReceiverSetup(timeout_s=ACK_WAIT_S), save=True)
         assert len(rx.responder.answered) == 6  # the save was never sent
         assert "nothing saved" in str(exc.value)
 
@@ -120,7 +121,7 @@ def test_saved_only_after_every_ack():
 def test_a_refused_key_is_named_and_the_rest_is_still_set():
     with receiver_thread(nak=["CFG_BDS_USE_GEO_PRN"]) as rx:
         with pytest.raises(ReceiverRefusedError) as exc:
-            configure_device(rx.device, 115200, ReceiverSetup())
+            configure_device(rx.device, 115200, ReceiverSetup(timeout_s=ACK_WAIT_S))
         text = str(exc.value)
         assert "refused (ACK-NAK) CFG-VALSET CFG_BDS_USE_GEO_PRN=1 (RAM);" in text
         assert "the other 5 messages were acknowledged" in text and "\n" not in text
@@ -142,4 +143,4 @@ def test_a_receiver_that_never_answers():
 
 def test_a_device_that_cannot_be_opened(tmp_path):
     with pytest.raises(InputError, match="cannot open"):
-        configure_device(str(tmp_path / "ttyNONE"), 115200, ReceiverSetup())
+        configure_device(str(tmp_path / "ttyNONE"), 115200, ReceiverSetup(timeout_s=ACK_WAIT_S))

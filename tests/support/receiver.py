@@ -23,6 +23,9 @@ from service.sim.simulator import Simulator
 from tests.support.paths import ROOT
 
 HANG_S = 120.0
+ACK_WAIT_S = 60.0
+"""The set-up's wait for each ACK/NAK in tests that expect an answer: only a hung receiver
+reaches it (the no-answer tests set their own)."""
 BEIJING_TRUE = (39.9, 116.4, 50.0)
 """Where the virtual receiver is (``bdsfix simulate``'s default place), written out."""
 
