@@ -171,6 +171,10 @@ def main_run(args: argparse.Namespace) -> int:
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
     _check_state_dir(cfg.resolved_state_dir())
+    if cfg.configure:  # before the source opens: the set-up has the port to itself
+        from service.commands.configure import setup_receiver
+
+        log.info("receiver set-up: %s", setup_receiver(cfg.source, cfg.baud, cfg.setup))
     source = open_source(
         cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
     )
