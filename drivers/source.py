@@ -37,7 +37,6 @@ from drivers.transport import (
 )
 from service.core.counters import Counters
 from service.core.errors import ConfigError, DecodeError, FramingError, InputError
-from service.core.ntripurl import is_ntrip, redact
 from service.core.ratelog import RateLimitedLog
 from service.core.timebase import MIN_SANE_GPS_WEEK, gpst_from_utc
 
@@ -302,11 +301,6 @@ def _nav_events(nav: str | Path | Iterable[str | Path] | None, counters: Counter
     paths = [nav] if isinstance(nav, str | Path) else list(nav)
     events: list[Event] = []
     for path in paths:
-        if is_ntrip(str(path)):
-            raise ConfigError(
-                f"nav {redact(str(path))!r}: an NTRIP source is read by 'bdsfix run' (its "
-                "'nav' key); here give a RINEX nav file"
-            )
         data = read_nav(path)
         for ephs in data.ephemerides.values():
             events.extend(ephs)

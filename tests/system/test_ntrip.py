@@ -19,6 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.timebase import bdt_to_gpst, diff_s
 from service.core.types import Ephemeris
@@ -274,3 +276,29 @@ def test_malformed_ntrip_url_is_one_line_exit_2_without_the_password(tmp_path):
     assert "no mountpoint" in lines[0] and "ntrip://***@caster.example:2101" in lines[0]
     for secret in _secrets():
         assert secret not in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["replay", str(HK_NAV.with_suffix(".obs")), "--nav", "NAV"],
+        ["solve", str(HK_NAV.with_suffix(".obs")), "NAV"],
+        ["ttff", str(HK_NAV.with_suffix(".obs")), "NAV", "--trials", "1"],
+        ["simulate", "--nav", "NAV", "--out", "-"],
+    ],
+    ids=lambda a: a[0],
+)
+def test_the_other_commands_take_no_ntrip_nav_and_do_not_show_it(argv):
+    url = f"ntrip://{USER}:{PASSWORD}@caster.example:2101/EPH"
+    proc = subprocess.run(
+        [sys.executable, "-m", "service", *[url if a == "NAV" else a for a in argv]],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=HANG_S,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "read by 'bdsfix run'" in lines[0], lines
+    for secret in _secrets():
+        assert secret not in proc.stderr + proc.stdout
