@@ -100,7 +100,8 @@ class Runner:
         out.update(self._latency.counters())
         for i, (_name, _events, counters) in enumerate(self.nav_sources):
             prefix = "ntrip_" if i == 0 else f"ntrip{i + 1}_"
-            out.update({f"{prefix}{k}": v for k, v in counters.items()})
+            # a copy first (one C call): the source's thread may add a key meanwhile
+            out.update({f"{prefix}{k}": v for k, v in dict(counters).items()})
         if self._gate is not None:
             out.update(self._gate.counters)
         if self._store_writer is not None:
