@@ -188,6 +188,11 @@ def test_run_with_ntrip_nav_only_fast_fix_then_caster_restart(tmp_path):
     refused = set(re.findall(r"ephemeris (C\d\d) \(BDT week \d+, t_oe \d+ s\) is [0-9.]+ h", log))
     assert refused == stale
     retries = [float(x) for x in re.findall(r"cannot open \([^)]*\); retry in ([0-9.]+) s", log)]
+    print(
+        f"network sets taken {c['ntrip_ephemerides']}, stale {c.get('ntrip_stale', 0)}, "
+        f"repeats {c['ntrip_repeats']}, connects {c['ntrip_connects']}, reconnects "
+        f"{c['ntrip_reconnects']}, retries while down {retries}"
+    )
     assert retries, "no retry while the caster was down"
     assert max(retries) <= BACKOFF_MAX_S
     for secret in _secrets():
