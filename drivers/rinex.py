@@ -65,7 +65,7 @@ from typing import IO, Literal
 
 import numpy as np
 
-from service.core.errors import FramingError
+from service.core.errors import ConfigError, FramingError
 from service.core.timebase import (
     BDT_GPS_WEEK_OFFSET,
     BDT_GPST_OFFSET_S,
@@ -703,6 +703,13 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
     return Ephemeris(prn=prn, toc_sow_s=float(toc_sow), source="rinex", **kwargs)  # type: ignore[arg-type]
 
 
+NTRIP_NAV_HERE = (
+    "nav: an NTRIP source (ntrip://...) is read by 'bdsfix run' (its 'nav' key); here give a "
+    "RINEX nav file"
+)
+"""The error (no URL in it: it may hold credentials) for an NTRIP URL given as a nav file."""
+
+
 def read_nav(path: str | Path) -> NavData:
     """BDS ephemerides and ionosphere coefficients of a RINEX 3 nav file (mixed or BDS-only).
 
@@ -710,6 +717,8 @@ def read_nav(path: str | Path) -> NavData:
     (PRN, week, toe) appears more than once, the latest transmission time wins, so a
     health change broadcast later is kept.
     """
+    if str(path).lower().startswith("ntrip:/"):  # also as a Path, which folds the "//"
+        raise ConfigError(NTRIP_NAV_HERE)
     path = Path(path)
     counters: Counter[str] = Counter()
     with _open(path) as fh:

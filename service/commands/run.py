@@ -28,6 +28,8 @@ from service.daemon.config import (
     STORE_NAME,
     DaemonConfig,
     load_config,
+    nav_files,
+    ntrip_sources,
     overrides_from_args,
 )
 from service.daemon.loop import Runner
@@ -137,6 +139,17 @@ def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
     return EphemerisStore(max_age_s=max_age_s)
 
 
+def _open_ntrip(cfg: DaemonConfig) -> list[Any]:
+    """One event source per NTRIP URL in ``nav`` (read by the loop in threads of their own;
+    nothing is connected yet: a caster that is down at start is retried, see
+    :mod:`drivers.ntrip`)."""
+    from drivers.ntrip import open_ntrip
+
+    return [
+        open_ntrip(url, reconnect_max_s=cfg.ntrip_reconnect_max_s) for url in ntrip_sources(cfg)
+    ]
+
+
 class _Signals:
     """SIGTERM and SIGINT stop the runner cleanly (store saved, final STATUS); the exit code
     says which: 0 for SIGTERM (systemctl stop), 130 for Ctrl-C. SIGHUP reopens files."""
@@ -176,8 +189,9 @@ def main_run(args: argparse.Namespace) -> int:
 
         log.info("receiver set-up: %s", setup_receiver(cfg.source, cfg.baud, cfg.setup))
     source = open_source(
-        cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
+        cfg.source, nav=nav_files(cfg) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
     )
+    nav_sources = _open_ntrip(cfg)
     transport = getattr(source, "transport", None)
     if isinstance(transport, SerialTransport):
         transport.open_now()  # a missing device at start is an error (exit 3)
@@ -209,9 +223,13 @@ def main_run(args: argparse.Namespace) -> int:
         watchdog=notifier.watchdog,
         watchdog_interval_s=notifier.watchdog_interval_s,
         silence_warn_s=cfg.silence_warn_s,
+        nav_sources=[(src.name, src, src.counters) for src in nav_sources],
+        nav_max_age_s=cfg.ntrip_max_age_s,
     )
     signals = _Signals(runner)
     notifier.ready(f"reading {cfg.source}")
+    for src in nav_sources:
+        log.info("network ephemerides from %s", src.name)
     log.info(
         "bdsfix running: source %s, outputs %s",
         cfg.source,
@@ -222,6 +240,8 @@ def main_run(args: argparse.Namespace) -> int:
     finally:
         notifier.stopping()
         source.close()
+        for src in nav_sources:
+            src.close()
         outputs.close()
     counters = runner.counters()
     # every counter, for the journal (a subscriber had them in the last STATUS record)

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from service.core.errors import ConfigError
+from service.core.ntripurl import NtripUrl, is_ntrip, parse_ntrip_url
 from service.core.receiver_setup import DAEMON_PREFIX, ReceiverSetup
 from service.core.settings import add_flags, build, given, setting, settings_of
 from service.engine.solver import SolverConfig
@@ -40,7 +41,27 @@ class DaemonConfig:
     )
     baud: int = setting(115200, "serial baud rate", kind="int", low=1, high=4_000_000)
     nav: tuple[str, ...] = setting(
-        (), "RINEX 3 nav file(s) loaded into the ephemeris store at start", kind="list"
+        (),
+        "RINEX 3 nav file(s) loaded into the ephemeris store at start, and/or NTRIP "
+        "sources of broadcast ephemerides (RTCM 1042) read all along: "
+        "ntrip://user:pass@host:port/MOUNT (a user without :pass takes "
+        "$BDSFIX_NTRIP_PASSWORD)",
+        kind="list",
+    )
+    ntrip_max_age_s: float = setting(
+        7200.0,
+        "refuse a network ephemeris whose t_oe is further than this from the receiver's "
+        "time [s] (counted ntrip_stale)",
+        kind="float",
+        low=0.0,
+        low_open=True,
+    )
+    ntrip_reconnect_max_s: float = setting(
+        4.0,
+        "longest wait between two attempts to reach an NTRIP caster [s] (backoff from 0.25 s)",
+        kind="float",
+        low=0.1,
+        high=300.0,
     )
     state_dir: str = setting(
         "", "directory of the persisted ephemeris store ($BDSFIX_STATE_DIR)", kind="str"
@@ -140,7 +161,18 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
     daemon = build(DaemonConfig, {k: v for k, v in values.items() if k in daemon_keys}, origin)
     setup_values = {k: v for k, v in values.items() if k in setup_keys}
     setup = build(ReceiverSetup, setup_values, origin, DAEMON_PREFIX)
+    ntrip_sources(daemon)  # a malformed NTRIP URL is a configuration error (one line, exit 2)
     return _with_parts(daemon, solver, setup)
+
+
+def ntrip_sources(cfg: DaemonConfig) -> list[NtripUrl]:
+    """The NTRIP sources among ``nav``, parsed (ConfigError naming the URL redacted)."""
+    return [parse_ntrip_url(entry) for entry in cfg.nav if is_ntrip(entry)]
+
+
+def nav_files(cfg: DaemonConfig) -> list[str]:
+    """The RINEX nav files among ``nav``."""
+    return [entry for entry in cfg.nav if not is_ntrip(entry)]
 
 
 def _with_parts(cfg: DaemonConfig, solver: SolverConfig, setup: ReceiverSetup) -> DaemonConfig:

@@ -6,6 +6,11 @@ the outputs, none of which may block. Between events the main thread keeps time 
 messages, the systemd watchdog and periodic saves of the ephemeris store (it prunes the
 store and takes a snapshot; a :class:`~service.daemon.store_writer.StoreWriter` thread
 encodes and writes it), and it stops cleanly on request (SIGTERM) after saving the store.
+
+Network nav sources (NTRIP, :mod:`service.daemon.netnav`) each have a reader thread of their
+own feeding the same queue; their events are marked :class:`~service.daemon.netnav.Networked`
+and only their ephemerides are used. Such a source ending or failing (a caster that refuses
+the credentials) is logged in one line and the daemon reads on: the receiver is the stream.
 """
 
 from __future__ import annotations
@@ -18,12 +23,14 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from service.core.errors import BdsfixError
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.daemon.netnav import NetNavGate, Networked
 from service.daemon.store_writer import StoreWriter
 from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.tracker import TrackEvent
@@ -69,6 +76,11 @@ class Runner:
     _recognised: tuple[int, float] = (0, 0.0)  # (frames + RINEX epochs, since when)
     _silence_warned_at: float = -math.inf
     queue_size: int = 4096
+    nav_sources: Sequence[tuple[str, Iterable[Any], Mapping[str, int]]] = ()
+    """Network nav sources: (redacted name, events, counters) each."""
+    nav_max_age_s: float = 7200.0
+    _gate: NetNavGate | None = None
+    _nav_heard: set[str] = field(default_factory=set)
     _stop: threading.Event = field(default_factory=threading.Event)
     _reopen: threading.Event = field(default_factory=threading.Event)
     _error: BaseException | None = None
@@ -86,6 +98,12 @@ class Runner:
         out: dict[str, int | float] = {f"source_{k}": v for k, v in self.source_counters.items()}
         out.update(self.pipeline.counters)
         out.update(self._latency.counters())
+        for i, (_name, _events, counters) in enumerate(self.nav_sources):
+            prefix = "ntrip_" if i == 0 else f"ntrip{i + 1}_"
+            # a copy first (one C call): the source's thread may add a key meanwhile
+            out.update({f"{prefix}{k}": v for k, v in dict(counters).items()})
+        if self._gate is not None:
+            out.update(self._gate.counters)
         if self._store_writer is not None:
             out["store_saves"] = self._store_writer.saves
             out["store_save_errors"] = self._store_writer.save_errors
@@ -107,6 +125,25 @@ class Runner:
         finally:
             q.put(_END)
 
+    def _nav_reader(self, name: str, events: Iterable[Any], q: queue.Queue[Any]) -> None:
+        """A network nav source into the queue; its end or failure ends only this thread."""
+        try:
+            for ev in events:
+                while not self._stop.is_set():
+                    try:
+                        q.put(Networked(ev, name), timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+                if self._stop.is_set():
+                    return
+            if not self._stop.is_set():
+                log.warning("nav %s: the source ended; no more network ephemerides", name)
+        except BdsfixError as exc:
+            log.error("%s", exc)
+        except Exception as exc:  # a bug or a library failure: say so, read on
+            log.error("nav %s: stopped: %s: %s", name, type(exc).__name__, exc)
+
     def run(self) -> int:
         """Process until the source ends or a stop is requested; returns the epoch count."""
         self.pipeline.on_track = self.outputs.track
@@ -121,6 +158,15 @@ class Runner:
         q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
         reader = threading.Thread(target=self._reader, args=(q,), name="bdsfix-reader", daemon=True)
         reader.start()
+        if self.nav_sources:
+            self._gate = NetNavGate(self.nav_max_age_s)
+        for i, (name, events, _counters) in enumerate(self.nav_sources):
+            threading.Thread(
+                target=self._nav_reader,
+                args=(name, events, q),
+                name=f"bdsfix-nav-{i + 1}",
+                daemon=True,
+            ).start()
         now = time.monotonic()
         next_status = now + self.status_interval_s
         next_save = now + self.store_save_interval_s
@@ -170,7 +216,14 @@ class Runner:
         return n
 
     def _handle(self, ev: Any) -> int:
+        if isinstance(ev, Networked):
+            self._handle_networked(ev)
+            return 0
         if isinstance(ev, MeasurementEpoch):
+            if self._gate is not None:
+                for eph in self._gate.on_epoch(ev.gpst_week, ev.gpst_tow_s):
+                    self.pipeline.add_ephemeris(eph)
+                    self._store_dirty = True
             t0 = time.perf_counter()
             result = self.pipeline.on_epoch(ev)
             t1 = time.perf_counter()
@@ -189,6 +242,19 @@ class Runner:
         elif isinstance(ev, KlobucharParams):
             self.pipeline.set_iono(ev)
         return 0
+
+    def _handle_networked(self, ev: Networked) -> None:
+        """Ephemerides of a network source through the age gate; nothing else is used."""
+        inner = ev.event
+        if isinstance(inner, Ephemeris) and self._gate is not None:
+            if ev.source not in self._nav_heard:
+                self._nav_heard.add(ev.source)
+                log.info("nav %s: receiving ephemerides", ev.source)
+            for eph in self._gate.offer(inner, ev.source):
+                self.pipeline.add_ephemeris(eph)
+                self._store_dirty = True
+        else:
+            self.pipeline.counters["ntrip_ignored"] += 1
 
     def _watch_silence(self, now: float) -> None:
         """A live source that sends nothing recognisable (no frame, no RINEX epoch) for

@@ -1,0 +1,311 @@
+"""The NTRIP source: URL parsing, chunked transfer coding, and the transport against real
+casters on loopback (pygnssutils' caster in NTRIP v1 and v2 mode; a small socket server of
+our own for what that caster does not do: chunked coding, a 503, a v1 answer with the data
+right after its status line)."""
+
+from __future__ import annotations
+
+import base64
+import logging
+import queue
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from drivers.ntrip import ChunkDecoder, NtripRefusedError, open_ntrip
+from service.core.errors import ConfigError
+from service.core.ntripurl import PASSWORD_ENV, NtripUrl, parse_ntrip_url, redact
+from service.core.types import Ephemeris, MeasurementEpoch
+from tests.support.ntrip_caster import MOUNT, PASSWORD, USER, Caster, rtcm_frames
+from tests.support.paths import DATA
+
+HIROSHIMA = DATA / "hiroshima-oem729-rtcm-2022" / "20221213-010900.rtcm"
+HANG_S = 60.0
+
+
+# --- the URL ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("text", "host", "port", "mount", "user", "password"),
+    [
+        ("ntrip://alice:pw-1@127.0.0.1:2101/MOUNT", "127.0.0.1", 2101, "MOUNT", "alice", "pw-1"),
+        ("ntrip://caster.example/RTCM3EPH", "caster.example", 2101, "RTCM3EPH", "", ""),
+        ("NTRIP://alice:pw-1@[::1]:2102/M_1.x-y", "::1", 2102, "M_1.x-y", "alice", "pw-1"),
+        ("ntrip://me%40mail.example:pw%3Aq@h:80/M", "h", 80, "M", "me@mail.example", "pw:q"),
+        ("ntrip://alice:pa/ss@word@h/M", "h", 2101, "M", "alice", "pa/ss@word"),  # unencoded
+        ("ntrip://alice@h:2101/M", "h", 2101, "M", "alice", "from-env"),
+    ],
+)
+def test_ntrip_urls_parse(text, host, port, mount, user, password):
+    url = parse_ntrip_url(text, env={PASSWORD_ENV: "from-env"})
+    assert (url.host, url.port, url.mount, url.user, url.password) == (
+        host,
+        port,
+        mount,
+        user,
+        password,
+    )
+    shown = f"{url} {url!r} {url.redacted()}"
+    assert (user and user not in shown) or not user
+    assert (password and password not in shown) or not password
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [
+        ("ntrip://u:hunter2@h:2101", "no mountpoint"),
+        ("ntrip://u:hunter2@h:2101/", "no mountpoint"),
+        ("ntrip://u:hunter2@h:99999/M", "not in 1-65535"),
+        ("ntrip://u:hunter2@h:/M", "not in 1-65535"),
+        ("ntrip://u:hunter2@h:x/M", "not in 1-65535"),
+        ("ntrip://:hunter2@h/M", "empty user"),
+        ("ntrip://u:hunter2@/M", "no host"),
+        ("ntrip://u:hunter2@h h/M", "not HOST[:PORT]"),
+        ("ntrip://u:hunter2@h/M?gga=1", "no query"),
+        ("ntrip://u:hunter2@h/M/N", "not a mountpoint name"),
+        ("http://u:hunter2@h/M", "not an NTRIP URL"),
+    ],
+)
+def test_malformed_ntrip_urls_say_why_without_the_credentials(text, why):
+    with pytest.raises(ConfigError) as err:
+        parse_ntrip_url(text)
+    msg = str(err.value)
+    assert why in msg and "expected ntrip://user:pass@host:port/MOUNT" in msg
+    assert "hunter2" not in msg and "u:" not in msg.split("expected")[0]
+
+
+def test_redact_hides_everything_before_the_last_at():
+    assert redact("ntrip://u:p@ss@h:1/M") == "ntrip://***@h:1/M"
+    assert redact("ntrip://h:1/M") == "ntrip://h:1/M"
+
+
+def test_authorization_is_rfc7617_basic():
+    url = NtripUrl("h", 2101, "M", user="Aladdin", password="open sesame")  # noqa: S106
+    assert url.authorization() == "Basic QWxhZGRpbjpvcGVuIHNlc2FtZQ=="  # RFC 7617 section 2
+    assert NtripUrl("h", 2101, "M").authorization() is None
+
+
+# --- chunked transfer coding (RFC 9112 section 7.1) ---------------------------------------
+
+
+def _chunked(body: bytes, sizes: list[int]) -> bytes:
+    """``body`` in chunks of ``sizes`` (cycled), with an extension now and then, then the
+    last chunk and an empty trailer: written from RFC 9112 section 7.1, not from the code."""
+    out = b""
+    pos = 0
+    i = 0
+    while pos < len(body):
+        n = max(1, sizes[i % len(sizes)])
+        piece = body[pos : pos + n]
+        ext = b";name=value" if i % 3 == 1 else b""
+        out += f"{len(piece):X}".encode() + ext + b"\r\n" + piece + b"\r\n"
+        pos += n
+        i += 1
+    return out + b"0\r\n\r\n"
+
+
+@given(
+    st.binary(max_size=3000),
+    st.lists(st.integers(1, 700), min_size=1, max_size=8),
+    st.lists(st.integers(1, 97), min_size=1, max_size=40),
+)
+def test_chunk_decoder_any_split(body, sizes, splits):
+    coded = _chunked(body, sizes)
+    dec = ChunkDecoder()
+    out = b""
+    pos = 0
+    i = 0
+    while pos < len(coded):
+        n = splits[i % len(splits)]
+        out += dec.feed(coded[pos : pos + n])
+        pos += n
+        i += 1
+    assert out == body
+    assert dec.done
+
+
+def test_chunk_decoder_refuses_a_bad_size_line():
+    with pytest.raises(ValueError, match="bad chunk size"):
+        ChunkDecoder().feed(b"zz\r\nabc\r\n")
+    with pytest.raises(ValueError, match="no CRLF"):
+        ChunkDecoder().feed(b"3\r\nabcXY")
+
+
+# --- against pygnssutils' caster --------------------------------------------------------
+
+
+def _independent_1042(path) -> set[tuple[str, float]]:
+    """(PRN, t_oe) of every RTCM 1042 in a file, read with pyrtcm alone (DF488, DF493)."""
+    from pyrtcm import RTCMReader
+
+    out = set()
+    with open(path, "rb") as fh:
+        for _raw, msg in RTCMReader(fh):
+            if msg.identity == "1042":
+                out.add((f"C{msg.DF488:02d}", float(msg.DF493)))
+    return out
+
+
+def _collect(src, until, what: str) -> list:
+    """Events of ``src`` (in a thread) until ``until(events)``; only a hang fails."""
+    events: list = []
+    q: queue.Queue = queue.Queue()
+
+    def read() -> None:
+        try:
+            for ev in src:
+                q.put(ev)
+        except Exception as exc:
+            q.put(exc)
+
+    threading.Thread(target=read, daemon=True).start()
+    deadline = time.monotonic() + HANG_S
+    while not until(events):
+        assert time.monotonic() < deadline, f"hung: no {what} within {HANG_S:.0f} s"
+        try:
+            ev = q.get(timeout=0.2)
+        except queue.Empty:
+            continue
+        if isinstance(ev, Exception):
+            raise ev
+        events.append(ev)
+    return events
+
+
+@pytest.mark.parametrize("version", ["1.0", "2.0"])
+def test_transport_reads_every_1042_of_the_hiroshima_stream_from_a_real_caster(
+    version, tmp_path, caplog
+):
+    """pygnssutils' caster serves the whole Hiroshima OEM729 stream (MSM, 1042, 1019, ...)
+    in 3 s cycles: the source gives exactly the file's 1042 ephemerides (by PRN and t_oe,
+    read independently with pyrtcm), passes the base station's MSM epochs on as they are
+    (the daemon drops them), and at DEBUG level logs no credential."""
+    caplog.set_level(logging.DEBUG)
+    want = _independent_1042(HIROSHIMA)
+    assert len(want) >= 7
+    with Caster(HIROSHIMA, cycle_s=3.0, version=version) as caster:
+        src = open_ntrip(parse_ntrip_url(caster.url()))
+        try:
+            events = _collect(
+                src,
+                lambda evs: {(e.prn, e.toe_sow_s) for e in evs if isinstance(e, Ephemeris)} >= want,
+                "every 1042 of the file",
+            )
+        finally:
+            src.close()
+    got = {(e.prn, e.toe_sow_s) for e in events if isinstance(e, Ephemeris)}
+    assert got == want
+    assert all(e.source == "rtcm" for e in events if isinstance(e, Ephemeris))
+    assert any(isinstance(e, MeasurementEpoch) for e in events)
+    assert src.counters["connects"] == 1
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    token = base64.b64encode(f"{USER}:{PASSWORD}".encode()).decode()
+    for secret in (USER, PASSWORD, token):
+        assert secret not in text
+
+
+def test_refused_credentials_and_unknown_mountpoint_end_the_source(caplog):
+    caplog.set_level(logging.DEBUG)
+    with Caster(HIROSHIMA) as caster:
+        bad_pw = open_ntrip(parse_ntrip_url(caster.url(password="hunter2")))  # noqa: S106
+        with pytest.raises(NtripRefusedError, match=r"refused the credentials \(HTTP 401\)"):
+            list(bad_pw)
+        no_mount = open_ntrip(parse_ntrip_url(caster.url().replace(MOUNT, "NOSUCH")))
+        with pytest.raises(NtripRefusedError, match="no mountpoint 'NOSUCH'"):
+            list(no_mount)
+    assert bad_pw.counters["refused"] == no_mount.counters["refused"] == 1
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert "hunter2" not in text and PASSWORD not in text
+
+
+# --- against a caster of our own (what pygnssutils' does not do) -------------------------
+
+
+class _Server:
+    """A real TCP server on loopback answering each connection with the next of
+    ``answers`` (bytes, then close); records the requests."""
+
+    def __init__(self, answers: list[bytes]) -> None:
+        self.answers = list(answers)
+        self.requests: list[bytes] = []
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        for answer in self.answers:
+            conn, _ = self.sock.accept()
+            with conn:
+                req = b""
+                while b"\r\n\r\n" not in req:
+                    data = conn.recv(4096)
+                    if not data:
+                        break
+                    req += data
+                self.requests.append(req)
+                for i in range(0, len(answer), 7):  # in small pieces
+                    conn.sendall(answer[i : i + 7])
+        self.sock.close()
+
+
+def _hk_frames() -> bytes:
+    return b"".join(f for f in rtcm_frames(HIROSHIMA) if ((f[3] << 4) | (f[4] >> 4)) == 1042)
+
+
+def _events(port: int, n_eph: int) -> tuple[list, Any]:
+    url = parse_ntrip_url(f"ntrip://{USER}:{PASSWORD}@127.0.0.1:{port}/EPH")
+    src = open_ntrip(url, reconnect_max_s=0.2)
+    try:
+        evs = _collect(
+            src,
+            lambda e: sum(isinstance(x, Ephemeris) for x in e) >= n_eph,
+            f"{n_eph} ephemerides",
+        )
+    finally:
+        src.close()
+    return evs, src
+
+
+def test_chunked_v2_503_and_a_bare_v1_answer():
+    """First a 503 (retried), then an NTRIP v2 answer in chunked coding that ends with the
+    last chunk (the stream's end: reconnect), then a v1 ``ICY 200 OK`` with the data right
+    after the status line: every 1042 comes through each time; the request is NTRIP v2
+    with RFC 7617 Basic authentication."""
+    frames = _hk_frames()
+    n_eph = sum(1 for _ in _independent_1042_frames(frames))
+    v2 = (
+        b"HTTP/1.1 200 OK\r\nNtrip-Version: Ntrip/2.0\r\nContent-Type: gnss/data\r\n"
+        b"Transfer-Encoding: chunked\r\n\r\n" + _chunked(frames, [100, 37, 500])
+    )
+    v1 = b"ICY 200 OK\r\n" + frames
+    server = _Server([b"HTTP/1.1 503 Service Unavailable\r\n\r\n", v2, v1])
+    evs, src = _events(server.port, 2 * n_eph)
+    ephs = [e for e in evs if isinstance(e, Ephemeris)]
+    assert {(e.prn, e.toe_sow_s) for e in ephs} == _independent_1042(HIROSHIMA)
+    assert ephs[:n_eph] == ephs[n_eph : 2 * n_eph]
+    assert src.counters["http_errors"] == 1
+    # the 503 is no connection; the end of the chunked stream is a disconnect
+    assert src.counters["connects"] == 2 and src.counters["disconnects"] >= 1
+    req = server.requests[0].decode()
+    assert req.startswith("GET /EPH HTTP/1.1\r\n")
+    assert "Ntrip-Version: Ntrip/2.0\r\n" in req
+    token = base64.b64encode(f"{USER}:{PASSWORD}".encode()).decode()
+    assert f"Authorization: Basic {token}\r\n" in req
+
+
+def _independent_1042_frames(frames: bytes) -> Iterator[bytes]:
+    from io import BytesIO
+
+    from pyrtcm import RTCMReader
+
+    for raw, msg in RTCMReader(BytesIO(frames)):
+        if msg.identity == "1042":
+            yield raw
