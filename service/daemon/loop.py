@@ -95,7 +95,8 @@ class Runner:
         self._reopen.set()
 
     def counters(self) -> dict[str, int | float]:
-        out: dict[str, int | float] = {f"source_{k}": v for k, v in self.source_counters.items()}
+        src = self._source_snapshot()
+        out: dict[str, int | float] = {f"source_{k}": v for k, v in src.items()}
         out.update(self.pipeline.counters)
         out.update(self._latency.counters())
         for i, (_name, _events, counters) in enumerate(self.nav_sources):
@@ -260,7 +261,7 @@ class Runner:
         """A live source that sends nothing recognisable (no frame, no RINEX epoch) for
         ``silence_warn_s`` gets a WARNING, repeated once per interval while it lasts
         (counted ``source_silent``); the daemon keeps reading."""
-        c = self.source_counters
+        c = self._source_snapshot()
         seen = sum(int(v) for k, v in c.items() if k.startswith("frames_")) + int(
             c.get("epochs_rinex", 0)
         )
@@ -280,11 +281,17 @@ class Runner:
                 int(c.get("bytes_in", 0)),
             )
 
+    def _source_snapshot(self) -> dict[str, int]:
+        """A copy of the source's counters: the reader thread adds keys while the loop reads
+        them, and iterating a dict that grows raises. ``dict()`` of a dict copies it in one
+        step under the GIL."""
+        return dict(self.source_counters)
+
     def skipped(self) -> dict[str, int]:
         """Source counters of input that was dropped (bad bytes, frames, RINEX lines/epochs)."""
         return {
             k: int(v)
-            for k, v in sorted(self.source_counters.items())
+            for k, v in sorted(self._source_snapshot().items())
             if v and (k in SKIP_KEYS or k.startswith(SKIP_PREFIXES) or k.endswith("_skipped"))
         }
 
