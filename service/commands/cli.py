@@ -15,6 +15,7 @@ from service import __version__
 from service.commands.options import add_start_flag
 from service.core.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, BdsfixError
 from service.core.settings import add_flags
+from service.core.sow_rule import FullRuleConfig
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
@@ -226,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--status-interval-s", type=float, default=10.0, help="period of STATUS records [s]"
     )
+    add_flags(r, FullRuleConfig, "restart (--restart-at and the built-in scenario)")
     add_flags(r, SolverConfig, "solver")
 
     d = command(
@@ -271,6 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument(
         "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
     )
+    add_flags(m, FullRuleConfig, "prMes validity")
 
     t = command(
         "ttff",
@@ -305,6 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="--simulate: satellites whose ephemeris is older are not simulated; the daemon "
         "gets the same limit",
     )
+    add_flags(t, FullRuleConfig, "restart")
     add_flags(t, SolverConfig, "solver")
 
     z = command(

@@ -13,7 +13,7 @@ import os
 import sys
 import time
 
-from service.commands.options import check_range, parse_start
+from service.commands.options import check_range, full_rule, parse_start
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
 from service.core.timebase import gpst_from_utc
@@ -59,6 +59,7 @@ def main_simulate(args: argparse.Namespace) -> int:
         clock_offset_s=args.clock_offset_s,
         noise_m=args.noise_m,
         seed=args.seed,
+        full_rule=full_rule(args),
     )
     sim = Simulator(ephs, cfg, iono)
     if not sim.prns:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from drivers.rinex import RinexObsReader
-from service.commands.options import check_output_path, parse_start, solver_config
+from service.commands.options import check_output_path, full_rule, parse_start, solver_config
 from service.commands.solve import load_navigation
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
@@ -56,17 +56,24 @@ def main_ttff(args: argparse.Namespace) -> int:
     last = len(epochs) - 30
     from tqdm import tqdm
 
+    rule = full_rule(args)
     trials = [  # progress on a terminal only (disable=None), on stderr
-        run_trial(epochs, int(rng.integers(0, last)), store, iono, cfg, rng)
+        run_trial(epochs, int(rng.integers(0, last)), store, iono, cfg, rng, full_rule=rule)
         for _ in tqdm(range(args.trials), desc="ttff restarts", unit="trial", disable=None)
     ]
     doc = summarize(trials)
+    doc["full_rule"] = rule
     _print(doc, args.json)
     if args.plot:
         plot_trials(trials, args.plot)
     return 0
 
 
+RULES = {
+    "sow": "time known once the SOW of the first subframe after bit sync decodes: "
+    "D2 0.12 s, D1 1.2 s into it",
+    "subframe": "time known at the end of the first subframe after bit sync: D2 0.6 s, D1 6 s",
+}
 ROWS = {
     "fast": "fast fix (this method)",
     "conventional": "conventional SPP (4 full ranges)",
@@ -81,7 +88,9 @@ def _print(doc: dict[str, Any], as_json: bool) -> None:
         return
 
     def sec(v: dict[str, Any], key: str) -> str:
-        return f"{v[key]:5.1f} s" if key in v else "    n/a"
+        return f"{v[key]:5.2f} s" if key in v else "    n/a"
+
+    print(f"{'full rule':>34}: {doc['full_rule']} ({RULES[doc['full_rule']]})")
 
     for key, label in ROWS.items():
         v = doc[key]
@@ -134,6 +143,7 @@ def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTri
         rate_hz=args.rate_hz,
         noise_m=args.noise_m,
         elmask_deg=min(5.0, cfg.elmask_deg),
+        full_rule=full_rule(args),
     )
     plans = plan_trials(week, tow, args.trials, args.trial_s, args.seed)
     stream = SimStream(ephs, klob, base, plans, args.trial_s, args.max_eph_age_s)
@@ -152,6 +162,7 @@ def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTri
     trials = analyse(stream, records, store, iono, cfg, args.noise_m)
     location = {"lat_deg": args.lat_deg, "lon_deg": args.lon_deg, "alt_m": args.alt_m}
     doc = summarize_sim(trials, location)
+    doc["full_rule"] = base.full_rule
     doc["rate_hz"] = args.rate_hz
     doc["sigma_m"] = args.noise_m
     doc["stream_epochs"] = len(stream.epochs)
