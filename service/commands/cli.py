@@ -289,6 +289,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--json", action="store_true", help="print the result as JSON")
     t.add_argument("--plot", help="TTFF histograms PNG")
     t.add_argument(
+        "--compare-rules",
+        action="store_true",
+        help="also run the same restarts under the other --full-rule and report both",
+    )
+    t.add_argument(
         "--simulate",
         action="store_true",
         help="restarts of a virtual receiver streamed through a pty into 'bdsfix run' "

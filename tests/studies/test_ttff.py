@@ -23,8 +23,8 @@ def _ttff(capsys, *extra: str) -> dict:
 
 def test_hksc_ttff(capsys, tmp_path):
     png = tmp_path / "ttff.png"
-    doc = _ttff(capsys, "--plot", str(png))
-    old = _ttff(capsys, "--full-rule", "subframe")
+    doc = _ttff(capsys, "--plot", str(png), "--compare-rules")
+    old = doc["compare"]  # the same restarts under the old rule
     print(
         f"HKSC sow rule: fast median {doc['fast']['median_s']} s, conventional median "
         f"{doc['conventional']['median_s']} s; subframe rule: {old['fast']['median_s']} s, "
@@ -46,3 +46,12 @@ def test_hksc_ttff(capsys, tmp_path):
     assert old["fast"]["median_s"] > doc["fast"]["median_s"]
     assert old["conventional"]["median_s"] >= 6.0
     assert old["conventional"]["median_s"] > doc["conventional"]["median_s"]
+
+
+def test_hksc_ttff_table_names_both_rules(capsys):
+    args = ["ttff", str(HK / "hksc1610.obs"), str(HK / "hksc1610.nav"), "--trials", "5"]
+    assert main([*args, "--full-rule", "subframe", "--compare-rules"]) == 0
+    out = capsys.readouterr().out
+    rules = [line.split(":", 1)[1].split()[0] for line in out.splitlines() if "full rule:" in line]
+    assert rules == ["subframe", "sow"]
+    assert out.count("fast fix (this method)") == 2 and "max |fast - SPP|" in out
