@@ -265,6 +265,11 @@ def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> Non
         raise InputError(f"{path}: empty file; {expected}")
     if head.startswith((*COMPRESSED_MAGICS, b"BZh", b"PK\x03\x04", b"\xfd7zXZ")):
         raise InputError(f"{path}: a compressed archive, not a capture: decompress it first")
+    if b"Raw,ElapsedRealtimeMillis," in head[:65536]:
+        raise InputError(
+            f"{path}: an Android GnssLogger text log (Raw records), which bdsfix does not "
+            f"read; {expected}"
+        )
     framer = Framer(PROTOCOLS)
     if not framer.feed(head) and not framer.flush():
         raise InputError(f"{path}: no frame found in its first {len(head)} bytes; {expected}")
@@ -315,6 +320,16 @@ def _is_char_device(path: str) -> bool:
         return False
 
 
+def serial_device(spec: str, baud: int) -> tuple[str, int]:
+    """(device, baud) of a serial source spec, ``serial:DEV[:BAUD]`` or a device path
+    (``baud`` unless the spec names one)."""
+    rest = spec.removeprefix("serial:")
+    device, sep, rate = rest.rpartition(":")
+    if not sep or not rate.isdigit():
+        return rest, baud
+    return device, int(rate)
+
+
 def open_source(
     spec: str,
     *,
@@ -348,11 +363,8 @@ def open_source(
             raise ConfigError(f"bad TCP source {spec!r}: expected tcp:HOST:PORT")
         transport = TcpClientTransport(host, int(port), backoff_max_s=reconnect_max_s)
     elif spec.startswith(("serial:", "/dev/")) or _is_char_device(spec):
-        rest = spec.removeprefix("serial:")
-        device, sep, rate = rest.rpartition(":")
-        if not sep or not rate.isdigit():
-            device, rate = rest, str(baud)
-        transport = SerialTransport(device, int(rate), backoff_max_s=reconnect_max_s)
+        device, rate = serial_device(spec, baud)
+        transport = SerialTransport(device, rate, backoff_max_s=reconnect_max_s)
     elif spec == "-":
         transport = FileTransport(sys.stdin.buffer, name="stdin")
     else:

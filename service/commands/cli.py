@@ -14,6 +14,7 @@ from typing import NoReturn
 from service import __version__
 from service.commands.options import add_start_flag
 from service.core.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, BdsfixError
+from service.core.receiver_setup import ReceiverSetup
 from service.core.settings import add_flags
 from service.core.sow_rule import FullRuleConfig
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
@@ -32,6 +33,7 @@ _HANDLERS: dict[str, str] = {
     "sub": "service.commands.run:main_sub",
     "simulate": "service.commands.simulate:main_simulate",
     "ttff": "service.commands.ttff:main_ttff",
+    "configure": "service.commands.configure:main_configure",
 }
 
 
@@ -273,6 +275,33 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument(
         "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
     )
+    m.add_argument(
+        "--wait-config",
+        action="store_true",
+        help="with --pty: act as a u-blox receiver fresh from its defaults (GEOs unused, no "
+        "UBX output) that answers CFG messages (ACK, NAK for what it does not support) and "
+        "sends only the measurement messages it was asked for; a signal configuration "
+        "restarts its tracking ('bdsfix configure' sets it up)",
+    )
+    m.add_argument(
+        "--port",
+        choices=["uart1", "uart2", "usb", "spi", "i2c"],
+        default="uart1",
+        help="--wait-config: the receiver port the pty stands for (output enabled on another "
+        "port is acknowledged and not sent here)",
+    )
+    m.add_argument(
+        "--nak",
+        action="append",
+        metavar="NAME",
+        help="--wait-config, for tests: refuse (ACK-NAK) this configuration key "
+        "(CFG_BDS_USE_GEO_PRN) or message (CFG-GNSS); repeatable",
+    )
+    m.add_argument(
+        "--no-answer",
+        action="store_true",
+        help="--wait-config, for tests: never answer, as a receiver at another baud rate",
+    )
     add_flags(m, FullRuleConfig, "prMes validity")
 
     t = command(
@@ -315,6 +344,34 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(t, FullRuleConfig, "restart")
     add_flags(t, SolverConfig, "solver")
+
+    g = command(
+        "configure",
+        "set a u-blox receiver up for the fast fix",
+        "Set a u-blox receiver up for the fast fix with pyubx2's CFG messages: BeiDou B1I on "
+        "with its GEOs, RXM-RAWX, RXM-MEASX and RXM-SFRBX on the port in use, the "
+        "measurement rate (M8: CFG-GNSS, CFG-RATE, CFG-MSG; F9/X20: CFG-VALSET). Each "
+        "message waits for its ACK/NAK; a refusal (exit 5) or no answer (exit 3) is one "
+        "line naming what is in effect. 'bdsfix run' does the same with configure = true.",
+    )
+    g.add_argument(
+        "--source",
+        metavar="DEVICE",
+        help="the receiver: /dev/ttyX or serial:DEV[:BAUD] (also the pty of 'bdsfix "
+        "simulate --pty --wait-config'); not needed with --dry-run",
+    )
+    g.add_argument("--baud", type=_positive_int, default=115200, help="serial baud rate")
+    add_flags(g, ReceiverSetup)
+    g.add_argument(
+        "--save",
+        action="store_true",
+        help="once every message is acknowledged, save the set-up to BBR and flash",
+    )
+    g.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the messages (hex, then what each asks) instead of sending them",
+    )
 
     z = command(
         "sub",

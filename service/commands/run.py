@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from service.commands.options import full_rule, solver_config
-from service.commands.summary import NO_EPOCHS_HINT, decline_lines, excluded_lines, skipped_line
+from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
 from service.daemon.config import (
@@ -171,6 +171,10 @@ def main_run(args: argparse.Namespace) -> int:
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
     _check_state_dir(cfg.resolved_state_dir())
+    if cfg.configure:  # before the source opens: the set-up has the port to itself
+        from service.commands.configure import setup_receiver
+
+        log.info("receiver set-up: %s", setup_receiver(cfg.source, cfg.baud, cfg.setup))
     source = open_source(
         cfg.source, nav=list(cfg.nav) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
     )
@@ -219,7 +223,11 @@ def main_run(args: argparse.Namespace) -> int:
         notifier.stopping()
         source.close()
         outputs.close()
-    log.info("stopped after %d epochs; counters: %s", n, dict(runner.counters()))
+    counters = runner.counters()
+    # every counter, for the journal (a subscriber had them in the last STATUS record)
+    log.info("final counters: %s", " ".join(f"{k}={v}" for k, v in sorted(counters.items())))
+    for line in stream_lines("run", n, counters, runner.skipped()):
+        print(line, file=sys.stderr)
     return signals.exit_code()
 
 
@@ -317,25 +325,16 @@ def main_replay(args: argparse.Namespace) -> int:
         source_counters=counters,
         status_interval_s=args.status_interval_s,
         on_result=timeline.on_result,
-        log_skipped_at_stop=False,
     )
     signals = _Signals(runner)
     try:
         n = runner.run()
     finally:
         outputs.close()
-    c = runner.counters()
-    print(
-        f"bdsfix replay: {n} epochs; fixes fast {c.get('fix_fast', 0)}, "
-        f"spp {c.get('fix_spp', 0)}, none {c.get('fix_none', 0)}; integrity checks "
-        f"{c.get('integrity_checks', 0)}, failures {c.get('integrity_failures', 0)}",
-        file=sys.stderr,
-    )
-    for line in [*excluded_lines(c), *decline_lines(c), *skipped_line(runner.skipped())]:
+    for line in stream_lines("replay", n, runner.counters(), runner.skipped()):
         print(line, file=sys.stderr)
-    if n == 0:
-        print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
-    for line in timeline.lines(offset, restarted=args.restart_at is not None):
+    # no epoch, no time scale: a timeline of "(not reached)" would say nothing
+    for line in timeline.lines(offset, restarted=args.restart_at is not None) if n else []:
         print(line, file=sys.stderr)
     return signals.exit_code()
 

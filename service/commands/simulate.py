@@ -3,7 +3,8 @@
 Ephemerides come from a RINEX nav file (``--nav``) or the built-in Table 1 set; the start
 time defaults to the nav file's first BDS toe (or Table 1's epoch). ``--pty`` creates a
 pseudo-terminal pair, prints the device path to stderr and writes to it, paced in real time
-unless ``--max-speed``.
+unless ``--max-speed``. ``--pty --wait-config`` makes it a configurable u-blox receiver that
+answers CFG messages and starts silent (:mod:`service.sim.configurable`).
 """
 
 from __future__ import annotations
@@ -12,11 +13,12 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 
 from service.commands.options import check_range, full_rule, parse_start
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
-from service.core.timebase import gpst_from_utc
+from service.core.timebase import gpst_from_utc, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rtcm import broadcast_sets, frame_1042
 from service.sim.scenario import broadcast_table1, default_start_gpst
@@ -34,6 +36,58 @@ def _ephemerides(nav: str | None) -> tuple[list[Ephemeris], KlobucharParams | No
     if not ephs:
         raise InputError(f"{nav}: no healthy BDS ephemeris that passes the entry checks")
     return ephs, data.iono_bds
+
+
+def _serve_configurable(
+    args: argparse.Namespace,
+    ephs: list[Ephemeris],
+    cfg: SimConfig,
+    iono: KlobucharParams | None,
+) -> int:
+    """``--pty --wait-config``: a receiver that answers CFG messages and sends only what it
+    was asked for (:mod:`service.sim.configurable`)."""
+    import tty
+
+    from service.sim.cfg import CfgResponder
+    from service.sim.configurable import ConfigurableReceiver
+
+    if not args.pty:
+        raise ConfigError("--wait-config needs --pty (the host must be able to write to it)")
+    base_ms = 1000.0 / cfg.rate_hz
+    if abs(base_ms - round(base_ms)) > 1e-9:
+        raise ConfigError(
+            f"--wait-config needs a whole-millisecond period, got --rate-hz {cfg.rate_hz:g}"
+        )
+    try:
+        responder = CfgResponder(
+            port=args.port, base_period_ms=round(base_ms), nak=args.nak or (), silent=args.no_answer
+        )
+    except ValueError as exc:
+        raise ConfigError(f"--nak: {exc}") from exc
+
+    def make_sim(offset_s: float) -> Simulator:
+        week, tow = normalize(cfg.start_gpst_week, cfg.start_gpst_tow_s + offset_s)
+        return Simulator(ephs, replace(cfg, start_gpst_week=week, start_gpst_tow_s=tow), iono)
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    print(os.ttyname(slave), file=sys.stderr, flush=True)
+    try:
+        stats = ConfigurableReceiver(
+            master, make_sim, responder, base_period_ms=round(base_ms)
+        ).serve()
+    finally:
+        time.sleep(0.5)
+        os.close(master)
+        os.close(slave)
+    sent = ", ".join(sorted(responder.outputs)) or "no output"
+    print(
+        f"bdsfix simulate: {stats.epochs_sent} epochs sent ({sent}), "
+        f"{stats.answered} CFG messages answered, {stats.restarts} restarts, "
+        f"{stats.dropped_bytes} bytes lost while nobody read",
+        file=sys.stderr,
+    )
+    return 0
 
 
 def main_simulate(args: argparse.Namespace) -> int:
@@ -64,6 +118,10 @@ def main_simulate(args: argparse.Namespace) -> int:
     sim = Simulator(ephs, cfg, iono)
     if not sim.prns:
         raise ConfigError("no satellite in view at that place and time")
+    if args.wait_config:
+        return _serve_configurable(args, ephs, cfg, iono)
+    if args.nak or args.no_answer:
+        raise ConfigError("--nak and --no-answer need --pty --wait-config")
     master = slave = None
     if args.pty:
         master, slave = os.openpty()

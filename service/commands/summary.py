@@ -9,7 +9,8 @@ from service.engine.solver import REASONS
 
 HINTS: dict[str, str] = {
     "no_ephemeris": "give the satellites' ephemerides: a RINEX 3 nav file of the same day "
-    "(--nav NAV), or a capture that carries them (UBX RXM-SFRBX, RTCM 1042)",
+    "(replay/run --nav NAV, solve's NAV argument), or a capture that carries them (UBX "
+    "RXM-SFRBX, RTCM 1042)",
     "no_measurements": "the input has no BDS B1I pseudoranges",
     "no_time": "the GPS week is not known yet: give --gps-week N (RTCM without ephemerides)",
     "too_few_full": "fewer than 4 full pseudoranges: the fast fix needs 4 GEOs in view, SPP "
@@ -56,6 +57,24 @@ def skipped_line(skipped: Mapping[str, int], indent: str = "  ") -> list[str]:
     if not skipped:
         return []
     return [f"{indent}skipped input: " + ", ".join(f"{k} {v}" for k, v in skipped.items())]
+
+
+def stream_lines(
+    command: str, n_epochs: int, counters: Mapping[str, int | float], skipped: Mapping[str, int]
+) -> list[str]:
+    """The end-of-stream summary of ``replay`` and ``run``: epochs and fixes by mode, the
+    integrity checks, excluded satellites, the top decline reasons with a hint, the skipped
+    input, and what to do when there was no epoch at all."""
+    c = counters
+    lines = [
+        f"bdsfix {command}: {n_epochs} epochs; fixes fast {int(c.get('fix_fast', 0))}, "
+        f"spp {int(c.get('fix_spp', 0))}, none {int(c.get('fix_none', 0))}; integrity checks "
+        f"{int(c.get('integrity_checks', 0))}, failures {int(c.get('integrity_failures', 0))}"
+    ]
+    lines += [*excluded_lines(c), *decline_lines(c), *skipped_line(skipped)]
+    if n_epochs == 0:
+        lines.append(f"  {NO_EPOCHS_HINT}")
+    return lines
 
 
 NO_EPOCHS_HINT = (

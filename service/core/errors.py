@@ -18,6 +18,9 @@ capture file, an unreadable or malformed nav/obs file, an output file that canno
 EXIT_BIND = 4
 """A listening socket cannot be bound: NMEA TCP port or ZeroMQ endpoint already in use,
 address not available, or permission denied."""
+EXIT_REFUSED = 5
+"""A receiver refused part of the set-up asked of it (UBX ACK-NAK to a CFG message): it is
+left as its answers say (the settings it acknowledged are in effect, nothing is saved)."""
 EXIT_INTERRUPTED = 130
 """Interrupted by SIGINT (Ctrl-C) outside the daemon loop."""
 
@@ -62,3 +65,15 @@ class BindError(ConfigError):
     """A listening address that cannot be bound (in use, not local, not permitted)."""
 
     exit_code = EXIT_BIND
+
+
+class ReceiverSilentError(InputError):
+    """A receiver that does not answer a configuration message (no ACK/NAK in time): not a
+    u-blox receiver, a wrong baud rate, or its UBX input is off (exit 3, as a device that
+    cannot be used)."""
+
+
+class ReceiverRefusedError(BdsfixError):
+    """A receiver that answered ACK-NAK to part of its set-up (exit 5)."""
+
+    exit_code = EXIT_REFUSED

@@ -107,17 +107,20 @@ def coerce(name: str, meta: Setting, value: Any, where: str) -> Any:
     return value
 
 
-def build(cls: type[T], values: Mapping[str, Any], where: str | Mapping[str, str]) -> T:
+def build(
+    cls: type[T], values: Mapping[str, Any], where: str | Mapping[str, str], prefix: str = ""
+) -> T:
     """An instance of ``cls`` from setting values (others keep their defaults).
 
-    ``where`` names the origin in errors: one string, or one per key (file or flag)."""
-    known = {f.name: meta for f, meta in settings_of(cls)}
+    ``where`` names the origin in errors: one string, or one per key (file or flag). With
+    ``prefix``, the keys of ``values`` are the settings' names with it (as errors name them)."""
+    known = {prefix + f.name: meta for f, meta in settings_of(cls)}
     kw = {}
     for name, value in values.items():
         origin = where if isinstance(where, str) else where.get(name, flag(name))
         if name not in known:
             raise ConfigError(f"{origin}: unknown key '{name}'")
-        kw[name] = coerce(name, known[name], value, origin)
+        kw[name.removeprefix(prefix)] = coerce(name, known[name], value, origin)
     return cls(**kw)
 
 
@@ -130,11 +133,15 @@ def _parse_bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true/false, got {text!r}")
 
 
-def add_flags(parser: argparse.ArgumentParser | Any, cls: type, title: str | None = None) -> None:
-    """One flag per setting of ``cls`` (default None: not given); --help shows the default."""
+def add_flags(
+    parser: argparse.ArgumentParser | Any, cls: type, title: str | None = None, prefix: str = ""
+) -> None:
+    """One flag per setting of ``cls`` (default None: not given); --help shows the default.
+
+    ``prefix`` goes before each name (key ``configure_model``, flag ``--configure-model``)."""
     target = parser.add_argument_group(title) if title else parser
     for f, meta in settings_of(cls):
-        kw: dict[str, Any] = {"dest": f.name, "default": None}
+        kw: dict[str, Any] = {"dest": prefix + f.name, "default": None}
         shown: Any = f.default
         if meta.kind == "list":
             kw["action"] = "append"
@@ -150,16 +157,17 @@ def add_flags(parser: argparse.ArgumentParser | Any, cls: type, title: str | Non
         if shown == "":
             shown = "''"
         kw["help"] = f"{meta.help} (default: {shown})"
-        target.add_argument(flag(f.name), **kw)
+        target.add_argument(flag(prefix + f.name), **kw)
 
 
-def given(args: argparse.Namespace, cls: type) -> dict[str, Any]:
-    """The settings of ``cls`` given on the command line (flags left at None are not)."""
+def given(args: argparse.Namespace, cls: type, prefix: str = "") -> dict[str, Any]:
+    """The settings of ``cls`` given on the command line (flags left at None are not), by
+    their names with ``prefix`` (as :func:`add_flags` declared them)."""
     out = {}
     for f, _ in settings_of(cls):
-        value = getattr(args, f.name, None)
+        value = getattr(args, prefix + f.name, None)
         if value is not None:
-            out[f.name] = value
+            out[prefix + f.name] = value
     return out
 
 

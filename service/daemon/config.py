@@ -1,6 +1,8 @@
 """Daemon configuration: a TOML file (tomllib) whose every key is also a command-line flag.
 
-The keys are the settings of :class:`DaemonConfig` (source, outputs, store, status) and of
+The keys are the settings of :class:`DaemonConfig` (source, outputs, store, status), of
+:class:`service.core.receiver_setup.ReceiverSetup` with the prefix ``configure_`` (the
+receiver set-up run with ``configure = true``) and of
 :class:`service.engine.solver.SolverConfig` (the solver, shared by every command), declared
 once with their help, type and allowed values; :mod:`service.core.settings` parses and
 checks them. Unknown keys, wrong types and bad values raise
@@ -17,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from service.core.errors import ConfigError
+from service.core.receiver_setup import DAEMON_PREFIX, ReceiverSetup
 from service.core.settings import add_flags, build, given, setting, settings_of
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
@@ -93,7 +96,15 @@ class DaemonConfig:
     log_level: str = setting(
         "info", "log level", kind="str", choices=("debug", "info", "warning", "error")
     )
+    configure: bool = setting(
+        False,
+        "set the u-blox receiver up before reading it, as 'bdsfix configure' does (serial "
+        "sources; the configure_* keys; RAM only, nothing saved); a NAK or no answer stops "
+        "the start",
+        kind="bool",
+    )
     solver: SolverConfig = field(default_factory=SolverConfig)
+    setup: ReceiverSetup = field(default_factory=ReceiverSetup)
 
     def resolved_state_dir(self) -> Path:
         return Path(self.state_dir or os.environ.get("BDSFIX_STATE_DIR", "") or "bdsfix-state")
@@ -105,6 +116,7 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
     origin: dict[str, str] = {}
     daemon_keys = {f.name for f, _ in settings_of(DaemonConfig)}
     solver_keys = {f.name for f, _ in settings_of(SolverConfig)}
+    setup_keys = {DAEMON_PREFIX + f.name for f, _ in settings_of(ReceiverSetup)}
     if path is not None:
         p = Path(path)
         try:
@@ -116,7 +128,7 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
         for key, value in doc.items():
-            if key not in daemon_keys | solver_keys:
+            if key not in daemon_keys | solver_keys | setup_keys:
                 raise ConfigError(f"{p}: unknown key '{key}'")
             values[key] = value
             origin[key] = str(p)
@@ -126,20 +138,28 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
             origin[key] = "--" + key.replace("_", "-")
     solver = build(SolverConfig, {k: v for k, v in values.items() if k in solver_keys}, origin)
     daemon = build(DaemonConfig, {k: v for k, v in values.items() if k in daemon_keys}, origin)
-    return _with_solver(daemon, solver)
+    setup_values = {k: v for k, v in values.items() if k in setup_keys}
+    setup = build(ReceiverSetup, setup_values, origin, DAEMON_PREFIX)
+    return _with_parts(daemon, solver, setup)
 
 
-def _with_solver(cfg: DaemonConfig, solver: SolverConfig) -> DaemonConfig:
+def _with_parts(cfg: DaemonConfig, solver: SolverConfig, setup: ReceiverSetup) -> DaemonConfig:
     kw = {f.name: getattr(cfg, f.name) for f in fields(DaemonConfig)}
     kw["solver"] = solver
+    kw["setup"] = setup
     return DaemonConfig(**kw)
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """One flag per config key (default None, so the file's value stands unless given)."""
     add_flags(parser, DaemonConfig, "daemon")
+    add_flags(parser, ReceiverSetup, "receiver set-up (with configure = true)", DAEMON_PREFIX)
     add_flags(parser, SolverConfig, "solver")
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
-    return given(args, DaemonConfig) | given(args, SolverConfig)
+    return (
+        given(args, DaemonConfig)
+        | given(args, ReceiverSetup, DAEMON_PREFIX)
+        | given(args, SolverConfig)
+    )

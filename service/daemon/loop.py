@@ -36,8 +36,8 @@ TIMER_SLACK_S = 1.0
 SKIP_KEYS = frozenset({"resyncs"})
 SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
 """Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
-:mod:`drivers.rinex`) that count damaged input; with ``*_skipped`` they make the shutdown
-line of :meth:`Runner.log_skipped`."""
+:mod:`drivers.rinex`) that count damaged input; with ``*_skipped`` they make
+:meth:`Runner.skipped` (the summaries of ``replay`` and ``run``, every STATUS record)."""
 
 
 class Outputs(Protocol):
@@ -65,7 +65,6 @@ class Runner:
     watchdog: Callable[[], Any] | None = None
     watchdog_interval_s: float | None = None
     on_result: Callable[[EpochResult], None] | None = None
-    log_skipped_at_stop: bool = True  # replay prints its own summary instead
     silence_warn_s: float = 0.0  # warn while the source gives nothing recognisable; 0: never
     _recognised: tuple[int, float] = (0, 0.0)  # (frames + RINEX epochs, since when)
     _silence_warned_at: float = -math.inf
@@ -166,8 +165,6 @@ class Runner:
             self._stop.set()
             self.save_store(final=True)
             self.outputs.status(self.counters())
-            if self.log_skipped_at_stop:
-                self.log_skipped()
         if self._error is not None:
             raise self._error
         return n
@@ -224,12 +221,6 @@ class Runner:
             for k, v in sorted(self.source_counters.items())
             if v and (k in SKIP_KEYS or k.startswith(SKIP_PREFIXES) or k.endswith("_skipped"))
         }
-
-    def log_skipped(self) -> None:
-        """The shutdown line with what the source skipped (also in every STATUS record)."""
-        skipped = self.skipped()
-        if skipped:
-            log.warning("input skipped: %s", ", ".join(f"{k}={v}" for k, v in skipped.items()))
 
     def save_store(self, final: bool = False) -> None:
         """Save the ephemeris store if it changed (or the last write failed): prune it, take

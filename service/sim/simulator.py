@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Collection, Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 CODE_PHASE_LSB_MS = 2.0**-21
 PR_LSB_M = C_M_S * 1e-3 * CODE_PHASE_LSB_MS
 LEAP_S = 18
+UBX_OUTPUTS = ("RXM-SFRBX", "RXM-MEASX", "RXM-RAWX")
+"""The UBX messages of an epoch, in the order the virtual receiver sends them."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -202,16 +204,24 @@ class Simulator:
 
     def ubx_epochs(self) -> Iterator[tuple[SimEpoch, bytes]]:
         """Each epoch with its UBX bytes: SFRBX for completed subframes, MEASX, then RAWX."""
-        geo_of = {p: is_geo(p) for p in self.prns}
-        eph_of = {e.prn: e for e in self.ephemerides}
         for ep in self.epochs():
+            yield ep, self.encode(ep)
+
+    def encode(self, ep: SimEpoch, outputs: Collection[str] = UBX_OUTPUTS) -> bytes:
+        """The UBX bytes of ``ep``: those of ``outputs`` among RXM-SFRBX (one per completed
+        subframe), RXM-MEASX and RXM-RAWX, in that order."""
+        parts = []
+        if "RXM-SFRBX" in outputs:
+            eph_of = {e.prn: e for e in self.ephemerides}
             parts = [
                 _sfrbx(sf.prn, sf.nav_type, subframe_words(eph_of[sf.prn], sf, self.iono))
                 for sf in ep.subframes
             ]
+        if "RXM-MEASX" in outputs:
             parts.append(_measx(ep))
-            parts.append(_rawx(ep, [geo_of[p] for p in ep.prn]))
-            yield ep, b"".join(parts)
+        if "RXM-RAWX" in outputs:
+            parts.append(_rawx(ep, [is_geo(p) for p in ep.prn]))
+        return b"".join(parts)
 
     def _completed_subframes(
         self, st: _SatState, t0: float, t1: float, bdt_sow_rx: float, flight_s: float
@@ -303,3 +313,21 @@ def _sfrbx(prn: str, nav_type: str, words: Sequence[int]) -> bytes:
     }
     kw |= {f"dwrd_{i:02d}": int(w) for i, w in enumerate(words, start=1)}
     return bytes(UBXMessage("RXM", "RXM-SFRBX", GET, **kw).serialize())
+
+
+def epoch_subset(
+    ep: SimEpoch, keep: Callable[[str], bool], subframes: Sequence[SimSubframe] | None = None
+) -> SimEpoch:
+    """``ep`` with only the satellites ``keep`` accepts (a receiver not tracking the others),
+    carrying ``subframes`` (default: its own) of those satellites."""
+    mask = np.asarray([keep(p) for p in ep.prn], dtype=bool)
+    return replace(
+        ep,
+        prn=tuple(p for p, k in zip(ep.prn, mask, strict=True) if k),
+        pr_m=ep.pr_m[mask],
+        full=ep.full[mask],
+        cn0_dbhz=ep.cn0_dbhz[mask],
+        subframes=tuple(
+            sf for sf in (ep.subframes if subframes is None else subframes) if keep(sf.prn)
+        ),
+    )

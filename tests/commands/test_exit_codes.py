@@ -49,6 +49,12 @@ def _bdsfix(*args: str) -> subprocess.CompletedProcess[str]:
         (("simulate", "--lon-deg", "-400", "--out", "/dev/null"), 2, "--lon-deg must be in"),
         (("replay", "--elmask-deg", "95", "--max-speed"), 2, "elmask_deg"),
         (("run", "--elmask-deg", "95", "--source", HKSC_OBS), 2, "elmask_deg"),
+        (("configure",), 2, "no receiver: give --source"),
+        (("configure", "--source", "/nonexistent-dir/ttyX"), 3, "no such device"),
+        (("configure", "--source", "tcp:127.0.0.1:9"), 2, "needs a serial device"),
+        (("configure", "--source", HKSC_OBS), 2, "needs a serial device"),
+        (("configure", "--dry-run", "--rate-hz", "0"), 2, "rate_hz"),
+        (("configure", "--dry-run", "--model", "m9"), 2, "invalid choice"),
     ],
     ids=lambda v: " ".join(v) if isinstance(v, tuple) else None,
 )

@@ -5,6 +5,7 @@ import argparse
 import pytest
 
 from service.core.errors import ConfigError
+from service.core.receiver_setup import ReceiverSetup
 from service.daemon.config import DaemonConfig, add_config_flags, load_config, overrides_from_args
 from service.engine.solver import SolverConfig
 
@@ -51,6 +52,10 @@ def test_file_values_and_flag_overrides(tmp_path):
         ('talker = "XX"\n', "key 'talker' must be one of"),
         ("baud = \n", "not valid TOML"),
         ("nav = [1]\n", "key 'nav' must be a list of strings"),
+        ('configure = "yes"\n', "key 'configure' must be bool"),
+        ('configure_model = "m9"\n', "key 'configure_model' must be one of m8, f9, x20"),
+        ("configure_rate_hz = 0\n", "key 'configure_rate_hz' must be in (0, 40]"),
+        ('model = "f9"\n', "unknown key 'model'"),
     ],
 )
 def test_bad_config_names_file_and_key(tmp_path, text, message):
@@ -64,3 +69,16 @@ def test_bad_config_names_file_and_key(tmp_path, text, message):
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="config file not found"):
         load_config(tmp_path / "nope.toml")
+
+
+def test_receiver_setup_keys_and_flags(tmp_path):
+    """configure = true and the configure_* keys (the settings of `bdsfix configure`, with
+    a prefix), from the file and as flags."""
+    p = _write(tmp_path, 'configure = true\nconfigure_model = "m8"\nconfigure_rate_hz = 5\n')
+    parser = argparse.ArgumentParser()
+    add_config_flags(parser)
+    args = parser.parse_args(["--configure-port", "usb", "--configure-timeout-s", "0.5"])
+    cfg = load_config(p, overrides_from_args(args))
+    assert cfg.configure is True
+    assert cfg.setup == ReceiverSetup(model="m8", rate_hz=5.0, port="usb", timeout_s=0.5)
+    assert load_config(None).configure is False

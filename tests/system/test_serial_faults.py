@@ -137,9 +137,9 @@ class Daemon:
 
     def counters(self) -> dict[str, int]:
         for line in reversed(self.err):
-            if "counters: {" in line:
-                text = line.split("counters: ", 1)[1]
-                return {k: int(v) for k, v in re.findall(r"'(\w+)': (\d+)", text)}
+            if "final counters: " in line:
+                text = line.split("final counters: ", 1)[1]
+                return {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)\b", text)}
         raise AssertionError("no counters line:\n" + "\n".join(self.err[-20:]))
 
 
