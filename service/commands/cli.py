@@ -16,6 +16,7 @@ from service.commands.options import add_start_flag
 from service.core.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, BdsfixError
 from service.core.receiver_setup import ReceiverSetup
 from service.core.settings import add_flags
+from service.core.sow_rule import FullRuleConfig
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
@@ -228,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--status-interval-s", type=float, default=10.0, help="period of STATUS records [s]"
     )
+    add_flags(r, FullRuleConfig, "restart (--restart-at and the built-in scenario)")
     add_flags(r, SolverConfig, "solver")
 
     d = command(
@@ -300,6 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="--wait-config, for tests: never answer, as a receiver at another baud rate",
     )
+    add_flags(m, FullRuleConfig, "prMes validity")
 
     t = command(
         "ttff",
@@ -314,6 +317,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=1, help="random seed of the restart times")
     t.add_argument("--json", action="store_true", help="print the result as JSON")
     t.add_argument("--plot", help="TTFF histograms PNG")
+    t.add_argument(
+        "--compare-rules",
+        action="store_true",
+        help="also run the same restarts under the other --full-rule and report both",
+    )
     t.add_argument(
         "--simulate",
         action="store_true",
@@ -334,6 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="--simulate: satellites whose ephemeris is older are not simulated; the daemon "
         "gets the same limit",
     )
+    add_flags(t, FullRuleConfig, "restart")
     add_flags(t, SolverConfig, "solver")
 
     g = command(

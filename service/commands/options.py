@@ -11,6 +11,7 @@ from typing import Any
 
 from service.core.errors import ConfigError, InputError
 from service.core.settings import build, given
+from service.core.sow_rule import FullRuleConfig
 from service.engine.solver import SolverConfig
 
 
@@ -18,6 +19,12 @@ def solver_config(args: argparse.Namespace, **overrides: Any) -> SolverConfig:
     """The :class:`service.engine.solver.SolverConfig` of a command's solver flags (the one
     builder every command uses); ``overrides`` are settings the command fixes itself."""
     return build(SolverConfig, given(args, SolverConfig) | overrides, {})
+
+
+def full_rule(args: argparse.Namespace) -> str:
+    """``--full-rule`` (:class:`service.core.sow_rule.FullRuleConfig`): when a (re)started
+    receiver knows a satellite's time; ``sow`` unless given."""
+    return build(FullRuleConfig, given(args, FullRuleConfig), {}).full_rule
 
 
 def add_start_flag(parser: argparse.ArgumentParser | Any, what: str) -> None:

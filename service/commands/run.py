@@ -19,7 +19,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from service.commands.options import solver_config
+from service.commands.options import full_rule, solver_config
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
@@ -302,7 +302,9 @@ def main_replay(args: argparse.Namespace) -> int:
         from service.sim.scenario import builtin_scenario
 
         events: Iterable[Any]
-        chunks, week, store, iono, offset, info = builtin_scenario(seed=args.seed)
+        chunks, week, store, iono, offset, info = builtin_scenario(
+            seed=args.seed, full_rule=full_rule(args)
+        )
         events = decode_chunks(chunks, week)
         speed = args.speed if args.speed is not None else None
         counters: dict[str, int] = {}
@@ -317,7 +319,14 @@ def main_replay(args: argparse.Namespace) -> int:
         events = src
         counters = src.counters
         speed = None if args.max_speed else (args.speed or 1.0)
-    pipeline = Pipeline(store, iono, cfg, restart_at_s=args.restart_at, sync_seed=args.seed)
+    pipeline = Pipeline(
+        store,
+        iono,
+        cfg,
+        restart_at_s=args.restart_at,
+        sync_seed=args.seed,
+        full_rule=full_rule(args),
+    )
     options = SinkOptions(nmea_tcp_max_clients=args.nmea_tcp_max_clients)
     outputs = build_publishers(specs, args.talker, options)
     # what was opened, once it opened (an error stays the only line)

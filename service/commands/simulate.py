@@ -15,7 +15,7 @@ import sys
 import time
 from dataclasses import replace
 
-from service.commands.options import check_range, parse_start
+from service.commands.options import check_range, full_rule, parse_start
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
 from service.core.timebase import gpst_from_utc, normalize
@@ -113,6 +113,7 @@ def main_simulate(args: argparse.Namespace) -> int:
         clock_offset_s=args.clock_offset_s,
         noise_m=args.noise_m,
         seed=args.seed,
+        full_rule=full_rule(args),
     )
     sim = Simulator(ephs, cfg, iono)
     if not sim.prns:

@@ -13,10 +13,11 @@ from typing import Any
 import numpy as np
 
 from drivers.rinex import RinexObsReader
-from service.commands.options import check_output_path, parse_start, solver_config
+from service.commands.options import check_output_path, full_rule, parse_start, solver_config
 from service.commands.solve import load_navigation
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
+from service.core.sow_rule import FULL_RULES
 from service.core.timebase import gpst_from_utc
 from service.core.types import Ephemeris, KlobucharParams
 from service.daemon.config import STORE_NAME
@@ -24,7 +25,7 @@ from service.engine.solver import IonoSet
 from service.sim.keplerian import table1_ephemerides
 from service.sim.scenario import default_start_gpst
 from service.sim.simulator import SimConfig
-from service.studies.ttff import plot_trials, run_trial, summarize
+from service.studies.ttff import Trial, plot_trials, run_trial, summarize
 from service.studies.ttff_sim import (
     SimStream,
     SimTrial,
@@ -39,14 +40,23 @@ def main_ttff(args: argparse.Namespace) -> int:
     if args.trials < 1:
         raise ConfigError(f"--trials must be at least 1, got {args.trials}")
     check_output_path(args.plot, "--plot")
-    if args.simulate:
-        doc, sim_trials = run_simulated(args)
-        _print(doc, args.json)
-        if args.plot:
-            plot_trials(sim_trials, args.plot)
-        return 0
-    if not args.obs or not args.nav:
+    rule = full_rule(args)
+    if not args.simulate and (not args.obs or not args.nav):
         raise ConfigError("ttff needs OBS and NAV (or --simulate)")
+    run = run_simulated if args.simulate else run_rinex
+    doc, trials = run(args, rule)
+    if args.compare_rules:  # the same restarts under the other rule
+        other = next(r for r in FULL_RULES if r != rule)
+        doc["compare"] = run(args, other)[0]
+    _print(doc, args.json)
+    if args.plot:
+        plot_trials(trials, args.plot)
+    return 0
+
+
+def run_rinex(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], list[Trial]]:
+    """Emulated restarts on RINEX OBS/NAV by ``rule``: the JSON document and the trials (the
+    restart epochs and sync delays depend on ``--seed`` only, so both rules see the same)."""
     store, iono = load_navigation(list(args.nav))
     epochs = list(RinexObsReader(args.obs))
     if len(epochs) < 40:
@@ -57,16 +67,19 @@ def main_ttff(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     trials = [  # progress on a terminal only (disable=None), on stderr
-        run_trial(epochs, int(rng.integers(0, last)), store, iono, cfg, rng)
+        run_trial(epochs, int(rng.integers(0, last)), store, iono, cfg, rng, full_rule=rule)
         for _ in tqdm(range(args.trials), desc="ttff restarts", unit="trial", disable=None)
     ]
     doc = summarize(trials)
-    _print(doc, args.json)
-    if args.plot:
-        plot_trials(trials, args.plot)
-    return 0
+    doc["full_rule"] = rule
+    return doc, trials
 
 
+RULES = {
+    "sow": "time known once the SOW of the first subframe after bit sync decodes: "
+    "D2 0.12 s, D1 1.2 s into it",
+    "subframe": "time known at the end of the first subframe after bit sync: D2 0.6 s, D1 6 s",
+}
 ROWS = {
     "fast": "fast fix (this method)",
     "conventional": "conventional SPP (4 full ranges)",
@@ -81,15 +94,26 @@ def _print(doc: dict[str, Any], as_json: bool) -> None:
         return
 
     def sec(v: dict[str, Any], key: str) -> str:
-        return f"{v[key]:5.1f} s" if key in v else "    n/a"
+        return f"{v[key]:5.2f} s" if key in v else "    n/a"
 
-    for key, label in ROWS.items():
-        v = doc[key]
-        print(
-            f"{label:>34}: median {sec(v, 'median_s')}, p95 {sec(v, 'p95_s')}, "
-            f"success {v['success_pct']:.0f} %"
-            + (f", median error {v['median_err_m']:.1f} m" if "median_err_m" in v else "")
-        )
+    for d in (doc, doc.get("compare")):
+        if d is None:
+            continue
+        print(f"{'full rule':>34}: {d['full_rule']} ({RULES[d['full_rule']]})")
+        for key, label in ROWS.items():
+            v = d[key]
+            print(
+                f"{label:>34}: median {sec(v, 'median_s')}, p95 {sec(v, 'p95_s')}, "
+                f"success {v['success_pct']:.0f} %"
+                + (f", median error {v['median_err_m']:.1f} m" if "median_err_m" in v else "")
+                + (
+                    f", max |fast - SPP| {v['max_diff_to_spp_m']:.2g} m"
+                    if key == "fast" and "max_diff_to_spp_m" in v
+                    else ""
+                )
+            )
+        if "conventional_over_fast" in d:
+            print(f"{'conventional / fast (medians)':>34}: {d['conventional_over_fast']:.1f}")
 
 
 def _navigation(
@@ -115,8 +139,9 @@ def _start_time(
     return default_start_gpst(ephs if from_nav else None)
 
 
-def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTrial]]:
-    """Everything ``ttff --simulate`` does, returning the JSON document and the trials."""
+def run_simulated(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], list[SimTrial]]:
+    """Everything ``ttff --simulate`` does with the virtual receiver's prMes valid by
+    ``rule``, returning the JSON document and the trials."""
     if not -90.0 <= args.lat_deg <= 90.0 or not -180.0 <= args.lon_deg <= 360.0:
         raise ConfigError(f"--lat-deg/--lon-deg out of range: {args.lat_deg}, {args.lon_deg}")
     if args.rate_hz <= 0 or args.trials < 1 or args.trial_s < 2.0:
@@ -134,6 +159,7 @@ def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTri
         rate_hz=args.rate_hz,
         noise_m=args.noise_m,
         elmask_deg=min(5.0, cfg.elmask_deg),
+        full_rule=rule,
     )
     plans = plan_trials(week, tow, args.trials, args.trial_s, args.seed)
     stream = SimStream(ephs, klob, base, plans, args.trial_s, args.max_eph_age_s)
@@ -152,6 +178,7 @@ def run_simulated(args: argparse.Namespace) -> tuple[dict[str, Any], list[SimTri
     trials = analyse(stream, records, store, iono, cfg, args.noise_m)
     location = {"lat_deg": args.lat_deg, "lon_deg": args.lon_deg, "alt_m": args.alt_m}
     doc = summarize_sim(trials, location)
+    doc["full_rule"] = base.full_rule
     doc["rate_hz"] = args.rate_hz
     doc["sigma_m"] = args.noise_m
     doc["stream_epochs"] = len(stream.epochs)

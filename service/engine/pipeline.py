@@ -26,6 +26,7 @@ from service.core.bds_nav import EphemerisAssembler
 from service.core.constants import C_M_S
 from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
+from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import (
     Ephemeris,
@@ -113,6 +114,7 @@ class Pipeline:
     cfg: SolverConfig = field(default_factory=SolverConfig)
     restart_at_s: float | None = None
     sync_seed: int = 0
+    full_rule: str = DEFAULT_FULL_RULE  # when a restarted satellite is full (core.sow_rule)
     on_track: Callable[[TrackEvent], None] | None = None
     tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
     counters: Counters = field(default_factory=Counters)
@@ -221,9 +223,12 @@ class Pipeline:
 
     def restart(self, epoch: MeasurementEpoch, rng: np.random.Generator) -> None:
         """Emulate a receiver restart at ``epoch``: frame sync is lost, every satellite is
-        fractional until its first SOW after it (decoded subframes when the stream has them,
-        else :class:`SubframeEmulator` with one bit-sync delay draw); no warm start."""
-        emulator = SubframeEmulator.draw(epoch.gpst_week, epoch.gpst_tow_s, epoch.prn, rng)
+        fractional until its time is known again by ``full_rule`` (:class:`SubframeEmulator`
+        with one bit-sync delay draw; under the ``subframe`` rule decoded subframes when the
+        stream has them); no warm start."""
+        emulator = SubframeEmulator.draw(
+            epoch.gpst_week, epoch.gpst_tow_s, epoch.prn, rng, rule=self.full_rule
+        )
         self.tracker.restart(epoch.gpst_week, epoch.gpst_tow_s, emulator)
         self._recovered.clear()
         self._last_fix = None

@@ -9,8 +9,12 @@ after code lock (20 ms once D1 bit sync is known).
 The tracker trusts the receiver: a measurement the driver reports as full (u-blox prValid,
 RINEX, RTCM with integer milliseconds) is full. After a restart, real or emulated
 (``--restart-at``), every satellite is fractional again until its first SOW after the
-restart: from a decoded subframe when the stream carries them, otherwise from the subframe
-boundaries in BDT, as the real signal has them (:class:`SubframeEmulator`).
+restart, timed by the SOW-decode rule (:mod:`service.core.sow_rule`): once the SOW (words 1-2)
+of the first subframe whose preamble arrives after bit sync has decoded, D2 0.12 s and D1 1.2 s
+into that subframe, with the subframe boundaries in BDT as the real signal has them
+(:class:`SubframeEmulator`). Under the older ``subframe`` rule a satellite becomes full at the
+end of that subframe, or, when the stream carries decoded subframes, at the first one that
+arrives after the restart.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 
 from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, SubframeHeader, subframe_start_sow_s
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S, is_geo
+from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import MeasurementEpoch, NavSubframe
 
@@ -56,26 +61,36 @@ def nav_type_of(prn: str) -> str:
 
 @dataclass(frozen=True, slots=True)
 class SubframeEmulator:
-    """Emulated SOW decoding for sources without subframes (RINEX), after a restart.
+    """Emulated SOW decoding after a restart, from the subframe boundaries of BDT.
 
-    Each satellite needs a bit-sync delay after the restart; its SOW decodes at the end of
-    the first complete subframe that starts after sync. Subframe boundaries are multiples of
-    0.6 s (D2) or 6 s (D1) of BDT transmit time; the end is seen one flight time later.
+    Each satellite needs a bit-sync delay after the restart and then waits for the next
+    preamble: the first subframe that starts after sync (a receiver synced mid-subframe has
+    not seen that subframe's preamble). Subframe boundaries are multiples of 0.6 s (D2) or
+    6 s (D1) of BDT transmit time (ICD 5.2.2, 5.3.1), seen one flight time later. The
+    satellite's time is known ``time_known_after_s(nav_type, rule)`` after that boundary:
+    rule ``sow`` once words 1-2 have decoded (D2 0.12 s, D1 1.2 s), rule ``subframe`` at the
+    end of the subframe (0.6 s, 6 s).
     """
 
     restart_gpst_week: int
     restart_gpst_tow_s: float
     sync_delay_s: dict[str, float]
     default_sync_delay_s: float = 0.3
+    rule: str = DEFAULT_FULL_RULE
 
     @classmethod
     def draw(
-        cls, gpst_week: int, gpst_tow_s: float, prns: Iterable[str], rng: np.random.Generator
+        cls,
+        gpst_week: int,
+        gpst_tow_s: float,
+        prns: Iterable[str],
+        rng: np.random.Generator,
+        rule: str = DEFAULT_FULL_RULE,
     ) -> SubframeEmulator:
         """A restart at (week, tow) with a bit-sync delay per satellite drawn uniformly in
         [SYNC_DELAY_MIN_S, SYNC_DELAY_MAX_S] (the one draw every restart uses)."""
         delays = {p: float(rng.uniform(SYNC_DELAY_MIN_S, SYNC_DELAY_MAX_S)) for p in sorted(prns)}
-        return cls(gpst_week, gpst_tow_s, delays)
+        return cls(gpst_week, gpst_tow_s, delays, rule=rule)
 
     def full_mask(self, epoch: MeasurementEpoch) -> np.ndarray:
         """Which of ``epoch``'s measurements are full: reported full by the receiver and
@@ -88,15 +103,16 @@ class SubframeEmulator:
         return full
 
     def full_at_tow_s(self, prn: str, pr_m: float) -> tuple[int, float]:
-        """GPST (week, tow) at which ``prn``'s first SOW after the restart is decoded."""
+        """GPST (week, tow) at which ``prn``'s time is first known after the restart."""
         period = D2_SUBFRAME_S if is_geo(prn) else D1_SUBFRAME_S
+        known_s = time_known_after_s(nav_type_of(prn), self.rule)
         flight_s = pr_m / C_M_S if math.isfinite(pr_m) else NOMINAL_FLIGHT_TIME_S
         delay = self.sync_delay_s.get(prn, self.default_sync_delay_s)
         _, bdt_sow = gpst_to_bdt(self.restart_gpst_week, self.restart_gpst_tow_s)
         tx_sync = bdt_sow + delay - flight_s  # transmit time of the first synced bit
-        start = math.ceil(round(tx_sync / period, 9)) * period
-        end_rx = start + period + flight_s
-        return self.restart_gpst_week, self.restart_gpst_tow_s + (end_rx - bdt_sow)
+        start = math.ceil(round(tx_sync / period, 9)) * period  # the next preamble
+        known_rx = start + known_s + flight_s
+        return self.restart_gpst_week, self.restart_gpst_tow_s + (known_rx - bdt_sow)
 
 
 class FrameSyncTracker:
@@ -156,8 +172,11 @@ class FrameSyncTracker:
         week, tow = epoch.gpst_week, epoch.gpst_tow_s
         full = np.isfinite(epoch.pr_m)
         if self._restart is not None and diff_s(week, tow, *self._restart) >= 0:
-            if self._emulator is not None and not self.seen_subframes:
-                full = self._emulator.full_mask(epoch)
+            emulator = self._emulator
+            # decoded subframes arrive at their end: under the SOW rule the satellite's time
+            # was known before, at the instant the emulator gives from BDT
+            if emulator is not None and (emulator.rule == "sow" or not self.seen_subframes):
+                full = emulator.full_mask(epoch)
             else:
                 full &= np.array([p in self._sow_after_restart for p in epoch.prn], dtype=bool)
         events: list[TrackEvent] = []

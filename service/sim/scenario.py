@@ -13,6 +13,7 @@ from collections import Counter
 from collections.abc import Iterator, Sequence
 
 from service.core.ephemeris import EphemerisStore
+from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import bdt_to_gpst, gpst_from_utc
 from service.core.types import Ephemeris
 from service.engine.solver import IonoSet
@@ -30,6 +31,7 @@ def scenario_config(
     lon_deg: float = BEIJING[1],
     alt_m: float = BEIJING[2],
     start_offset_s: float = 0.0,
+    full_rule: str = DEFAULT_FULL_RULE,
 ) -> SimConfig:
     week, tow = gpst_from_utc(dt.datetime(*TABLE1_EPOCH_UTC) + dt.timedelta(seconds=start_offset_s))
     return SimConfig(
@@ -41,15 +43,17 @@ def scenario_config(
         duration_s=duration_s,
         rate_hz=rate_hz,
         seed=seed,
+        full_rule=full_rule,
     )
 
 
 def builtin_scenario(
-    seed: int = 0, duration_s: float = 60.0
+    seed: int = 0, duration_s: float = 60.0, full_rule: str = DEFAULT_FULL_RULE
 ) -> tuple[Iterator[bytes], int, EphemerisStore, IonoSet, float, str]:
     """The UBX byte chunks, the GPS week of the stream, the held ephemeris store,
-    ionosphere, first-epoch offset [s] and a summary."""
-    cfg = scenario_config(seed=seed, duration_s=duration_s)
+    ionosphere, first-epoch offset [s] and a summary. Each satellite's prMes is valid once
+    its time is known by ``full_rule`` (:mod:`service.core.sow_rule`)."""
+    cfg = scenario_config(seed=seed, duration_s=duration_s, full_rule=full_rule)
     ephs = table1_ephemerides(0.0)
     sim = Simulator(ephs, cfg)
     store = EphemerisStore()

@@ -2,10 +2,13 @@
 
 For a true position, start time and receiver clock offset, each visible satellite is
 acquired after a random delay (code lock: fractional measurement, T = 1 ms), reaches bit sync
-after a further random delay, and becomes full once it has read one complete subframe after
-sync: D2 subframes last 0.6 s (GEOs), D1 subframes 6 s (BDS-SIS-ICD-B1I-3.0 5.2.2, 5.3.2).
-Subframe boundaries are those of the real signal: multiples of 0.6 s / 6 s of BDT transmit
-time, received one flight time later.
+after a further random delay, waits for the next preamble (the first subframe that starts
+after sync) and becomes full once the SOW of that subframe has decoded, words 1-2: 0.12 s
+into a D2 subframe (GEOs, 500 bps, 0.6 s subframes), 1.2 s into a D1 subframe (IGSO/MEO,
+50 bps, 6 s subframes) (BDS-SIS-ICD-B1I-3.0 5.1.3, 5.2.2-5.2.3, 5.3.1-5.3.2; the SOW-decode
+rule of :mod:`service.core.sow_rule`; ``full_rule="subframe"`` waits for the end of that
+subframe instead). Subframe boundaries are those of the real signal: multiples of 0.6 s /
+6 s of BDT transmit time, received one flight time later.
 
 Per epoch the stream carries RXM-SFRBX for every subframe completed since the last epoch
 (synced satellites only), RXM-MEASX with the code phase of every tracked satellite, and
@@ -29,6 +32,7 @@ from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, encode_d1_subfram
 from service.core.constants import C_M_S, WEEK_S, is_geo, prn_number
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays
+from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
 from service.core.timebase import BDT_GPST_OFFSET_S, diff_s, gpst_to_bdt, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rangegen import true_ranges
@@ -62,6 +66,7 @@ class SimConfig:
     d2_sync_delay_s: tuple[float, float] = (0.01, 0.04)  # 2 ms bits, no NH code
     d1_sync_delay_s: tuple[float, float] = (0.1, 0.5)  # 20 ms bits behind the NH code
     tropo: bool = True
+    full_rule: str = DEFAULT_FULL_RULE  # when prMes becomes valid (service.core.sow_rule)
 
 
 @dataclass(slots=True)
@@ -69,7 +74,7 @@ class _SatState:
     prn: str
     acq_s: float  # receiver time since start when code locks
     sync_s: float  # when bit sync is reached
-    full_s: float = math.inf  # when the first complete subframe after sync has been read
+    full_s: float = math.inf  # when the time is known: SOW of the first subframe after sync
     next_subframe_k: int | None = None  # index of the next subframe to report
 
 
@@ -228,7 +233,11 @@ class Simulator:
         if st.next_subframe_k is None:
             if t1 < st.sync_s:
                 return []
-            st.next_subframe_k = math.ceil(round(tx_of(st.sync_s) / period, 9))
+            # the first preamble after bit sync; the time is known once the rule says so
+            k0 = math.ceil(round(tx_of(st.sync_s) / period, 9))
+            st.next_subframe_k = k0
+            known_s = time_known_after_s("D2" if is_geo(st.prn) else "D1", self.cfg.full_rule)
+            st.full_s = t1 + (k0 * period + known_s - tx_of(t1))
         out = []
         while True:
             k = st.next_subframe_k
@@ -239,7 +248,6 @@ class Simulator:
             if end_rx > t0 - 1e-9:
                 nav = "D2" if is_geo(st.prn) else "D1"
                 out.append(SimSubframe(st.prn, nav, k, k * period, end_rx))
-                st.full_s = min(st.full_s, end_rx)
             st.next_subframe_k = k + 1
         return out
 

@@ -1,10 +1,13 @@
 """``bdsfix ttff``: time to first fix, fast against conventional, on emulated restarts.
 
-On real RINEX data each trial restarts at a random epoch with ephemerides held. Each
-satellite becomes full at the end of the first complete subframe after a random sync delay
-of 0.1-0.5 s (D2: 0.6 s subframes for GEOs, D1: 6 s), subframe boundaries taken from BDT as
-in the real signal (:class:`service.engine.tracker.SubframeEmulator`); before that it is fractional
-(mod 1 ms). Then, counted from the restart epoch:
+On real RINEX data each trial restarts at a random epoch with ephemerides held. After a
+random bit-sync delay of 0.1-0.5 s each satellite waits for the next preamble and becomes
+full by the SOW-decode rule (:mod:`service.core.sow_rule`): once words 1-2 of that subframe
+have decoded, 0.12 s into a D2 subframe (GEOs, 0.6 s subframes), 1.2 s into a D1 subframe
+(6 s); rule ``subframe``: at the end of that subframe. Subframe boundaries are taken from BDT
+as in the real signal (:class:`service.engine.tracker.SubframeEmulator`); before that the
+satellite is fractional (mod 1 ms). The one rule times the fast fix and the conventional
+fix alike. Then, counted from the restart epoch:
 - TTFF_fast: the first epoch with a published fast fix (any fix from the fast solver);
 - TTFF_conventional: the first epoch at which the full measurements alone give an SPP fix
   with PDOP <= 10;
@@ -24,6 +27,7 @@ import numpy as np
 from service.core.constants import is_geo
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
+from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.pipeline import Pipeline
@@ -53,12 +57,13 @@ def run_trial(
     cfg: SolverConfig,
     rng: np.random.Generator,
     horizon_s: float = 30.0,
+    full_rule: str = DEFAULT_FULL_RULE,
 ) -> Trial:
     """Restart the receiver at ``epochs[r]`` (the stream pipeline with an emulated restart)
     and time, from there, the first fix of the pipeline (fast), the first conventional SPP of
     the same view (>= 4 full measurements) and the first GEO-only SPP."""
     t0 = epochs[r]
-    pipeline = Pipeline(store, iono, cfg)
+    pipeline = Pipeline(store, iono, cfg, full_rule=full_rule)
     pipeline.restart(t0, rng)
     fast = conv = geo = geo_err = diff = None
     for ep in epochs[r:]:

@@ -5,9 +5,12 @@ The virtual receiver (:mod:`service.sim.simulator`) writes UBX into one end of a
 ``bdsfix run`` reads the other end through pyserial (driver -> frame-sync tracker -> engine
 -> JSONL), exactly as on a receiver host. The stream is a sequence of trials: at each
 trial's start the receiver restarts (all tracking lost, ephemerides held: a warm start), so
-every satellite is re-acquired after a random delay, reaches bit sync after another, and
-its RAWX pseudorange becomes valid only after one complete subframe (D2: 0.6 s, D1: 6 s,
-boundaries from BDT as in the real signal). Between trials the receiver is silent for a
+every satellite is re-acquired after a random delay, reaches bit sync after another, waits
+for the next preamble, and its RAWX pseudorange becomes valid once that subframe's SOW has
+decoded (the SOW-decode rule, :mod:`service.core.sow_rule`: D2 0.12 s, D1 1.2 s into the
+subframe; ``--full-rule subframe``: at its end, 0.6 s / 6 s), boundaries from BDT as in the
+real signal. The daemon trusts the receiver's prMes, so the same rule times the fast and the
+conventional fix. Between trials the receiver is silent for a
 random 0.5-6.5 s, so restarts fall at random phases of the D1 subframe.
 
 The stream goes as fast as the daemon reads it (the pty's flow control paces it); every time
@@ -146,6 +149,7 @@ class SimStream:
                 noise_m=self.base.noise_m,
                 seed=plan.seed,
                 elmask_deg=self.base.elmask_deg,
+                full_rule=self.base.full_rule,
             )
             bw, bs = gpst_to_bdt(plan.start_gpst_week, plan.start_gpst_tow_s)
             # the satellites whose ephemeris the daemon's store accepts (max age |t - toe|)

@@ -107,6 +107,7 @@ def test_missing_and_unreadable_config_file_exit_2(tmp_path):
         (["replay", "--speed", "fast"], ["--speed"]),
         (["replay", "--speed", "-1"], ["--speed must be a positive number"]),
         (["simulate", "--rate-hz", "0", "--out", "x.ubx"], ["--rate-hz"]),
+        (["ttff", "--simulate", "--full-rule", "end"], ["--full-rule", "invalid choice"]),
         (["sub", "not-an-endpoint", "--count", "1"], ["not-an-endpoint"]),
     ],
 )

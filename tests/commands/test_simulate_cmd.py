@@ -2,13 +2,18 @@
 
 import json
 
+import pytest
+
 from service.commands.cli import main
 from tests.support.paths import DATA
 
 NAV = DATA / "hksc-2021/hksc1610.nav"
 
 
-def test_simulated_capture_replays_fast_then_spp(tmp_path):
+@pytest.mark.parametrize("rule", ["sow", "subframe"])
+def test_simulated_capture_replays_fast_then_spp(tmp_path, rule):
+    """prMes valid by the SOW-decode rule (GEO 0.12 s, IGSO/MEO 1.2 s into the first
+    subframe after bit sync), or by the old rule at the end of that subframe (0.6 s, 6 s)."""
     ubx, out = tmp_path / "sim.ubx", tmp_path / "fixes.jsonl"
     assert (
         main(
@@ -26,6 +31,8 @@ def test_simulated_capture_replays_fast_then_spp(tmp_path):
                 "15",
                 "--out",
                 str(ubx),
+                "--full-rule",
+                rule,
             ]
         )
         == 0
@@ -37,7 +44,11 @@ def test_simulated_capture_replays_fast_then_spp(tmp_path):
     fixes = [r for r in recs if r["class"] == "FIX"]
     first_fast = next(f["since_start_s"] for f in fixes if f["mode"] == "fast")
     first_spp = next(f["since_start_s"] for f in fixes if f["mode"] == "spp")
-    assert first_fast <= 1.5 and first_spp >= 6.0
+    if rule == "sow":
+        assert first_fast <= 1.0 and first_spp >= 1.2
+    else:
+        assert 0.6 <= first_fast <= 1.5 and first_spp >= 6.0
+    assert first_spp > first_fast
     sows = [r for r in recs if r["class"] == "TRACK" and r["event"] == "sow"]
     assert {r["nav_type"] for r in sows} == {"D1", "D2"}
 
