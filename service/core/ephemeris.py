@@ -319,6 +319,27 @@ class EphemerisStore:
             return None
         return best
 
+    def select_span(
+        self, prn: str, bdt_week: int, bdt_sow_s: float
+    ) -> tuple[Ephemeris | None, float, float]:
+        """:meth:`select`, and the open span (lo, hi) of times [s since BDT week 0, sow]
+        around the given one over which :meth:`select` certainly returns the same set: nearer
+        its t_oe than either neighbouring t_oe and within ``max_age_s`` (less a microsecond
+        each side, against rounding). A batch of epochs asks again only when it leaves the
+        span. (nan, nan) with None."""
+        eph = self.select(prn, bdt_week, bdt_sow_s)
+        if eph is None:
+            return None, math.nan, math.nan
+        order = self._by_prn[prn].order
+        t_e = eph.week * WEEK_S + eph.toe_sow_s
+        j = bisect_left(order, (t_e,))
+        lo, hi = t_e - self.max_age_s, t_e + self.max_age_s
+        if j > 0:
+            lo = max(lo, 0.5 * (order[j - 1][0] + t_e))
+        if j + 1 < len(order):
+            hi = min(hi, 0.5 * (t_e + order[j + 1][0]))
+        return eph, lo + 1e-6, hi - 1e-6
+
     def prune(self, bdt_week: int, bdt_sow_s: float, keep_s: float = KEEP_S) -> int:
         """Keep what can still be used at the given BDT time (the latest measurement): per
         satellite, the sets whose t_oe is less than ``keep_s`` before that time or before the
