@@ -20,6 +20,10 @@ Files:
   noise), solved with --mode both; truth the simulated position.
 - ONE: HKSC's first epoch alone: the start-up of `bdsfix solve`.
 
+bdsfix runs with Python's bytecode cache (as an installed package: pip compiles the modules
+at install); ONE is also timed without it (every module compiled at each start, as under
+PYTHONDONTWRITEBYTECODE=1). Each case has one untimed warm-up run of each program.
+
 Run: python bench/bench_vs_rtklib.py [--runs 15] [--files hksc,tst,sim24,one]
 (prints figures; no assertions). Needs rnx2rtkp (Debian package rtklib).
 """
@@ -31,6 +35,7 @@ import csv
 import datetime as dt
 import json
 import math
+import os
 import shutil
 import statistics
 import subprocess
@@ -242,10 +247,23 @@ def _bdsfix_cmd() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "service"]
 
 
-def run_timed(cmd: list[str]) -> float:
+def run_timed(cmd: list[str], env: dict[str, str] | None = None) -> float:
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     return time.perf_counter() - t0
+
+
+def bdsfix_env(workdir: Path, bytecode: bool) -> dict[str, str]:
+    """bdsfix's environment: with ``bytecode``, Python's compiled-module cache on (in the
+    work directory), as an installed package has it (pip compiles at install); without,
+    every module is compiled from source at each start (PYTHONDONTWRITEBYTECODE=1)."""
+    env = dict(os.environ)
+    if bytecode:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        env["PYTHONPYCACHEPREFIX"] = str(workdir / "pycache")
+    else:
+        env["PYTHONDONTWRITEBYTECODE"] = "1"
+    return env
 
 
 def rms(errors: list[float]) -> float:
@@ -278,7 +296,9 @@ def score_rtklib(path: Path, truth: Truth) -> dict[tuple[int, int], float]:
     return out
 
 
-def bench_case(case: Case, runs: int, workdir: Path, conf: Path) -> None:
+def bench_case(
+    case: Case, runs: int, workdir: Path, conf: Path, env: dict[str, str], label: str = ""
+) -> None:
     bds_out, rtk_out = workdir / f"{case.name}.jsonl", workdir / f"{case.name}.pos"
     bds = [
         *_bdsfix_cmd(),
@@ -291,13 +311,15 @@ def bench_case(case: Case, runs: int, workdir: Path, conf: Path) -> None:
         str(bds_out),
     ]
     rtk = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(rtk_out), str(case.obs), str(case.nav)]
+    run_timed(bds, env)  # warm-up (file cache, bytecode cache), not timed
+    run_timed(rtk)
     t_bds, t_rtk = [], []
     for _ in range(runs):
-        t_bds.append(run_timed(bds))
+        t_bds.append(run_timed(bds, env))
         t_rtk.append(run_timed(rtk))
     mb, mr = statistics.median(t_bds), statistics.median(t_rtk)
     print(
-        f"{case.name:<6} {case.epochs:5d} epochs  bdsfix solve --mode {case.mode:<4} "
+        f"{case.name + label:<6} {case.epochs:5d} epochs  bdsfix solve --mode {case.mode:<4} "
         f"{mb:7.3f} s (min {min(t_bds):.3f})  rnx2rtkp {mr:6.3f} s (min {min(t_rtk):.3f})  "
         f"ratio {mb / mr:5.1f}x   ({runs} alternating runs, medians)"
     )
@@ -357,9 +379,17 @@ def main() -> None:
             t0 = time.perf_counter()
             cases.append(make_sim_day(workdir, args.sim_hours))
             print(f"(simulated day written in {time.perf_counter() - t0:.1f} s)")
-        print(f"bench_vs_rtklib: {' '.join(_bdsfix_cmd())} vs rnx2rtkp, {args.runs} runs each")
+        print(
+            f"bench_vs_rtklib: {' '.join(_bdsfix_cmd())} vs rnx2rtkp, {args.runs} runs each; "
+            f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start"
+        )
+        env = bdsfix_env(workdir, bytecode=True)
         for case in cases:
-            bench_case(case, args.runs, workdir, conf)
+            bench_case(case, args.runs, workdir, conf, env)
+        if "one" in want:  # start-up when every module is compiled at each start
+            bench_case(cases[0], args.runs, workdir, conf, bdsfix_env(workdir, False), "*")
+            print("       (ONE*: no bytecode cache, PYTHONDONTWRITEBYTECODE=1)")
+        print(f"load average {os.getloadavg()[0]:.1f} at the end")
 
 
 if __name__ == "__main__":
