@@ -733,18 +733,20 @@ def _exclude(
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
-) -> dict[int, Fix]:
+) -> tuple[dict[int, Fix], set[int]]:
     """Fault exclusion (:func:`service.engine.solver._exclude`) for the epochs that failed
     the test, every candidate of every epoch of a stage in one batch: at each stage each
     used satellite is excluded in turn; the passing candidate with the smallest chi2 /
     threshold is taken, else the best-fitting failed one starts the next stage. Epochs with
-    no passing candidate after the last stage, or with a candidate whose outcome is not
-    certain, are left out: the per-epoch solver words their decline."""
+    no passing candidate after the last stage are returned apart (``hopeless``: their fix is
+    the failed solution's decline); an epoch with a candidate whose outcome is not certain is
+    in neither (the per-epoch solver decides it)."""
     # per epoch: the failed solution, the epoch it came from, the satellites removed so far
     current: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {
         e: (f, epochs[e], {}) for e, f in failed.items()
     }
     out: dict[int, Fix] = {}
+    hopeless: set[int] = set()
     for _stage in range(cfg.max_exclusions):
         cands: list[MeasurementEpoch] = []
         owner: list[tuple[int, int]] = []  # (epoch, index in its failed.kept)
@@ -754,7 +756,7 @@ def _exclude(
                     cands.append(_without(ep, prn))
                     owner.append((e, k))
         if not cands:
-            break
+            break  # every epoch left has redundancy < 2: hopeless (below)
         results = _outcomes(cands, select, iono, cfg, solver)
         passed: dict[int, tuple[float, Fix, int]] = {}
         failing: dict[int, tuple[float, _Failed, int, MeasurementEpoch]] = {}
@@ -774,16 +776,21 @@ def _exclude(
                     failing[e] = (ratio, res, k, cand)
         nxt: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {}
         for e, (f, _, removed) in current.items():
-            if e in unsure or f.redundancy < 2:
+            if e in unsure:
                 continue
-            if e in passed:
+            if f.redundancy < 2:
+                hopeless.add(e)
+            elif e in passed:
                 _, fix, k = passed[e]
                 out[e] = replace(fix, excluded=removed | {f.kept[k]: _why(f, k)})
             elif e in failing:
                 _, f2, k, cand = failing[e]
                 nxt[e] = (f2, cand, removed | {f.kept[k]: _why(f, k)})
+            else:
+                hopeless.add(e)
         current = nxt
-    return out
+    hopeless |= current.keys()  # every stage done, none passed
+    return out, hopeless
 
 
 def _why(f: _Failed, k: int) -> str:
@@ -816,8 +823,19 @@ def solve_many(
             elif isinstance(res, _Failed):
                 failed[i] = res
         if failed and cfg.max_exclusions > 0:
-            for i, fix in _exclude(failed, epochs, select, iono, cfg, solver).items():
+            passed, hopeless = _exclude(failed, epochs, select, iono, cfg, solver)
+            for i, fix in passed.items():
                 out[i] = fix
+            # no exclusion passes: the per-epoch solver's decline of the failed solution,
+            # without running its exclusion again (service.engine.solver._exclude's words)
+            alone = replace(cfg, max_exclusions=0)
+            for i in sorted(hopeless):
+                fix = solve(epochs[i], store, iono, alone, solver)
+                if fix.reason_code == "chi2":
+                    n = cfg.max_exclusions
+                    out[i] = replace(
+                        fix, reason=f"{fix.reason}; no exclusion of up to {n} satellites passes"
+                    )
     return [
         (replace(f, sky=sky_view(ep, store, f)) if with_sky else f)
         if f is not None
