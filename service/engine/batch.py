@@ -84,49 +84,59 @@ class _Chunk:
         select: _Selector,
         solver: Literal["fast", "spp"],
     ) -> None:
-        rows: list[list[tuple[int, Ephemeris]]] = []
-        bdt = [gpst_to_bdt(ep.gpst_week, ep.gpst_tow_s) for ep in epochs]
-        for ep, (week, sow) in zip(epochs, bdt, strict=True):
-            full = np.isfinite(ep.pr_m)
-            use = full
-            if solver == "fast":
-                use = full | (np.isfinite(ep.frac_pr_m) & np.isfinite(ep.period_s))
-            mine = []
-            for i in np.flatnonzero(use).tolist():
-                e = select(ep.prn[i], week, sow)
-                if e is not None:
-                    mine.append((i, e))
-            rows.append(mine)
         n_e = len(epochs)
-        n_s = max(1, max(len(r) for r in rows))
+        bdt = [gpst_to_bdt(ep.gpst_week, ep.gpst_tow_s) for ep in epochs]
         self.epochs = epochs
         self.bdt_week = np.array([w for w, _ in bdt], dtype=float)
         self.bdt_sow = np.array([s for _, s in bdt])
+        # every measurement of the chunk in one flat column each
+        sizes = [len(ep.prn) for ep in epochs]
+        owner = np.repeat(np.arange(n_e), sizes)
+        pr = np.concatenate([ep.pr_m for ep in epochs]) if n_e else np.zeros(0)
+        frac_pr = np.concatenate([ep.frac_pr_m for ep in epochs]) if n_e else np.zeros(0)
+        period = np.concatenate([ep.period_s for ep in epochs]) if n_e else np.zeros(0)
+        cn0 = np.concatenate([ep.cn0_dbhz for ep in epochs]) if n_e else np.zeros(0)
+        full = np.isfinite(pr)
+        use = full
+        if solver == "fast":
+            use = full | (np.isfinite(frac_pr) & np.isfinite(period))
+        prns = [p for ep in epochs for p in ep.prn]
+        table: dict[int, int] = {}
+        unique: list[Ephemeris] = []
+        picked: list[int] = []  # flat index of each row
+        eph_idx: list[int] = []
+        for f in np.flatnonzero(use).tolist():
+            k = int(owner[f])
+            e = select(prns[f], *bdt[k])
+            if e is None:
+                continue
+            u = table.get(id(e))
+            if u is None:
+                u = table[id(e)] = len(unique)
+                unique.append(e)
+            picked.append(f)
+            eph_idx.append(u)
+        rows = np.array(picked, dtype=int)
+        row_owner = owner[rows]
+        counts = np.bincount(row_owner, minlength=n_e)
+        n_s = max(1, int(counts.max()) if n_e else 1)
+        # slot of each row within its epoch: its rank among the epoch's rows
+        first = np.concatenate([[0], np.cumsum(counts)[:-1]]) if n_e else np.zeros(0, int)
+        slot = np.arange(len(rows)) - first[row_owner]
         self.valid = np.zeros((n_e, n_s), dtype=bool)
         self.z = np.zeros((n_e, n_s))
         self.ct = np.zeros((n_e, n_s))
         self.cn0 = np.full((n_e, n_s), np.nan)
-        self.prn: list[tuple[str, ...]] = []
-        table: dict[int, int] = {}
-        unique: list[Ephemeris] = []
         idx = np.zeros((n_e, n_s), dtype=int)
-        for k, (ep, mine) in enumerate(zip(epochs, rows, strict=True)):
-            self.prn.append(tuple(ep.prn[i] for i, _ in mine))
-            if not mine:
-                continue
-            ii = np.array([i for i, _ in mine])
-            m = len(mine)
-            full = np.isfinite(ep.pr_m[ii])
-            self.valid[k, :m] = True
-            self.z[k, :m] = np.where(full, ep.pr_m[ii], ep.frac_pr_m[ii])
-            self.ct[k, :m] = np.where(full, 0.0, C_M_S * ep.period_s[ii])
-            self.cn0[k, :m] = ep.cn0_dbhz[ii]
-            for j, (_, e) in enumerate(mine):
-                u = table.get(id(e))
-                if u is None:
-                    u = table[id(e)] = len(unique)
-                    unique.append(e)
-                idx[k, j] = u
+        at = (row_owner, slot)
+        self.valid[at] = True
+        self.z[at] = np.where(full[rows], pr[rows], frac_pr[rows])
+        self.ct[at] = np.where(full[rows], 0.0, C_M_S * period[rows])
+        self.cn0[at] = cn0[rows]
+        idx[at] = eph_idx
+        row_prns = [prns[f] for f in picked]
+        ends = np.cumsum(counts).tolist()
+        self.prn = [tuple(row_prns[a:b]) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
         if not unique:  # nothing selectable: every epoch goes to the per-epoch solver
             unique.append(_placeholder())
         cols = EphemerisArrays.from_ephemerides(unique)
@@ -536,6 +546,25 @@ def _solve_chunk(
     q = np.linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ np.swapaxes(rot, -1, -2)
     pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
+    numbers: dict[str, list] = {
+        "x": x[sel].tolist(),
+        "b": b[sel].tolist(),
+        "lat_deg": np.degrees(lat).tolist(),
+        "lon_deg": np.degrees(lon).tolist(),
+        "alt": alt.tolist(),
+        "gdop": gd_final.tolist(),
+        "pdop": pdop.tolist(),
+        "hdop": np.sqrt(q_enu[:, 0, 0] + q_enu[:, 1, 1]).tolist(),
+        "vdop": np.sqrt(q_enu[:, 2, 2]).tolist(),
+        "cov": integ.cov_enu.tolist(),
+        "resid": resid_rms.tolist(),
+        "iters": iters[sel].tolist(),
+        "redundancy": integ.redundancy.tolist(),
+        "chi2": integ.chi2,
+        "chi2_max": integ.chi2_max,
+        "hpl": integ.hpl,
+        "vpl": integ.vpl,
+    }
     for k, e in enumerate(sel.tolist()):
         chi2, chi2_max = integ.chi2[k], integ.chi2_max[k]
         if chi2 is not None and chi2_max is not None and not chi2 <= chi2_max:
@@ -548,18 +577,12 @@ def _solve_chunk(
                 tuple(float(integ.wtest[k, i]) for i in kk),
             )
             continue
-        a_m, bb = float(alt[k]), float(b[e])
+        a_m, bb = numbers["alt"][k], numbers["b"][k]
         if not (cfg.alt_min_m <= a_m <= cfg.alt_max_m) or abs(bb) > cfg.clock_max_s * C_M_S:
             continue
-        if not pdop[k] <= cfg.pdop_max:
+        if not numbers["pdop"][k] <= cfg.pdop_max:
             continue
-        figures = (
-            float(gd_final[k]) if solver == "fast" else None,
-            float(resid_rms[k]),
-            int(iters[e]),
-        )
-        fix = _fix(ch, e, k, solver, x, b, n_int, kp[k], (lat, lon, alt), integ, q_enu, pdop)
-        out[e] = replace(fix, gdop_full=figures[0], resid_rms_m=figures[1], iterations=figures[2])
+        out[e] = _fix(ch, e, solver, n_int, kp[k], numbers, k)
     return out
 
 
@@ -638,55 +661,51 @@ def _assess(
 def _fix(
     ch: _Chunk,
     e: int,
-    k: int,
     solver: Literal["fast", "spp"],
-    x: np.ndarray,
-    b: np.ndarray,
     n_int: np.ndarray,
     kept: np.ndarray,
-    geodetic: tuple[np.ndarray, np.ndarray, np.ndarray],
-    integ: _Integrity,
-    q_enu: np.ndarray,
-    pdop: np.ndarray,
+    numbers: dict[str, list],
+    k: int,
 ) -> Fix:
+    """The fix of epoch ``e`` (``k``: its index among the judged epochs, in ``numbers``)."""
     ep = ch.epochs[e]
-    lat, lon, alt = geodetic
     prn = ch.prn[e]
-    m = len(prn)
-    kk = np.flatnonzero(kept[:m]).tolist()
-    frac = ch.frac[e]
+    kk = np.flatnonzero(kept[: len(prn)]).tolist()
+    frac = ch.frac[e].tolist()
     used = tuple(prn[i] for i in kk)
     full = tuple(prn[i] for i in kk if not frac[i])
     fractional = tuple(prn[i] for i in kk if frac[i])
     ambiguity = {prn[i]: int(n_int[e, i]) for i in kk if frac[i]}
     recovered = {prn[i]: float(ch.z[e, i] + n_int[e, i] * ch.ct[e, i]) for i in kk if frac[i]}
-    cov = integ.cov_enu[k]
-    q = q_enu[k]
+    cov = numbers["cov"][k]
     return Fix(
         solver=solver,
         mode="fast" if fractional else "spp",
         gpst_week=ep.gpst_week,
         gpst_tow_s=ep.gpst_tow_s,
-        x_ecef_m=(float(x[e, 0]), float(x[e, 1]), float(x[e, 2])),
-        lat_deg=float(np.degrees(lat[k])),
-        lon_deg=float(np.degrees(lon[k])),
-        alt_m=float(alt[k]),
-        clock_bias_m=float(b[e]),
-        pdop=float(pdop[k]),
-        hdop=float(np.sqrt(q[0, 0] + q[1, 1])),
-        vdop=float(np.sqrt(q[2, 2])),
-        std_enu_m=tuple(math.sqrt(max(float(cov[i, i]), 0.0)) for i in range(3)),  # type: ignore[arg-type]
-        cov_enu_m2=tuple((float(r[0]), float(r[1]), float(r[2])) for r in cov),
+        x_ecef_m=tuple(numbers["x"][k]),
+        lat_deg=numbers["lat_deg"][k],
+        lon_deg=numbers["lon_deg"][k],
+        alt_m=numbers["alt"][k],
+        clock_bias_m=numbers["b"][k],
+        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
+        pdop=numbers["pdop"][k],
+        hdop=numbers["hdop"][k],
+        vdop=numbers["vdop"][k],
+        std_enu_m=tuple(math.sqrt(max(cov[i][i], 0.0)) for i in range(3)),  # type: ignore[arg-type]
+        cov_enu_m2=tuple(tuple(r) for r in cov),
         used=used,
         full=full,
         fractional=fractional,
         ambiguity=ambiguity,
         recovered_pr_m=recovered,
-        redundancy=int(integ.redundancy[k]),
-        chi2=integ.chi2[k],
-        chi2_max=integ.chi2_max[k],
-        hpl_m=integ.hpl[k],
-        vpl_m=integ.vpl[k],
+        resid_rms_m=numbers["resid"][k],
+        iterations=numbers["iters"][k],
+        redundancy=numbers["redundancy"][k],
+        chi2=numbers["chi2"][k],
+        chi2_max=numbers["chi2_max"][k],
+        hpl_m=numbers["hpl"][k],
+        vpl_m=numbers["vpl"][k],
     )
 
 
