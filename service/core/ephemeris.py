@@ -249,6 +249,10 @@ class EphemerisStore:
         # column form of recently used ephemeris sets (the same set serves many epochs);
         # keyed by object identity, the entry holds the objects so identities stay unique
         self._arrays: dict[tuple[int, ...], tuple[tuple[Ephemeris, ...], EphemerisArrays]] = {}
+        # per satellite, the last answer of select() and the span of times [s since BDT
+        # week 0] over which it cannot change (select_span), with the max_age_s it holds
+        # for; emptied whenever the sets change
+        self._spans: dict[str, tuple[Ephemeris, float, float, float]] = {}
 
     def __len__(self) -> int:
         return sum(len(v.order) for v in self._by_prn.values())
@@ -273,6 +277,7 @@ class EphemerisStore:
         if sets is None:
             sets = self._by_prn[eph.prn] = _Sets()
         sets.put(eph)
+        self._spans.pop(eph.prn, None)
         excess = len(sets.order) - self.max_sets_per_prn
         if excess > 0:
             self.evicted += sets.drop_oldest(excess)
@@ -310,7 +315,19 @@ class EphemerisStore:
     def select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
         """Healthy ephemeris of ``prn`` with t_oe nearest the BDT time, or None if too old.
 
-        A binary search among the satellite's sets: the cost does not grow with them."""
+        A binary search among the satellite's sets: the cost does not grow with them; an
+        epoch inside the span of the satellite's previous answer (:meth:`select_span`) gets
+        that answer without the search."""
+        hit = self._spans.get(prn)
+        t_s = bdt_week * WEEK_S + bdt_sow_s
+        if hit is not None and hit[1] < t_s < hit[2] and hit[3] == self.max_age_s:
+            return hit[0]
+        eph, lo, hi = self.select_span(prn, bdt_week, bdt_sow_s)
+        if eph is not None:
+            self._spans[prn] = (eph, lo, hi, self.max_age_s)
+        return eph
+
+    def _select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
         sets = self._by_prn.get(prn)
         if not sets:
             return None
@@ -327,7 +344,7 @@ class EphemerisStore:
         its t_oe than either neighbouring t_oe and within ``max_age_s`` (less a microsecond
         each side, against rounding). A batch of epochs asks again only when it leaves the
         span. (nan, nan) with None."""
-        eph = self.select(prn, bdt_week, bdt_sow_s)
+        eph = self._select(prn, bdt_week, bdt_sow_s)
         if eph is None:
             return None, math.nan, math.nan
         order = self._by_prn[prn].order
@@ -352,6 +369,7 @@ class EphemerisStore:
         (a day's navigation file loaded at start) stay until the count bound evicts them."""
         t_s = bdt_week * WEEK_S + bdt_sow_s
         dropped = 0
+        self._spans.clear()
         for prn in list(self._by_prn):
             sets = self._by_prn[prn]
             dropped += sets.drop_until(min(t_s, sets.order[-1][0]) - keep_s)

@@ -38,7 +38,7 @@ from typing import Literal
 
 import numpy as np
 
-from service.core.constants import C_M_S, F_B1I_HZ, F_GPS_L1_HZ, OMEGA_E_RAD_S, WEEK_S
+from service.core.constants import C_M_S, F_B1I_HZ, F_GPS_L1_HZ, OMEGA_E_RAD_S
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -56,32 +56,13 @@ enough that the arrays stay in cache and output keeps flowing."""
 _EPH_FIELDS = tuple(f for f in EphemerisArrays.__dataclass_fields__ if f != "prn")
 
 
-class _Selector:
-    """:meth:`EphemerisStore.select` for a run of epochs in time order, asking the store
-    again only when an epoch leaves the span over which its answer cannot change."""
-
-    def __init__(self, store: EphemerisStore) -> None:
-        self.store = store
-        self.spans: dict[str, tuple[Ephemeris, float, float]] = {}
-
-    def __call__(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
-        t = bdt_week * WEEK_S + bdt_sow_s
-        hit = self.spans.get(prn)
-        if hit is not None and hit[1] < t < hit[2]:
-            return hit[0]
-        eph, lo, hi = self.store.select_span(prn, bdt_week, bdt_sow_s)
-        if eph is not None:
-            self.spans[prn] = (eph, lo, hi)
-        return eph
-
-
 class _Chunk:
     """The rows of a chunk of epochs as (epoch, slot) arrays; ``valid`` marks real rows."""
 
     def __init__(
         self,
         epochs: Sequence[MeasurementEpoch],
-        select: _Selector,
+        store: EphemerisStore,
         solver: Literal["fast", "spp"],
     ) -> None:
         n_e = len(epochs)
@@ -107,7 +88,7 @@ class _Chunk:
         eph_idx: list[int] = []
         for f in np.flatnonzero(use).tolist():
             k = int(owner[f])
-            e = select(prns[f], *bdt[k])
+            e = store.select(prns[f], *bdt[k])
             if e is None:
                 continue
             u = table.get(id(e))
@@ -711,7 +692,7 @@ def _fix(
 
 def _outcomes(
     epochs: Sequence[MeasurementEpoch],
-    select: _Selector,
+    store: EphemerisStore,
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
@@ -722,7 +703,7 @@ def _outcomes(
         part = epochs[start : start + CHUNK_EPOCHS]
         try:
             with np.errstate(all="ignore"):
-                out += _solve_chunk(_Chunk(part, select, solver), iono, cfg, solver)
+                out += _solve_chunk(_Chunk(part, store, solver), iono, cfg, solver)
         except (np.linalg.LinAlgError, ArithmeticError, ValueError):
             log.debug("batch solve failed on a chunk; its epochs go one by one", exc_info=True)
             out += [None] * len(part)
@@ -748,7 +729,7 @@ def _without(epoch: MeasurementEpoch, prn: str) -> MeasurementEpoch:
 def _exclude(
     failed: dict[int, _Failed],
     epochs: Sequence[MeasurementEpoch],
-    select: _Selector,
+    store: EphemerisStore,
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
@@ -776,7 +757,7 @@ def _exclude(
                     owner.append((e, k))
         if not cands:
             break  # every epoch left has redundancy < 2: hopeless (below)
-        results = _outcomes(cands, select, iono, cfg, solver)
+        results = _outcomes(cands, store, iono, cfg, solver)
         passed: dict[int, tuple[float, Fix, int]] = {}
         failing: dict[int, tuple[float, _Failed, int, MeasurementEpoch]] = {}
         unsure: set[int] = set()
@@ -832,9 +813,8 @@ def solve_many(
     iono = iono or IonoSet()
     out: list[Fix | None] = [None] * len(epochs)
     if cfg.x0_ecef_m is None and cfg.p_fa > 0.0:
-        select = _Selector(store)
         todo = [i for i, ep in enumerate(epochs) if ep.week_known]
-        results = _outcomes([epochs[i] for i in todo], select, iono, cfg, solver)
+        results = _outcomes([epochs[i] for i in todo], store, iono, cfg, solver)
         failed: dict[int, _Failed] = {}
         for i, res in zip(todo, results, strict=True):
             if isinstance(res, Fix):
@@ -842,7 +822,7 @@ def solve_many(
             elif isinstance(res, _Failed):
                 failed[i] = res
         if failed and cfg.max_exclusions > 0:
-            passed, hopeless = _exclude(failed, epochs, select, iono, cfg, solver)
+            passed, hopeless = _exclude(failed, epochs, store, iono, cfg, solver)
             for i, fix in passed.items():
                 out[i] = fix
             # no exclusion passes: the per-epoch solver's decline of the failed solution,

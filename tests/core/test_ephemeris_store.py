@@ -51,6 +51,28 @@ def test_select_span_holds_select_s_answer_and_ends_where_it_changes(nav):
     assert store.select_span("C99", week, 4 * 86400.0)[0] is None
 
 
+def test_remembered_selection_follows_new_sets_age_limit_and_pruning(nav):
+    """select() answers from the satellite's last span while nothing changes; a set added,
+    a different max_age_s or a prune is seen at once."""
+    store = EphemerisStore(max_age_s=7200)
+    first = nav.ephemerides["C08"][0]
+    store.add(first)
+    t = first.toe_sow_s + 1500.0
+    assert store.select("C08", first.week, t) is first
+    assert store.select("C08", first.week, t + 1.0) is first  # from the span
+    newer = dataclasses.replace(first, toe_sow_s=first.toe_sow_s + 3600.0)
+    store.add(newer)
+    assert store.select("C08", first.week, t + 1.0) is first  # 1501 s vs 2099 s away
+    assert store.select("C08", first.week, t + 400.0) is newer  # past the midpoint
+    store.max_age_s = 600.0
+    assert store.select("C08", first.week, t + 400.0) is None  # 1700 s: too old now
+    store.max_age_s = 7200.0
+    assert store.select("C08", first.week, t + 400.0) is newer
+    assert store.select("C08", first.week, t) is first
+    store.prune(first.week, newer.toe_sow_s, keep_s=1800.0)  # drops the first set
+    assert store.select("C08", first.week, t) is newer
+
+
 def test_unhealthy_sets_are_refused_with_a_log_line(nav, caplog):
     store = EphemerisStore()
     good = nav.ephemerides["C08"][0]
