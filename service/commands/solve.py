@@ -97,8 +97,10 @@ def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
     from service.commands.summary import NO_EPOCHS_HINT, decline_lines
-    from service.output.nmea import fix_utc, sentences_for_fix
     from service.output.records import csv_header, fix_csv_row, fix_json_line
+
+    if args.format == "nmea":  # pynmeagps only when asked for (start-up)
+        from service.output.nmea import fix_utc, sentences_for_fix
 
     cfg = solver_config(args)
     opts = BatchOptions(

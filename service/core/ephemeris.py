@@ -21,7 +21,6 @@ import json
 import logging
 import math
 import os
-import secrets
 import time
 from bisect import bisect_left
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -508,6 +507,8 @@ def write_store(path: str | Path, snapshot: StoreSnapshot) -> None:
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     for stale in path.parent.glob(f".{path.name}.*"):  # one writer: these are crash debris
         stale.unlink(missing_ok=True)
+    import secrets  # here: secrets loads OpenSSL (~10 ms), a cost for every command's start
+
     tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}"
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     fd = os.open(tmp, flags, STORE_FILE_MODE)
