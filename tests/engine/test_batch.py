@@ -23,7 +23,7 @@ from service.commands.solve import load_navigation
 from service.core.constants import C_M_S, is_geo
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.batch import CHUNK_EPOCHS, solve_many
-from service.engine.solver import fractionalize, solve
+from service.engine.solver import SolverConfig, fractionalize, solve
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA
 
@@ -146,3 +146,27 @@ def test_order_does_not_matter(hksc):
     shuffled = solve_many([epochs[i] for i in perm], store, iono, solver="spp")
     for k, i in enumerate(perm):
         _same(ordered[i], shuffled[k])
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        SolverConfig(iono="off", tropo="off"),
+        SolverConfig(iono="gps", elmask_deg=0.0),
+        SolverConfig(max_exclusions=1, pdop_max=2.0),
+        SolverConfig(p_fa=0.0),
+        SolverConfig(beta=100.0, alt_max_m=10.0),
+    ],
+    ids=["no-corrections", "gps-iono-no-mask", "one-exclusion-pdop-2", "no-test", "gates"],
+)
+@pytest.mark.parametrize("solver", ["spp", "fast"])
+def test_settings_batch_equals_per_epoch(hksc, solver, cfg):
+    nav = str(DATA / "hksc-2021" / "hksc1610.nav")
+    store, iono = load_navigation([nav])
+    epochs = [_faulted(e, k) for k, e in enumerate(hksc[::5])]
+    if solver == "fast":
+        epochs = [fractionalize(e, 20e-3 if cfg.p_fa else 1e-3) for e in epochs]
+    ref = [solve(e, store, iono, cfg, solver) for e in epochs]
+    got = solve_many(epochs, store, iono, cfg, solver)
+    for r, g in zip(ref, got, strict=True):
+        _same(r, g)
