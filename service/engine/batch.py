@@ -315,6 +315,7 @@ class _Failed:
     redundancy: int
     kept: tuple[str, ...]  # the PRNs the solution used, in row order
     wtest: tuple[float, ...]  # their w-tests
+    fix: Fix  # the per-epoch solver's decline of this solution (reason_code chi2)
 
 
 _DECLINED = "declined"
@@ -549,14 +550,7 @@ def _solve_chunk(
     for k, e in enumerate(sel.tolist()):
         chi2, chi2_max = integ.chi2[k], integ.chi2_max[k]
         if chi2 is not None and chi2_max is not None and not chi2 <= chi2_max:
-            kk = np.flatnonzero(kp[k]).tolist()
-            out[e] = _Failed(
-                chi2,
-                chi2_max,
-                int(integ.redundancy[k]),
-                tuple(ch.prn[e][i] for i in kk),
-                tuple(float(integ.wtest[k, i]) for i in kk),
-            )
+            out[e] = _failed(ch, e, solver, n_int, kp[k], integ, numbers, k)
             continue
         a_m, bb = numbers["alt"][k], numbers["b"][k]
         if not (cfg.alt_min_m <= a_m <= cfg.alt_max_m) or abs(bb) > cfg.clock_max_s * C_M_S:
@@ -688,6 +682,52 @@ def _fix(
         hpl_m=numbers["hpl"][k],
         vpl_m=numbers["vpl"][k],
     )
+
+
+def _failed(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    n_int: np.ndarray,
+    kept: np.ndarray,
+    integ: _Integrity,
+    numbers: dict[str, list],
+    k: int,
+) -> _Failed:
+    """Epoch ``e``'s failed chi-square test, with the decline the per-epoch solver gives
+    it (:func:`service.engine.solver._attempt`: the figures of the failed solution and the
+    largest w-test in the reason)."""
+    ep = ch.epochs[e]
+    prn = ch.prn[e]
+    frac = ch.frac[e].tolist()
+    kk = np.flatnonzero(kept[: len(prn)]).tolist()
+    used = tuple(prn[i] for i in kk)
+    w = [float(integ.wtest[k, i]) for i in kk]
+    chi2, chi2_max, r = numbers["chi2"][k], numbers["chi2_max"][k], numbers["redundancy"][k]
+    finite = [abs(v) if math.isfinite(v) else -math.inf for v in w]
+    worst = finite.index(max(finite)) if any(math.isfinite(v) for v in w) else 0
+    reason = (
+        f"chi-square test failed: {chi2:.1f} > {chi2_max:.1f} "
+        f"(redundancy {r}; largest w-test {used[worst]} {w[worst]:.1f})"
+    )
+    fix = Fix(
+        solver=solver,
+        mode="none",
+        gpst_week=ep.gpst_week,
+        gpst_tow_s=ep.gpst_tow_s,
+        full=tuple(p for p, f in zip(prn, frac, strict=False) if not f),
+        fractional=tuple(p for p, f in zip(prn, frac, strict=False) if f),
+        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
+        iterations=numbers["iters"][k],
+        resid_rms_m=numbers["resid"][k],
+        redundancy=r,
+        chi2=chi2,
+        chi2_max=chi2_max,
+        reason=reason,
+        reason_code="chi2",
+        ambiguity={prn[i]: int(n_int[e, i]) for i in kk if frac[i]},
+    )
+    return _Failed(chi2, chi2_max, r, used, tuple(w), fix)
 
 
 def _outcomes(
@@ -825,16 +865,16 @@ def solve_many(
             passed, hopeless = _exclude(failed, epochs, store, iono, cfg, solver)
             for i, fix in passed.items():
                 out[i] = fix
-            # no exclusion passes: the per-epoch solver's decline of the failed solution,
-            # without running its exclusion again (service.engine.solver._exclude's words)
-            alone = replace(cfg, max_exclusions=0)
-            for i in sorted(hopeless):
-                fix = solve(epochs[i], store, iono, alone, solver)
-                if fix.reason_code == "chi2":
-                    n = cfg.max_exclusions
-                    out[i] = replace(
-                        fix, reason=f"{fix.reason}; no exclusion of up to {n} satellites passes"
-                    )
+            # no exclusion passes: the failed solution's decline, in the words of
+            # service.engine.solver._exclude
+            n = cfg.max_exclusions
+            for i in hopeless:
+                fix = failed[i].fix
+                why = f"{fix.reason}; no exclusion of up to {n} satellites passes"
+                out[i] = replace(fix, reason=why)
+        elif failed:  # no exclusion asked for: the failed solution's decline
+            for i, f in failed.items():
+                out[i] = f.fix
     return [
         (replace(f, sky=sky_view(ep, store, f)) if with_sky else f)
         if f is not None

@@ -154,10 +154,18 @@ def test_order_does_not_matter(hksc):
         SolverConfig(iono="off", tropo="off"),
         SolverConfig(iono="gps", elmask_deg=0.0),
         SolverConfig(max_exclusions=1, pdop_max=2.0),
+        SolverConfig(max_exclusions=0),
         SolverConfig(p_fa=0.0),
         SolverConfig(beta=100.0, alt_max_m=10.0),
     ],
-    ids=["no-corrections", "gps-iono-no-mask", "one-exclusion-pdop-2", "no-test", "gates"],
+    ids=[
+        "no-corrections",
+        "gps-iono-no-mask",
+        "one-exclusion-pdop-2",
+        "no-exclusion",
+        "no-test",
+        "gates",
+    ],
 )
 @pytest.mark.parametrize("solver", ["spp", "fast"])
 def test_settings_batch_equals_per_epoch(hksc, solver, cfg):
