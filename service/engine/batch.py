@@ -346,7 +346,6 @@ def _solve_chunk(
     ok = np.ones(n_e, dtype=bool)
     unsure = np.zeros(n_e, dtype=bool)
     n_full = ch.full.sum(axis=1)
-    ok &= n_full >= 4
     # impossible ranges (the per-epoch solver drops them and says so): not here
     zf = np.where(ch.full, ch.z, np.nan)
     zs = np.sort(zf, axis=1)
@@ -355,8 +354,10 @@ def _solve_chunk(
     median = 0.5 * (np.take_along_axis(zs, k1, 1) + np.take_along_axis(zs, k2, 1))
     with np.errstate(invalid="ignore"):
         gross = ch.full & ~(np.abs(ch.z - median) <= GROSS_SPREAD_M)
-    unsure |= ok & gross.any(axis=1)
-    ok &= ~gross.any(axis=1)
+    n_rows = ch.valid.sum(axis=1)
+    unsure |= gross.any(axis=1) | (n_rows == 0)  # (no rows: no ephemeris or no measurement)
+    too_few = ~unsure & (n_full < 4)
+    ok &= ~unsure & ~too_few
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
     x = np.zeros((n_e, 3))
@@ -469,6 +470,8 @@ def _solve_chunk(
     unsure |= far
     ok &= ~far
     out: list[_Outcome] = [None if u else _DECLINED for u in unsure.tolist()]
+    for e in np.flatnonzero(too_few).tolist():
+        out[e] = _too_few(ch, e, solver)
     sel = np.flatnonzero(ok)
     if not sel.size:
         return out
@@ -554,8 +557,16 @@ def _solve_chunk(
             continue
         a_m, bb = numbers["alt"][k], numbers["b"][k]
         if not (cfg.alt_min_m <= a_m <= cfg.alt_max_m) or abs(bb) > cfg.clock_max_s * C_M_S:
+            reason = (
+                f"implausible solution: altitude {a_m:.4g} m (allowed {cfg.alt_min_m:g} to "
+                f"{cfg.alt_max_m:g}), receiver clock {bb / C_M_S:.4g} s (allowed "
+                f"+-{cfg.clock_max_s:g})"
+            )
+            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "implausible")
             continue
         if not numbers["pdop"][k] <= cfg.pdop_max:
+            reason = f"PDOP gate failed: PDOP {numbers['pdop'][k]:.1f} > {cfg.pdop_max:g}"
+            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "pdop_gate")
             continue
         out[e] = _fix(ch, e, solver, n_int, kp[k], numbers, k)
     return out
@@ -684,6 +695,55 @@ def _fix(
     )
 
 
+def _base(ch: _Chunk, e: int, solver: Literal["fast", "spp"], **fields: object) -> Fix:
+    """A declined fix of epoch ``e`` over all its rows (``full``/``fractional`` as the
+    per-epoch solver's ``_attempt`` gives them) with ``fields``."""
+    ep = ch.epochs[e]
+    prn = ch.prn[e]
+    frac = ch.frac[e].tolist()
+    return Fix(
+        solver=solver,
+        mode="none",
+        gpst_week=ep.gpst_week,
+        gpst_tow_s=ep.gpst_tow_s,
+        full=tuple(p for p, f in zip(prn, frac, strict=False) if not f),
+        fractional=tuple(p for p, f in zip(prn, frac, strict=False) if f),
+        **fields,  # type: ignore[arg-type]
+    )
+
+
+def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
+    n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
+    reason = f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
+    return _base(ch, e, solver, reason=reason, reason_code="too_few_full")
+
+
+def _judged_decline(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    numbers: dict[str, list],
+    k: int,
+    reason: str,
+    code: str,
+) -> Fix:
+    """The per-epoch solver's decline of a solution that passed the test but not the
+    plausible shell or the PDOP gate (its figures, no position)."""
+    return _base(
+        ch,
+        e,
+        solver,
+        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
+        iterations=numbers["iters"][k],
+        resid_rms_m=numbers["resid"][k],
+        redundancy=numbers["redundancy"][k],
+        chi2=numbers["chi2"][k],
+        chi2_max=numbers["chi2_max"][k],
+        reason=reason,
+        reason_code=code,
+    )
+
+
 def _failed(
     ch: _Chunk,
     e: int,
@@ -804,7 +864,7 @@ def _exclude(
         for (e, k), res, cand in zip(owner, results, cands, strict=True):
             if res is None:
                 unsure.add(e)
-            elif isinstance(res, Fix):
+            elif isinstance(res, Fix) and res.ok:
                 ratio = (
                     res.chi2 / res.chi2_max if res.chi2 is not None and res.chi2_max else math.inf
                 )
@@ -876,7 +936,7 @@ def solve_many(
             for i, f in failed.items():
                 out[i] = f.fix
     return [
-        (replace(f, sky=sky_view(ep, store, f)) if with_sky else f)
+        (replace(f, sky=sky_view(ep, store, f)) if with_sky and f.ok else f)
         if f is not None
         else solve(ep, store, iono, cfg, solver, with_sky)
         for f, ep in zip(out, epochs, strict=True)
