@@ -13,7 +13,8 @@ ephemerides, RAIM fault detection and exclusion on (bdsfix tests and excludes by
 Files:
 - HKSC (../shared/data/hksc-2021): 205 epochs at 1 Hz, 5 GEOs; truth the surveyed station.
 - TST (../shared/data/hk-tst-urban-2019): 1760 epochs of an urban drive; truth per epoch
-  from groundTruth_TST.csv.
+  from groundTruth_TST.csv. TST-0: the same without fault exclusion on either side
+  (`--max-exclusions 0`, RTKLIB without RAIM FDE; both still test the residuals).
 - SIM24: a simulated 24 h, 30 s reference-station day written by this bench (the paper's
   Table 1 constellation as hourly broadcast sets, RINEX 3.04 nav; ranges from
   service.sim.rangegen at the HKSC station with GPS Klobuchar, Saastamoinen and 0.5 m
@@ -43,7 +44,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -87,6 +88,7 @@ class Case:
     mode: str
     truth: Truth
     epochs: int
+    exclusion: bool = True  # fault exclusion on both sides (bdsfix's default, RTKLIB RAIM FDE)
 
 
 # ---- the simulated day ------------------------------------------------------------------------
@@ -310,6 +312,10 @@ def bench_case(
         "--out",
         str(bds_out),
     ]
+    if not case.exclusion:
+        bds += ["--max-exclusions", "0"]
+        conf = conf.with_name("bds-spp-no-raim.conf")
+        conf.write_text(RTKLIB_CONF.replace("pos1-posopt5       =on\n", ""), encoding="ascii")
     rtk = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(rtk_out), str(case.obs), str(case.nav)]
     run_timed(bds, env)  # warm-up (file cache, bytecode cache), not timed
     run_timed(rtk)
@@ -375,6 +381,7 @@ def main() -> None:
                     1760,
                 )
             )
+            cases.append(replace(cases[-1], name="TST-0", exclusion=False))
         if "sim24" in want:
             t0 = time.perf_counter()
             cases.append(make_sim_day(workdir, args.sim_hours))
