@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import logging
 import sys
 from collections.abc import Iterator
@@ -20,7 +21,8 @@ from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.solver import IonoSet, SolverConfig, fractionalize, solve
+from service.engine.batch import CHUNK_EPOCHS, solve_many
+from service.engine.solver import IonoSet, SolverConfig, fractionalize
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +35,8 @@ class BatchOptions:
     fractional: Literal["non-geo", "none"] = "non-geo"
     period_s: float = 1e-3
     cfg: SolverConfig = field(default_factory=SolverConfig)
+    with_sky: bool = True
+    """Attach the sky view to each fix (only the NMEA output shows it: GSV)."""
 
 
 def load_navigation(paths: list[str], max_age_s: float = 7200.0) -> tuple[EphemerisStore, IonoSet]:
@@ -62,15 +66,22 @@ def load_navigation(paths: list[str], max_age_s: float = 7200.0) -> tuple[Epheme
 def solve_epochs(
     epochs: Iterator[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
-    """Yield each epoch with its fixes (fast first, then SPP, as the mode asks)."""
-    for epoch in epochs:
-        fixes: list[Fix] = []
+    """Yield each epoch with its fixes (fast first, then SPP, as the mode asks).
+
+    The epochs are read and solved :data:`~service.engine.batch.CHUNK_EPOCHS` at a time by
+    :func:`~service.engine.batch.solve_many` (the per-epoch solver's fixes, vectorised
+    across epochs), so a file of any length streams through in bounded memory."""
+    while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
+        per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
-            fast_in = fractionalize(epoch, opts.period_s) if opts.fractional == "non-geo" else epoch
-            fixes.append(solve(fast_in, store, iono, opts.cfg, solver="fast", with_sky=True))
+            fast_in = chunk
+            if opts.fractional == "non-geo":
+                fast_in = [fractionalize(e, opts.period_s) for e in chunk]
+            per_solver.append(solve_many(fast_in, store, iono, opts.cfg, "fast", opts.with_sky))
         if opts.mode in ("spp", "both"):
-            fixes.append(solve(epoch, store, iono, opts.cfg, solver="spp", with_sky=True))
-        yield epoch, fixes
+            per_solver.append(solve_many(chunk, store, iono, opts.cfg, "spp", opts.with_sky))
+        for k, epoch in enumerate(chunk):
+            yield epoch, [fixes[k] for fixes in per_solver]
 
 
 @contextlib.contextmanager
@@ -86,12 +97,18 @@ def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
     from service.commands.summary import NO_EPOCHS_HINT, decline_lines
-    from service.output.nmea import fix_utc, sentences_for_fix
     from service.output.records import csv_header, fix_csv_row, fix_json_line
+
+    if args.format == "nmea":  # pynmeagps only when asked for (start-up)
+        from service.output.nmea import fix_utc, sentences_for_fix
 
     cfg = solver_config(args)
     opts = BatchOptions(
-        mode=args.mode, fractional=args.fractional, period_s=args.period_ms * 1e-3, cfg=cfg
+        mode=args.mode,
+        fractional=args.fractional,
+        period_s=args.period_ms * 1e-3,
+        cfg=cfg,
+        with_sky=args.format == "nmea",
     )
     store, iono = load_navigation(list(args.nav))
     reader = RinexObsReader(args.obs)

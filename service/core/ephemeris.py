@@ -21,7 +21,6 @@ import json
 import logging
 import math
 import os
-import secrets
 import time
 from bisect import bisect_left
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -249,6 +248,10 @@ class EphemerisStore:
         # column form of recently used ephemeris sets (the same set serves many epochs);
         # keyed by object identity, the entry holds the objects so identities stay unique
         self._arrays: dict[tuple[int, ...], tuple[tuple[Ephemeris, ...], EphemerisArrays]] = {}
+        # per satellite, the last answer of select() and the span of times [s since BDT
+        # week 0] over which it cannot change (select_span), with the max_age_s it holds
+        # for; emptied whenever the sets change
+        self._spans: dict[str, tuple[Ephemeris, float, float, float]] = {}
 
     def __len__(self) -> int:
         return sum(len(v.order) for v in self._by_prn.values())
@@ -273,6 +276,7 @@ class EphemerisStore:
         if sets is None:
             sets = self._by_prn[eph.prn] = _Sets()
         sets.put(eph)
+        self._spans.pop(eph.prn, None)
         excess = len(sets.order) - self.max_sets_per_prn
         if excess > 0:
             self.evicted += sets.drop_oldest(excess)
@@ -310,7 +314,19 @@ class EphemerisStore:
     def select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
         """Healthy ephemeris of ``prn`` with t_oe nearest the BDT time, or None if too old.
 
-        A binary search among the satellite's sets: the cost does not grow with them."""
+        A binary search among the satellite's sets: the cost does not grow with them; an
+        epoch inside the span of the satellite's previous answer (:meth:`select_span`) gets
+        that answer without the search."""
+        hit = self._spans.get(prn)
+        t_s = bdt_week * WEEK_S + bdt_sow_s
+        if hit is not None and hit[1] < t_s < hit[2] and hit[3] == self.max_age_s:
+            return hit[0]
+        eph, lo, hi = self.select_span(prn, bdt_week, bdt_sow_s)
+        if eph is not None:
+            self._spans[prn] = (eph, lo, hi, self.max_age_s)
+        return eph
+
+    def _select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
         sets = self._by_prn.get(prn)
         if not sets:
             return None
@@ -318,6 +334,27 @@ class EphemerisStore:
         if abs(diff_s(bdt_week, bdt_sow_s, best.week, best.toe_sow_s)) > self.max_age_s:
             return None
         return best
+
+    def select_span(
+        self, prn: str, bdt_week: int, bdt_sow_s: float
+    ) -> tuple[Ephemeris | None, float, float]:
+        """:meth:`select`, and the open span (lo, hi) of times [s since BDT week 0, sow]
+        around the given one over which :meth:`select` certainly returns the same set: nearer
+        its t_oe than either neighbouring t_oe and within ``max_age_s`` (less a microsecond
+        each side, against rounding). A batch of epochs asks again only when it leaves the
+        span. (nan, nan) with None."""
+        eph = self._select(prn, bdt_week, bdt_sow_s)
+        if eph is None:
+            return None, math.nan, math.nan
+        order = self._by_prn[prn].order
+        t_e = eph.week * WEEK_S + eph.toe_sow_s
+        j = bisect_left(order, (t_e,))
+        lo, hi = t_e - self.max_age_s, t_e + self.max_age_s
+        if j > 0:
+            lo = max(lo, 0.5 * (order[j - 1][0] + t_e))
+        if j + 1 < len(order):
+            hi = min(hi, 0.5 * (t_e + order[j + 1][0]))
+        return eph, lo + 1e-6, hi - 1e-6
 
     def prune(self, bdt_week: int, bdt_sow_s: float, keep_s: float = KEEP_S) -> int:
         """Keep what can still be used at the given BDT time (the latest measurement): per
@@ -331,6 +368,7 @@ class EphemerisStore:
         (a day's navigation file loaded at start) stay until the count bound evicts them."""
         t_s = bdt_week * WEEK_S + bdt_sow_s
         dropped = 0
+        self._spans.clear()
         for prn in list(self._by_prn):
             sets = self._by_prn[prn]
             dropped += sets.drop_until(min(t_s, sets.order[-1][0]) - keep_s)
@@ -469,6 +507,8 @@ def write_store(path: str | Path, snapshot: StoreSnapshot) -> None:
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     for stale in path.parent.glob(f".{path.name}.*"):  # one writer: these are crash debris
         stale.unlink(missing_ok=True)
+    import secrets  # here: secrets loads OpenSSL (~10 ms), a cost for every command's start
+
     tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}"
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     fd = os.open(tmp, flags, STORE_FILE_MODE)

@@ -194,8 +194,10 @@ def noncentrality_md(dof: int, p_fa: float, p_md: float) -> float:
     return _newton_root(f, 0.0, hi, guess)
 
 
+@lru_cache(maxsize=64)
 def normal_two_sided_quantile(p: float) -> float:
-    """k with P(|N(0, 1)| > k) = p (bisection on erfc)."""
+    """k with P(|N(0, 1)| > k) = p (bisection on erfc; memoised: every solution asks it for
+    the same p_md)."""
     lo, hi = 0.0, 40.0
     for _ in range(200):
         mid = 0.5 * (lo + hi)

@@ -6,6 +6,7 @@ import logging
 import os
 import stat
 
+import numpy as np
 import pytest
 
 from drivers.rinex import read_nav
@@ -29,6 +30,47 @@ def test_nearest_toe_within_age(nav):
     assert e is not None and e.toe_sow_s == 4 * 86400 + 4 * 3600
     assert store.select("C01", 805, sow - 86400) is None  # a day earlier: too old
     assert store.select("C99", 805, sow) is None
+
+
+def test_select_span_holds_select_s_answer_and_ends_where_it_changes(nav):
+    """Inside the span select() returns the same set; just past either end (or at the
+    hourly midpoint between two t_oe) it returns another set or None."""
+    store = EphemerisStore(max_age_s=7200)
+    for items in nav.ephemerides.values():
+        store.add_all(items)
+    week = 805
+    for prn in ("C01", "C11"):
+        for sow in (4 * 86400 + 3 * 3600 + 35 * 60 + 40.0, 4 * 86400 + 12000.0):
+            eph, lo, hi = store.select_span(prn, week, sow)
+            assert eph is store.select(prn, week, sow)
+            assert lo < week * 604800 + sow < hi
+            for t in np.linspace(lo, hi, 41)[1:-1]:
+                assert store.select(prn, 0, float(t)) is eph
+            for t in (lo - 1e-3, hi + 1e-3):
+                assert store.select(prn, 0, float(t)) is not eph
+    assert store.select_span("C99", week, 4 * 86400.0)[0] is None
+
+
+def test_remembered_selection_follows_new_sets_age_limit_and_pruning(nav):
+    """select() answers from the satellite's last span while nothing changes; a set added,
+    a different max_age_s or a prune is seen at once."""
+    store = EphemerisStore(max_age_s=7200)
+    first = nav.ephemerides["C08"][0]
+    store.add(first)
+    t = first.toe_sow_s + 1500.0
+    assert store.select("C08", first.week, t) is first
+    assert store.select("C08", first.week, t + 1.0) is first  # from the span
+    newer = dataclasses.replace(first, toe_sow_s=first.toe_sow_s + 3600.0)
+    store.add(newer)
+    assert store.select("C08", first.week, t + 1.0) is first  # 1501 s vs 2099 s away
+    assert store.select("C08", first.week, t + 400.0) is newer  # past the midpoint
+    store.max_age_s = 600.0
+    assert store.select("C08", first.week, t + 400.0) is None  # 1700 s: too old now
+    store.max_age_s = 7200.0
+    assert store.select("C08", first.week, t + 400.0) is newer
+    assert store.select("C08", first.week, t) is first
+    store.prune(first.week, newer.toe_sow_s, keep_s=1800.0)  # drops the first set
+    assert store.select("C08", first.week, t) is newer
 
 
 def test_unhealthy_sets_are_refused_with_a_log_line(nav, caplog):

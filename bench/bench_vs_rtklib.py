@@ -1,0 +1,403 @@
+"""Throughput against RTKLIB: `bdsfix solve` and `rnx2rtkp` side by side on the same files.
+
+Both programs run as whole processes (wall time of the process, start-up included) on the
+same RINEX files, alternating (bdsfix, rnx2rtkp, bdsfix, ...) so that load from other jobs
+falls on both alike; the medians and their ratio are printed per file, with the 3D RMS
+error of each program's fixes against the file's reference position, so that speed is never
+bought with accuracy.
+
+RTKLIB is configured as the equivalent of bdsfix's defaults (written by this bench): BDS
+only, single point, B1I, 10 deg mask, broadcast ionosphere, Saastamoinen, broadcast
+ephemerides, RAIM fault detection and exclusion on (bdsfix tests and excludes by default).
+
+Files:
+- HKSC (../shared/data/hksc-2021): 205 epochs at 1 Hz, 5 GEOs; truth the surveyed station.
+- TST (../shared/data/hk-tst-urban-2019): 1760 epochs of an urban drive; truth per epoch
+  from groundTruth_TST.csv. TST-0: the same without fault exclusion on either side
+  (`--max-exclusions 0`, RTKLIB without RAIM FDE; both still test the residuals).
+- SIM24: a simulated 24 h, 30 s reference-station day written by this bench (the paper's
+  Table 1 constellation as hourly broadcast sets, RINEX 3.04 nav; ranges from
+  service.sim.rangegen at the HKSC station with GPS Klobuchar, Saastamoinen and 0.5 m
+  noise), solved with --mode both; truth the simulated position.
+- ONE: HKSC's first epoch alone: the start-up of `bdsfix solve`.
+
+bdsfix runs with Python's bytecode cache (as an installed package: pip compiles the modules
+at install); ONE is also timed without it (every module compiled at each start, as under
+PYTHONDONTWRITEBYTECODE=1). Each case has one untimed warm-up run of each program.
+
+Run: python bench/bench_vs_rtklib.py [--runs 15] [--files hksc,tst,sim24,one]
+(prints figures; no assertions). Needs rnx2rtkp (Debian package rtklib).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import json
+import math
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from service.core.geometry import geodetic_to_ecef  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+HKSC = DATA / "hksc-2021"
+TST = DATA / "hk-tst-urban-2019"
+HKSC_XYZ = np.array([-2414266.9197, 5386768.9868, 2407460.0314])  # header APPROX POSITION
+
+RTKLIB_CONF = """\
+pos1-posmode       =single
+pos1-frequency     =l1
+pos1-soltype       =forward
+pos1-elmask        =10
+pos1-ionoopt       =brdc
+pos1-tropopt       =saas
+pos1-sateph        =brdc
+pos1-navsys        =32
+pos1-posopt5       =on
+out-solformat      =xyz
+out-outhead        =on
+out-timesys        =gpst
+out-timeform       =tow
+"""
+"""rnx2rtkp options: single point, B1I (RTKLIB's frequency 1 of BDS), BDS only (navsys 32),
+10 deg, broadcast iono, Saastamoinen, RAIM FDE (posopt5), ECEF output with GPS week/TOW."""
+
+Truth = Callable[[int, float], np.ndarray | None]
+
+
+@dataclass
+class Case:
+    name: str
+    obs: Path
+    nav: Path
+    mode: str
+    truth: Truth
+    epochs: int
+    exclusion: bool = True  # fault exclusion on both sides (bdsfix's default, RTKLIB RAIM FDE)
+
+
+# ---- the simulated day ------------------------------------------------------------------------
+
+
+def _rinex_float(v: float) -> str:
+    return f"{v:19.12E}"
+
+
+def write_nav(path: Path, ephs: list, iono) -> None:
+    """RINEX 3.04 BDS nav (Table A14) of ``ephs``, with GPSA/GPSB ``iono``."""
+    from service.core.timebase import BDT_GPS_WEEK_OFFSET, GPS_EPOCH
+
+    def d12(v: float) -> str:
+        return f"{v:12.4E}"
+
+    lines = [
+        f"{'     3.04           N: GNSS NAV DATA    C: BDS':<60}RINEX VERSION / TYPE",
+        f"{'bench_vs_rtklib':<60}PGM / RUN BY / DATE",
+        f"{'GPSA ' + ''.join(d12(a) for a in iono.alpha):<60}IONOSPHERIC CORR",
+        f"{'GPSB ' + ''.join(d12(b) for b in iono.beta):<60}IONOSPHERIC CORR",
+        f"{'    17':<60}LEAP SECONDS",
+        f"{'':<60}END OF HEADER",
+    ]
+    bdt0 = GPS_EPOCH + dt.timedelta(weeks=BDT_GPS_WEEK_OFFSET)
+    for e in sorted(ephs, key=lambda e: (e.prn, e.toe_sow_s)):
+        toc = bdt0 + dt.timedelta(weeks=e.week, seconds=e.toc_sow_s)
+        orbit = (
+            (e.aode, e.crs_m, e.delta_n_rad_s, e.m0_rad),
+            (e.cuc_rad, e.e, e.cus_rad, e.sqrt_a_sqrt_m),
+            (e.toe_sow_s, e.cic_rad, e.omega0_rad, e.cis_rad),
+            (e.i0_rad, e.crc_m, e.omega_rad, e.omega_dot_rad_s),
+            (e.idot_rad_s, 0.0, e.week, 0.0),
+            (2.0, 0, 0.0, 0.0),
+            (e.toe_sow_s - 60.0, 0),
+        )
+        lines.append(
+            f"{e.prn} {toc:%Y %m %d %H %M %S}"
+            + "".join(_rinex_float(v) for v in (e.af0_s, e.af1_s_s, e.af2_s_s2))
+        )
+        lines += ["    " + "".join(_rinex_float(float(v)) for v in row) for row in orbit]
+    path.write_text("\n".join(lines) + "\n", encoding="ascii")
+
+
+def make_sim_day(workdir: Path, hours: float = 24.0, step_s: float = 30.0) -> Case:
+    """A simulated reference-station day: nav + obs files and the true position."""
+    from drivers.rinex import read_nav
+    from service.core.ephemeris import EphemerisStore
+    from service.core.timebase import datetime_from_gpst, gpst_to_bdt, normalize
+    from service.core.types import KlobucharParams
+    from service.sim.keplerian import table1_ephemerides
+    from service.sim.rangegen import true_ranges
+
+    iono = KlobucharParams(
+        (0.5588e-08, 0.1490e-07, -0.5961e-07, -0.1192e-06),
+        (0.8397e05, 0.9830e05, -0.6554e05, -0.5243e06),
+        "GPS",
+    )
+    ephs = [e for h in range(-1, math.ceil(hours) + 2) for e in table1_ephemerides(h * 3600.0)]
+    nav_path = workdir / "sim24.nav"
+    write_nav(nav_path, ephs, iono)
+    store = EphemerisStore(max_age_s=7200.0)
+    for sets in read_nav(nav_path).ephemerides.values():
+        store.add_all(sets)
+    week0, tow0 = normalize(*_first_toe_gpst(ephs))
+    rng = np.random.default_rng(14)
+    out = [
+        f"{'     3.04           OBSERVATION DATA    C: BDS':<60}RINEX VERSION / TYPE",
+        f"{'bench_vs_rtklib':<60}PGM / RUN BY / DATE",
+        f"{'SIM24':<60}MARKER NAME",
+        f"{'        0.0000        0.0000        0.0000':<60}APPROX POSITION XYZ",
+        f"{'        0.0000        0.0000        0.0000':<60}ANTENNA: DELTA H/E/N",
+        f"{'C    2 C2I S2I':<60}SYS / # / OBS TYPES",
+        f"{step_s:10.3f}{'':<50}INTERVAL",
+    ]
+    first = datetime_from_gpst(week0, tow0)
+    out.append(f"{first:  %Y    %m    %d    %H    %M   %S}.0000000     GPS{'':<9}TIME OF FIRST OBS")
+    out.append(f"{'':<60}END OF HEADER")
+    prns = sorted({e.prn for e in ephs})
+    n_epochs = int(hours * 3600 / step_s)
+    clock_s = 2.5e-4
+    for k in range(n_epochs):
+        week, tow = normalize(week0, tow0 + k * step_s)
+        bdt = gpst_to_bdt(week, tow)
+        sel = [e for p in prns if (e := store.select(p, *bdt)) is not None]
+        # a steered reference receiver: the time tag (true time + clock offset) is on the
+        # 30 s grid, so the signal arrived at grid time - clock offset
+        r = true_ranges(
+            store.arrays(sel),
+            HKSC_XYZ,
+            week,
+            tow - clock_s,
+            clock_s,
+            iono=iono,
+            tropo=True,
+            noise_m=0.5,
+            rng=rng,
+        )
+        use = np.flatnonzero(r.el_rad > math.radians(5.0))
+        when = datetime_from_gpst(week, tow)
+        out.append(f"> {when:%Y %m %d %H %M %S}.0000000  0{len(use):3d}")
+        for i in use:
+            pr = r.pr_m[i]
+            cn0 = 35.0 + 15.0 * math.sin(float(r.el_rad[i]))
+            out.append(f"{r.prn[i]}{pr:14.3f}  {cn0:14.3f}  ")
+    obs_path = workdir / "sim24.obs"
+    obs_path.write_text("\n".join(out) + "\n", encoding="ascii")
+    return Case("SIM24", obs_path, nav_path, "both", lambda w, t: HKSC_XYZ, n_epochs)
+
+
+def _first_toe_gpst(ephs: list) -> tuple[int, float]:
+    from service.core.timebase import bdt_to_gpst
+
+    e = min(ephs, key=lambda e: (e.week, e.toe_sow_s))
+    return bdt_to_gpst(e.week, e.toe_sow_s + 3600.0)  # one hour after the first sets
+
+
+# ---- the real files ---------------------------------------------------------------------------
+
+
+def tst_truth() -> Truth:
+    """(GPS week, whole TOW) -> ECEF truth, from groundTruth_TST.csv (week, TOW, lat, lon, h)."""
+    table: dict[tuple[int, int], np.ndarray] = {}
+    with open(TST / "groundTruth_TST.csv", encoding="ascii") as f:
+        for row in csv.reader(f):
+            try:
+                week, tow, lat, lon, h = (float(v) for v in row[:5])
+            except ValueError:
+                continue
+            table[(int(week), round(tow))] = geodetic_to_ecef(
+                math.radians(lat), math.radians(lon), h
+            )
+    return lambda w, t: table.get((w, round(t)))
+
+
+def one_epoch(workdir: Path) -> Path:
+    """HKSC's header and first epoch as a file of its own."""
+    out, n = [], 0
+    with open(HKSC / "hksc1610.obs", encoding="ascii") as f:
+        in_header = True
+        for line in f:
+            if not in_header and line.startswith(">"):
+                n += 1
+                if n == 2:
+                    break
+            out.append(line)
+            in_header = in_header and "END OF HEADER" not in line
+    path = workdir / "one.obs"
+    path.write_text("".join(out), encoding="ascii")
+    return path
+
+
+# ---- running and scoring ----------------------------------------------------------------------
+
+
+def _bdsfix_cmd() -> list[str]:
+    exe = Path(sys.executable).with_name("bdsfix")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "service"]
+
+
+def run_timed(cmd: list[str], env: dict[str, str] | None = None) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    return time.perf_counter() - t0
+
+
+def bdsfix_env(workdir: Path, bytecode: bool) -> dict[str, str]:
+    """bdsfix's environment: with ``bytecode``, Python's compiled-module cache on (in the
+    work directory), as an installed package has it (pip compiles at install); without,
+    every module is compiled from source at each start (PYTHONDONTWRITEBYTECODE=1)."""
+    env = dict(os.environ)
+    if bytecode:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        env["PYTHONPYCACHEPREFIX"] = str(workdir / "pycache")
+    else:
+        env["PYTHONDONTWRITEBYTECODE"] = "1"
+    return env
+
+
+def rms(errors: list[float]) -> float:
+    return math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.nan
+
+
+def score_bdsfix(path: Path, truth: Truth) -> dict[str, dict[tuple[int, int], float]]:
+    """Per solver: (week, round(tow)) -> 3D error of each fix."""
+    out: dict[str, dict[tuple[int, int], float]] = {"fast": {}, "spp": {}}
+    for line in path.read_text().splitlines():
+        r = json.loads(line)
+        if r.get("mode") in ("fast", "spp") and "x_ecef_m" in r:
+            t = truth(r["gpst_week"], r["gpst_tow_s"])
+            if t is not None:
+                key = (r["gpst_week"], round(r["gpst_tow_s"]))
+                out[r["solver"]][key] = float(np.linalg.norm(np.subtract(r["x_ecef_m"], t)))
+    return out
+
+
+def score_rtklib(path: Path, truth: Truth) -> dict[tuple[int, int], float]:
+    out = {}
+    for line in path.read_text().splitlines():
+        if line.startswith("%") or not line.strip():
+            continue
+        f = line.split()
+        week, tow, x = int(f[0]), float(f[1]), np.array([float(v) for v in f[2:5]])
+        t = truth(week, tow)
+        if t is not None:
+            out[(week, round(tow))] = float(np.linalg.norm(x - t))
+    return out
+
+
+def bench_case(
+    case: Case, runs: int, workdir: Path, conf: Path, env: dict[str, str], label: str = ""
+) -> None:
+    bds_out, rtk_out = workdir / f"{case.name}.jsonl", workdir / f"{case.name}.pos"
+    bds = [
+        *_bdsfix_cmd(),
+        "solve",
+        str(case.obs),
+        str(case.nav),
+        "--mode",
+        case.mode,
+        "--out",
+        str(bds_out),
+    ]
+    if not case.exclusion:
+        bds += ["--max-exclusions", "0"]
+        conf = conf.with_name("bds-spp-no-raim.conf")
+        conf.write_text(RTKLIB_CONF.replace("pos1-posopt5       =on\n", ""), encoding="ascii")
+    rtk = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(rtk_out), str(case.obs), str(case.nav)]
+    run_timed(bds, env)  # warm-up (file cache, bytecode cache), not timed
+    run_timed(rtk)
+    t_bds, t_rtk = [], []
+    for _ in range(runs):
+        t_bds.append(run_timed(bds, env))
+        t_rtk.append(run_timed(rtk))
+    mb, mr = statistics.median(t_bds), statistics.median(t_rtk)
+    print(
+        f"{case.name + label:<6} {case.epochs:5d} epochs  bdsfix solve --mode {case.mode:<4} "
+        f"{mb:7.3f} s (min {min(t_bds):.3f})  rnx2rtkp {mr:6.3f} s (min {min(t_rtk):.3f})  "
+        f"ratio {mb / mr:5.1f}x   ({runs} alternating runs, medians)"
+    )
+    if case.name == "ONE":
+        return
+    sb, sr = score_bdsfix(bds_out, case.truth), score_rtklib(rtk_out, case.truth)
+    for solver in ("spp", "fast") if case.mode == "both" else (case.mode,):
+        mine = sb[solver]
+        common = sorted(set(mine) & set(sr))
+        print(
+            f"       3D RMS vs truth: bdsfix {solver:<4} {rms(list(mine.values())):7.2f} m over "
+            f"{len(mine)} fixes; rnx2rtkp {rms(list(sr.values())):7.2f} m over {len(sr)}; "
+            f"on the {len(common)} epochs both fixed: bdsfix "
+            f"{rms([mine[k] for k in common]):.2f} m, rnx2rtkp {rms([sr[k] for k in common]):.2f} m"
+        )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=15, help="alternating runs per file")
+    ap.add_argument("--files", default="one,hksc,tst,sim24", help="which files, comma-separated")
+    ap.add_argument("--sim-hours", type=float, default=24.0, help="length of the simulated day")
+    args = ap.parse_args()
+    if shutil.which("rnx2rtkp") is None:
+        sys.exit("bench_vs_rtklib: rnx2rtkp not found (sudo apt-get install rtklib)")
+    want = args.files.split(",")
+    with tempfile.TemporaryDirectory(prefix="bench_vs_rtklib.") as tmp:
+        workdir = Path(tmp)
+        conf = workdir / "bds-spp.conf"
+        conf.write_text(RTKLIB_CONF, encoding="ascii")
+        cases = []
+        if "one" in want:
+            cases.append(Case("ONE", one_epoch(workdir), HKSC / "hksc1610.nav", "spp", None, 1))  # type: ignore[arg-type]
+        if "hksc" in want:
+            cases.append(
+                Case(
+                    "HKSC",
+                    HKSC / "hksc1610.obs",
+                    HKSC / "hksc1610.nav",
+                    "spp",
+                    lambda w, t: HKSC_XYZ,
+                    205,
+                )
+            )
+        if "tst" in want:
+            cases.append(
+                Case(
+                    "TST",
+                    TST / "COM3_190428_124409.obs",
+                    TST / "hksc1180.19b",
+                    "spp",
+                    tst_truth(),
+                    1760,
+                )
+            )
+            cases.append(replace(cases[-1], name="TST-0", exclusion=False))
+        if "sim24" in want:
+            t0 = time.perf_counter()
+            cases.append(make_sim_day(workdir, args.sim_hours))
+            print(f"(simulated day written in {time.perf_counter() - t0:.1f} s)")
+        print(
+            f"bench_vs_rtklib: {' '.join(_bdsfix_cmd())} vs rnx2rtkp, {args.runs} runs each; "
+            f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start"
+        )
+        env = bdsfix_env(workdir, bytecode=True)
+        for case in cases:
+            bench_case(case, args.runs, workdir, conf, env)
+        if "one" in want:  # start-up when every module is compiled at each start
+            bench_case(cases[0], args.runs, workdir, conf, bdsfix_env(workdir, False), "*")
+            print("       (ONE*: no bytecode cache, PYTHONDONTWRITEBYTECODE=1)")
+        print(f"load average {os.getloadavg()[0]:.1f} at the end")
+
+
+if __name__ == "__main__":
+    main()

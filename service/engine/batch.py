@@ -1,0 +1,943 @@
+"""Batch solving for files: many epochs at once, vectorised across epochs and satellites.
+
+:func:`solve_many` gives, for a sequence of epochs, what :func:`service.engine.solver.solve`
+gives for each (the same phases, GEO-GDOP gate, mask, corrections, weights, chi-square test
+and checks; docs/method.md), but each step of the iteration is one set of numpy operations on
+(epoch, satellite) arrays for a chunk of epochs instead of one set per epoch, so the Python
+cost per epoch is paid once per chunk:
+
+- phase 1 (paper eqs. 3-16) from the Earth's centre with the backtracking step, all epochs
+  of the chunk in lockstep; an epoch that has converged keeps its state. The x/b step is
+  the least-squares step over the full rows: each fractional row has its own ambiguity
+  column in eq. (11), so its residual is absorbed by dN_j = h_j . [dx, db] - dz_j (in
+  metres, rounded in units of c*T by eq. 13), which is the solution of the augmented
+  system of eq. (10) without forming it;
+- phase 2: the elevation mask, Klobuchar, Saastamoinen and the error model's weights,
+  iterated to convergence;
+- the judgement: the chi-square test and protection levels (:func:`service.engine.raim.assess`
+  per epoch, in batch form), the plausible shell and the PDOP gate.
+
+An epoch that leaves this common path (no week, too few full ranges, an impossible range,
+no convergence, the GDOP gate, a failed chi-square test and so fault exclusion, an
+implausible solution, the PDOP gate, a singular system) is solved again by
+:func:`~service.engine.solver.solve` itself, so every decline, reason and exclusion is the
+per-epoch solver's own. A fix from the batch equals the per-epoch solver's to floating-point
+rounding (tests/engine/test_batch.py holds them to 1e-6 m on real and simulated files).
+
+The stream path (daemon, replay) keeps the per-epoch solver: an epoch is solved as it
+arrives.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+
+from service.core.constants import C_M_S, F_B1I_HZ, F_GPS_L1_HZ, OMEGA_E_RAD_S
+from service.core.ephemeris import EphemerisStore
+from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
+from service.core.orbit import EphemerisArrays, sat_pos_clock
+from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
+from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
+from service.engine.raim import chi2_threshold, noncentrality_md, normal_two_sided_quantile
+from service.engine.solver import GROSS_SPREAD_M, IonoSet, SolverConfig, sky_view, solve
+
+log = logging.getLogger(__name__)
+
+CHUNK_EPOCHS = 256
+"""Epochs solved together: large enough that numpy's per-call cost is spread thin, small
+enough that the arrays stay in cache and output keeps flowing."""
+
+_EPH_FIELDS = tuple(f for f in EphemerisArrays.__dataclass_fields__ if f != "prn")
+
+
+class _Chunk:
+    """The rows of a chunk of epochs as (epoch, slot) arrays; ``valid`` marks real rows."""
+
+    def __init__(
+        self,
+        epochs: Sequence[MeasurementEpoch],
+        store: EphemerisStore,
+        solver: Literal["fast", "spp"],
+    ) -> None:
+        n_e = len(epochs)
+        bdt = [gpst_to_bdt(ep.gpst_week, ep.gpst_tow_s) for ep in epochs]
+        self.epochs = epochs
+        self.bdt_week = np.array([w for w, _ in bdt], dtype=float)
+        self.bdt_sow = np.array([s for _, s in bdt])
+        # every measurement of the chunk in one flat column each
+        sizes = [len(ep.prn) for ep in epochs]
+        owner = np.repeat(np.arange(n_e), sizes)
+        pr = np.concatenate([ep.pr_m for ep in epochs]) if n_e else np.zeros(0)
+        frac_pr = np.concatenate([ep.frac_pr_m for ep in epochs]) if n_e else np.zeros(0)
+        period = np.concatenate([ep.period_s for ep in epochs]) if n_e else np.zeros(0)
+        cn0 = np.concatenate([ep.cn0_dbhz for ep in epochs]) if n_e else np.zeros(0)
+        full = np.isfinite(pr)
+        use = full
+        if solver == "fast":
+            use = full | (np.isfinite(frac_pr) & np.isfinite(period))
+        prns = [p for ep in epochs for p in ep.prn]
+        table: dict[int, int] = {}
+        unique: list[Ephemeris] = []
+        picked: list[int] = []  # flat index of each row
+        eph_idx: list[int] = []
+        for f in np.flatnonzero(use).tolist():
+            k = int(owner[f])
+            e = store.select(prns[f], *bdt[k])
+            if e is None:
+                continue
+            u = table.get(id(e))
+            if u is None:
+                u = table[id(e)] = len(unique)
+                unique.append(e)
+            picked.append(f)
+            eph_idx.append(u)
+        rows = np.array(picked, dtype=int)
+        row_owner = owner[rows]
+        counts = np.bincount(row_owner, minlength=n_e)
+        n_s = max(1, int(counts.max()) if n_e else 1)
+        # slot of each row within its epoch: its rank among the epoch's rows
+        first = np.concatenate([[0], np.cumsum(counts)[:-1]]) if n_e else np.zeros(0, int)
+        slot = np.arange(len(rows)) - first[row_owner]
+        self.valid = np.zeros((n_e, n_s), dtype=bool)
+        self.z = np.zeros((n_e, n_s))
+        self.ct = np.zeros((n_e, n_s))
+        self.cn0 = np.full((n_e, n_s), np.nan)
+        idx = np.zeros((n_e, n_s), dtype=int)
+        at = (row_owner, slot)
+        self.valid[at] = True
+        self.z[at] = np.where(full[rows], pr[rows], frac_pr[rows])
+        self.ct[at] = np.where(full[rows], 0.0, C_M_S * period[rows])
+        self.cn0[at] = cn0[rows]
+        idx[at] = eph_idx
+        row_prns = [prns[f] for f in picked]
+        ends = np.cumsum(counts).tolist()
+        self.prn = [tuple(row_prns[a:b]) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
+        if not unique:  # nothing selectable: every epoch goes to the per-epoch solver
+            unique.append(_placeholder())
+        cols = EphemerisArrays.from_ephemerides(unique)
+        self.eph = _gather(cols, idx)
+        self.frac = self.valid & (self.ct > 0)
+        self.full = self.valid & ~self.frac
+
+
+def _placeholder() -> Ephemeris:
+    z = 0.0
+    return Ephemeris("C01", 0, z, z, z, z, z, 6493.0, z, z, z, z, z, z, z, z, z, z, z, z, z, z)
+
+
+def _gather(cols: EphemerisArrays, idx: np.ndarray) -> EphemerisArrays:
+    """Ephemeris columns indexed by ``idx`` (any shape); ``prn`` is not carried."""
+    kw = {name: getattr(cols, name)[idx] for name in _EPH_FIELDS}
+    return EphemerisArrays(prn=(), **kw)
+
+
+def _orbits(ch: _Chunk, sel: np.ndarray, n_int: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Satellite positions and clocks at the transmit times of eqs. (4)-(5) for epochs
+    ``sel`` with integers ``n_int`` (as :func:`service.engine.solver._geometry`)."""
+    eph = _gather_rows(ch.eph, sel)
+    sow = ch.bdt_sow[sel, None]
+    t1 = sow - (ch.z[sel] + n_int * ch.ct[sel]) / C_M_S
+    t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
+    return sat_pos_clock(eph, ch.bdt_week[sel, None], t_tx)
+
+
+def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
+    kw = {name: getattr(eph, name)[sel] for name in _EPH_FIELDS}
+    return EphemerisArrays(prn=(), **kw)
+
+
+def _geometry(
+    sat0: np.ndarray, clk_s: np.ndarray, x: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Line-of-sight unit vectors, predicted ranges (without clock and N) and the
+    Earth-rotation-corrected satellite positions for receivers ``x`` (e, 3)."""
+    d = sat0 - x[:, None, :]
+    ang = OMEGA_E_RAD_S * (np.sqrt(np.einsum("esk,esk->es", d, d)) / C_M_S)
+    c, s = np.cos(ang), np.sin(ang)
+    sat = sat0.copy()
+    sat[..., 0] = c * sat0[..., 0] + s * sat0[..., 1]
+    sat[..., 1] = c * sat0[..., 1] - s * sat0[..., 0]
+    d = sat - x[:, None, :]
+    rho = np.sqrt(np.einsum("esk,esk->es", d, d))
+    return d / rho[..., None], rho - C_M_S * clk_s, sat
+
+
+def _design(los: np.ndarray) -> np.ndarray:
+    return np.concatenate([-los, np.ones((*los.shape[:-1], 1))], axis=-1)
+
+
+def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Per epoch, the weighted least-squares step over rows with w > 0 (rows with w = 0 are
+    out); raises LinAlgError when any system is singular."""
+    ht = np.swapaxes(h, -1, -2) * w[:, None, :]
+    return np.linalg.solve(ht @ h, (ht @ dz[..., None]))[..., 0]
+
+
+def _local(
+    x: np.ndarray, sat: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    lat, lon, alt = ecef_to_geodetic(x)
+    el, az = look_angles(x, sat, (lat, lon))
+    return lat, lon, alt, el, az
+
+
+def _klobuchar_bds_m(
+    params: KlobucharParams,
+    lat: np.ndarray,
+    lon: np.ndarray,
+    el: np.ndarray,
+    az: np.ndarray,
+    bdt_sow: np.ndarray,
+) -> np.ndarray:
+    """:func:`service.core.corrections.klobuchar_bds_m` (ICD B1I 5.2.4.7) with one receiver
+    per row of ``el``/``az`` (lat, lon, bdt_sow: (e, 1))."""
+    r_km, h_km = 6378.0, 375.0
+    ratio = r_km / (r_km + h_km) * np.cos(el)
+    psi = np.pi / 2 - el - np.arcsin(ratio)
+    lat_m = np.arcsin(np.sin(lat) * np.cos(psi) + np.cos(lat) * np.sin(psi) * np.cos(az))
+    lon_m = lon + np.arcsin(np.sin(psi) * np.sin(az) / np.cos(lat_m))
+    phi = np.abs(lat_m / np.pi)
+    a2 = np.maximum(_cubic(params.alpha, phi), 0.0)
+    a4 = np.clip(_cubic(params.beta, phi), 72000.0, 172800.0)
+    t = np.mod(bdt_sow + lon_m * 43200.0 / np.pi, 86400.0)
+    day = np.abs(t - 50400.0) < a4 / 4.0
+    iz = 5e-9 + np.where(day, a2 * np.cos(2 * np.pi * (t - 50400.0) / a4), 0.0)
+    return C_M_S * iz / np.sqrt(1.0 - ratio**2)
+
+
+def _klobuchar_gps_m(
+    params: KlobucharParams,
+    lat: np.ndarray,
+    lon: np.ndarray,
+    el: np.ndarray,
+    az: np.ndarray,
+    gpst_tow: np.ndarray,
+) -> np.ndarray:
+    """:func:`service.core.corrections.klobuchar_gps_m` (IS-GPS-200 20.3.3.5.2.5, scaled to
+    B1I) with one receiver per row."""
+    el_sc = el / np.pi
+    psi = 0.0137 / (el_sc + 0.11) - 0.022
+    lat_i = np.clip(lat / np.pi + psi * np.cos(az), -0.416, 0.416)
+    lon_i = lon / np.pi + psi * np.sin(az) / np.cos(lat_i * np.pi)
+    lat_m = lat_i + 0.064 * np.cos((lon_i - 1.617) * np.pi)
+    t = np.mod(43200.0 * lon_i + gpst_tow, 86400.0)
+    f = 1.0 + 16.0 * (0.53 - el_sc) ** 3
+    amp = np.maximum(_cubic(params.alpha, lat_m), 0.0)
+    per = np.maximum(_cubic(params.beta, lat_m), 72000.0)
+    xx = 2 * np.pi * (t - 50400.0) / per
+    night = np.abs(xx) >= 1.57
+    delay = f * (5e-9 + np.where(night, 0.0, amp * (1 - xx**2 / 2 + xx**4 / 24)))
+    return C_M_S * delay * (F_GPS_L1_HZ / F_B1I_HZ) ** 2
+
+
+def _cubic(coeffs: Sequence[float], x: np.ndarray) -> np.ndarray:
+    c0, c1, c2, c3 = (float(c) for c in coeffs)
+    return ((c3 * x + c2) * x + c1) * x + c0
+
+
+def _saastamoinen_m(
+    lat: np.ndarray, alt: np.ndarray, el: np.ndarray, humidity: float = 0.7
+) -> np.ndarray:
+    """:func:`service.core.corrections.saastamoinen_m` (standard atmosphere) with one
+    receiver (lat, alt: (e,)) per row of ``el``; 0 for receivers outside -100 m to 10 km."""
+    h = np.maximum(alt, 0.0)[:, None]
+    pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
+    temp_k = 15.0 - 6.5e-3 * h + 273.16
+    e_hpa = 6.108 * humidity * np.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
+    cos_z = np.cos(np.pi / 2 - np.maximum(el, math.radians(1.0)))
+    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * np.cos(2 * lat[:, None]) - 0.00028 * h / 1e3)
+    wet = 0.002277 * (1255.0 / temp_k + 0.05) * e_hpa
+    inside = ((alt >= -100.0) & (alt <= 1e4))[:, None]
+    return np.where(inside & (el > 0), (hydro + wet) / cos_z, 0.0)
+
+
+def _delays(
+    lat: np.ndarray,
+    lon: np.ndarray,
+    alt: np.ndarray,
+    el: np.ndarray,
+    az: np.ndarray,
+    bdt_sow: np.ndarray,
+    model: KlobucharParams | None,
+    cfg: SolverConfig,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Ionospheric and tropospheric delays per row (None: not applied), as the per-epoch
+    solver's ``_delays``; the ionosphere only for receivers below 100 km."""
+    iono = None
+    if model is not None:
+        if model.system == "BDS":
+            iono = _klobuchar_bds_m(model, lat[:, None], lon[:, None], el, az, bdt_sow[:, None])
+        else:
+            tow = bdt_sow[:, None] + BDT_GPST_OFFSET_S
+            iono = _klobuchar_gps_m(model, lat[:, None], lon[:, None], el, az, tow)
+        iono = np.where((alt < 100e3)[:, None], iono, np.nan)
+    tropo = _saastamoinen_m(lat, alt, el) if cfg.tropo != "off" else None
+    return iono, tropo
+
+
+def _sigma_m(
+    el: np.ndarray,
+    cn0: np.ndarray,
+    iono: np.ndarray | None,
+    tropo: np.ndarray | None,
+    cfg: SolverConfig,
+) -> np.ndarray:
+    """:func:`service.engine.solver.measurement_sigma_m` with per-row ionosphere presence
+    (NaN in ``iono``: no model applied at that receiver)."""
+    s = np.maximum(np.sin(el), 0.05)
+    var = cfg.sigma_a_m**2 + (cfg.sigma_b_m / s) ** 2
+    c = np.where(np.isfinite(cn0), cn0, cfg.cn0_ref_dbhz)
+    var = var + cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - c) / 10.0)
+    var = var + cfg.sigma_sis_m**2
+    ratio = 6378.0 / (6378.0 + 350.0) * np.cos(el)
+    unmodelled = (cfg.iono_unmodelled_m / np.sqrt(1.0 - ratio**2)) ** 2
+    if iono is not None:
+        var = var + np.where(np.isfinite(iono), (cfg.iono_error_ratio * iono) ** 2, unmodelled)
+    else:
+        var = var + unmodelled
+    if tropo is not None:
+        var = var + (cfg.tropo_error_m / (s + 0.1)) ** 2
+    return np.sqrt(var)
+
+
+@dataclass(frozen=True, slots=True)
+class _Failed:
+    """An epoch whose solution failed the chi-square test: what fault exclusion needs."""
+
+    chi2: float
+    chi2_max: float
+    redundancy: int
+    kept: tuple[str, ...]  # the PRNs the solution used, in row order
+    wtest: tuple[float, ...]  # their w-tests
+    fix: Fix  # the per-epoch solver's decline of this solution (reason_code chi2)
+
+
+_DECLINED = "declined"
+"""An epoch the per-epoch solver certainly declines (too few full ranges, no convergence,
+the GDOP gate, the mask, an implausible solution, the PDOP gate): no fix, and for fault
+exclusion no candidate."""
+
+_Outcome = Fix | _Failed | str | None
+"""A fix, a failed chi-square test, :data:`_DECLINED`, or None: the per-epoch solver must
+decide (a singular system, an impossible range, a position far from the Earth)."""
+
+
+def _fail(
+    ok: np.ndarray, sel: np.ndarray, bad: np.ndarray, unsure: np.ndarray | None = None
+) -> None:
+    """Mark epochs ``sel[bad]`` as leaving the batch path (and, with ``unsure``, as ones
+    whose outcome the per-epoch solver must find)."""
+    ok[sel[bad]] = False
+    if unsure is not None:
+        unsure[sel[bad]] = True
+
+
+def _solve_chunk(
+    ch: _Chunk, iono: IonoSet, cfg: SolverConfig, solver: Literal["fast", "spp"]
+) -> list[_Outcome]:
+    """The outcome of each epoch of the chunk (:data:`_Outcome`)."""
+    n_e, n_s = ch.z.shape
+    ok = np.ones(n_e, dtype=bool)
+    unsure = np.zeros(n_e, dtype=bool)
+    n_full = ch.full.sum(axis=1)
+    # impossible ranges (the per-epoch solver drops them and says so): not here
+    zf = np.where(ch.full, ch.z, np.nan)
+    zs = np.sort(zf, axis=1)
+    k1 = np.clip((n_full - 1) // 2, 0, n_s - 1)[:, None]
+    k2 = np.clip(n_full // 2, 0, n_s - 1)[:, None]
+    median = 0.5 * (np.take_along_axis(zs, k1, 1) + np.take_along_axis(zs, k2, 1))
+    with np.errstate(invalid="ignore"):
+        gross = ch.full & ~(np.abs(ch.z - median) <= GROSS_SPREAD_M)
+    n_rows = ch.valid.sum(axis=1)
+    unsure |= gross.any(axis=1) | (n_rows == 0)  # (no rows: no ephemeris or no measurement)
+    too_few = ~unsure & (n_full < 4)
+    ok &= ~unsure & ~too_few
+
+    # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
+    x = np.zeros((n_e, 3))
+    b = np.zeros(n_e)
+    n_int = np.zeros((n_e, n_s))
+    iters = np.zeros(n_e, dtype=int)
+    every = np.arange(n_e)
+    sat0, clk = _orbits(ch, every, n_int)
+    los, pred, sat = _geometry(sat0, clk, x)
+    fullw = ch.full.astype(float)
+
+    def cost_of(sel: np.ndarray, pred_: np.ndarray, b_: np.ndarray) -> np.ndarray:
+        r = np.where(ch.full[sel], ch.z[sel] - pred_ - b_[:, None], 0.0)
+        return np.einsum("es,es->e", r, r)
+
+    cost = cost_of(every, pred, b)
+    active = ok.copy()
+    converged = np.zeros(n_e, dtype=bool)
+    for _it in range(cfg.max_iter):
+        sel = np.flatnonzero(active)
+        if not sel.size:
+            break
+        iters[sel] += 1
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
+        h = _design(los[sel])
+        try:
+            step = _lsq(h, dz, fullw[sel])  # eq. (10) over the full rows
+        except np.linalg.LinAlgError:
+            _fail(ok, sel, np.ones(sel.size, dtype=bool), unsure)
+            active[sel] = False
+            continue
+        # each fractional row's ambiguity step [m]: its residual after the x/b step
+        dn_m = np.einsum("esk,ek->es", h, step) - dz
+        frac = ch.frac[sel]
+        ct = np.where(frac, ch.ct[sel], 1.0)
+        lam = np.ones(sel.size)
+        pending = np.arange(sel.size)
+        x_new = x[sel].copy()
+        b_new = b[sel].copy()
+        n_new = n_int[sel].copy()
+        dn = np.zeros((sel.size, n_s))
+        los_n, pred_n, sat_n = los[sel].copy(), pred[sel].copy(), sat[sel].copy()
+        sat0_n, clk_n = sat0[sel].copy(), clk[sel].copy()
+        cost_n = cost[sel].copy()
+        while pending.size:
+            p = sel[pending]
+            lp = lam[pending]
+            xp = x[p] + lp[:, None] * step[pending, :3]
+            bp = b[p] + lp * step[pending, 3]
+            dnp = np.where(frac[pending], np.rint(lp[:, None] * dn_m[pending] / ct[pending]), 0.0)
+            np_int = n_int[p] + dnp  # eq. (13)
+            s0, ck = _orbits(ch, p, np_int)
+            lo, pr, st = _geometry(s0, ck, xp)
+            cp = cost_of(p, pr, bp)
+            with np.errstate(invalid="ignore"):
+                accept = (cp <= cost[p]) | (lp < 1e-3) | ~np.isfinite(cost[p])
+            a = pending[accept]
+            x_new[a], b_new[a], n_new[a] = xp[accept], bp[accept], np_int[accept]
+            dn[a] = dnp[accept]
+            los_n[a], pred_n[a], sat_n[a] = lo[accept], pr[accept], st[accept]
+            sat0_n[a], clk_n[a], cost_n[a] = s0[accept], ck[accept], cp[accept]
+            lam[pending[~accept]] /= 2.0
+            pending = pending[~accept]
+        x[sel], b[sel], n_int[sel] = x_new, b_new, n_new
+        los[sel], pred[sel], sat[sel], sat0[sel], clk[sel] = los_n, pred_n, sat_n, sat0_n, clk_n
+        cost[sel] = cost_n
+        finite = np.isfinite(x_new).all(axis=1)
+        settled = (np.linalg.norm(lam[:, None] * step[:, :4], axis=1) < cfg.theta_m) & ~np.any(
+            dn != 0, axis=1
+        )  # eq. (14)
+        converged[sel] = finite & settled
+        active[sel] = finite & ~settled
+    ok &= converged  # no convergence (or diverged): the per-epoch solver says which
+
+    # eqs. (12), (20)-(21): the GEO-GDOP gate over the full rows at the converged position
+    n_frac = ch.frac.sum(axis=1)
+    gd = np.full(n_e, np.nan)
+    if solver == "fast":
+        with np.errstate(all="ignore"):
+            gd = gdop(np.where(ch.full[..., None], los, 0.0), fullw)
+        beta = np.full(n_e, float(cfg.beta))
+        if not cfg.beta:
+            t_min = np.min(np.where(ch.frac, ch.ct, np.inf), axis=1) / C_M_S
+            beta = np.where(n_frac > 0, C_M_S * t_min / 2.0 / cfg.range_error_m, 0.0)  # eq. 21
+        ok &= (n_frac == 0) | (gd < beta)
+
+    # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
+    sel = np.flatnonzero(ok)
+    validw = ch.valid.astype(float)
+    for _it in range(cfg.max_iter):
+        if not sel.size:
+            break
+        iters[sel] += 1
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
+        try:
+            step = _lsq(_design(los[sel]), dz, validw[sel])
+        except np.linalg.LinAlgError:
+            _fail(ok, sel, np.ones(sel.size, dtype=bool), unsure)
+            break
+        x[sel] += step[:, :3]
+        b[sel] += step[:, 3]
+        finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
+        _fail(ok, sel, ~finite, unsure)
+        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel])
+        sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
+
+    # ---- phase 2: mask, corrections, weights -------------------------------------------------
+    r = np.linalg.norm(x, axis=1)
+    far = ok & ~((r > 6.0e6) & (r < 8.5e6))  # not meaningful: the per-epoch solver's business
+    unsure |= far
+    ok &= ~far
+    out: list[_Outcome] = [None if u else _DECLINED for u in unsure.tolist()]
+    for e in np.flatnonzero(too_few).tolist():
+        out[e] = _too_few(ch, e, solver)
+    sel = np.flatnonzero(ok)
+    if not sel.size:
+        return out
+    _, _, _, el, _ = _local(x[sel], sat[sel])
+    keep = ch.valid.copy()
+    keep[sel] &= el >= np.radians(cfg.elmask_deg)
+    ok &= (keep & ch.full).sum(axis=1) >= 4
+    keepw = keep.astype(float)
+    model = iono.model(cfg.iono)
+    sel = np.flatnonzero(ok)
+    for _it in range(cfg.max_iter):
+        if not sel.size:
+            break
+        iters[sel] += 1
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
+        lat, lon, alt, el, az = _local(x[sel], sat[sel])
+        io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
+        dz = dz - _total(io, tr)
+        w = keepw[sel]
+        if cfg.weighted:
+            w = w / _sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2
+        try:
+            step = _lsq(_design(los[sel]), dz, w)
+        except np.linalg.LinAlgError:
+            _fail(ok, sel, np.ones(sel.size, dtype=bool), unsure)
+            break
+        x[sel] += step[:, :3]
+        b[sel] += step[:, 3]
+        finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
+        _fail(ok, sel, ~finite, unsure)
+        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel])
+        sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
+
+    # ---- judge the solution ------------------------------------------------------------------
+    for e in np.flatnonzero(unsure).tolist():
+        out[e] = None
+    sel = np.flatnonzero(ok)
+    if not sel.size:
+        return out
+    lat, lon, alt, el, az = _local(x[sel], sat[sel])
+    io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
+    kp = keep[sel]
+    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - _total(io, tr)
+    v = np.where(kp, v, 0.0)
+    if cfg.weighted:
+        sigma = np.where(kp, _sigma_m(el, ch.cn0[sel], io, tr, cfg), 1.0)
+    else:
+        sigma = np.full(kp.shape, cfg.sigma_uniform_m)
+    g = _design(los[sel])
+    rot = enu_rotation(lat, lon)
+    integ = _assess(g, v, sigma, kp, rot, cfg.p_fa, cfg.p_md)
+    n_k = kp.sum(axis=1)
+    resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
+    kfull = kp & ch.full[sel]
+    gd_final = gdop(np.where(kfull[..., None], los[sel], 0.0), kfull.astype(float))
+    gu = g * kp[..., None]
+    q = np.linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
+    q_enu = rot @ q @ np.swapaxes(rot, -1, -2)
+    pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
+    numbers: dict[str, list] = {
+        "x": x[sel].tolist(),
+        "b": b[sel].tolist(),
+        "lat_deg": np.degrees(lat).tolist(),
+        "lon_deg": np.degrees(lon).tolist(),
+        "alt": alt.tolist(),
+        "gdop": gd_final.tolist(),
+        "pdop": pdop.tolist(),
+        "hdop": np.sqrt(q_enu[:, 0, 0] + q_enu[:, 1, 1]).tolist(),
+        "vdop": np.sqrt(q_enu[:, 2, 2]).tolist(),
+        "cov": integ.cov_enu.tolist(),
+        "resid": resid_rms.tolist(),
+        "iters": iters[sel].tolist(),
+        "redundancy": integ.redundancy.tolist(),
+        "chi2": integ.chi2,
+        "chi2_max": integ.chi2_max,
+        "hpl": integ.hpl,
+        "vpl": integ.vpl,
+    }
+    for k, e in enumerate(sel.tolist()):
+        chi2, chi2_max = integ.chi2[k], integ.chi2_max[k]
+        if chi2 is not None and chi2_max is not None and not chi2 <= chi2_max:
+            out[e] = _failed(ch, e, solver, n_int, kp[k], integ, numbers, k)
+            continue
+        a_m, bb = numbers["alt"][k], numbers["b"][k]
+        if not (cfg.alt_min_m <= a_m <= cfg.alt_max_m) or abs(bb) > cfg.clock_max_s * C_M_S:
+            reason = (
+                f"implausible solution: altitude {a_m:.4g} m (allowed {cfg.alt_min_m:g} to "
+                f"{cfg.alt_max_m:g}), receiver clock {bb / C_M_S:.4g} s (allowed "
+                f"+-{cfg.clock_max_s:g})"
+            )
+            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "implausible")
+            continue
+        if not numbers["pdop"][k] <= cfg.pdop_max:
+            reason = f"PDOP gate failed: PDOP {numbers['pdop'][k]:.1f} > {cfg.pdop_max:g}"
+            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "pdop_gate")
+            continue
+        out[e] = _fix(ch, e, solver, n_int, kp[k], numbers, k)
+    return out
+
+
+def _total(io: np.ndarray | None, tr: np.ndarray | None) -> np.ndarray | float:
+    out: np.ndarray | float = 0.0
+    if io is not None:
+        out = out + np.where(np.isfinite(io), io, 0.0)
+    if tr is not None:
+        out = out + tr
+    return out
+
+
+class _Integrity:
+    """:class:`service.engine.raim.Integrity` of a batch (one entry per epoch)."""
+
+    def __init__(self, n: int) -> None:
+        self.redundancy = np.zeros(n, dtype=int)
+        self.chi2: list[float | None] = [None] * n
+        self.chi2_max: list[float | None] = [None] * n
+        self.hpl: list[float | None] = [None] * n
+        self.vpl: list[float | None] = [None] * n
+        self.cov_enu = np.zeros((n, 3, 3))
+        self.wtest = np.zeros((n, 0))
+
+
+def _assess(
+    g: np.ndarray,
+    v: np.ndarray,
+    sigma: np.ndarray,
+    kept: np.ndarray,
+    rot: np.ndarray,
+    p_fa: float,
+    p_md: float,
+) -> _Integrity:
+    """:func:`service.engine.raim.assess` for each epoch of a batch (rows ``kept``)."""
+    n_e = len(v)
+    w = np.where(kept, 1.0 / sigma**2, 0.0)
+    gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
+    cov = np.linalg.inv(gtw @ g)
+    k = cov @ gtw  # (e, 4, s)
+    s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
+    cov_enu = rot @ cov[:, :3, :3] @ np.swapaxes(rot, -1, -2)
+    out = _Integrity(n_e)
+    out.cov_enu = cov_enu
+    r = kept.sum(axis=1) - 4
+    out.redundancy = r
+    chi2 = np.einsum("es,es->e", v * v, w)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out.wtest = np.where(s_ii > 1e-10, v / (sigma * np.sqrt(s_ii)), np.nan)
+    k_enu = rot @ k[:, :3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        root = np.sqrt(s_ii)
+        slope_h = np.where(kept, sigma * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root, -np.inf)
+        slope_v = np.where(kept, sigma * np.abs(k_enu[:, 2]) / root, -np.inf)
+    all_ok = np.all(~kept | (s_ii > 1e-10), axis=1)
+    major = np.linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1]
+    k_h = math.sqrt(-2.0 * math.log(p_md))
+    k_v = normal_two_sided_quantile(p_md)
+    for i in range(n_e):
+        ri = int(r[i])
+        if ri < 1:
+            continue
+        t_max = chi2_threshold(ri, p_fa)
+        out.chi2[i], out.chi2_max[i] = float(chi2[i]), t_max
+        if not all_ok[i]:
+            out.hpl[i] = out.vpl[i] = math.inf
+            continue
+        pbias = math.sqrt(noncentrality_md(ri, p_fa, p_md))
+        sigma_major = math.sqrt(max(float(major[i]), 0.0))
+        sigma_u = math.sqrt(max(float(cov_enu[i, 2, 2]), 0.0))
+        out.hpl[i] = float(np.max(slope_h[i])) * pbias + k_h * sigma_major
+        out.vpl[i] = float(np.max(slope_v[i])) * pbias + k_v * sigma_u
+    return out
+
+
+def _fix(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    n_int: np.ndarray,
+    kept: np.ndarray,
+    numbers: dict[str, list],
+    k: int,
+) -> Fix:
+    """The fix of epoch ``e`` (``k``: its index among the judged epochs, in ``numbers``)."""
+    ep = ch.epochs[e]
+    prn = ch.prn[e]
+    kk = np.flatnonzero(kept[: len(prn)]).tolist()
+    frac = ch.frac[e].tolist()
+    used = tuple(prn[i] for i in kk)
+    full = tuple(prn[i] for i in kk if not frac[i])
+    fractional = tuple(prn[i] for i in kk if frac[i])
+    ambiguity = {prn[i]: int(n_int[e, i]) for i in kk if frac[i]}
+    recovered = {prn[i]: float(ch.z[e, i] + n_int[e, i] * ch.ct[e, i]) for i in kk if frac[i]}
+    cov = numbers["cov"][k]
+    return Fix(
+        solver=solver,
+        mode="fast" if fractional else "spp",
+        gpst_week=ep.gpst_week,
+        gpst_tow_s=ep.gpst_tow_s,
+        x_ecef_m=tuple(numbers["x"][k]),
+        lat_deg=numbers["lat_deg"][k],
+        lon_deg=numbers["lon_deg"][k],
+        alt_m=numbers["alt"][k],
+        clock_bias_m=numbers["b"][k],
+        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
+        pdop=numbers["pdop"][k],
+        hdop=numbers["hdop"][k],
+        vdop=numbers["vdop"][k],
+        std_enu_m=tuple(math.sqrt(max(cov[i][i], 0.0)) for i in range(3)),  # type: ignore[arg-type]
+        cov_enu_m2=tuple(tuple(r) for r in cov),
+        used=used,
+        full=full,
+        fractional=fractional,
+        ambiguity=ambiguity,
+        recovered_pr_m=recovered,
+        resid_rms_m=numbers["resid"][k],
+        iterations=numbers["iters"][k],
+        redundancy=numbers["redundancy"][k],
+        chi2=numbers["chi2"][k],
+        chi2_max=numbers["chi2_max"][k],
+        hpl_m=numbers["hpl"][k],
+        vpl_m=numbers["vpl"][k],
+    )
+
+
+def _base(ch: _Chunk, e: int, solver: Literal["fast", "spp"], **fields: object) -> Fix:
+    """A declined fix of epoch ``e`` over all its rows (``full``/``fractional`` as the
+    per-epoch solver's ``_attempt`` gives them) with ``fields``."""
+    ep = ch.epochs[e]
+    prn = ch.prn[e]
+    frac = ch.frac[e].tolist()
+    return Fix(
+        solver=solver,
+        mode="none",
+        gpst_week=ep.gpst_week,
+        gpst_tow_s=ep.gpst_tow_s,
+        full=tuple(p for p, f in zip(prn, frac, strict=False) if not f),
+        fractional=tuple(p for p, f in zip(prn, frac, strict=False) if f),
+        **fields,  # type: ignore[arg-type]
+    )
+
+
+def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
+    n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
+    reason = f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
+    return _base(ch, e, solver, reason=reason, reason_code="too_few_full")
+
+
+def _judged_decline(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    numbers: dict[str, list],
+    k: int,
+    reason: str,
+    code: str,
+) -> Fix:
+    """The per-epoch solver's decline of a solution that passed the test but not the
+    plausible shell or the PDOP gate (its figures, no position)."""
+    return _base(
+        ch,
+        e,
+        solver,
+        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
+        iterations=numbers["iters"][k],
+        resid_rms_m=numbers["resid"][k],
+        redundancy=numbers["redundancy"][k],
+        chi2=numbers["chi2"][k],
+        chi2_max=numbers["chi2_max"][k],
+        reason=reason,
+        reason_code=code,
+    )
+
+
+def _failed(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    n_int: np.ndarray,
+    kept: np.ndarray,
+    integ: _Integrity,
+    numbers: dict[str, list],
+    k: int,
+) -> _Failed:
+    """Epoch ``e``'s failed chi-square test, with the decline the per-epoch solver gives
+    it (:func:`service.engine.solver._attempt`: the figures of the failed solution and the
+    largest w-test in the reason)."""
+    ep = ch.epochs[e]
+    prn = ch.prn[e]
+    frac = ch.frac[e].tolist()
+    kk = np.flatnonzero(kept[: len(prn)]).tolist()
+    used = tuple(prn[i] for i in kk)
+    w = [float(integ.wtest[k, i]) for i in kk]
+    chi2, chi2_max, r = numbers["chi2"][k], numbers["chi2_max"][k], numbers["redundancy"][k]
+    finite = [abs(v) if math.isfinite(v) else -math.inf for v in w]
+    worst = finite.index(max(finite)) if any(math.isfinite(v) for v in w) else 0
+    reason = (
+        f"chi-square test failed: {chi2:.1f} > {chi2_max:.1f} "
+        f"(redundancy {r}; largest w-test {used[worst]} {w[worst]:.1f})"
+    )
+    fix = Fix(
+        solver=solver,
+        mode="none",
+        gpst_week=ep.gpst_week,
+        gpst_tow_s=ep.gpst_tow_s,
+        full=tuple(p for p, f in zip(prn, frac, strict=False) if not f),
+        fractional=tuple(p for p, f in zip(prn, frac, strict=False) if f),
+        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
+        iterations=numbers["iters"][k],
+        resid_rms_m=numbers["resid"][k],
+        redundancy=r,
+        chi2=chi2,
+        chi2_max=chi2_max,
+        reason=reason,
+        reason_code="chi2",
+        ambiguity={prn[i]: int(n_int[e, i]) for i in kk if frac[i]},
+    )
+    return _Failed(chi2, chi2_max, r, used, tuple(w), fix)
+
+
+def _outcomes(
+    epochs: Sequence[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> list[_Outcome]:
+    """:func:`_solve_chunk` over ``epochs`` chunk by chunk (a chunk that raises: None)."""
+    out: list[_Outcome] = []
+    for start in range(0, len(epochs), CHUNK_EPOCHS):
+        part = epochs[start : start + CHUNK_EPOCHS]
+        try:
+            with np.errstate(all="ignore"):
+                out += _solve_chunk(_Chunk(part, store, solver), iono, cfg, solver)
+        except (np.linalg.LinAlgError, ArithmeticError, ValueError):
+            log.debug("batch solve failed on a chunk; its epochs go one by one", exc_info=True)
+            out += [None] * len(part)
+    return out
+
+
+def _without(epoch: MeasurementEpoch, prn: str) -> MeasurementEpoch:
+    """``epoch`` without satellite ``prn``."""
+    keep = np.array([p != prn for p in epoch.prn])
+    return replace(
+        epoch,
+        prn=tuple(p for p in epoch.prn if p != prn),
+        signal=tuple(s for s, k in zip(epoch.signal, keep, strict=True) if k),
+        pr_m=epoch.pr_m[keep],
+        frac_pr_m=epoch.frac_pr_m[keep],
+        period_s=epoch.period_s[keep],
+        cn0_dbhz=epoch.cn0_dbhz[keep],
+        doppler_hz=epoch.doppler_hz[keep],
+        lock_s=epoch.lock_s[keep],
+    )
+
+
+def _exclude(
+    failed: dict[int, _Failed],
+    epochs: Sequence[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> tuple[dict[int, Fix], set[int]]:
+    """Fault exclusion (:func:`service.engine.solver._exclude`) for the epochs that failed
+    the test, every candidate of every epoch of a stage in one batch: at each stage each
+    used satellite is excluded in turn; the passing candidate with the smallest chi2 /
+    threshold is taken, else the best-fitting failed one starts the next stage. Epochs with
+    no passing candidate after the last stage are returned apart (``hopeless``: their fix is
+    the failed solution's decline); an epoch with a candidate whose outcome is not certain is
+    in neither (the per-epoch solver decides it)."""
+    # per epoch: the failed solution, the epoch it came from, the satellites removed so far
+    current: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {
+        e: (f, epochs[e], {}) for e, f in failed.items()
+    }
+    out: dict[int, Fix] = {}
+    hopeless: set[int] = set()
+    for _stage in range(cfg.max_exclusions):
+        cands: list[MeasurementEpoch] = []
+        owner: list[tuple[int, int]] = []  # (epoch, index in its failed.kept)
+        for e, (f, ep, _) in current.items():
+            if f.redundancy >= 2:  # an exclusion must leave a testable solution
+                for k, prn in enumerate(f.kept):
+                    cands.append(_without(ep, prn))
+                    owner.append((e, k))
+        if not cands:
+            break  # every epoch left has redundancy < 2: hopeless (below)
+        results = _outcomes(cands, store, iono, cfg, solver)
+        passed: dict[int, tuple[float, Fix, int]] = {}
+        failing: dict[int, tuple[float, _Failed, int, MeasurementEpoch]] = {}
+        unsure: set[int] = set()
+        for (e, k), res, cand in zip(owner, results, cands, strict=True):
+            if res is None:
+                unsure.add(e)
+            elif isinstance(res, Fix) and res.ok:
+                ratio = (
+                    res.chi2 / res.chi2_max if res.chi2 is not None and res.chi2_max else math.inf
+                )
+                if e not in passed or ratio < passed[e][0]:
+                    passed[e] = (ratio, res, k)
+            elif isinstance(res, _Failed):
+                ratio = res.chi2 / res.chi2_max if res.chi2_max else math.inf
+                if e not in failing or ratio < failing[e][0]:
+                    failing[e] = (ratio, res, k, cand)
+        nxt: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {}
+        for e, (f, _, removed) in current.items():
+            if e in unsure:
+                continue
+            if f.redundancy < 2:
+                hopeless.add(e)
+            elif e in passed:
+                _, fix, k = passed[e]
+                out[e] = replace(fix, excluded=removed | {f.kept[k]: _why(f, k)})
+            elif e in failing:
+                _, f2, k, cand = failing[e]
+                nxt[e] = (f2, cand, removed | {f.kept[k]: _why(f, k)})
+            else:
+                hopeless.add(e)
+        current = nxt
+    hopeless |= current.keys()  # every stage done, none passed
+    return out, hopeless
+
+
+def _why(f: _Failed, k: int) -> str:
+    """Why satellite ``f.kept[k]`` went (the per-epoch solver's words)."""
+    return f"chi-square test failed ({f.chi2:.1f} > {f.chi2_max:.1f}), w-test {f.wtest[k]:.1f}"
+
+
+def solve_many(
+    epochs: Sequence[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    solver: Literal["fast", "spp"] = "fast",
+    with_sky: bool = False,
+) -> list[Fix]:
+    """``[solve(e, store, iono, cfg, solver, with_sky) for e in epochs]``, vectorised over
+    chunks of :data:`CHUNK_EPOCHS` epochs (module docstring). Epochs in time order make
+    the ephemeris selection cheapest; any order gives the same fixes."""
+    cfg = cfg or SolverConfig()
+    iono = iono or IonoSet()
+    out: list[Fix | None] = [None] * len(epochs)
+    if cfg.x0_ecef_m is None and cfg.p_fa > 0.0:
+        todo = [i for i, ep in enumerate(epochs) if ep.week_known]
+        results = _outcomes([epochs[i] for i in todo], store, iono, cfg, solver)
+        failed: dict[int, _Failed] = {}
+        for i, res in zip(todo, results, strict=True):
+            if isinstance(res, Fix):
+                out[i] = res
+            elif isinstance(res, _Failed):
+                failed[i] = res
+        if failed and cfg.max_exclusions > 0:
+            passed, hopeless = _exclude(failed, epochs, store, iono, cfg, solver)
+            for i, fix in passed.items():
+                out[i] = fix
+            # no exclusion passes: the failed solution's decline, in the words of
+            # service.engine.solver._exclude
+            n = cfg.max_exclusions
+            for i in hopeless:
+                fix = failed[i].fix
+                why = f"{fix.reason}; no exclusion of up to {n} satellites passes"
+                out[i] = replace(fix, reason=why)
+        elif failed:  # no exclusion asked for: the failed solution's decline
+            for i, f in failed.items():
+                out[i] = f.fix
+    return [
+        (replace(f, sky=sky_view(ep, store, f)) if with_sky and f.ok else f)
+        if f is not None
+        else solve(ep, store, iono, cfg, solver, with_sky)
+        for f, ep in zip(out, epochs, strict=True)
+    ]
