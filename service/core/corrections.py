@@ -43,13 +43,16 @@ def _cubic(coeffs: tuple[float, ...] | list[float], x: np.ndarray) -> np.ndarray
 
 def klobuchar_bds_m(
     params: KlobucharParams,
-    lat_rad: float,
-    lon_rad: float,
+    lat_rad: float | np.ndarray,
+    lon_rad: float | np.ndarray,
     el_rad: np.ndarray,
     az_rad: np.ndarray,
-    bdt_sow_s: float,
+    bdt_sow_s: float | np.ndarray,
 ) -> np.ndarray:
     """B1I ionospheric delay [m], BDS Klobuchar form (ICD B1I 5.2.4.7).
+
+    One receiver, or one per row when ``lat_rad``, ``lon_rad`` and ``bdt_sow_s`` are arrays
+    that broadcast against ``el_rad`` (the batch solver's epochs x satellites).
 
     Pierce point on a 375 km shell (R = 6378 km), geographic latitude; vertical delay
     5 ns + A2 cos(2 pi (t - 50400) / A4) during the day, 5 ns at night; slant factor
@@ -60,7 +63,7 @@ def klobuchar_bds_m(
     az = np.asarray(az_rad, dtype=float)
     ratio = r_km / (r_km + h_km) * np.cos(el)
     psi = np.pi / 2 - el - np.arcsin(ratio)
-    sin_lat, cos_lat = math.sin(lat_rad), math.cos(lat_rad)
+    sin_lat, cos_lat = np.sin(lat_rad), np.cos(lat_rad)
     lat_m = np.arcsin(sin_lat * np.cos(psi) + cos_lat * np.sin(psi) * np.cos(az))
     lon_m = lon_rad + np.arcsin(np.sin(psi) * np.sin(az) / np.cos(lat_m))
     phi = np.abs(lat_m / _SEMI)
@@ -74,13 +77,15 @@ def klobuchar_bds_m(
 
 def klobuchar_gps_m(
     params: KlobucharParams,
-    lat_rad: float,
-    lon_rad: float,
+    lat_rad: float | np.ndarray,
+    lon_rad: float | np.ndarray,
     el_rad: np.ndarray,
     az_rad: np.ndarray,
-    gpst_tow_s: float,
+    gpst_tow_s: float | np.ndarray,
 ) -> np.ndarray:
     """B1I ionospheric delay [m] from GPS Klobuchar coefficients (IS-GPS-200 20.3.3.5.2.5).
+
+    One receiver, or one per row as in :func:`klobuchar_bds_m`.
 
     Geomagnetic latitude, 350 km shell, obliquity 1 + 16 (0.53 - E)^3 (semicircles); the L1
     delay is scaled to B1I by (f_L1 / f_B1I)^2.
@@ -102,17 +107,22 @@ def klobuchar_gps_m(
 
 
 def saastamoinen_m(
-    lat_rad: float, alt_m: float, el_rad: np.ndarray, humidity: float = 0.7
+    lat_rad: float | np.ndarray,
+    alt_m: float | np.ndarray,
+    el_rad: np.ndarray,
+    humidity: float = 0.7,
 ) -> np.ndarray:
-    """Slant tropospheric delay [m], Saastamoinen model with a standard atmosphere."""
+    """Slant tropospheric delay [m], Saastamoinen model with a standard atmosphere; 0 for a
+    receiver outside -100 m to 10 km. One receiver, or one per row when ``lat_rad`` and
+    ``alt_m`` are arrays that broadcast against ``el_rad``."""
     el = np.asarray(el_rad, dtype=float)
-    if alt_m < -100.0 or alt_m > 1e4:
-        return np.zeros_like(el)
-    h = max(alt_m, 0.0)
+    alt = np.asarray(alt_m, dtype=float)
+    h = np.maximum(alt, 0.0)
     pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
     temp_k = 15.0 - 6.5e-3 * h + 273.16
-    e_hpa = 6.108 * humidity * math.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
+    e_hpa = 6.108 * humidity * np.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
     cos_z = np.cos(np.pi / 2 - np.maximum(el, _ONE_DEG_RAD))
-    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * math.cos(2 * lat_rad) - 0.00028 * h / 1e3)
+    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * np.cos(2 * lat_rad) - 0.00028 * h / 1e3)
     wet = 0.002277 * (1255.0 / temp_k + 0.05) * e_hpa
-    return np.where(el > 0, (hydro + wet) / cos_z, 0.0)
+    outside = (alt < -100.0) | (alt > 1e4)
+    return np.where(~outside & (el > 0), (hydro + wet) / cos_z, 0.0)

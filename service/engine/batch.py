@@ -38,7 +38,8 @@ from typing import Literal
 
 import numpy as np
 
-from service.core.constants import C_M_S, F_B1I_HZ, F_GPS_L1_HZ, OMEGA_E_RAD_S
+from service.core.constants import C_M_S, OMEGA_E_RAD_S
+from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -187,76 +188,6 @@ def _local(
     return lat, lon, alt, el, az
 
 
-def _klobuchar_bds_m(
-    params: KlobucharParams,
-    lat: np.ndarray,
-    lon: np.ndarray,
-    el: np.ndarray,
-    az: np.ndarray,
-    bdt_sow: np.ndarray,
-) -> np.ndarray:
-    """:func:`service.core.corrections.klobuchar_bds_m` (ICD B1I 5.2.4.7) with one receiver
-    per row of ``el``/``az`` (lat, lon, bdt_sow: (e, 1))."""
-    r_km, h_km = 6378.0, 375.0
-    ratio = r_km / (r_km + h_km) * np.cos(el)
-    psi = np.pi / 2 - el - np.arcsin(ratio)
-    lat_m = np.arcsin(np.sin(lat) * np.cos(psi) + np.cos(lat) * np.sin(psi) * np.cos(az))
-    lon_m = lon + np.arcsin(np.sin(psi) * np.sin(az) / np.cos(lat_m))
-    phi = np.abs(lat_m / np.pi)
-    a2 = np.maximum(_cubic(params.alpha, phi), 0.0)
-    a4 = np.clip(_cubic(params.beta, phi), 72000.0, 172800.0)
-    t = np.mod(bdt_sow + lon_m * 43200.0 / np.pi, 86400.0)
-    day = np.abs(t - 50400.0) < a4 / 4.0
-    iz = 5e-9 + np.where(day, a2 * np.cos(2 * np.pi * (t - 50400.0) / a4), 0.0)
-    return C_M_S * iz / np.sqrt(1.0 - ratio**2)
-
-
-def _klobuchar_gps_m(
-    params: KlobucharParams,
-    lat: np.ndarray,
-    lon: np.ndarray,
-    el: np.ndarray,
-    az: np.ndarray,
-    gpst_tow: np.ndarray,
-) -> np.ndarray:
-    """:func:`service.core.corrections.klobuchar_gps_m` (IS-GPS-200 20.3.3.5.2.5, scaled to
-    B1I) with one receiver per row."""
-    el_sc = el / np.pi
-    psi = 0.0137 / (el_sc + 0.11) - 0.022
-    lat_i = np.clip(lat / np.pi + psi * np.cos(az), -0.416, 0.416)
-    lon_i = lon / np.pi + psi * np.sin(az) / np.cos(lat_i * np.pi)
-    lat_m = lat_i + 0.064 * np.cos((lon_i - 1.617) * np.pi)
-    t = np.mod(43200.0 * lon_i + gpst_tow, 86400.0)
-    f = 1.0 + 16.0 * (0.53 - el_sc) ** 3
-    amp = np.maximum(_cubic(params.alpha, lat_m), 0.0)
-    per = np.maximum(_cubic(params.beta, lat_m), 72000.0)
-    xx = 2 * np.pi * (t - 50400.0) / per
-    night = np.abs(xx) >= 1.57
-    delay = f * (5e-9 + np.where(night, 0.0, amp * (1 - xx**2 / 2 + xx**4 / 24)))
-    return C_M_S * delay * (F_GPS_L1_HZ / F_B1I_HZ) ** 2
-
-
-def _cubic(coeffs: Sequence[float], x: np.ndarray) -> np.ndarray:
-    c0, c1, c2, c3 = (float(c) for c in coeffs)
-    return ((c3 * x + c2) * x + c1) * x + c0
-
-
-def _saastamoinen_m(
-    lat: np.ndarray, alt: np.ndarray, el: np.ndarray, humidity: float = 0.7
-) -> np.ndarray:
-    """:func:`service.core.corrections.saastamoinen_m` (standard atmosphere) with one
-    receiver (lat, alt: (e,)) per row of ``el``; 0 for receivers outside -100 m to 10 km."""
-    h = np.maximum(alt, 0.0)[:, None]
-    pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
-    temp_k = 15.0 - 6.5e-3 * h + 273.16
-    e_hpa = 6.108 * humidity * np.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
-    cos_z = np.cos(np.pi / 2 - np.maximum(el, math.radians(1.0)))
-    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * np.cos(2 * lat[:, None]) - 0.00028 * h / 1e3)
-    wet = 0.002277 * (1255.0 / temp_k + 0.05) * e_hpa
-    inside = ((alt >= -100.0) & (alt <= 1e4))[:, None]
-    return np.where(inside & (el > 0), (hydro + wet) / cos_z, 0.0)
-
-
 def _delays(
     lat: np.ndarray,
     lon: np.ndarray,
@@ -272,12 +203,12 @@ def _delays(
     iono = None
     if model is not None:
         if model.system == "BDS":
-            iono = _klobuchar_bds_m(model, lat[:, None], lon[:, None], el, az, bdt_sow[:, None])
+            iono = klobuchar_bds_m(model, lat[:, None], lon[:, None], el, az, bdt_sow[:, None])
         else:
             tow = bdt_sow[:, None] + BDT_GPST_OFFSET_S
-            iono = _klobuchar_gps_m(model, lat[:, None], lon[:, None], el, az, tow)
+            iono = klobuchar_gps_m(model, lat[:, None], lon[:, None], el, az, tow)
         iono = np.where((alt < 100e3)[:, None], iono, np.nan)
-    tropo = _saastamoinen_m(lat, alt, el) if cfg.tropo != "off" else None
+    tropo = saastamoinen_m(lat[:, None], alt[:, None], el) if cfg.tropo != "off" else None
     return iono, tropo
 
 
