@@ -870,16 +870,13 @@ def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[
     pos, _ = sat_pos_clock(arr, bdt_week, np.full(len(ephs), bdt_sow - NOMINAL_FLIGHT_TIME_S))
     el, az = look_angles(np.asarray(fix.x_ecef_m), pos)
     used = set(fix.used)
+    # whole-array conversions (the same floats as element by element, a fraction of the cost)
+    el_deg, az_deg = np.degrees(el).tolist(), np.degrees(az).tolist()
+    cn0 = epoch.cn0_dbhz[idx].tolist()
+    full = np.isfinite(epoch.pr_m[idx]).tolist()
+    prns, signals = epoch.prn, epoch.signal
     return tuple(
-        SatView(
-            prn=epoch.prn[i],
-            el_deg=float(np.degrees(el[k])),
-            az_deg=float(np.degrees(az[k])),
-            cn0_dbhz=float(epoch.cn0_dbhz[i]),
-            used=epoch.prn[i] in used,
-            full=bool(np.isfinite(epoch.pr_m[i])),
-            signal=epoch.signal[i],
-        )
+        SatView(prns[i], el_deg[k], az_deg[k], cn0[k], prns[i] in used, full[k], signals[i])
         for k, i in enumerate(idx)
     )
 

@@ -70,7 +70,14 @@ _LAT, _LON, _NS, _EW, _TIME, _DATE, _HEX, _DEC, _INT, _CHAR = (
 )  # fmt: skip
 _NOMINAL = {_HEX: "0", _DEC: "0.0", _INT: "0", _CHAR: "", _LAT: "", _LON: "", _NS: "N", _EW: "E"}
 """The text pynmeagps writes for a field that is not given (``NMEAMessage.nomval``)."""
-_GSV_GROUP = (("svid", _INT), ("elv", _INT), ("az", _INT), ("cno", _INT))
+
+
+def _gsv_keys(j: int) -> tuple[str, str, str, str]:
+    """Names of GSV's j-th satellite group (pynmeagps: svid, elv, az, cno, integers)."""
+    return (f"svid_{j:02d}", f"elv_{j:02d}", f"az_{j:02d}", f"cno_{j:02d}")
+
+
+_GSV_KEYS = tuple(_gsv_keys(j) for j in range(1, GSV_SATS_PER_SENTENCE + 1))
 _FIELDS: dict[str, tuple[tuple[str, str], ...]] = {
     # pynmeagps' GET payload definitions (nmeatypes_get) of the sentences written here
     "GGA": (
@@ -135,28 +142,41 @@ def _text(value: object, kind: str, fields: dict[str, object]) -> str:
     return str(value)
 
 
+_PLAIN_KINDS = frozenset({_HEX, _DEC, _INT, _CHAR})
+"""Kinds pynmeagps writes with ``str()``."""
+_SPECS: dict[str, tuple[tuple[str, str | None, str | None], ...]] = {
+    msg_id: tuple(
+        (name, None if kind in _PLAIN_KINDS else kind, _NOMINAL.get(kind)) for name, kind in spec
+    )
+    for msg_id, spec in _FIELDS.items()
+}
+"""``_FIELDS`` as (name, kind or None for ``str()``, text when not given) for the formatter."""
+
+
 def plain_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes:
     """``$`` talker msg_id ``,`` fields ``*`` checksum CRLF (NMEA 0183 section 5.3: the
     checksum is the XOR of the characters between ``$`` and ``*``), for the sentences of
     this module: the bytes pynmeagps' ``NMEAMessage(talker, msg_id, GET, hpnmeamode=True,
     **fields).serialize()`` gives (:func:`pynmeagps_sentence`), at a few percent of its cost.
     Fields not given get pynmeagps' nominal text (times and dates must be given)."""
-    spec = _FIELDS[msg_id]
     parts = [talker + msg_id]
-    for name, kind in spec:
-        value = fields.get(name, _NOMINAL.get(kind))
-        if value is None:
+    get = fields.get
+    for name, kind, nominal in _SPECS[msg_id]:
+        value = get(name, nominal)
+        if kind is None:
+            parts.append(str(value))
+        elif value is None:
             raise KeyError(f"{msg_id} needs its {name} field")
-        parts.append(_text(value, kind, fields))
+        else:
+            parts.append(_text(value, kind, fields))
     if msg_id == "GSV":
         # pynmeagps' group count for generated messages: the largest _NN suffix given
-        n_groups = max((int(k.split("_", 1)[1]) for k in fields if "_" in k), default=0)
+        n_groups = max([int(k.split("_", 1)[1]) for k in fields if "_" in k], default=0)
         for j in range(1, n_groups + 1):
-            for name, _kind in _GSV_GROUP:
-                parts.append(str(fields.get(f"{name}_{j:02d}", 0)))
-        parts.append(str(fields.get("signalID", "0")))
-    body = ",".join(parts)
-    data = body.encode()
+            keys = _GSV_KEYS[j - 1] if j <= len(_GSV_KEYS) else _gsv_keys(j)
+            parts.extend([str(get(key, 0)) for key in keys])
+        parts.append(str(get("signalID", "0")))
+    data = ",".join(parts).encode()
     checksum = 0
     for byte in data:
         checksum ^= byte
@@ -241,22 +261,27 @@ def _int_or_empty(value: float) -> object:
     return round(value) if math.isfinite(value) else ""
 
 
+def _prn_of(sat: SatView) -> int:
+    return prn_number(sat.prn)
+
+
 def gsv_sentences(sky: Sequence[SatView], talker: str = "GB") -> list[bytes]:
     """GSV sentences (4 satellites each, sorted by PRN) with the B1I signal ID."""
-    sats = sorted(sky, key=lambda s: prn_number(s.prn))
-    n_msg = max(1, math.ceil(len(sats) / GSV_SATS_PER_SENTENCE))
+    sats = sorted(sky, key=_prn_of)
+    n_sv = len(sats)
+    n_msg = max(1, math.ceil(n_sv / GSV_SATS_PER_SENTENCE))
     out = []
     for k in range(n_msg):
-        fields: dict[str, object] = {"numMsg": n_msg, "msgNum": k + 1, "numSV": len(sats)}
+        fields: dict[str, object] = {"numMsg": n_msg, "msgNum": k + 1, "numSV": n_sv}
         group = sats[GSV_SATS_PER_SENTENCE * k : GSV_SATS_PER_SENTENCE * (k + 1)]
-        for j, s in enumerate(group, start=1):
-            fields[f"svid_{j:02d}"] = prn_number(s.prn)
-            fields[f"elv_{j:02d}"] = _int_or_empty(s.el_deg)
+        for (svid, elv, azk, cno), s in zip(_GSV_KEYS, group, strict=False):
+            fields[svid] = prn_number(s.prn)
+            fields[elv] = _int_or_empty(s.el_deg)
             az = _int_or_empty(s.az_deg)
-            fields[f"az_{j:02d}"] = az % 360 if isinstance(az, int) else az
-            fields[f"cno_{j:02d}"] = _int_or_empty(s.cn0_dbhz)
+            fields[azk] = az % 360 if isinstance(az, int) else az
+            fields[cno] = _int_or_empty(s.cn0_dbhz)
         fields["signalID"] = B1I_SIGNAL_ID
-        out.append(_msg(talker, "GSV", **fields))
+        out.append(_serialize(talker, "GSV", fields))
     return out
 
 
