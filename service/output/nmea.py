@@ -5,13 +5,14 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
 - Serialisation: the field values are chosen here (the pynmeagps keyword names and types of
   NMEA 0183 / NMEA 4.11 GGA, RMC, GSA, GSV, GST and ZDA) and written by
   :func:`plain_sentence`, a hand-written formatter: comma-joined fields, ``*`` and the XOR
-  checksum of NMEA 0183 section 5.3. It exists for its cost: pynmeagps' ``NMEAMessage``
-  took ~0.1 ms per sentence, ~8 sentences per 10 Hz epoch, 41 % of ``bdsfix replay
-  --max-speed``'s stream loop (bench/bench_replay.py --profile); the plain formatter takes
-  a few microseconds. It is cross-checked against :func:`pynmeagps_sentence` (pynmeagps'
-  ``NMEAMessage`` with ``hpnmeamode``, the independent reference) byte for byte, for every
-  fix of the golden captures and for generated fixes (tests/output/test_nmea_plain.py),
-  and each of its sentences parses back with pynmeagps' ``NMEAReader``.
+  checksum of NMEA 0183. It exists for its cost: pynmeagps' ``NMEAMessage`` took ~0.1 ms
+  per sentence, ~8 sentences per 10 Hz epoch, 41 % of ``bdsfix replay --max-speed``'s
+  stream loop (bench/bench_replay.py --profile); with the plain formatter an epoch's
+  sentences take ~60 us, the choice of their field values included. It is cross-checked
+  against :func:`pynmeagps_sentence` (pynmeagps' ``NMEAMessage`` with ``hpnmeamode``, the
+  independent reference) byte for byte, for every fix of the golden captures and for
+  generated fixes (tests/output/test_nmea_plain.py), and each of its sentences parses back
+  with pynmeagps' ``NMEAReader``.
 
 - Talker: GGA/RMC/GSA/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD``
   or ``GP``). GSV describes one constellation, so it always uses BeiDou's ``GB`` (``BD``
@@ -154,8 +155,8 @@ _SPECS: dict[str, tuple[tuple[str, str | None, str | None], ...]] = {
 
 
 def plain_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes:
-    """``$`` talker msg_id ``,`` fields ``*`` checksum CRLF (NMEA 0183 section 5.3: the
-    checksum is the XOR of the characters between ``$`` and ``*``), for the sentences of
+    """``$`` talker msg_id ``,`` fields ``*`` checksum CRLF (NMEA 0183: the checksum is
+    the XOR of the characters between ``$`` and ``*``, two hex digits), for the sentences of
     this module: the bytes pynmeagps' ``NMEAMessage(talker, msg_id, GET, hpnmeamode=True,
     **fields).serialize()`` gives (:func:`pynmeagps_sentence`), at a few percent of its cost.
     Fields not given get pynmeagps' nominal text (times and dates must be given)."""
