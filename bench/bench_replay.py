@@ -7,8 +7,9 @@ kind, every sentence built) and, apart, with only JSONL. Prints epochs per secon
 time and of CPU time (user + system of the replay process), median of the runs.
 
 With --profile, one more replay runs under cProfile and the share of the main costs is
-printed (NMEA sentences, solver, sky view; cProfile sees the main thread only, not the
-reader thread that decodes the UBX).
+printed (NMEA sentences, solver, sky view, UBX decoding: a capture file at full speed is
+read in the loop's own thread, so cProfile sees it all; its per-call overhead inflates
+the shares of code made of many small calls).
 
 Run: python bench/bench_replay.py [--minutes 60] [--runs 3] [--profile]
 (prints figures; no assertions)
@@ -83,10 +84,12 @@ def profile_shares(capture: Path, workdir: Path) -> None:
 
     total = cum("service/daemon/loop.py", "run")
     parts = {
-        "NMEA sentences (pynmeagps)": cum("service/output/nmea.py", "_msg"),
+        "NMEA sentences": cum("service/output/nmea.py", "gga_sentence")
+        + cum("service/output/nmea.py", "sentences_after_gga"),
         "per-epoch solver": cum("service/engine/solver.py", "solve")
         - cum("service/engine/solver.py", "sky_view"),
         "sky view (GSV)": cum("service/engine/solver.py", "sky_view"),
+        "UBX decoding (drivers)": cum("drivers/source.py", "__iter__"),
     }
     print(f"  profile (cProfile of the main thread, {total:.1f} s in the stream loop):")
     for name, t in parts.items():

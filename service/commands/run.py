@@ -92,6 +92,13 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
+def _is_regular_file(spec: str) -> bool:
+    """Whether the source ``spec`` names a regular file (not stdin, a device, a FIFO or TCP)."""
+    if spec == "-" or spec.startswith(("tcp:", "serial:")):
+        return False
+    return os.path.isfile(spec.removeprefix("file:"))
+
+
 STATE_DIR_MODE = 0o700  # the state directory, when the daemon creates it
 
 
@@ -345,6 +352,8 @@ def main_replay(args: argparse.Namespace) -> int:
         source_counters=counters,
         status_interval_s=args.status_interval_s,
         on_result=timeline.on_result,
+        # a capture file at full speed: no reader thread (see Runner.inline)
+        inline=speed is None and bool(args.files) and _is_regular_file(args.files[0]),
     )
     signals = _Signals(runner)
     try:

@@ -68,7 +68,7 @@ def klobuchar_bds_m(
     lon_m = lon_rad + np.arcsin(np.sin(psi) * np.sin(az) / np.cos(lat_m))
     phi = np.abs(lat_m / _SEMI)
     a2 = np.maximum(_cubic(params.alpha, phi), 0.0)
-    a4 = np.clip(_cubic(params.beta, phi), 72000.0, 172800.0)
+    a4 = np.minimum(np.maximum(_cubic(params.beta, phi), 72000.0), 172800.0)  # np.clip
     t = np.mod(bdt_sow_s + lon_m * 43200.0 / np.pi, 86400.0)
     day = np.abs(t - 50400.0) < a4 / 4.0
     iz = 5e-9 + np.where(day, a2 * np.cos(2 * np.pi * (t - 50400.0) / a4), 0.0)

@@ -107,6 +107,49 @@ def _wrap_half_week(dt_s: np.ndarray) -> np.ndarray:
     return dt_s - WEEK_S * np.round(dt_s / WEEK_S) * (np.abs(dt_s) > _HALF_WEEK_S)
 
 
+_COS_TILT, _SIN_TILT = np.cos(GEO_TILT_RAD), np.sin(GEO_TILT_RAD)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _OrbitConstants:
+    """The terms of :func:`sat_pos_clock` that depend on the ephemerides alone (the same
+    expressions, evaluated once per set instead of once per call)."""
+
+    a_m: np.ndarray  # sqrt(A)^2
+    n_rad_s: np.ndarray  # sqrt(GM / A^3) + delta_n
+    sqrt_1_e2: np.ndarray  # sqrt(1 - e^2)
+    omega_dot_rel_rad_s: np.ndarray  # Omega_dot - Omega_e (IGSO/MEO node rate)
+    omega_e_toe_rad: np.ndarray  # Omega_e t_oe
+    f_e_sqrt_a: np.ndarray  # F e sqrt(A), the relativistic clock term over sin E
+    any_geo: bool
+
+
+_CONSTANTS: dict[int, tuple[EphemerisArrays, _OrbitConstants]] = {}
+_CONSTANTS_MAX = 64
+
+
+def _constants(eph: EphemerisArrays) -> _OrbitConstants:
+    """:class:`_OrbitConstants` of ``eph``, memoised by identity for the sets in use (the
+    ephemeris store hands out the same arrays for the same sets)."""
+    hit = _CONSTANTS.get(id(eph))
+    if hit is not None and hit[0] is eph:
+        return hit[1]
+    a = eph.sqrt_a_sqrt_m**2
+    k = _OrbitConstants(
+        a_m=a,
+        n_rad_s=np.sqrt(GM_M3_S2 / a**3) + eph.delta_n_rad_s,
+        sqrt_1_e2=np.sqrt(1.0 - eph.e**2),
+        omega_dot_rel_rad_s=eph.omega_dot_rad_s - OMEGA_E_RAD_S,
+        omega_e_toe_rad=OMEGA_E_RAD_S * eph.toe_sow_s,
+        f_e_sqrt_a=F_REL_S_PER_SQRT_M * eph.e * eph.sqrt_a_sqrt_m,
+        any_geo=bool(eph.geo.any()),
+    )
+    if len(_CONSTANTS) >= _CONSTANTS_MAX:
+        _CONSTANTS.clear()
+    _CONSTANTS[id(eph)] = (eph, k)
+    return k
+
+
 def sat_pos_clock(
     eph: EphemerisArrays, bdt_week: int | np.ndarray, bdt_sow_s: np.ndarray | float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -119,14 +162,14 @@ def sat_pos_clock(
     dweek = (np.asarray(bdt_week, dtype=float) - eph.week) * WEEK_S
     tk = _wrap_half_week(dweek + (t_sow - eph.toe_sow_s))
 
-    a = eph.sqrt_a_sqrt_m**2
-    n = np.sqrt(GM_M3_S2 / a**3) + eph.delta_n_rad_s
-    mk = eph.m0_rad + n * tk
+    k = _constants(eph)
+    a = k.a_m
+    mk = eph.m0_rad + k.n_rad_s * tk
     ek = mk.copy()
     for _ in range(5):  # Kepler's equation by Newton (quadratic); e < 0.01 for BDS
         ek = ek - (ek - eph.e * np.sin(ek) - mk) / (1.0 - eph.e * np.cos(ek))
     sin_e, cos_e = np.sin(ek), np.cos(ek)
-    nu = np.arctan2(np.sqrt(1.0 - eph.e**2) * sin_e, cos_e - eph.e)
+    nu = np.arctan2(k.sqrt_1_e2 * sin_e, cos_e - eph.e)
     phi = nu + eph.omega_rad
     s2, c2 = np.sin(2 * phi), np.cos(2 * phi)
     u = phi + eph.cus_rad * s2 + eph.cuc_rad * c2
@@ -136,17 +179,17 @@ def sat_pos_clock(
 
     node = (
         eph.omega0_rad
-        + np.where(eph.geo, eph.omega_dot_rad_s * tk, (eph.omega_dot_rad_s - OMEGA_E_RAD_S) * tk)
-        - OMEGA_E_RAD_S * eph.toe_sow_s
+        + np.where(eph.geo, eph.omega_dot_rad_s * tk, k.omega_dot_rel_rad_s * tk)
+        - k.omega_e_toe_rad
     )
     cn, sn, ci, si = np.cos(node), np.sin(node), np.cos(inc), np.sin(inc)
     x = xp * cn - yp * ci * sn
     y = xp * sn + yp * ci * cn
     z = yp * si
 
-    if eph.geo.any():
+    if k.any_geo:
         # GEO: R_z(Omega_e t_k) R_x(-5 deg) applied to the inertial-like frame position
-        ct, st = np.cos(GEO_TILT_RAD), np.sin(GEO_TILT_RAD)
+        ct, st = _COS_TILT, _SIN_TILT
         yg = ct * y + st * z
         zg = -st * y + ct * z
         ang = OMEGA_E_RAD_S * tk
@@ -159,10 +202,6 @@ def sat_pos_clock(
 
     dtc = _wrap_half_week(dweek + (t_sow - eph.toc_sow_s))
     clock_s = (
-        eph.af0_s
-        + eph.af1_s_s * dtc
-        + eph.af2_s_s2 * dtc**2
-        + F_REL_S_PER_SQRT_M * eph.e * eph.sqrt_a_sqrt_m * sin_e
-        - eph.tgd1_s
+        eph.af0_s + eph.af1_s_s * dtc + eph.af2_s_s2 * dtc**2 + k.f_e_sqrt_a * sin_e - eph.tgd1_s
     )
     return np.stack([x, y, z], axis=-1), clock_s

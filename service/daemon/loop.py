@@ -76,6 +76,12 @@ class Runner:
     _recognised: tuple[int, float] = (0, 0.0)  # (frames + RINEX epochs, since when)
     _silence_warned_at: float = -math.inf
     queue_size: int = 4096
+    inline: bool = False
+    """Read the source in the loop's own thread, without the reader thread: for a regular
+    file replayed as fast as possible, where the thread would only add hand-overs of the
+    interpreter lock (several per epoch, ~10 % of the replay's time) and nothing waits on
+    I/O. A live or paced source keeps its reader thread (the loop's timers run while the
+    source waits)."""
     nav_sources: Sequence[tuple[str, Iterable[Any], Mapping[str, int]]] = ()
     """Network nav sources: (redacted name, events, counters) each."""
     nav_max_age_s: float = 7200.0
@@ -126,6 +132,34 @@ class Runner:
         finally:
             q.put(_END)
 
+    @staticmethod
+    def _queue_taker(q: queue.Queue[Any]) -> Callable[[], Any]:
+        """The next event from the reader thread's queue; None after 0.2 s without one."""
+
+        def take() -> Any:
+            try:
+                return q.get(timeout=0.2)
+            except queue.Empty:
+                return None
+
+        return take
+
+    def _inline_taker(self) -> Callable[[], Any]:
+        """The next event straight from the source (:attr:`inline`); ``_END`` at its end or
+        failure (kept for :meth:`run` to raise, as the reader thread does)."""
+        source = iter(self.events)
+
+        def take() -> Any:
+            try:
+                return next(source)
+            except StopIteration:
+                return _END
+            except Exception as exc:  # reported after the final save, as from the reader
+                self._error = exc
+                return _END
+
+        return take
+
     def _nav_reader(self, name: str, events: Iterable[Any], q: queue.Queue[Any]) -> None:
         """A network nav source into the queue; its end or failure ends only this thread."""
         try:
@@ -157,8 +191,12 @@ class Runner:
         gc.collect()
         gc.freeze()
         q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
-        reader = threading.Thread(target=self._reader, args=(q,), name="bdsfix-reader", daemon=True)
-        reader.start()
+        take = self._inline_taker() if self.inline else self._queue_taker(q)
+        if not self.inline:
+            reader = threading.Thread(
+                target=self._reader, args=(q,), name="bdsfix-reader", daemon=True
+            )
+            reader.start()
         if self.nav_sources:
             self._gate = NetNavGate(self.nav_max_age_s)
         for i, (name, events, _counters) in enumerate(self.nav_sources):
@@ -175,10 +213,7 @@ class Runner:
         n = 0
         try:
             while not self._stop.is_set():
-                try:
-                    ev = q.get(timeout=0.2)
-                except queue.Empty:
-                    ev = None
+                ev = take()
                 if ev is _END:
                     break
                 if ev is not None:

@@ -477,25 +477,27 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     cfg = ctx.cfg
     frac = rows.frac
     n_full, n_frac = int((~frac).sum()), int(frac.sum())
-    base = Fix(
-        solver=ctx.solver,
-        mode="none",
-        gpst_week=ctx.gpst_week,
-        gpst_tow_s=ctx.gpst_tow_s,
-        full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
-        fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
-    )
-    none = np.zeros(0, dtype=int)
+
+    def base(**fields: object) -> Fix:
+        """The declined fix of these rows with ``fields`` (built only for a decline)."""
+        return Fix(
+            solver=ctx.solver,
+            mode="none",
+            gpst_week=ctx.gpst_week,
+            gpst_tow_s=ctx.gpst_tow_s,
+            full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
+            fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
+            **fields,  # type: ignore[arg-type]
+        )
 
     def declined(d: _Decline) -> _Attempt:
-        fix = replace(
-            base,
+        fix = base(
             reason=d.reason,
             reason_code=d.code,
             gdop_full=d.gdop_full,
             iterations=d.iterations,
         )
-        return _Attempt(fix, rows, none)
+        return _Attempt(fix, rows, np.zeros(0, dtype=int))
 
     if n_full < 4:
         return declined(
@@ -519,9 +521,10 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
 
     # ---- phase 2: mask, corrections, weights ---------------------------------------------
     meaningful = _meaningful(state.x)
+    loc0 = None
     if meaningful:
-        el = _local(state.x, state.geo.sat_ecef_m).el_rad
-        keep = np.flatnonzero(el >= np.radians(cfg.elmask_deg))
+        loc0 = _local(state.x, state.geo.sat_ecef_m)
+        keep = np.flatnonzero(loc0.el_rad >= np.radians(cfg.elmask_deg))
     else:
         keep = np.arange(len(rows.prn))
     kept = rows if len(keep) == len(rows.prn) else rows.take(keep)
@@ -544,6 +547,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         _State(state.x, state.b, state.n_int[keep], geo, state.iterations),
         model,
         meaningful,
+        loc0 if kept is rows else None,  # a subset's angles are computed on their own
     )
     x, b, it = state.x, state.b, state.iterations
     if not (np.all(np.isfinite(x)) and np.isfinite(b)):
@@ -563,15 +567,20 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     gd_final = float(gdop(geo.los[~kfrac]))
     frac_idx = np.flatnonzero(kfrac)
     ambiguity = {kept.prn[i]: int(state.n_int[i]) for i in frac_idx}
-    judged = replace(
-        base,
-        gdop_full=gd_final if ctx.solver == "fast" else None,
-        iterations=it,
-        resid_rms_m=resid_rms,
-        redundancy=integ.redundancy,
-        chi2=integ.chi2,
-        chi2_max=integ.chi2_max,
-    )
+    gdop_full = gd_final if ctx.solver == "fast" else None
+
+    def judged(**fields: object) -> Fix:
+        """The declined fix of a judged solution with ``fields``."""
+        return base(
+            gdop_full=gdop_full,
+            iterations=it,
+            resid_rms_m=resid_rms,
+            redundancy=integ.redundancy,
+            chi2=integ.chi2,
+            chi2_max=integ.chi2_max,
+            **fields,
+        )
+
     if integ.chi2 is not None and not integ.passed:
         worst = int(np.nanargmax(np.abs(integ.w))) if np.any(np.isfinite(integ.w)) else 0
         reason = (
@@ -579,7 +588,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
             f"(redundancy {integ.redundancy}; largest w-test {kept.prn[worst]} "
             f"{integ.w[worst]:.1f})"
         )
-        fix = replace(judged, reason=reason, reason_code="chi2", ambiguity=ambiguity)
+        fix = judged(reason=reason, reason_code="chi2", ambiguity=ambiguity)
         return _Attempt(fix, rows, keep, integ, x)
     lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
     if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b) > cfg.clock_max_s * C_M_S:
@@ -587,20 +596,27 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
             f"implausible solution: altitude {loc.alt_m:.4g} m (allowed {cfg.alt_min_m:g} to "
             f"{cfg.alt_max_m:g}), receiver clock {b / C_M_S:.4g} s (allowed +-{cfg.clock_max_s:g})"
         )
-        return _Attempt(
-            replace(judged, reason=reason, reason_code="implausible"), rows, keep, integ, x
-        )
+        return _Attempt(judged(reason=reason, reason_code="implausible"), rows, keep, integ, x)
     q_enu = rot @ np.linalg.inv(a.T @ a)[:3, :3] @ rot.T
     pdop = float(np.sqrt(np.trace(q_enu)))
     if not pdop <= cfg.pdop_max:
         reason = f"PDOP gate failed: PDOP {pdop:.1f} > {cfg.pdop_max:g}"
-        fix = replace(judged, pdop=None, reason=reason, reason_code="pdop_gate")
+        fix = judged(pdop=None, reason=reason, reason_code="pdop_gate")
         return _Attempt(fix, rows, keep, integ, x)
     cov = integ.cov_enu_m2
-    mode: Literal["fast", "spp"] = "fast" if bool(np.any(kfrac)) else "spp"
-    fix = replace(
-        judged,
+    cov_rows = cov.tolist()  # the same floats as element by element
+    mode: Literal["fast", "spp"] = "fast" if n_full_k < len(kept.prn) else "spp"
+    fix = Fix(  # judged's fields and the solution's (no replace: a third of the cost)
+        solver=ctx.solver,
         mode=mode,
+        gpst_week=ctx.gpst_week,
+        gpst_tow_s=ctx.gpst_tow_s,
+        gdop_full=gdop_full,
+        iterations=it,
+        resid_rms_m=resid_rms,
+        redundancy=integ.redundancy,
+        chi2=integ.chi2,
+        chi2_max=integ.chi2_max,
         x_ecef_m=(float(x[0]), float(x[1]), float(x[2])),
         lat_deg=lat_deg,
         lon_deg=lon_deg,
@@ -609,8 +625,8 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         pdop=pdop,
         hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
         vdop=float(np.sqrt(q_enu[2, 2])),
-        std_enu_m=(_std(cov, 0), _std(cov, 1), _std(cov, 2)),
-        cov_enu_m2=_rows3(cov),
+        std_enu_m=(_std(cov_rows, 0), _std(cov_rows, 1), _std(cov_rows, 2)),
+        cov_enu_m2=_rows3(cov_rows),
         hpl_m=integ.hpl_m,
         vpl_m=integ.vpl_m,
         used=kept.prn,
@@ -624,12 +640,12 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     return _Attempt(fix, rows, keep, integ, x)
 
 
-def _std(cov: np.ndarray, k: int) -> float:
-    return float(np.sqrt(max(float(cov[k, k]), 0.0)))
+def _std(cov: list[list[float]], k: int) -> float:
+    return math.sqrt(max(cov[k][k], 0.0))  # correctly rounded, as numpy's
 
 
-def _rows3(m: np.ndarray) -> tuple[tuple[float, float, float], ...]:
-    return tuple((float(r[0]), float(r[1]), float(r[2])) for r in m)
+def _rows3(m: list[list[float]]) -> tuple[tuple[float, float, float], ...]:
+    return tuple((r[0], r[1], r[2]) for r in m)
 
 
 def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
@@ -826,10 +842,12 @@ def _fixed_iterations(
     state: _State,
     model: KlobucharParams | None,
     meaningful: bool,
+    loc0: _Local | None = None,
 ) -> _State:
     """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated
     from ``state``. When the position is ``meaningful`` the rows are weighted by the error
-    model and corrected for the delays."""
+    model and corrected for the delays. ``loc0``: :func:`_local` at ``state`` when the
+    caller has it already (the same values: it is not computed again)."""
     cfg = ctx.cfg
     x, b, geo, n_int = state.x, state.b, state.geo, state.n_int
     it = 0
@@ -837,7 +855,7 @@ def _fixed_iterations(
         dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b
         w = None
         if meaningful:
-            loc = _local(x, geo.sat_ecef_m)
+            loc = loc0 if loc0 is not None and it == 1 else _local(x, geo.sat_ecef_m)
             iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg)
             dz = dz - _total(iono_m, tropo_m, len(dz))
             if cfg.weighted:
@@ -870,16 +888,13 @@ def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[
     pos, _ = sat_pos_clock(arr, bdt_week, np.full(len(ephs), bdt_sow - NOMINAL_FLIGHT_TIME_S))
     el, az = look_angles(np.asarray(fix.x_ecef_m), pos)
     used = set(fix.used)
+    # whole-array conversions (the same floats as element by element, a fraction of the cost)
+    el_deg, az_deg = np.degrees(el).tolist(), np.degrees(az).tolist()
+    cn0 = epoch.cn0_dbhz[idx].tolist()
+    full = np.isfinite(epoch.pr_m[idx]).tolist()
+    prns, signals = epoch.prn, epoch.signal
     return tuple(
-        SatView(
-            prn=epoch.prn[i],
-            el_deg=float(np.degrees(el[k])),
-            az_deg=float(np.degrees(az[k])),
-            cn0_dbhz=float(epoch.cn0_dbhz[i]),
-            used=epoch.prn[i] in used,
-            full=bool(np.isfinite(epoch.pr_m[i])),
-            signal=epoch.signal[i],
-        )
+        SatView(prns[i], el_deg[k], az_deg[k], cn0[k], prns[i] in used, full[k], signals[i])
         for k, i in enumerate(idx)
     )
 

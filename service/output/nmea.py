@@ -1,6 +1,18 @@
-"""NMEA 0183 sentences for a fix, built with pynmeagps (output sentences, msgmode GET).
+"""NMEA 0183 sentences for a fix (output sentences, as pynmeagps builds them in msgmode GET).
 
 Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
+
+- Serialisation: the field values are chosen here (the pynmeagps keyword names and types of
+  NMEA 0183 / NMEA 4.11 GGA, RMC, GSA, GSV, GST and ZDA) and written by
+  :func:`plain_sentence`, a hand-written formatter: comma-joined fields, ``*`` and the XOR
+  checksum of NMEA 0183. It exists for its cost: pynmeagps' ``NMEAMessage`` took ~0.1 ms
+  per sentence, ~8 sentences per 10 Hz epoch, 41 % of ``bdsfix replay --max-speed``'s
+  stream loop (bench/bench_replay.py --profile); with the plain formatter an epoch's
+  sentences take ~60 us, the choice of their field values included. It is cross-checked
+  against :func:`pynmeagps_sentence` (pynmeagps' ``NMEAMessage`` with ``hpnmeamode``, the
+  independent reference) byte for byte, for every fix of the golden captures and for
+  generated fixes (tests/output/test_nmea_plain.py), and each of its sentences parses back
+  with pynmeagps' ``NMEAReader``.
 
 - Talker: GGA/RMC/GSA/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD``
   or ``GP``). GSV describes one constellation, so it always uses BeiDou's ``GB`` (``BD``
@@ -54,8 +66,136 @@ GSA_MAX_SV = 12
 GSV_SATS_PER_SENTENCE = 4
 
 
-def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
+_LAT, _LON, _NS, _EW, _TIME, _DATE, _HEX, _DEC, _INT, _CHAR = (
+    "LA", "LN", "LAD", "LND", "TM", "DT", "HX", "DE", "IN", "CH"
+)  # fmt: skip
+_NOMINAL = {_HEX: "0", _DEC: "0.0", _INT: "0", _CHAR: "", _LAT: "", _LON: "", _NS: "N", _EW: "E"}
+"""The text pynmeagps writes for a field that is not given (``NMEAMessage.nomval``)."""
+
+
+def _gsv_keys(j: int) -> tuple[str, str, str, str]:
+    """Names of GSV's j-th satellite group (pynmeagps: svid, elv, az, cno, integers)."""
+    return (f"svid_{j:02d}", f"elv_{j:02d}", f"az_{j:02d}", f"cno_{j:02d}")
+
+
+_GSV_KEYS = tuple(_gsv_keys(j) for j in range(1, GSV_SATS_PER_SENTENCE + 1))
+_FIELDS: dict[str, tuple[tuple[str, str], ...]] = {
+    # pynmeagps' GET payload definitions (nmeatypes_get) of the sentences written here
+    "GGA": (
+        ("time", _TIME), ("lat", _LAT), ("NS", _NS), ("lon", _LON), ("EW", _EW),
+        ("quality", _INT), ("numSV", _INT), ("HDOP", _DEC), ("alt", _DEC), ("altUnit", _CHAR),
+        ("sep", _DEC), ("sepUnit", _CHAR), ("diffAge", _DEC), ("diffStation", _INT),
+    ),
+    "RMC": (
+        ("time", _TIME), ("status", _CHAR), ("lat", _LAT), ("NS", _NS), ("lon", _LON),
+        ("EW", _EW), ("spd", _DEC), ("cog", _DEC), ("date", _DATE), ("mv", _DEC),
+        ("mvEW", _CHAR), ("posMode", _CHAR), ("navStatus", _CHAR),
+    ),
+    "GSA": (
+        ("opMode", _CHAR), ("navMode", _INT),
+        *((f"svid_{j:02d}", _INT) for j in range(1, GSA_MAX_SV + 1)),
+        ("PDOP", _DEC), ("HDOP", _DEC), ("VDOP", _DEC), ("systemId", _HEX),
+    ),
+    "GSV": (("numMsg", _INT), ("msgNum", _INT), ("numSV", _INT)),  # then groups, signalID
+    "GST": (
+        ("time", _TIME), ("rangeRms", _DEC), ("stdMajor", _DEC), ("stdMinor", _DEC),
+        ("orient", _DEC), ("stdLat", _DEC), ("stdLong", _DEC), ("stdAlt", _DEC),
+    ),
+    "ZDA": (
+        ("time", _TIME), ("day", _INT), ("month", _INT), ("year", _INT), ("ltzh", _CHAR),
+        ("ltzn", _CHAR),
+    ),
+}  # fmt: skip
+
+
+def _dmm(deg: object, width: int) -> str:
+    """|deg| as (d)ddmm.mmmmmmm, zero-filled to ``width`` (pynmeagps ``ddd2dmm``, hpmode);
+    empty for a value that is not a number."""
+    if not isinstance(deg, (int, float)):
+        return ""
+    whole, minutes = divmod(abs(deg) * 60, 60)
+    return f"{int(whole * 100) + minutes:.7f}".zfill(width)
+
+
+def _text(value: object, kind: str, fields: dict[str, object]) -> str:
+    """One field's text as pynmeagps ``NMEAMessage.val2str`` writes it."""
+    if kind == _LAT:
+        return _dmm(value, 12)
+    if kind == _LON:
+        return _dmm(value, 13)
+    if kind == _NS:
+        lat = fields.get("lat")
+        return "S" if isinstance(lat, (int, float)) and lat < 0 else "N"
+    if kind == _EW:
+        lon = fields.get("lon")
+        return "W" if isinstance(lon, (int, float)) and lon < 0 else "E"
+    if kind == _TIME:
+        if isinstance(value, str):
+            return value.replace(":", "")
+        t: dt.time = value  # type: ignore[assignment]
+        return f"{t.hour:02d}{t.minute:02d}{t.second:02d}.{t.microsecond // 10_000:02d}"
+    if kind == _DATE:
+        if isinstance(value, str):
+            v = value.replace("-", "")
+            return f"{v[6:8]}{v[4:6]}{v[2:4]}"
+        d: dt.date = value  # type: ignore[assignment]
+        return f"{d.day:02d}{d.month:02d}{d.year % 100:02d}"
+    return str(value)
+
+
+_PLAIN_KINDS = frozenset({_HEX, _DEC, _INT, _CHAR})
+"""Kinds pynmeagps writes with ``str()``."""
+_SPECS: dict[str, tuple[tuple[str, str | None, str | None], ...]] = {
+    msg_id: tuple(
+        (name, None if kind in _PLAIN_KINDS else kind, _NOMINAL.get(kind)) for name, kind in spec
+    )
+    for msg_id, spec in _FIELDS.items()
+}
+"""``_FIELDS`` as (name, kind or None for ``str()``, text when not given) for the formatter."""
+
+
+def plain_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes:
+    """``$`` talker msg_id ``,`` fields ``*`` checksum CRLF (NMEA 0183: the checksum is
+    the XOR of the characters between ``$`` and ``*``, two hex digits), for the sentences of
+    this module: the bytes pynmeagps' ``NMEAMessage(talker, msg_id, GET, hpnmeamode=True,
+    **fields).serialize()`` gives (:func:`pynmeagps_sentence`), at a few percent of its cost.
+    Fields not given get pynmeagps' nominal text (times and dates must be given)."""
+    parts = [talker + msg_id]
+    get = fields.get
+    for name, kind, nominal in _SPECS[msg_id]:
+        value = get(name, nominal)
+        if kind is None:
+            parts.append(str(value))
+        elif value is None:
+            raise KeyError(f"{msg_id} needs its {name} field")
+        else:
+            parts.append(_text(value, kind, fields))
+    if msg_id == "GSV":
+        # pynmeagps' group count for generated messages: the largest _NN suffix given
+        n_groups = max([int(k.split("_", 1)[1]) for k in fields if "_" in k], default=0)
+        for j in range(1, n_groups + 1):
+            keys = _GSV_KEYS[j - 1] if j <= len(_GSV_KEYS) else _gsv_keys(j)
+            parts.extend([str(get(key, 0)) for key in keys])
+        parts.append(str(get("signalID", "0")))
+    data = ",".join(parts).encode()
+    checksum = 0
+    for byte in data:
+        checksum ^= byte
+    return b"$" + data + b"*%02X\r\n" % checksum
+
+
+def pynmeagps_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes:
+    """The same sentence built by pynmeagps (``NMEAMessage``, GET, ``hpnmeamode``): the
+    independent reference :func:`plain_sentence` is checked against."""
     return bytes(NMEAMessage(talker, msg_id, GET, hpnmeamode=True, **fields).serialize())
+
+
+_serialize = plain_sentence
+"""What writes the sentences (tests swap in :func:`pynmeagps_sentence` to compare)."""
+
+
+def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
+    return _serialize(talker, msg_id, fields)
 
 
 def fix_utc(fix: Fix) -> dt.datetime | None:
@@ -122,22 +262,27 @@ def _int_or_empty(value: float) -> object:
     return round(value) if math.isfinite(value) else ""
 
 
+def _prn_of(sat: SatView) -> int:
+    return prn_number(sat.prn)
+
+
 def gsv_sentences(sky: Sequence[SatView], talker: str = "GB") -> list[bytes]:
     """GSV sentences (4 satellites each, sorted by PRN) with the B1I signal ID."""
-    sats = sorted(sky, key=lambda s: prn_number(s.prn))
-    n_msg = max(1, math.ceil(len(sats) / GSV_SATS_PER_SENTENCE))
+    sats = sorted(sky, key=_prn_of)
+    n_sv = len(sats)
+    n_msg = max(1, math.ceil(n_sv / GSV_SATS_PER_SENTENCE))
     out = []
     for k in range(n_msg):
-        fields: dict[str, object] = {"numMsg": n_msg, "msgNum": k + 1, "numSV": len(sats)}
+        fields: dict[str, object] = {"numMsg": n_msg, "msgNum": k + 1, "numSV": n_sv}
         group = sats[GSV_SATS_PER_SENTENCE * k : GSV_SATS_PER_SENTENCE * (k + 1)]
-        for j, s in enumerate(group, start=1):
-            fields[f"svid_{j:02d}"] = prn_number(s.prn)
-            fields[f"elv_{j:02d}"] = _int_or_empty(s.el_deg)
+        for (svid, elv, azk, cno), s in zip(_GSV_KEYS, group, strict=False):
+            fields[svid] = prn_number(s.prn)
+            fields[elv] = _int_or_empty(s.el_deg)
             az = _int_or_empty(s.az_deg)
-            fields[f"az_{j:02d}"] = az % 360 if isinstance(az, int) else az
-            fields[f"cno_{j:02d}"] = _int_or_empty(s.cn0_dbhz)
+            fields[azk] = az % 360 if isinstance(az, int) else az
+            fields[cno] = _int_or_empty(s.cn0_dbhz)
         fields["signalID"] = B1I_SIGNAL_ID
-        out.append(_msg(talker, "GSV", **fields))
+        out.append(_serialize(talker, "GSV", fields))
     return out
 
 
