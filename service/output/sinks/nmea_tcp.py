@@ -211,8 +211,9 @@ class NmeaTcpServer(Sink):
                 continue  # this connection's own trouble (ECONNABORTED ...): the next one
             self._accept_backoff_s = ACCEPT_BACKOFF_MIN_S
             if self.n_clients >= self.max_clients:
-                sock.close()  # at once: it takes neither a slot nor a descriptor
+                # counted before the close, so whoever sees the end of stream sees the count
                 self._counters.add("nmea_clients_refused")
+                sock.close()  # at once: it takes neither a slot nor a descriptor
                 self._log_rarely(
                     "refused",
                     "NMEA client %s refused: %d clients connected, the most allowed "
@@ -256,11 +257,11 @@ class NmeaTcpServer(Sink):
         # once our own max_buffer_bytes fills, instead of after megabytes of autotuning
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.kernel_sndbuf_bytes)
+        self._counters.add("nmea_clients_accepted")  # counted before it shows in n_clients
         with self._lock:
             self._clients[sock] = deque()
             self._sizes[sock] = 0
         self._sel.register(sock, selectors.EVENT_READ, "client")
-        self._counters.add("nmea_clients_accepted")
         log.info("NMEA client %s connected", addr)
 
     def _readable(self, sock: socket.socket) -> None:
