@@ -117,7 +117,7 @@ def saastamoinen_m(
     ``alt_m`` are arrays that broadcast against ``el_rad``."""
     el = np.asarray(el_rad, dtype=float)
     alt = np.asarray(alt_m, dtype=float)
-    h = np.maximum(alt, 0.0)
+    h = np.clip(alt, 0.0, 1e4)  # outside -100 m to 10 km the result is 0 (below)
     pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
     temp_k = 15.0 - 6.5e-3 * h + 273.16
     e_hpa = 6.108 * humidity * np.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
