@@ -46,7 +46,14 @@ from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
 from service.engine.raim import chi2_threshold, noncentrality_md, normal_two_sided_quantile
-from service.engine.solver import GROSS_SPREAD_M, IonoSet, SolverConfig, sky_view, solve
+from service.engine.solver import (
+    GROSS_SPREAD_M,
+    IonoSet,
+    SolverConfig,
+    measurement_sigma_m,
+    sky_view,
+    solve,
+)
 
 log = logging.getLogger(__name__)
 
@@ -210,31 +217,6 @@ def _delays(
         iono = np.where((alt < 100e3)[:, None], iono, np.nan)
     tropo = saastamoinen_m(lat[:, None], alt[:, None], el) if cfg.tropo != "off" else None
     return iono, tropo
-
-
-def _sigma_m(
-    el: np.ndarray,
-    cn0: np.ndarray,
-    iono: np.ndarray | None,
-    tropo: np.ndarray | None,
-    cfg: SolverConfig,
-) -> np.ndarray:
-    """:func:`service.engine.solver.measurement_sigma_m` with per-row ionosphere presence
-    (NaN in ``iono``: no model applied at that receiver)."""
-    s = np.maximum(np.sin(el), 0.05)
-    var = cfg.sigma_a_m**2 + (cfg.sigma_b_m / s) ** 2
-    c = np.where(np.isfinite(cn0), cn0, cfg.cn0_ref_dbhz)
-    var = var + cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - c) / 10.0)
-    var = var + cfg.sigma_sis_m**2
-    ratio = 6378.0 / (6378.0 + 350.0) * np.cos(el)
-    unmodelled = (cfg.iono_unmodelled_m / np.sqrt(1.0 - ratio**2)) ** 2
-    if iono is not None:
-        var = var + np.where(np.isfinite(iono), (cfg.iono_error_ratio * iono) ** 2, unmodelled)
-    else:
-        var = var + unmodelled
-    if tropo is not None:
-        var = var + (cfg.tropo_error_m / (s + 0.1)) ** 2
-    return np.sqrt(var)
 
 
 @dataclass(frozen=True, slots=True)
@@ -423,7 +405,7 @@ def _solve_chunk(
         dz = dz - _total(io, tr)
         w = keepw[sel]
         if cfg.weighted:
-            w = w / _sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2
+            w = w / measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2
         try:
             step = _lsq(_design(los[sel]), dz, w)
         except np.linalg.LinAlgError:
@@ -448,7 +430,7 @@ def _solve_chunk(
     v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - _total(io, tr)
     v = np.where(kp, v, 0.0)
     if cfg.weighted:
-        sigma = np.where(kp, _sigma_m(el, ch.cn0[sel], io, tr, cfg), 1.0)
+        sigma = np.where(kp, measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg), 1.0)
     else:
         sigma = np.full(kp.shape, cfg.sigma_uniform_m)
     g = _design(los[sel])

@@ -781,10 +781,14 @@ def measurement_sigma_m(
     cn0 = np.where(np.isfinite(cn0_dbhz), cn0_dbhz, cfg.cn0_ref_dbhz)
     var = var + cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - cn0) / 10.0)
     var = var + cfg.sigma_sis_m**2
-    if iono_m is not None:
-        var = var + (cfg.iono_error_ratio * iono_m) ** 2
-    else:  # no broadcast model applied: the whole delay is error
+    if iono_m is None:  # no broadcast model applied: the whole delay is error
         var = var + (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
+    else:
+        left = (cfg.iono_error_ratio * iono_m) ** 2
+        if not np.isfinite(left).all():  # NaN: no model at that row's receiver (the batch)
+            unmodelled = (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
+            left = np.where(np.isfinite(iono_m), left, unmodelled)
+        var = var + left
     if tropo_m is not None:
         var = var + (cfg.tropo_error_m / (s + 0.1)) ** 2
     return np.sqrt(var)
