@@ -100,6 +100,25 @@ def _secrets() -> list[str]:
     return [USER, PASSWORD, token]
 
 
+def _run_args(slave: int, nav: str, state: Path, jsonl: Path) -> list[str]:
+    """``bdsfix run`` on the pty with the caster as its only nav source, JSONL out, debug logs."""
+    return [
+        "run",
+        "--source",
+        os.ttyname(slave),
+        "--nav",
+        nav,
+        "--state-dir",
+        str(state),
+        "--nmea-tcp",
+        "",
+        "--jsonl-out",
+        str(jsonl),
+        "--log-level",
+        "debug",
+    ]
+
+
 def test_run_with_ntrip_nav_only_fast_fix_then_caster_restart(tmp_path):
     """No nav file, no ephemeris in the receiver's stream, the caster serving 1042: the
     daemon's first fast fix comes within 1.5 s of the stream's start (data time). The caster
@@ -122,21 +141,7 @@ def test_run_with_ntrip_nav_only_fast_fix_then_caster_restart(tmp_path):
             rtcm, user=USER, password=PASSWORD, cycle_s=1.0, log_path=tmp_path / "caster.log"
         ) as caster,
         LiveReplay(
-            [
-                "run",
-                "--source",
-                os.ttyname(slave),
-                "--nav",
-                caster.url(USER, PASSWORD),
-                "--state-dir",
-                str(state),
-                "--nmea-tcp",
-                "",
-                "--jsonl-out",
-                str(jsonl),
-                "--log-level",
-                "debug",
-            ],
+            _run_args(slave, caster.url(USER, PASSWORD), state, jsonl),
             topics=(b"STATUS",),
         ) as run,
     ):
@@ -220,23 +225,7 @@ def test_run_with_wrong_ntrip_credentials_says_so_in_one_line_and_reads_on(tmp_p
     master, slave = os.openpty()
     with (
         Caster(rtcm, user=USER, password=RIGHT_PASSWORD) as caster,
-        LiveReplay(
-            [
-                "run",
-                "--source",
-                os.ttyname(slave),
-                "--nav",
-                caster.url(USER, PASSWORD),
-                "--state-dir",
-                str(state),
-                "--nmea-tcp",
-                "",
-                "--jsonl-out",
-                str(jsonl),
-                "--log-level",
-                "debug",
-            ]
-        ) as run,
+        LiveReplay(_run_args(slave, caster.url(USER, PASSWORD), state, jsonl)) as run,
     ):
         _wait(lambda: "refused the credentials" in run.stderr(), "the refusal", run)
         for _ep, data in epochs:
