@@ -87,6 +87,12 @@ ROWS = {
 }
 
 
+def _mm(distance_m: float) -> str:
+    """A fast-vs-SPP distance as it means something: below 0.1 mm it is floating-point noise
+    whose digits depend on the machine's BLAS kernel, so it prints as a bound."""
+    return "< 0.1 mm" if distance_m < 1e-4 else f"{distance_m * 1e3:.1f} mm"
+
+
 def _print(doc: dict[str, Any], as_json: bool) -> None:
     """The TTFF table (times from the restart to the first fix, in data time), or JSON."""
     if as_json:
@@ -107,7 +113,7 @@ def _print(doc: dict[str, Any], as_json: bool) -> None:
                 f"success {v['success_pct']:.0f} %"
                 + (f", median error {v['median_err_m']:.1f} m" if "median_err_m" in v else "")
                 + (
-                    f", max |fast - SPP| {v['max_diff_to_spp_m']:.2g} m"
+                    f", max |fast - SPP| {_mm(v['max_diff_to_spp_m'])}"
                     if key == "fast" and "max_diff_to_spp_m" in v
                     else ""
                 )
