@@ -1,0 +1,76 @@
+"""Satellite systems: which system a satellite ID names, and each system's constants.
+
+A satellite ID is the RINEX 3 form (RINEX 3.04 section 3.5): one system letter and the PRN,
+``"C06"`` (BeiDou), ``"G12"`` (GPS), ``"E11"`` (Galileo). Everything system-specific that the
+engine needs (the gravitational constant and Earth rotation rate of the system's ICD, the
+code period that makes a range fractional, the carrier that scales Doppler and the
+ionosphere) is looked up here by :func:`system_of`, never written as a literal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+from service.core.errors import BdsfixError
+
+
+class GnssSystem(StrEnum):
+    """A satellite system, by its RINEX 3 letter."""
+
+    BDS = "C"
+    GPS = "G"
+    GAL = "E"
+    GLO = "R"
+    QZS = "J"
+    SBAS = "S"
+    IRN = "I"
+
+
+@dataclass(frozen=True, slots=True)
+class SystemConstants:
+    """The constants a system's ICD fixes for its broadcast orbits and its open signal."""
+
+    gm_m3_s2: float
+    """Geocentric gravitational constant of the system's reference frame [m^3/s^2]."""
+    omega_e_rad_s: float
+    """Earth rotation rate of the system's ICD [rad/s]."""
+    code_period_s: float
+    """Primary code period of the open signal bdsfix uses: a range known only from the
+    code phase is known modulo c times this [s]."""
+    carrier_hz: float
+    """Carrier frequency of that signal [Hz]."""
+    signal: str
+    """RINEX 3 name of that signal's band and code (without the leading observable type)."""
+
+
+SYSTEM_CONSTANTS: dict[GnssSystem, SystemConstants] = {
+    # BDS-SIS-ICD-B1I-3.0 3.2 (CGCS2000), 4.2 (B1I 1561.098 MHz), 4.3 (1 ms ranging code)
+    GnssSystem.BDS: SystemConstants(3.986004418e14, 7.2921150e-5, 1e-3, 1_561.098e6, "2I"),
+    # IS-GPS-200N 20.3.3.4.3 (WGS-84 values), 3.3.2 (C/A 1 ms), L1 1575.42 MHz
+    GnssSystem.GPS: SystemConstants(3.986005e14, 7.2921151467e-5, 1e-3, 1_575.42e6, "1C"),
+    # Galileo OS SIS ICD 2.1, 5.1.1 (GM, Earth rate), 3.4 (E1-B/C primary code 4 ms)
+    GnssSystem.GAL: SystemConstants(3.986004418e14, 7.2921151467e-5, 4e-3, 1_575.42e6, "1C"),
+    # IS-QZSS-PNT 4.1.2 (GPS values), L1 C/A
+    GnssSystem.QZS: SystemConstants(3.986005e14, 7.2921151467e-5, 1e-3, 1_575.42e6, "1C"),
+}
+"""Constants per system that bdsfix can position with (GLONASS, SBAS and NavIC: none yet)."""
+
+
+def system_of(sat: str) -> GnssSystem:
+    """The system of a satellite ID such as ``"C06"``, ``"C 6"`` or ``"G12"``.
+
+    Raises :class:`BdsfixError` for an ID whose first letter names no system."""
+    try:
+        return GnssSystem(sat[:1])
+    except ValueError:
+        raise BdsfixError(f"satellite ID {sat!r} names no satellite system") from None
+
+
+def constants_of(sat: str) -> SystemConstants:
+    """The constants of the system a satellite ID names (:data:`SYSTEM_CONSTANTS`)."""
+    system = system_of(sat)
+    try:
+        return SYSTEM_CONSTANTS[system]
+    except KeyError:
+        raise BdsfixError(f"{system.name} satellites are not supported ({sat!r})") from None
