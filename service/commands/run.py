@@ -213,6 +213,7 @@ def main_run(args: argparse.Namespace) -> int:
     state_dir = cfg.resolved_state_dir()
     log.info("ephemeris store kept in %s", state_dir.resolve())
     store = load_store(state_dir, cfg.max_eph_age_s)
+    timeline = Timeline()
     pipeline = Pipeline(
         store,
         IonoSet.of([store.iono]),
@@ -232,6 +233,7 @@ def main_run(args: argparse.Namespace) -> int:
         silence_warn_s=cfg.silence_warn_s,
         nav_sources=[(src.name, src, src.counters) for src in nav_sources],
         nav_max_age_s=cfg.ntrip_max_age_s,
+        on_result=timeline.log_first_fixes,
     )
     signals = _Signals(runner)
     notifier.ready(f"reading {cfg.source}")
@@ -255,6 +257,8 @@ def main_run(args: argparse.Namespace) -> int:
     log.info("final counters: %s", " ".join(f"{k}={v}" for k, v in sorted(counters.items())))
     for line in stream_lines("run", n, counters, runner.skipped()):
         print(line, file=sys.stderr)
+    for line in timeline.lines() if n else []:  # as replay's (no epoch: no time scale)
+        print(line, file=sys.stderr)
     return signals.exit_code()
 
 
@@ -264,19 +268,50 @@ class Timeline:
     def __init__(self) -> None:
         self.first: dict[str, float] = {}
 
-    def mark(self, key: str, t_s: float) -> None:
-        self.first.setdefault(key, t_s)
+    def mark(self, key: str, t_s: float) -> bool:
+        """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
+        if key in self.first:
+            return False
+        self.first[key] = t_s
+        return True
 
     def on_result(self, r: EpochResult) -> None:
+        """Mark the first events ``r`` brings."""
+        self.marks(r)
+
+    def marks(self, r: EpochResult) -> list[str]:
+        """Mark the first events ``r`` brings; the keys that are new."""
+        new = []
         for ev in r.track:
             kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
-            self.mark(f"first {kind} SOW decoded", ev.since_start_s)
+            if self.mark(f"first {kind} SOW decoded", ev.since_start_s):
+                new.append(f"first {kind} SOW decoded")
         if r.since_start_s is None:
-            return
-        if r.fix.mode == "fast":
-            self.mark("first fast fix", r.since_start_s)
-        if r.fix.mode == "spp":
-            self.mark("first conventional fix", r.since_start_s)
+            return new
+        key = {"fast": "first fast fix", "spp": "first conventional fix"}.get(r.fix.mode)
+        if key and self.mark(key, r.since_start_s):
+            new.append(key)
+        return new
+
+    def log_first_fixes(self, r: EpochResult) -> None:
+        """:meth:`on_result`, and one INFO line at the first fast and the first conventional
+        fix: the data time since the first measurement, the fix's GPS time and position
+        (what ``run`` tells the journal; the timeline follows at stop)."""
+        for key in self.marks(r):
+            if key.endswith(" fix"):
+                fix = r.fix
+                log.info(
+                    "%s: t = %.2f s after the first measurement (GPST week %d, tow %.3f s), "
+                    "%.7f %.7f %.1f m, %d satellites",
+                    key,
+                    self.first[key],
+                    fix.gpst_week,
+                    fix.gpst_tow_s,
+                    fix.lat_deg,
+                    fix.lon_deg,
+                    fix.alt_m,
+                    len(fix.used),
+                )
 
     def lines(self, offset_s: float = 0.0, restarted: bool = False) -> list[str]:
         since = "the emulated restart" if restarted else "the first measurement"

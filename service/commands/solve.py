@@ -96,7 +96,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
-    from service.commands.summary import NO_EPOCHS_HINT, decline_lines
+    from service.commands.summary import decline_lines, no_epochs_hint
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
     if args.format == "nmea":  # pynmeagps only when asked for (start-up)
@@ -147,11 +147,11 @@ def main_solve(args: argparse.Namespace) -> int:
             parts.append(f"{solver} solver {n_fixes} fixes ({modes or 'none'})")
     print(f"bdsfix solve: {n_epochs} epochs; " + "; ".join(parts), file=sys.stderr)
     for solver, c in declined.items():
-        for line in decline_lines(c, indent=f"  {solver} solver "):
+        for line in decline_lines(c, indent=f"  {solver} solver ", command="solve"):
             print(line, file=sys.stderr)
     if excluded:
         parts_ex = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
         print(f"  excluded by fault detection: {parts_ex}", file=sys.stderr)
     if n_epochs == 0:
-        print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
+        print(f"  {no_epochs_hint('solve')}", file=sys.stderr)
     return 0

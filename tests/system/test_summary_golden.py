@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import pytest
 
 from service.commands.cli import main
+from service.commands.summary import HINTS, hint_for
 from tests.support.paths import DATA, GOLDEN
 from tests.system.test_replay_golden import CASES as REPLAY_CASES
 
@@ -143,7 +144,8 @@ def test_unreadable_recording_is_one_line_and_exit_3(name, request, capsys):
 @pytest.mark.parametrize("name", RUNS)
 def test_run_on_a_capture_ends_with_the_replay_summary(name, request, capsys, tmp_path):
     """``bdsfix run --source FILE`` reads the capture to its end and prints the summary
-    ``replay`` prints (without the timeline), from the same counters."""
+    ``replay`` prints, timeline included, from the same counters; a hint that names a flag
+    of replay's names run's way instead (run has no ``--gps-week``)."""
     case = REPLAY_CASES[name]
     capture, *rest = [str(DATA / a) if "/" in a else a for a in case.args]
     args = ["run", "--source", capture, "--state-dir", str(tmp_path / "state")]
@@ -152,7 +154,7 @@ def test_run_on_a_capture_ends_with_the_replay_summary(name, request, capsys, tm
     summary = _block(capsys.readouterr().err, "run")
     _check(request, GOLDEN / f"run-{name}.summary", summary)
     replayed = (GOLDEN / f"{name}.summary").read_text().splitlines()
-    before_timeline = [x for x in replayed if not x.startswith("  timeline")]
-    cut = next((i for i, x in enumerate(before_timeline) if x.startswith("  first ")), None)
-    want = before_timeline[:cut]
-    assert summary.splitlines() == [want[0].replace("replay", "run", 1), *want[1:]]
+    own = {f"  hint: {HINTS[c]}": f"  hint: {hint_for(c, 'run')}" for c in HINTS}
+    want = [replayed[0].replace("replay", "run", 1), *(own.get(x, x) for x in replayed[1:])]
+    assert summary.splitlines() == want
+    assert "give --gps-week" not in summary
