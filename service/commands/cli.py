@@ -377,12 +377,22 @@ def build_parser() -> argparse.ArgumentParser:
         "sub",
         "print ZeroMQ messages",
         "Subscribe to a bdsfix ZeroMQ PUB endpoint and print each message as "
-        "'TOPIC JSON' (a running 'bdsfix run', or 'bdsfix replay --zmq ENDPOINT').",
+        "'TOPIC JSON' (a running 'bdsfix run', or 'bdsfix replay --zmq ENDPOINT'); "
+        "--json prints the JSON alone.",
     )
     z.add_argument(
         "endpoint", nargs="?", default="tcp://127.0.0.1:10111", help="ZeroMQ PUB endpoint"
     )
-    z.add_argument("--topic", action="append", help="FIX, SKY, TRACK or STATUS (default all)")
+    z.add_argument(
+        "--topic",
+        action="append",
+        help="FIX, SKY, TRACK or STATUS, in any case; repeatable (default all)",
+    )
+    z.add_argument(
+        "--json",
+        action="store_true",
+        help="print the JSON record alone, one per line (for jq), without the topic",
+    )
     z.add_argument("--count", type=int, default=None, help="exit after N messages")
     z.add_argument("--timeout-s", type=float, default=None, help="exit after this idle time")
     z.add_argument("--curve-server-key", metavar="FILE", help="CURVE: server public certificate")

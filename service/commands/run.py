@@ -407,18 +407,44 @@ SUB_NOTICE_AFTER_S = 3.0
 """``bdsfix sub`` says on stderr what it waits for when nothing came in this long [s]."""
 
 
+def sub_topics(asked: list[str] | None) -> list[str]:
+    """The ZeroMQ subscriptions for ``--topic`` values: the record classes, named in any
+    case; an unknown one is refused with the list (a SUB socket would wait for it forever).
+    None: every message."""
+    from service.output.sinks.base import RECORD_CLASSES
+
+    if not asked:
+        return [""]
+    topics = []
+    for name in asked:
+        topic = name.strip().upper()
+        if topic not in RECORD_CLASSES:
+            raise ConfigError(
+                f"--topic {name!r}: no such topic; bdsfix publishes {', '.join(RECORD_CLASSES)}"
+            )
+        topics.append(topic)
+    return topics
+
+
 def main_sub(args: argparse.Namespace) -> int:
-    """Print each ZeroMQ message as ``TOPIC JSON``. While no publisher is there it idles
-    (reconnects back off to 5 s) and says so once on stderr; SIGTERM ends it with 0
-    (Ctrl-C: 130, as every command)."""
+    """Print each ZeroMQ message as ``TOPIC JSON`` (``--json``: the JSON alone, one object
+    per line, for jq). While no publisher is there it idles (reconnects back off to 5 s)
+    and says so once on stderr; SIGTERM ends it with 0 (Ctrl-C: 130, as every command)."""
     import zmq
 
+    topics = sub_topics(args.topic)
+    endpoint = args.endpoint
+    if "://" not in endpoint:
+        raise ConfigError(
+            f"endpoint {endpoint!r} names no transport: a ZeroMQ endpoint is "
+            f"TRANSPORT://ADDRESS, e.g. tcp://{endpoint}"
+        )
     ctx: Any = zmq.Context.instance()
     sock = ctx.socket(zmq.SUB)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RECONNECT_IVL, 200)
     sock.setsockopt(zmq.RECONNECT_IVL_MAX, 5000)  # back off while no publisher listens
-    for topic in args.topic or [""]:
+    for topic in topics:
         sock.setsockopt_string(zmq.SUBSCRIBE, topic)
     _curve_client(sock, getattr(args, "curve_server_key", None), getattr(args, "curve_key", None))
     try:
@@ -454,7 +480,7 @@ def main_sub(args: argparse.Namespace) -> int:
                 continue
             idle_s = 0.0
             topic, body = sock.recv_multipart()
-            print(f"{topic.decode()} {body.decode()}", flush=True)
+            print(body.decode() if args.json else f"{topic.decode()} {body.decode()}", flush=True)
             n += 1
     finally:
         signal.signal(signal.SIGTERM, previous)
