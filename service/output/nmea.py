@@ -14,12 +14,17 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
   generated fixes (tests/output/test_nmea_plain.py), and each of its sentences parses back
   with pynmeagps' ``NMEAReader``.
 
-- Talker: GGA/RMC/GSA/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD``
-  or ``GP``). GSV describes one constellation, so it always uses BeiDou's ``GB`` (``BD``
-  when ``BD`` was asked for). ``gsa_talker`` overrides GSA's talker: gpsd (3.22 and later)
-  takes the constellation of GSA satellite IDs from the talker, not from the system-ID
-  field, so it reads the PRNs of a ``GNGSA`` (u-blox 9 style, the default) as GPS/SBAS and
-  those of a ``GBGSA`` as BeiDou; gpsd 3.22 also maps any ID 33-64 to SBAS.
+- Talker: GGA/RMC/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD`` or
+  ``GP``). GSA and GSV list BeiDou satellites only, so they use BeiDou's ``GB`` (``BD`` when
+  ``BD`` was asked for) unless ``gsa_talker`` names GSA's: gpsd 3.22 (Debian 12) takes the
+  constellation of GSA satellite IDs from the talker alone (``processGSA`` in
+  driver_nmea0183.c reads the system-ID field but does not use it), so it read the PRNs of
+  a ``GNGSA`` as GPS and matched none of the BeiDou satellites of the ``GBGSV``: its SKY had
+  ``uSat`` 0 and every satellite ``used: false`` (issue 23). ``GBGSA`` maps IDs to BeiDou
+  in gpsd 3.22 and later, and later gpsd also reads the system ID of a ``GNGSA``. One
+  limit remains in gpsd 3.22: it takes the constellation of a GSV from the talker only in
+  the first sentence of a group, so a BeiDou ID 33-63 in the second or later GSV is filed
+  as SBAS there and not marked used.
 - NMEA 4.11 fields: GSA ends with the GNSS system ID, 4 = BeiDou; GSV ends with the signal
   ID, 1 = B1I (D1 and D2 alike, as u-blox NMEA 4.11 output and gpsd's tables have it).
   Satellite IDs are BDS PRNs 1-63.
@@ -341,7 +346,7 @@ def sentences_for_fix(
 
     ``utc`` is the fix's own time (naive UTC; None: unknown, for a declined fix only, gives
     empty time fields); ``time_known`` allows ZDA; ``gsa_talker``
-    (default: ``talker``) is GSA's talker. A publisher may send :func:`gga_sentence` first
+    (default: BeiDou's, as GSV's) is GSA's talker. A publisher may send :func:`gga_sentence` first
     and :func:`sentences_after_gga` later: together they are this list.
     """
     gga = gga_sentence(fix, utc=utc, talker=talker, gsa_talker=gsa_talker)
@@ -457,9 +462,10 @@ def sentences_after_gga(
         "VDOP": _dop(fix.vdop),
         "systemId": BDS_SYSTEM_ID,
     }
-    out.append(_msg(gsa_talker or talker, "GSA", **gsa))
+    bds_talker = "BD" if talker == "BD" else "GB"
+    out.append(_msg(gsa_talker or bds_talker, "GSA", **gsa))
     if fix.sky:
-        out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
+        out.extend(gsv_sentences(fix.sky, bds_talker))
     if fix.std_enu_m is not None:
         se, sn, su = fix.std_enu_m
         major, minor, orient = _error_ellipse(fix)

@@ -35,7 +35,7 @@ def test_hksc_fix_sentences_parse_back_to_the_fix():
     utc = fix_time(fix)
     sentences = sentences_for_fix(fix, utc=utc, time_known=True)
     addresses = [hand_parse(s)[0] for s in sentences]
-    assert addresses == ["GNGGA", "GNRMC", "GNGSA", "GBGSV", "GBGSV", "GBGSV", "GNGST", "GNZDA"]
+    assert addresses == ["GNGGA", "GNRMC", "GBGSA", "GBGSV", "GBGSV", "GBGSV", "GNGST", "GNZDA"]
     for s in sentences:
         assert len(s) <= 82, s
         msg = NMEAReader.parse(s)
@@ -59,7 +59,7 @@ def test_hksc_fix_sentences_parse_back_to_the_fix():
     assert rmc[0] == gga[0] and rmc[1] == "A" and rmc[2:6] == gga[1:5]
     assert rmc[8] == utc.strftime("%d%m%y") and rmc[11] == "A"
 
-    gsa = f["GNGSA"][0]
+    gsa = f["GBGSA"][0]
     assert gsa[:2] == ["A", "3"]
     assert [int(v) for v in gsa[2:14] if v] == sorted(int(p[1:]) for p in fix.used)
     assert [float(v) for v in gsa[14:17]] == pytest.approx([1.46, 0.84, 1.19], abs=0.006)
@@ -167,13 +167,15 @@ def test_declined_fix_gives_gga_quality_0_and_rmc_void_only():
 
 
 @pytest.mark.parametrize(
-    ("talker", "gsv_talker"), [("GN", "GB"), ("GB", "GB"), ("BD", "BD"), ("GP", "GB")]
+    ("talker", "bds_talker"), [("GN", "GB"), ("GB", "GB"), ("BD", "BD"), ("GP", "GB")]
 )
-def test_talkers(talker, gsv_talker):
+def test_talkers(talker, bds_talker):
+    """GGA, RMC, GST, ZDA: the talker asked for; GSA and GSV (BeiDou satellites): BeiDou's."""
     fix = hksc_fix()
     addresses = [hand_parse(s)[0] for s in sentences_for_fix(fix, utc=fix_time(fix), talker=talker)]
-    assert [a[:2] for a in addresses if not a.endswith("GSV")] == [talker] * 5
-    assert {a for a in addresses if a.endswith("GSV")} == {gsv_talker + "GSV"}
+    bds = ("GSA", "GSV")
+    assert [a[:2] for a in addresses if not a.endswith(bds)] == [talker] * 4
+    assert {a for a in addresses if a.endswith(bds)} == {bds_talker + "GSA", bds_talker + "GSV"}
 
 
 def test_unknown_talker_is_refused():
@@ -229,7 +231,7 @@ def test_sentences_stay_within_82_characters_keeping_precision(lat_deg, lon_deg,
     lat, lon = dm_deg(gga[1], gga[2]), dm_deg(gga[3], gga[4])
     assert horiz_err_m(lat, lon, lat_deg, lon_deg) < 0.01
     assert abs(float(gga[8]) - alt_m) < 0.01 and abs(float(gga[7]) - hdop) < 0.051
-    gsa = f["GNGSA"][0]
+    gsa = f["GBGSA"][0]
     assert [int(v) for v in gsa[2:14]] == [6, 9, 11, 12, 14, 16, 19, 20, 21, 22, 23, 24]
     gst = [float(v) for v in f["GNGST"][0][1:8]]
     # documented resolution: 0.1 m from 100 m, 1 m from 10 km
@@ -244,12 +246,20 @@ def test_gsv_leaves_unknown_angles_empty():
     assert f["GBGSV"] == [["1", "1", "1", "3", "", "", "33", "1"]]
 
 
-def test_gsa_talker_can_name_the_constellation():
+def test_gsa_names_beidou_by_its_talker_unless_told_otherwise():
+    """GSA lists BeiDou satellites only: BeiDou's talker by default (gpsd 3.22 takes the
+    constellation from it), BD with the BD talker, or the one asked for; the NMEA 4.11
+    system ID is 4 in each."""
     fix = hksc_fix()
-    sentences = sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GB")
-    addresses = [hand_parse(s)[0] for s in sentences]
-    assert addresses[:3] == ["GNGGA", "GNRMC", "GBGSA"]
-    assert hand_parse(sentences[2])[1][-1] == "4"
+    for talker, gsa_talker, want in [
+        ("GN", None, "GBGSA"),
+        ("GP", None, "GBGSA"),
+        ("BD", None, "BDGSA"),
+        ("GN", "GN", "GNGSA"),
+    ]:
+        sentences = sentences_for_fix(fix, utc=fix_time(fix), talker=talker, gsa_talker=gsa_talker)
+        address, fields = hand_parse(sentences[2])
+        assert address == want and fields[-1] == "4"
     with pytest.raises(ValueError, match="talker"):
         sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GA")
 

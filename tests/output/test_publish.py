@@ -445,7 +445,7 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
         assert addresses[2:-2] == [
             "GNGGA",
             "GNRMC",
-            "GNGSA",
+            "GBGSA",
             "GBGSV",
             "GBGSV",
             "GBGSV",
@@ -477,12 +477,14 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
 
 
 @pytest.mark.needs("gpsd")
-@pytest.mark.parametrize("gsa_talker", [None, "GB"])
+@pytest.mark.parametrize("gsa_talker", [None, "GN"])
 def test_gpsd_reads_a_southern_western_fix_at_10_hz(gsa_talker):
     """gpsd (an independent NMEA parser) connected to our TCP server reports our fixes:
-    mode 3, position within 1 cm, time within 0.01 s; with a GB talker on GSA it also
-    marks exactly our used satellites. Epochs are sent once gpsd is our client, so none is
-    lost to its start-up; up to 600 epochs (60 s of data) for 10 timed TPV reports."""
+    mode 3, position within 1 cm, time within 0.01 s; with the default GSA (BeiDou's
+    talker, GBGSA) its SKY also marks exactly our used satellites and counts them in
+    ``uSat`` (issue 23: with GNGSA, gpsd 3.22 showed uSat 0). Epochs are sent once gpsd is
+    our client, so none is lost to its start-up; up to 600 epochs (60 s of data) for 10
+    timed TPV reports."""
     lat0, lon0, alt0 = -22.951916789, -43.210487654, 702.456  # Rio de Janeiro
     server = NmeaTcpServer("127.0.0.1", 0)
     out = Publishers([server], gsa_talker=gsa_talker)
@@ -521,12 +523,15 @@ def test_gpsd_reads_a_southern_western_fix_at_10_hz(gsa_talker):
     used_by_gpsd = {(s["gnssid"], s["svid"]) for s in sky[-1]["satellites"] if s["used"]}
     ours = {int(p[1:]) for p in hksc_fix().used}
     bds_used = {svid for gnssid, svid in used_by_gpsd if gnssid == 3}
-    if gsa_talker == "GB":
-        # gpsd 3.22 files IDs 33-64 under SBAS whatever the talker; newer gpsd under BeiDou
+    if gsa_talker is None:
+        # gpsd 3.22 files IDs 33-64 of the second and later GSV under SBAS (C37, C38 here:
+        # see service/output/nmea.py); newer gpsd under BeiDou
         assert bds_used == {p for p in ours if p <= 32} or bds_used == ours
+        assert sky[-1]["uSat"] == len(used_by_gpsd) >= len({p for p in ours if p <= 32})
     else:
-        # a GNGSA's IDs are read as GPS/SBAS PRNs: gpsd marks none of the BeiDou ones used
-        assert not bds_used
+        # gpsd 3.22 reads a GNGSA's IDs as GPS PRNs: it marks none of the BeiDou ones used
+        # (newer gpsd reads the GSA's system ID, 4: BeiDou)
+        assert not bds_used or bds_used == ours
 
 
 # ---- the registry and the order of the fan-out -------------------------------------------
