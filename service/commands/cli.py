@@ -263,7 +263,12 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--seed", type=int, default=0, help="random seed (noise, sync delays)")
     dest = m.add_mutually_exclusive_group()
     dest.add_argument("--out", help="file, - for stdout (default)")
-    dest.add_argument("--pty", action="store_true", help="write to a new pty (path on stderr)")
+    dest.add_argument(
+        "--pty",
+        action="store_true",
+        help="write to a new pty (path on stderr); the stream starts when a program opens it",
+    )
+    m.add_argument("--link", metavar="PATH", help="--pty: a symlink to the pty at PATH")
     m.add_argument("--realtime", action="store_true", help="pace file/stdout output in real time")
     m.add_argument(
         "--no-ephemerides",
@@ -271,6 +276,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_false",
         help="do not start the stream with the ephemerides it was made with (RTCM 1042), so "
         "a replay must learn them from the subframes or a nav file",
+    )
+    m.add_argument(
+        "--ephemerides-every-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="repeat the RTCM 1042 ephemerides this often, as a receiver repeats its "
+        "navigation data (default: 1 with --pty, else only at the start; 0: only at the start)",
     )
     m.add_argument(
         "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
