@@ -84,8 +84,10 @@ def _serve_configurable(
 
     master, slave = os.openpty()
     tty.setraw(slave)
-    print(os.ttyname(slave), file=sys.stderr, flush=True)
+    device = os.ttyname(slave)
     try:
+        _link(device, args.link)
+        print(device, file=sys.stderr, flush=True)
         stats = ConfigurableReceiver(
             master, make_sim, responder, base_period_ms=round(base_ms)
         ).serve()
@@ -93,6 +95,7 @@ def _serve_configurable(
         time.sleep(0.5)
         os.close(master)
         os.close(slave)
+        _unlink(device, args.link)
     sent = ", ".join(sorted(responder.outputs)) or "no output"
     print(
         f"bdsfix simulate: {stats.epochs_sent} epochs sent ({sent}), "
@@ -150,6 +153,32 @@ class PtyWriter:
             view = view[n:]
 
 
+def _link(device: str, link: str | None) -> None:
+    """Point the symlink ``link`` at ``device`` (an old symlink there is replaced, anything
+    else refused: InputError)."""
+    if not link:
+        return
+    if os.path.lexists(link) and not os.path.islink(link):
+        raise InputError(f"--link {link}: exists and is not a symlink")
+    tmp = f"{link}.new"
+    try:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        os.symlink(device, tmp)
+        os.replace(tmp, link)
+    except OSError as exc:
+        raise InputError(f"--link {link}: {exc.strerror}") from exc
+
+
+def _unlink(device: str, link: str | None) -> None:
+    """Remove ``link`` if it still points at ``device``."""
+    try:
+        if link and os.readlink(link) == device:
+            os.unlink(link)
+    except OSError:
+        pass
+
+
 def _open_pty(link: str | None) -> tuple[int, str]:
     """A raw pty pair whose slave is closed again (the master reports POLLHUP until a
     reader opens it); its master and device path, linked from ``link`` if given."""
@@ -159,16 +188,11 @@ def _open_pty(link: str | None) -> tuple[int, str]:
     tty.setraw(slave)  # binary from the first byte, before the reader configures the port
     device = os.ttyname(slave)
     os.close(slave)
-    if link:
-        tmp = f"{link}.new"
-        try:
-            if os.path.lexists(tmp):
-                os.unlink(tmp)
-            os.symlink(device, tmp)
-            os.replace(tmp, link)
-        except OSError as exc:
-            os.close(master)
-            raise InputError(f"--link {link}: {exc.strerror}") from exc
+    try:
+        _link(device, link)
+    except InputError:
+        os.close(master)
+        raise
     return master, device
 
 
@@ -245,8 +269,7 @@ def main_simulate(args: argparse.Namespace) -> int:
         if master is not None:
             time.sleep(0.5)  # the reader takes what is in the pty before it hangs up
             os.close(master)
-            if args.link and os.path.islink(args.link):
-                os.unlink(args.link)
+            _unlink(device, args.link)
         elif args.out not in (None, "-"):
             fh.close()
         else:

@@ -142,3 +142,13 @@ def test_simulate_ends_at_its_duration_after_its_reader_left(tmp_path):
     lost = int(text.split("epochs, ")[1].split(" bytes lost")[0])
     assert lost > 100_000  # most of 600 epochs (~1 kB each) found nobody
     assert not link.exists()  # the link goes with the pty
+
+
+def test_link_never_replaces_a_file(tmp_path, capsys):
+    from service.commands.cli import main
+
+    kept = tmp_path / "notes.txt"
+    kept.write_text("mine")
+    assert main(["simulate", "--pty", "--link", str(kept), "--duration-s", "1"]) == 3
+    assert kept.read_text() == "mine"
+    assert "not a symlink" in capsys.readouterr().err
