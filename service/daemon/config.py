@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from service.core.errors import ConfigError
-from service.core.ntripurl import NtripUrl, is_ntrip, parse_ntrip_url
+from service.core.ntripurl import NtripUrl, is_ntrip, looks_like_url, parse_ntrip_url
 from service.core.receiver_setup import DAEMON_PREFIX, ReceiverSetup
 from service.core.settings import add_flags, build, given, setting, settings_of
 from service.engine.solver import SolverConfig
@@ -166,13 +166,19 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
 
 
 def ntrip_sources(cfg: DaemonConfig) -> list[NtripUrl]:
-    """The NTRIP sources among ``nav``, parsed (ConfigError naming the URL redacted)."""
-    return [parse_ntrip_url(entry) for entry in cfg.nav if is_ntrip(entry)]
+    """The NTRIP sources among ``nav``, parsed (ConfigError naming the URL redacted): every
+    entry that looks like a URL, so that one of another scheme (``ntrips://``, ``http://``)
+    is refused as a URL, never opened as a file whose error would show its password."""
+    return [parse_ntrip_url(entry) for entry in cfg.nav if _is_url(entry)]
+
+
+def _is_url(entry: str) -> bool:
+    return is_ntrip(entry) or looks_like_url(entry)
 
 
 def nav_files(cfg: DaemonConfig) -> list[str]:
     """The RINEX nav files among ``nav``."""
-    return [entry for entry in cfg.nav if not is_ntrip(entry)]
+    return [entry for entry in cfg.nav if not _is_url(entry)]
 
 
 def _with_parts(cfg: DaemonConfig, solver: SolverConfig, setup: ReceiverSetup) -> DaemonConfig:

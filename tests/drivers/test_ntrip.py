@@ -86,6 +86,44 @@ def test_redact_hides_everything_before_the_last_at():
     assert redact("ntrip://h:1/M") == "ntrip://h:1/M"
 
 
+@given(
+    st.sampled_from(["ntrip://", "NTRIP://", "ntrips://", "http://", "https://", "ntrip:", ""]),
+    st.text(min_size=0, max_size=20),
+    st.text(min_size=0, max_size=20),
+    st.sampled_from(["h", "caster.example:2101", "[::1]:2102"]),
+)
+def test_redact_hides_any_credentials_whatever_the_scheme(scheme, user, password, hostport):
+    """Issue 23: any scheme (not only exactly ntrip://), and a user or password holding
+    ``@ : /`` or a newline: nothing of them is left, the host and mountpoint are."""
+    user, password = "USR" + user, "PWD" + password
+    text = f"{scheme}{user}:{password}@{hostport}/MOUNT"
+    shown = redact(text)
+    assert shown.endswith(f"***@{hostport}/MOUNT")
+    assert "USR" not in shown and "PWD" not in shown
+    assert shown.startswith(scheme if scheme.endswith("//") else "***@")
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "ntrips://alice:hunter2@h/M",
+        "http://alice:hunter2@h:2101/M",
+        "ntrip:alice:hunter2@h/M",
+        "alice:hunter2@h/M",
+        "ntrip://alice:hun\nter2@h:99999/M",
+        "ntrip://alice:hun\nter2@h h/M",
+    ],
+)
+def test_urls_of_other_schemes_are_refused_without_the_credentials(text):
+    """Issue 23: these printed the password (as a file name that cannot be read, or, with a
+    newline, the line after it); now a URL-like nav entry is refused as a URL, redacted."""
+    with pytest.raises(ConfigError) as err:
+        parse_ntrip_url(text)
+    msg = str(err.value)
+    assert "hunter2" not in msg and "alice" not in msg and "hun" not in msg
+    assert "\n" not in msg
+
+
 def test_authorization_is_rfc7617_basic():
     url = NtripUrl("h", 2101, "M", user="Aladdin", password="open sesame")  # noqa: S106
     assert url.authorization() == "Basic QWxhZGRpbjpvcGVuIHNlc2FtZQ=="  # RFC 7617 section 2
