@@ -35,6 +35,7 @@ the daemon's STATUS shows them with the prefix ``ntrip_``): ``refused``, ``http_
 from __future__ import annotations
 
 import logging
+import re
 import socket
 import time
 from typing import Any
@@ -53,6 +54,10 @@ IDLE_S = 60.0
 """A connection that brings no byte for this long is dropped and reopened [s]."""
 RECONNECT_MAX_S = 4.0
 """Default longest wait between two attempts to reach the caster [s]."""
+
+
+_CHUNK_SIZE = re.compile(rb"[0-9A-Fa-f]{1,15}")
+"""A chunk size (RFC 9112 section 7.1: ``1*HEXDIG``; 15 digits bound it below 2**60)."""
 
 
 class NtripRefusedError(InputError):
@@ -95,10 +100,10 @@ class ChunkDecoder:
                     raise ValueError("chunked body: chunk size line too long")
                 break
             size_text = bytes(self._buf[:end]).split(b";", 1)[0].strip()
-            try:
-                size = int(size_text, 16)
-            except ValueError as err:
-                raise ValueError(f"chunked body: bad chunk size {size_text[:16]!r}") from err
+            # chunk-size = 1*HEXDIG: not int(x, 16), which takes "-5", "+5", "0x5" and "5_0"
+            if not _CHUNK_SIZE.fullmatch(size_text):
+                raise ValueError(f"chunked body: bad chunk size {size_text[:16]!r}")
+            size = int(size_text, 16)
             del self._buf[: end + 2]
             if size == 0:
                 self.done = True

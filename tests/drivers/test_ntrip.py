@@ -176,6 +176,15 @@ def test_chunk_decoder_refuses_a_bad_size_line():
         ChunkDecoder().feed(b"3\r\nabcXY")
 
 
+@pytest.mark.parametrize("size", [b"-5", b"-0", b"+5", b"0x5", b"5_0", b" -1", b""])
+def test_chunk_decoder_refuses_a_size_that_is_not_hex_digits(size):
+    """Issue 23: a negative size was taken (int(x, 16) reads a sign, a 0x prefix and
+    underscores) and the framing passed on as data; RFC 9112 7.1: chunk-size = 1*HEXDIG."""
+    dec = ChunkDecoder()
+    with pytest.raises(ValueError, match="bad chunk size"):
+        dec.feed(size + b"\r\n" + b"\xd3\x00\x13" * 4 + b"\r\n0\r\n\r\n")
+
+
 # --- against pygnssutils' caster --------------------------------------------------------
 
 
