@@ -153,7 +153,12 @@ def _open_ntrip(cfg: DaemonConfig) -> list[Any]:
     from drivers.ntrip import open_ntrip
 
     return [
-        open_ntrip(url, reconnect_max_s=cfg.ntrip_reconnect_max_s) for url in ntrip_sources(cfg)
+        open_ntrip(
+            url,
+            reconnect_max_s=cfg.ntrip_reconnect_max_s,
+            header_timeout_s=cfg.ntrip_header_timeout_s,
+        )
+        for url in ntrip_sources(cfg)
     ]
 
 

@@ -63,6 +63,14 @@ class DaemonConfig:
         low=0.1,
         high=300.0,
     )
+    ntrip_header_timeout_s: float = setting(
+        10.0,
+        "longest time for an NTRIP caster's whole answer header [s]; a slower answer is "
+        "dropped and retried (counted ntrip_header_timeouts)",
+        kind="float",
+        low=0.1,
+        high=300.0,
+    )
     state_dir: str = setting(
         "", "directory of the persisted ephemeris store ($BDSFIX_STATE_DIR)", kind="str"
     )
