@@ -66,6 +66,7 @@ from typing import IO, Literal
 import numpy as np
 
 from service.core.errors import ConfigError, FramingError
+from service.core.ntripurl import looks_like_url
 from service.core.timebase import (
     BDT_GPS_WEEK_OFFSET,
     BDT_GPST_OFFSET_S,
@@ -704,10 +705,10 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
 
 
 NTRIP_NAV_HERE = (
-    "nav: an NTRIP source (ntrip://...) is read by 'bdsfix run' (its 'nav' key); here give a "
-    "RINEX nav file"
+    "nav: a URL is no nav file; an NTRIP source (ntrip://...) is read by 'bdsfix run' (its "
+    "'nav' key); here give a RINEX nav file"
 )
-"""The error (no URL in it: it may hold credentials) for an NTRIP URL given as a nav file."""
+"""The error (no URL in it: it may hold credentials) for a URL given as a nav file."""
 
 
 def read_nav(path: str | Path) -> NavData:
@@ -717,7 +718,7 @@ def read_nav(path: str | Path) -> NavData:
     (PRN, week, toe) appears more than once, the latest transmission time wins, so a
     health change broadcast later is kept.
     """
-    if str(path).lower().startswith("ntrip:/"):  # also as a Path, which folds the "//"
+    if looks_like_url(str(path)):  # ntrip://, ntrips://, http://... (a Path folds the "//")
         raise ConfigError(NTRIP_NAV_HERE)
     path = Path(path)
     counters: Counter[str] = Counter()

@@ -34,6 +34,7 @@ from service.daemon.config import (
 )
 from service.daemon.loop import Runner
 from service.daemon.sdnotify import Notifier
+from service.daemon.statelock import lock_state_dir
 from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.solver import IonoSet
 from service.output.publish import Publishers
@@ -153,7 +154,12 @@ def _open_ntrip(cfg: DaemonConfig) -> list[Any]:
     from drivers.ntrip import open_ntrip
 
     return [
-        open_ntrip(url, reconnect_max_s=cfg.ntrip_reconnect_max_s) for url in ntrip_sources(cfg)
+        open_ntrip(
+            url,
+            reconnect_max_s=cfg.ntrip_reconnect_max_s,
+            header_timeout_s=cfg.ntrip_header_timeout_s,
+        )
+        for url in ntrip_sources(cfg)
     ]
 
 
@@ -191,6 +197,7 @@ def main_run(args: argparse.Namespace) -> int:
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
     _check_state_dir(cfg.resolved_state_dir())
+    lock_state_dir(cfg.resolved_state_dir())  # a second daemon on it: exit 3, one line
     if cfg.configure:  # before the source opens: the set-up has the port to itself
         from service.commands.configure import setup_receiver
 
