@@ -6,7 +6,7 @@ scalar transcription of IS-GPS-200 Table 20-IV (tests/support/independent.py) gi
 constants written here from the ICDs: GPS GM 3.986005e14 m^3/s^2 and Omega_e 7.2921151467e-5
 rad/s (IS-GPS-200N 20.3.3.4.3), F -4.442807633e-10 s/sqrt(m) (20.3.3.3.3.1); Galileo GM
 3.986004418e14 and Omega_e 7.2921151467e-5 (OS SIS ICD 2.1, 5.1.1), F -4.442807309e-10
-(5.1.4). The same records under the BeiDou constants land metres away, so the comparison
+(5.1.4). The same records under the BeiDou constants land 6-16 m away, so the comparison
 tells the constants apart.
 """
 
@@ -68,8 +68,9 @@ def _icd_clock(rec: dict, t: float, f_rel: float, gm: float) -> float:
 def test_positions_and_clocks_follow_their_own_icd(records):
     """Every GPS / Galileo record at t_oe and +-1 h: sat_pos_clock == the scalar ICD
     transcription with that system's constants to 1 mm and 1e-15 s; with BeiDou's GM and
-    Omega_e the transcription moves the satellites by metres (GPS, GM differs) or decimetres
-    (Galileo, Omega_e differs only in the 9th digit), far beyond the agreement."""
+    Omega_e the transcription moves the satellites by metres (measured 6-15 m for GPS and
+    6-16 m for Galileo: Omega_e differs by 1.5e-12 rad/s, times t_oe of about 3.5e5 s, and
+    GPS's GM by 1.5 ppm), far beyond the agreement."""
     system, recs = records
     gm, we, f_rel = ICD[system]
     worst_m, worst_clk_s, least_bds_m = 0.0, 0.0, math.inf
@@ -87,9 +88,7 @@ def test_positions_and_clocks_follow_their_own_icd(records):
                 least_bds_m = min(least_bds_m, float(np.linalg.norm(pos[0] - as_bds)))
     assert worst_m < 1e-3, worst_m
     assert worst_clk_s < 1e-15, worst_clk_s
-    assert least_bds_m > 0.05, least_bds_m
-    if system == "G":
-        assert least_bds_m > 1.0, least_bds_m
+    assert least_bds_m > 1.0, least_bds_m
 
 
 def test_a_beidou_geo_set_under_a_gps_id_is_not_a_geo():
