@@ -100,10 +100,16 @@ class MeasurementEpoch:
 
 @dataclass(frozen=True, slots=True)
 class Ephemeris:
-    """BDS broadcast ephemeris and clock (ICD B1I 5.2.4.9-5.2.4.12, Table 5-11).
+    """Broadcast Keplerian ephemeris and clock of the satellite ``prn`` (BDS: ICD B1I
+    5.2.4.9-5.2.4.12, Table 5-11; the fields are those of GPS LNAV and Galileo too, and
+    :func:`service.core.orbit.sat_pos_clock` evaluates them with the constants of the ID's
+    system).
 
-    ``toe_sow_s``/``toc_sow_s`` are BDT seconds of week in BDT ``week``. Angles in radians,
-    rates in rad/s. ``health`` is SatH1 (0 = healthy). ``tgd1_s`` is the B1I group delay.
+    ``toe_sow_s``/``toc_sow_s`` are BDT seconds of week in BDT ``week``: the store and the
+    solver select and evaluate every set on BDT, so a set of another system must be put on
+    BDT before it enters (not done yet: only BeiDou sets are read). Angles in radians,
+    rates in rad/s. ``health`` is SatH1 (0 = healthy). ``tgd1_s`` is the group delay of the
+    signal in use (B1I: T_GD1).
     """
 
     prn: str
