@@ -135,8 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--period-ms",
         type=int,
         choices=[1, 20],
-        default=1,
-        help="T of the fractional ranges [ms]: 1 (code period) or 20 (D1 bit)",
+        default=None,
+        help="T of the fractional ranges [ms]: 1 or 20 (D1 bit); default each satellite "
+        "system's code period (1 for B1I)",
     )
     s.add_argument(
         "--format", choices=["jsonl", "csv", "nmea"], default="jsonl", help="output format"

@@ -9,7 +9,7 @@ import logging
 import numpy as np
 
 from service.commands.options import check_output_path, parse_start
-from service.core.constants import is_geo
+from service.core.bds import is_geo
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
 from service.studies.coverage import (

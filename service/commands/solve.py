@@ -33,7 +33,8 @@ class BatchOptions:
 
     mode: Literal["fast", "spp", "both"] = "both"
     fractional: Literal["non-geo", "none"] = "non-geo"
-    period_s: float = 1e-3
+    period_s: float | None = None
+    """T of the fractional ranges; None: each satellite's system's code period."""
     cfg: SolverConfig = field(default_factory=SolverConfig)
     with_sky: bool = True
     """Attach the sky view to each fix (only the NMEA output shows it: GSV)."""
@@ -106,7 +107,7 @@ def main_solve(args: argparse.Namespace) -> int:
     opts = BatchOptions(
         mode=args.mode,
         fractional=args.fractional,
-        period_s=args.period_ms * 1e-3,
+        period_s=None if args.period_ms is None else args.period_ms * 1e-3,
         cfg=cfg,
         with_sky=args.format == "nmea",
     )

@@ -59,7 +59,8 @@ from collections.abc import Sequence
 
 from pynmeagps import GET, NMEAMessage
 
-from service.core.constants import C_M_S, prn_number
+from service.core.constants import C_M_S
+from service.core.systems import prn_number
 from service.core.timebase import utc_from_gpst
 from service.core.types import UNKNOWN_WEEK, Fix, SatView
 

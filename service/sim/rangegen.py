@@ -3,7 +3,7 @@
 Used by the simulation tests and the virtual receiver. For a true receive time t (GPST) and a
 receiver clock offset dt_r, each satellite's signal left at t - tau, where tau solves the
 light-time equation with the satellite position at transmit time rotated into the
-receive-time Earth frame (Sagnac). The B1I pseudorange is
+receive-time Earth frame (Sagnac), each with its system's constants. The pseudorange is
 c tau + c (dt_r - dt_sv) + I + T + noise, and the receiver's time tag is t + dt_r, so that
 tag and ranges carry the same clock offset (docs/method.md).
 """
@@ -55,7 +55,7 @@ def true_ranges(
     tau = np.full(len(eph), NOMINAL_FLIGHT_TIME_S)
     for _ in range(6):
         sat, clk_s = sat_pos_clock(eph, bdt_week, bdt_sow - tau)
-        sat = sagnac_rotate(sat, tau)
+        sat = sagnac_rotate(sat, tau, eph.omega_e_rad_s)
         rho = np.linalg.norm(sat - x, axis=1)
         tau = rho / C_M_S
     el, az = look_angles(x, sat)
@@ -63,9 +63,9 @@ def true_ranges(
     lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
     if iono is not None:
         if iono.system == "BDS":
-            delay += klobuchar_bds_m(iono, lat, lon, el, az, bdt_sow)
+            delay += klobuchar_bds_m(iono, lat, lon, el, az, bdt_sow, eph.carrier_hz)
         else:
-            delay += klobuchar_gps_m(iono, lat, lon, el, az, gpst_tow_s)
+            delay += klobuchar_gps_m(iono, lat, lon, el, az, gpst_tow_s, eph.carrier_hz)
     if tropo:
         delay += saastamoinen_m(lat, alt, el)
     noise = np.zeros(len(eph))

@@ -28,11 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from service.core.bds import is_geo, nav_type, subframe_period_s
 from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, encode_d1_subframes, encode_d2_frame
-from service.core.constants import C_M_S, WEEK_S, is_geo, prn_number
+from service.core.constants import C_M_S, WEEK_S
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
+from service.core.systems import prn_number
 from service.core.timebase import BDT_GPST_OFFSET_S, diff_s, gpst_to_bdt, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rangegen import true_ranges
@@ -102,10 +104,6 @@ class SimEpoch:
     cn0_dbhz: np.ndarray
     subframes: tuple[SimSubframe, ...] = ()
     truth_x_ecef_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-def _subframe_period_s(prn: str) -> float:
-    return D2_SUBFRAME_S if is_geo(prn) else D1_SUBFRAME_S
 
 
 class Simulator:
@@ -227,7 +225,7 @@ class Simulator:
         self, st: _SatState, t0: float, t1: float, bdt_sow_rx: float, flight_s: float
     ) -> list[SimSubframe]:
         """Subframes of ``st`` whose last bit arrived in (t0, t1] after bit sync."""
-        period = _subframe_period_s(st.prn)
+        period = subframe_period_s(st.prn)
         # receiver time since start <-> BDT transmit time: tx = bdt_sow_rx - (t1 - t) - flight
         tx_of = lambda t: bdt_sow_rx - (t1 - t) - flight_s  # noqa: E731
         if st.next_subframe_k is None:
@@ -236,7 +234,7 @@ class Simulator:
             # the first preamble after bit sync; the time is known once the rule says so
             k0 = math.ceil(round(tx_of(st.sync_s) / period, 9))
             st.next_subframe_k = k0
-            known_s = time_known_after_s("D2" if is_geo(st.prn) else "D1", self.cfg.full_rule)
+            known_s = time_known_after_s(nav_type(st.prn), self.cfg.full_rule)
             st.full_s = t1 + (k0 * period + known_s - tx_of(t1))
         out = []
         while True:
@@ -246,7 +244,7 @@ class Simulator:
             if end_rx > t1 + 1e-9:
                 break
             if end_rx > t0 - 1e-9:
-                nav = "D2" if is_geo(st.prn) else "D1"
+                nav = nav_type(st.prn)
                 out.append(SimSubframe(st.prn, nav, k, k * period, end_rx))
             st.next_subframe_k = k + 1
         return out

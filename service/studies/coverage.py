@@ -52,7 +52,8 @@ from typing import Any
 
 import numpy as np
 
-from service.core.constants import WEEK_S, is_geo
+from service.core.bds import is_geo
+from service.core.constants import WEEK_S
 from service.core.errors import BdsfixError, ConfigError
 from service.core.geometry import geodetic_to_ecef
 from service.core.types import Ephemeris

@@ -24,7 +24,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from service.core.constants import is_geo
+from service.core.bds import is_geo
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
 from service.core.sow_rule import DEFAULT_FULL_RULE

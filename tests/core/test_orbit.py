@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from service.core.constants import is_geo
+from service.core.bds import is_geo
 from service.core.geometry import ecef_to_geodetic
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from tests.support.independent import eph_from_georinex as _eph
