@@ -96,7 +96,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
-    from service.commands.summary import NO_EPOCHS_HINT, decline_lines
+    from service.commands.summary import NO_EPOCHS_HINT, decline_lines, skipped_line
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
     if args.format == "nmea":  # pynmeagps only when asked for (start-up)
@@ -152,6 +152,9 @@ def main_solve(args: argparse.Namespace) -> int:
     if excluded:
         parts_ex = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
         print(f"  excluded by fault detection: {parts_ex}", file=sys.stderr)
+    skipped = {k: n for k, n in sorted(reader.counters.items()) if k.endswith("_skipped") and n}
+    for line in skipped_line(skipped):
+        print(line, file=sys.stderr)
     if n_epochs == 0:
         print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
     return 0
