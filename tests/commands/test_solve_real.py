@@ -162,3 +162,14 @@ def test_solve_and_replay_skip_an_epoch_with_an_unknown_flag_alike(tmp_path, cap
     }
     assert replayed == set(by_epoch)
     assert f"hksc1610.obs:{lineno}: epoch flag 7" in caplog.text
+
+
+def test_default_pdop_mask_is_u_blox_25_on_the_f9p_rover(tmp_path):
+    # the F9P rover (no GEOs) has SPP epochs with PDOP between 10 and 25: the default mask
+    # (u-blox's 25) publishes them and still declines none at or below it
+    d = DATA / "hksc-2021"
+    recs, _ = _solve(tmp_path, d / "20210610.klt1.ublox.f9p.obs", [d / "hksc1610.nav"])
+    spp = [r for r in recs if r["solver"] == "spp" and r["mode"] == "spp"]
+    pdops = [r["pdop"] for r in spp]
+    assert any(10.0 < p <= 25.0 for p in pdops)
+    assert max(pdops) <= 25.0
