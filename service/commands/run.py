@@ -284,6 +284,8 @@ class Timeline:
         self.first.setdefault(key, t_s)
 
     def on_result(self, r: EpochResult) -> None:
+        if r.restarted:  # the timeline is the restarted receiver's
+            self.first.clear()
         for ev in r.track:
             kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
             self.mark(f"first {kind} SOW decoded", ev.since_start_s)
