@@ -123,3 +123,52 @@ def test_a_file_with_nothing_to_read_is_an_input_error(tmp_path, command, kind):
     assert len(lines) == 1, out.stderr
     expected = "decompress it first" if kind == "gzip" else "expected a capture of UBX"
     assert expected in lines[0]
+
+
+# matplotlib made unimportable (a None entry in sys.modules makes `import matplotlib` raise
+# ImportError), then the command run as `python -m service` runs it
+WITHOUT_MATPLOTLIB = (
+    "import runpy, sys; sys.modules['matplotlib'] = None; "
+    "sys.argv = ['bdsfix', *sys.argv[1:]]; runpy.run_module('service', run_name='__main__')"
+)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("ttff", HKSC_OBS, HKSC_NAV, "--trials", "2", "--plot", "PNG"),
+        (
+            "coverage",
+            "--days",
+            "1",
+            "--step-s",
+            "3600",
+            "--grid-deg",
+            "30",
+            "--json",
+            "JSON",
+            "--plot",
+            "PNG",
+            "--no-progress",
+        ),
+    ],
+    ids=["ttff", "coverage"],
+)
+def test_plot_without_matplotlib_refuses_before_computing(args, tmp_path):
+    """``--plot`` without matplotlib is exit 2 with the install hint, before any work: no
+    result on stdout, no JSON written, no PNG."""
+    png, js = tmp_path / "out.png", tmp_path / "out.json"
+    argv = [str(png) if a == "PNG" else str(js) if a == "JSON" else a for a in args]
+    out = subprocess.run(
+        [sys.executable, "-c", WITHOUT_MATPLOTLIB, *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 2, out.stderr[-500:]
+    assert out.stderr.splitlines() == [
+        f"bdsfix {args[0]}: error: --plot needs matplotlib: pip install '.[plot]' in the "
+        "bdsfix checkout"
+    ]
+    assert out.stdout == "" and not js.exists() and not png.exists()
