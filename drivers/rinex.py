@@ -46,6 +46,10 @@ line (the ``>`` record identifier of the RINEX 3 data record description):
 - an unreadable observation record: that record is skipped, the rest of the epoch is kept
   (``records_skipped``);
 - lines that belong to no epoch (before the next ``>``): ``lines_skipped``.
+
+An epoch flag above 6 (RINEX 3 defines 0-6) is not damage to the framing: the epoch and its
+announced records are skipped with a warning and counted (``epochs_skipped``) by both
+readers, so ``bdsfix solve`` and ``bdsfix replay`` read such a file alike.
 """
 
 from __future__ import annotations
@@ -476,6 +480,9 @@ class RinexObsReader:
                     flag, count, when = self._epoch_line(line, lines)
                     body_start = lines.n + 1
                     body = self._body(count, body_start, lines)
+                    if flag > 6:
+                        self._unknown_flag(flag, body, body_start - 1, counters)
+                        continue
                     if flag >= 2:
                         self._special(flag, body, body_start, types, counters)
                         if flag == 4 and _READ in types:
@@ -523,7 +530,7 @@ class RinexObsReader:
         try:
             flag = int(line[31:32])
             count = int(line[32:35])
-            if flag > 6 or count < 0:
+            if count < 0:
                 raise ValueError(f"flag {flag}, count {count}")
             if flag in (2, 3, 4) and not line[2:29].strip():
                 return flag, count, None
@@ -535,6 +542,21 @@ class RinexObsReader:
         except (ValueError, OverflowError) as exc:  # OverflowError: GLO time near year 1
             raise lines.error(f"bad epoch line {line.rstrip()!r}: {exc}") from exc
         return flag, count, when
+
+    def _unknown_flag(
+        self, flag: int, body: list[str], lineno: int, counters: Counter[str]
+    ) -> None:
+        """An epoch flag RINEX 3 does not define (7-9): its announced records are skipped
+        with the epoch, with a warning, in a strict reader as in a lenient one (what it
+        means is unknown, the file's framing is not broken)."""
+        counters["epochs_skipped"] += 1
+        log.warning(
+            "%s:%d: epoch flag %d (RINEX 3 defines 0-6); epoch and its %d records skipped",
+            self.path,
+            lineno,
+            flag,
+            len(body),
+        )
 
     def _special(
         self,

@@ -93,6 +93,21 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
+def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> None:
+    """RINEX nav files without a BDS ephemeris, or (for a capture file source) of another
+    day than its first epoch, refuse the start: one line, exit 3
+    (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows)."""
+    if not nav:
+        return
+    from service.commands.navcheck import check_navigation, first_epoch_time, read_navigation
+
+    navs = read_navigation(nav)
+    first = None
+    if _is_regular_file(spec):
+        first = first_epoch_time(spec.removeprefix("file:"), gps_week)
+    check_navigation(nav, navs, first)
+
+
 def _is_regular_file(spec: str) -> bool:
     """Whether the source ``spec`` names a regular file (not stdin, a device, a FIFO or TCP)."""
     if spec == "-" or spec.startswith(("tcp:", "serial:")):
@@ -196,6 +211,7 @@ def main_run(args: argparse.Namespace) -> int:
     specs = output_specs(cfg)
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
+    _check_nav(cfg.source, nav_files(cfg))
     _check_state_dir(cfg.resolved_state_dir())
     lock_state_dir(cfg.resolved_state_dir())  # a second daemon on it: exit 3, one line
     if cfg.configure:  # before the source opens: the set-up has the port to itself
@@ -288,6 +304,8 @@ class Timeline:
 
     def marks(self, r: EpochResult) -> list[str]:
         """Mark the first events ``r`` brings; the keys that are new."""
+        if r.restarted:  # the timeline is the restarted receiver's
+            self.first.clear()
         new = []
         for ev in r.track:
             kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
@@ -364,6 +382,7 @@ def main_replay(args: argparse.Namespace) -> int:
         store = EphemerisStore()
         iono = IonoSet()
         _check_source(args.files[0])
+        _check_nav(args.files[0], args.nav or [], args.gps_week)
         src = open_source(args.files[0], nav=args.nav or None, gps_week=args.gps_week)
         events = src
         counters = src.counters

@@ -40,18 +40,23 @@ class BatchOptions:
     """Attach the sky view to each fix (only the NMEA output shows it: GSV)."""
 
 
-def load_navigation(paths: list[str], max_age_s: float = 7200.0) -> tuple[EphemerisStore, IonoSet]:
-    """Ephemeris store and broadcast ionosphere from one or more RINEX 3 nav files."""
-    from drivers.rinex import read_nav
+def load_navigation(
+    paths: list[str], max_age_s: float = 7200.0, first: tuple[int, float] | None = None
+) -> tuple[EphemerisStore, IonoSet]:
+    """Ephemeris store and broadcast ionosphere from one or more RINEX 3 nav files, refused
+    (exit 3) without a BDS ephemeris or, given the observations' ``first`` epoch (GPST
+    week, tow), when they are of another day (:mod:`service.commands.navcheck`)."""
+    from service.commands.navcheck import check_navigation, read_navigation
 
+    navs = read_navigation(paths)
+    check_navigation(paths, navs, first)
     store = EphemerisStore(max_age_s=max_age_s)
     params = []
-    for path in paths:
-        nav = read_nav(path)
+    for nav in navs:
         for ephs in nav.ephemerides.values():
             store.add_all(ephs)
         params += [nav.iono_bds, nav.iono_gps]
-    if len(store) == 0:
+    if len(store) == 0:  # every set refused by the store's sanity checks
         raise InputError(f"no usable BDS ephemeris in {', '.join(paths)}")
     iono = IonoSet.of(params)
     if iono.bds is None and iono.gps is not None:
@@ -97,7 +102,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
-    from service.commands.summary import decline_lines, no_epochs_hint
+    from service.commands.summary import decline_lines, no_epochs_hint, skipped_line
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
     if args.format == "nmea":  # pynmeagps only when asked for (start-up)
@@ -111,8 +116,11 @@ def main_solve(args: argparse.Namespace) -> int:
         cfg=cfg,
         with_sky=args.format == "nmea",
     )
-    store, iono = load_navigation(list(args.nav))
     reader = RinexObsReader(args.obs)
+    first = next(
+        ((e.gpst_week, e.gpst_tow_s) for e in RinexObsReader(args.obs, lenient=True)), None
+    )
+    store, iono = load_navigation(list(args.nav), first=first)
     counts, excluded = Counters(), Counters()
     declined = {"fast": Counters(), "spp": Counters()}
     n_epochs = 0
@@ -153,6 +161,9 @@ def main_solve(args: argparse.Namespace) -> int:
     if excluded:
         parts_ex = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
         print(f"  excluded by fault detection: {parts_ex}", file=sys.stderr)
+    skipped = {k: n for k, n in sorted(reader.counters.items()) if k.endswith("_skipped") and n}
+    for line in skipped_line(skipped):
+        print(line, file=sys.stderr)
     if n_epochs == 0:
         print(f"  {no_epochs_hint('solve')}", file=sys.stderr)
     return 0

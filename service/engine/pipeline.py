@@ -80,6 +80,9 @@ class EpochResult:
     track: tuple[TrackEvent, ...] = ()
     integrity: tuple[IntegrityCheck, ...] = ()
     sky: Callable[[Fix], tuple[SatView, ...]] | None = None
+    restarted: bool = False
+    """The emulated receiver restart (``restart_at_s``) happened at this epoch: what came
+    before it (first fixes, decoded SOWs) belongs to the receiver before the restart."""
 
 
 def count_fix(counters: Counters, fix: Fix) -> None:
@@ -188,8 +191,10 @@ class Pipeline:
             and not self._restarted
             and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) >= self.restart_at_s
         ):
-            self._restarted = True
+            self._restarted = restarted_now = True
             self.restart(epoch, np.random.default_rng(self.sync_seed))
+        else:
+            restarted_now = False
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
@@ -205,7 +210,13 @@ class Pipeline:
         self._emit(events)
         since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
         return EpochResult(
-            view, fix, since, tuple(events), tuple(checks), partial(sky_view, view, self.store)
+            view,
+            fix,
+            since,
+            tuple(events),
+            tuple(checks),
+            partial(sky_view, view, self.store),
+            restarted_now,
         )
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:

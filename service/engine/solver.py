@@ -144,7 +144,7 @@ class SolverConfig:
         2, "integrity: satellites fault exclusion may remove", kind="int", low=0, high=10
     )
     pdop_max: float = setting(
-        10.0, "largest PDOP of a published fix", kind="float", low=0.0, low_open=True
+        25.0, "largest PDOP of a published fix", kind="float", low=0.0, low_open=True
     )
     alt_min_m: float = setting(-1_000.0, "plausible shell: lowest altitude [m]", kind="float")
     alt_max_m: float = setting(1_100_000.0, "plausible shell: highest altitude [m]", kind="float")

@@ -27,6 +27,7 @@ import numpy as np
 from service.core.bds import is_geo
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
+from service.core.files import PLOT_HINT
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s
 from service.core.types import Fix, MeasurementEpoch
@@ -156,7 +157,7 @@ def plot_trials(trials: Sequence[TrialTimes], path: str) -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as exc:
-        raise ConfigError("--plot needs matplotlib: pip install 'bdsfix[plot]'") from exc
+        raise ConfigError(PLOT_HINT) from exc
     fig, ax = plt.subplots(figsize=(7, 4))
     data = {
         "fast fix": [t.fast_s for t in trials],
