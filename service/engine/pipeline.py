@@ -45,6 +45,7 @@ from service.engine.solver import (
     solve,
 )
 from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
+from service.engine.velocity import with_velocity
 
 log = logging.getLogger(__name__)
 
@@ -193,6 +194,7 @@ class Pipeline:
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
