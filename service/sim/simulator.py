@@ -196,7 +196,7 @@ class Simulator:
             prev_t = t
             idx = np.asarray(tracked, dtype=int)
             cn0 = 45.0 - 10.0 * (1.0 - np.sin(np.clip(tr.el_rad[idx], 0, None)))
-            doppler = -tr.range_rate_m_s[idx] / B1I_WAVELENGTH_M
+            doppler = -tr.carrier_rate_m_s[idx] / B1I_WAVELENGTH_M
             if cfg.doppler_noise_hz > 0:
                 doppler = doppler + self._doppler_rng.normal(0.0, cfg.doppler_noise_hz, len(idx))
             yield SimEpoch(
