@@ -1,6 +1,11 @@
 """NMEA 0183 sentences for a fix (output sentences, as pynmeagps builds them in msgmode GET).
 
-Sentences, in order: GGA, RMC, VTG, GSA, GSV, GST, ZDA.
+Sentences, in order: RMC, VTG, GGA, GSA, GSV, GST, ZDA (the u-blox order). gpsd (3.22)
+reports a fix at the end of each sentence that it has learnt ends a cycle, and fills a
+missing speed with the distance from the previous fix over the time step: with GGA first
+it reported a second fix per epoch after GGA, with a speed of tens of m/s from a static
+receiver's position noise. With RMC and VTG first every report carries our speed
+(tests/system/test_service_io.py).
 
 - Serialisation: the field values are chosen here (the pynmeagps keyword names and types of
   NMEA 0183 / NMEA 4.11 GGA, RMC, VTG, GSA, GSV, GST and ZDA) and written by
@@ -38,8 +43,8 @@ Sentences, in order: GGA, RMC, VTG, GSA, GSV, GST, ZDA.
 - Altitude: GGA carries the ellipsoidal height as altitude with geoid separation 0.0, so
   altitude + separation is the height above the CGCS2000 ellipsoid as gpsd computes it.
 - Fix quality: fast and SPP fixes are both GGA quality 1 (autonomous) with GSA mode 3, so
-  gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only GGA with quality 0 and an
-  empty position and RMC with status V (gpsd: no fix); pynmeagps fills the hemisphere
+  gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only RMC with status V and GGA
+  with quality 0 and an empty position (gpsd: no fix); pynmeagps fills the hemisphere
   fields with N/E even then. Its time is the receiver's unsolved tag, so no ZDA follows;
   while no GPS week is known (``no_time``) the time and date fields are empty.
 - Speed and course (:mod:`service.engine.velocity`): RMC's speed over ground in knots
@@ -368,16 +373,15 @@ def sentences_for_fix(
     time_known: bool = True,
     gsa_talker: str | None = None,
 ) -> list[bytes]:
-    """Sentences for one epoch's fix, in the order GGA, RMC, VTG, GSA, GSV, GST, ZDA.
+    """Sentences for one epoch's fix, in the order RMC, VTG, GGA, GSA, GSV, GST, ZDA.
 
     ``utc`` is the fix's own time (naive UTC; None: unknown, for a declined fix only, gives
     empty time fields); ``time_known`` allows ZDA; ``gsa_talker``
-    (default: ``talker``) is GSA's talker. A publisher may send :func:`gga_sentence` first
-    and :func:`sentences_after_gga` later: together they are this list.
+    (default: ``talker``) is GSA's talker. A publisher may send :func:`lead_sentences`
+    first and :func:`sentences_after_gga` later: together they are this list.
     """
-    gga = gga_sentence(fix, utc=utc, talker=talker, gsa_talker=gsa_talker)
     return [
-        gga,
+        *lead_sentences(fix, utc=utc, talker=talker, gsa_talker=gsa_talker),
         *sentences_after_gga(
             fix, utc=utc, talker=talker, time_known=time_known, gsa_talker=gsa_talker
         ),
@@ -429,28 +433,14 @@ def _checked(fix: Fix, utc: dt.datetime | None, talker: str, gsa_talker: str | N
     return has_fix
 
 
-def gga_sentence(
+def lead_sentences(
     fix: Fix, *, utc: dt.datetime | None, talker: str = "GN", gsa_talker: str | None = None
-) -> bytes:
-    """The GGA of :func:`sentences_for_fix` (quality 0 and no position without a fix)."""
-    has_fix = _checked(fix, utc, talker, gsa_talker)
-    if utc is None:
-        return _gga(talker, "", fix, False)
-    return _gga(talker, nmea_time(utc).time(), fix, has_fix)
-
-
-def sentences_after_gga(
-    fix: Fix,
-    *,
-    utc: dt.datetime | None,
-    talker: str = "GN",
-    time_known: bool = True,
-    gsa_talker: str | None = None,
 ) -> list[bytes]:
-    """The sentences of :func:`sentences_for_fix` that follow its GGA."""
+    """The first sentences of :func:`sentences_for_fix`: RMC, VTG (with a velocity) and GGA
+    (quality 0 and no position without a fix), what a live sink gets first."""
     has_fix = _checked(fix, utc, talker, gsa_talker)
     if utc is None:
-        return [_rmc_void(talker)]
+        return [_rmc_void(talker), _gga(talker, "", fix, False)]
     when = nmea_time(utc)
     t = when.time()
     pos: dict[str, object] = {"lat": "", "lon": ""}
@@ -477,8 +467,6 @@ def sentences_after_gga(
             navStatus="V",
         )
     ]
-    if not has_fix:
-        return out
     if knots != "":
         out.append(
             _msg(
@@ -495,6 +483,26 @@ def sentences_after_gga(
                 posMode="A",
             )
         )
+    out.append(_gga(talker, t, fix, has_fix))
+    return out
+
+
+def sentences_after_gga(
+    fix: Fix,
+    *,
+    utc: dt.datetime | None,
+    talker: str = "GN",
+    time_known: bool = True,
+    gsa_talker: str | None = None,
+) -> list[bytes]:
+    """The sentences of :func:`sentences_for_fix` that follow its GGA (none without a
+    position)."""
+    has_fix = _checked(fix, utc, talker, gsa_talker)
+    if utc is None or not has_fix:
+        return []
+    when = nmea_time(utc)
+    t = when.time()
+    out = []
     gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
     used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]
     for j in range(GSA_MAX_SV):
