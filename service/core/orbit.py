@@ -92,6 +92,16 @@ class EphemerisArrays:
             **cols,
         )
 
+    @classmethod
+    def concatenate(cls, sets: Sequence[EphemerisArrays]) -> EphemerisArrays:
+        """The rows of ``sets``, one after the other."""
+        kw = {
+            f.name: np.concatenate([getattr(s, f.name) for s in sets])
+            for f in fields(cls)
+            if f.name != "prn"
+        }
+        return cls(prn=tuple(p for s in sets for p in s.prn), **kw)
+
     def take(self, index: np.ndarray | Sequence[int]) -> EphemerisArrays:
         """Rows ``index`` as a new set."""
         idx = np.asarray(index, dtype=int)

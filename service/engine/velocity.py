@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -40,7 +41,7 @@ from service.core.constants import C_M_S
 from service.core.corrections import sagnac_rotate
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation
-from service.core.orbit import sat_pos_clock, sat_pos_vel_clock
+from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
 from service.core.systems import constants_of
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch, Velocity
@@ -106,59 +107,114 @@ def solve_velocity(
 ) -> Velocity | None:
     """Velocity and clock drift of a receiver at ``x_ecef_m`` (module docstring), or None
     when fewer than four rows remain above the mask or the residual test fails after
-    ``cfg.max_exclusions`` exclusions."""
+    ``cfg.max_exclusions`` exclusions: :func:`solve_velocities` of one epoch."""
+    return solve_velocities([(rows, np.asarray(x_ecef_m, dtype=float))], cfg)[0]
+
+
+def solve_velocities(
+    problems: Sequence[tuple[DopplerRows, np.ndarray]], cfg: VelocityConfig | None = None
+) -> list[Velocity | None]:
+    """:func:`solve_velocity` of each (rows, receiver position), as one computation over
+    epochs x rows (the rows padded to the longest epoch, padding weighted 0): one epoch
+    alone and the same epoch among others give the same solution. The exclusion rounds
+    continue only for the epochs whose test failed."""
     cfg = cfg or VelocityConfig()
-    x = np.asarray(x_ecef_m, dtype=float)
-    d = rows.sat_ecef_m - x
-    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
-    e = d / rho[:, None]
-    lat, lon, _ = (float(v) for v in ecef_to_geodetic(x))
-    rot = enu_rotation(lat, lon)
-    sin_el = e @ rot[2]
-    y = (
-        rows.range_rate_m_s
-        + C_M_S * rows.sat_clock_drift_s_s
-        - np.einsum("ij,ij->i", e, rows.sat_vel_ecef_m_s)
-    )
-    s = np.maximum(sin_el, 0.05)
-    cn0 = np.where(np.isfinite(rows.cn0_dbhz), rows.cn0_dbhz, cfg.cn0_ref_dbhz)
-    var = (cfg.sigma_a_m_s**2 + (cfg.sigma_b_m_s / s) ** 2) * 10.0 ** (
-        (cfg.cn0_ref_dbhz - cn0) / 10.0
-    )
-    keep = np.isfinite(y) & (sin_el >= math.sin(math.radians(cfg.elmask_deg)))
-    h = np.concatenate([-e, np.ones((len(y), 1))], axis=1)
+    n_ep = len(problems)
+    if n_ep == 0:
+        return []
+    width = max(len(rows.prn) for rows, _ in problems)
+    h = np.zeros((n_ep, width, N_UNKNOWNS))
+    y = np.zeros((n_ep, width))
+    var = np.ones((n_ep, width))
+    keep = np.zeros((n_ep, width), dtype=bool)
+    rots = np.empty((n_ep, 3, 3))
+    sin_mask = math.sin(math.radians(cfg.elmask_deg))
+    for k, (rows, x_ecef_m) in enumerate(problems):
+        n = len(rows.prn)
+        x = np.asarray(x_ecef_m, dtype=float)
+        d = rows.sat_ecef_m - x
+        e = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+        lat, lon, _ = (float(v) for v in ecef_to_geodetic(x))
+        rots[k] = enu_rotation(lat, lon)
+        sin_el = e @ rots[k, 2]
+        h[k, :n, :3] = -e
+        h[k, :n, 3] = 1.0
+        y[k, :n] = (
+            rows.range_rate_m_s
+            + C_M_S * rows.sat_clock_drift_s_s
+            - np.einsum("ij,ij->i", e, rows.sat_vel_ecef_m_s)
+        )
+        s = np.maximum(sin_el, 0.05)
+        cn0 = np.where(np.isfinite(rows.cn0_dbhz), rows.cn0_dbhz, cfg.cn0_ref_dbhz)
+        var[k, :n] = (cfg.sigma_a_m_s**2 + (cfg.sigma_b_m_s / s) ** 2) * 10.0 ** (
+            (cfg.cn0_ref_dbhz - cn0) / 10.0
+        )
+        keep[k, :n] = np.isfinite(y[k, :n]) & (sin_el >= sin_mask)
+    y = np.where(keep, y, 0.0)
     w = 1.0 / var
-    excluded: list[str] = []
+    out: list[Velocity | None] = [None] * n_ep
+    excluded: list[list[str]] = [[] for _ in range(n_ep)]
+    todo = np.arange(n_ep)
     for _ in range(cfg.max_exclusions + 1):
-        idx = np.flatnonzero(keep)
-        n = len(idx)
-        if n < N_UNKNOWNS:
-            return None
-        hk, yk, wk = h[idx], y[idx], w[idx]
-        normal = hk.T @ (hk * wk[:, None])
-        try:
-            cov = np.linalg.inv(normal)
-        except np.linalg.LinAlgError:
-            return None
-        sol = cov @ (hk.T @ (wk * yk))
-        resid = yk - hk @ sol
-        redundancy = n - N_UNKNOWNS
-        if redundancy == 0:
-            chi2 = chi2_max = None
+        todo = todo[keep[todo].sum(axis=1) >= N_UNKNOWNS]
+        if len(todo) == 0:
             break
-        chi2 = float(resid @ (wk * resid))
-        chi2_max = chi2_threshold(redundancy, cfg.p_fa)
-        if chi2 <= chi2_max:
+        hk, yk, kk = h[todo], y[todo], keep[todo]
+        wk = np.where(kk, w[todo], 0.0)
+        normal = np.einsum("esi,es,esj->eij", hk, wk, hk)
+        ok = np.abs(np.linalg.det(normal)) > 0.0
+        todo, hk, yk, kk, wk, normal = todo[ok], hk[ok], yk[ok], kk[ok], wk[ok], normal[ok]
+        cov = np.linalg.inv(normal)
+        sol = np.einsum("eij,esj,es,es->ei", cov, hk, wk, yk)
+        resid = np.where(kk, yk - np.einsum("esi,ei->es", hk, sol), 0.0)
+        chi2 = np.einsum("es,es,es->e", resid, wk, resid)
+        dof = kk.sum(axis=1) - N_UNKNOWNS
+        chi2_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r > 0 else np.inf for r in dof])
+        passed = (dof == 0) | (chi2 <= chi2_max)
+        for j in np.flatnonzero(passed):
+            k = int(todo[j])
+            out[k] = _velocity(
+                problems[k][0],
+                sol[j],
+                cov[j],
+                rots[k],
+                keep[k],
+                excluded[k],
+                int(dof[j]),
+                float(chi2[j]) if dof[j] > 0 else None,
+                float(chi2_max[j]) if dof[j] > 0 else None,
+            )
+        failed = np.flatnonzero(~passed)
+        if len(failed) == 0:
+            todo = failed
             break
-        # w-test: residual over its own standard deviation, sigma_i^2 - (H Q H^T)_ii
-        q_v = 1.0 / wk - np.einsum("ij,jk,ik->i", hk, cov, hk)
-        wtest = np.abs(resid) / np.sqrt(np.maximum(q_v, 1e-12))
-        worst = int(idx[int(np.argmax(wtest))])
-        keep[worst] = False
-        excluded.append(rows.prn[worst])
-    else:
-        log.debug("velocity: Doppler residuals fail the test after %d exclusions", len(excluded))
-        return None
+        # w-test: each residual over its own standard deviation, sigma_i^2 - (H Q H^T)_ii
+        hf, covf = hk[failed], cov[failed]
+        q_v = 1.0 / w[todo[failed]] - np.einsum("esi,eij,esj->es", hf, covf, hf)
+        wtest = np.abs(resid[failed]) / np.sqrt(np.maximum(q_v, 1e-12))
+        worst = np.argmax(np.where(kk[failed], wtest, -1.0), axis=1)
+        for k, i in zip(todo[failed].tolist(), worst.tolist(), strict=True):
+            keep[k, i] = False
+            excluded[k].append(problems[k][0].prn[i])
+        todo = todo[failed]
+    if len(todo):
+        log.debug("velocity: Doppler residuals of %d epochs fail the test", len(todo))
+    return out
+
+
+def _velocity(
+    rows: DopplerRows,
+    sol: np.ndarray,
+    cov: np.ndarray,
+    rot: np.ndarray,
+    keep: np.ndarray,
+    excluded: list[str],
+    redundancy: int,
+    chi2: float | None,
+    chi2_max: float | None,
+) -> Velocity | None:
+    """The :class:`Velocity` of one epoch's solution: ENU velocity and covariance, speed and
+    course with their sigmas by first-order propagation."""
     if not np.all(np.isfinite(sol)):
         return None
     v_enu = rot @ sol[:3]
@@ -172,21 +228,35 @@ def solve_velocity(
         std_course = min(math.degrees(math.sqrt(max(var_course, 0.0))), 180.0)
     else:
         var_speed, std_course = (qee + qnn) / 2, 180.0
+    std_enu = [math.sqrt(max(float(q_enu[k, k]), 0.0)) for k in range(3)]
     return Velocity(
         v_enu_m_s=(ve, vn, float(v_enu[2])),
-        std_v_enu_m_s=tuple(float(math.sqrt(max(q_enu[k, k], 0.0))) for k in range(3)),  # type: ignore[arg-type]
+        std_v_enu_m_s=(std_enu[0], std_enu[1], std_enu[2]),
         speed_m_s=speed,
         std_speed_m_s=math.sqrt(max(var_speed, 0.0)),
         course_deg=math.degrees(math.atan2(ve, vn)) % 360.0,
         std_course_deg=std_course,
         clock_drift_m_s=float(sol[3]),
         std_clock_drift_m_s=math.sqrt(max(float(cov[3, 3]), 0.0)),
-        used=tuple(rows.prn[i] for i in np.flatnonzero(keep)),
+        used=tuple(rows.prn[i] for i in np.flatnonzero(keep[: len(rows.prn)])),
         excluded=tuple(excluded),
         redundancy=redundancy,
         chi2=chi2,
         chi2_max=chi2_max,
     )
+
+
+@dataclass(frozen=True, slots=True)
+class RowRequest:
+    """What :func:`doppler_rows_many` needs of one epoch: the epoch, the receiver position
+    and clock bias of its fix, the satellites to use (None: all) and the full pseudoranges
+    of fractional satellites (the fast fix's recovered ones)."""
+
+    epoch: MeasurementEpoch
+    x_ecef_m: np.ndarray
+    clock_bias_m: float = 0.0
+    prns: tuple[str, ...] | None = None
+    pr_m: dict[str, float] | None = None
 
 
 def doppler_rows(
@@ -197,52 +267,80 @@ def doppler_rows(
     prns: tuple[str, ...] | None = None,
     pr_m: dict[str, float] | None = None,
 ) -> DopplerRows | None:
-    """The Doppler rows of ``epoch`` (those of ``prns`` when given) that have a Doppler and
-    an ephemeris, with the satellites' states at transmit time for a receiver at
-    ``x_ecef_m`` whose clock is ``clock_bias_m`` ahead; None when there are none.
+    """The Doppler rows of one epoch (:func:`doppler_rows_many`)."""
+    req = RowRequest(epoch, np.asarray(x_ecef_m, dtype=float), clock_bias_m, prns, pr_m)
+    return doppler_rows_many([req], store)[0]
 
-    The flight time is the pseudorange (the epoch's, else ``pr_m``: the fast fix's
-    recovered ones) less the receiver clock, over c; a satellite without one is first
-    placed :data:`NOMINAL_FLIGHT_TIME_S` back and its flight time taken from that position.
-    A flight time wrong by 1 ms moves a range rate by < 1 mm/s."""
-    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-    bias_m = clock_bias_m if math.isfinite(clock_bias_m) else 0.0
-    t_rx = bdt_sow - bias_m / C_M_S
-    wanted = None if prns is None else set(prns)
-    recovered = pr_m or {}
-    idx: list[int] = []
-    ephs: list[Ephemeris] = []
-    for i in np.flatnonzero(np.isfinite(epoch.doppler_hz)):
-        sat = epoch.prn[i]
-        if wanted is not None and sat not in wanted:
+
+def doppler_rows_many(
+    requests: Sequence[RowRequest], store: EphemerisStore
+) -> list[DopplerRows | None]:
+    """For each request, the rows of its epoch (those of ``prns`` when given) that have a
+    Doppler and an ephemeris, with the satellites' states at transmit time for a receiver
+    at ``x_ecef_m`` whose clock is ``clock_bias_m`` ahead (None: no such row). The orbits
+    of all requests are computed in one call.
+
+    The flight time is the pseudorange (the epoch's, else ``pr_m``) less the receiver
+    clock, over c; a satellite without one is first placed :data:`NOMINAL_FLIGHT_TIME_S`
+    back and its flight time taken from that position. A flight time wrong by 1 ms moves a
+    range rate by < 1 mm/s."""
+    sets, weeks, times, taus, metas = [], [], [], [], []
+    out: list[DopplerRows | None] = [None] * len(requests)
+    for k, req in enumerate(requests):
+        epoch = req.epoch
+        bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+        bias_m = req.clock_bias_m if math.isfinite(req.clock_bias_m) else 0.0
+        t_rx = bdt_sow - bias_m / C_M_S
+        wanted = None if req.prns is None else set(req.prns)
+        idx: list[int] = []
+        ephs: list[Ephemeris] = []
+        for i in np.flatnonzero(np.isfinite(epoch.doppler_hz)).tolist():
+            sat = epoch.prn[i]
+            if wanted is not None and sat not in wanted:
+                continue
+            eph = store.select(sat, bdt_week, bdt_sow)
+            if eph is not None:
+                idx.append(i)
+                ephs.append(eph)
+        if not idx:
             continue
-        eph = store.select(sat, bdt_week, bdt_sow)
-        if eph is not None:
-            idx.append(int(i))
-            ephs.append(eph)
-    if not idx:
-        return None
-    arr = store.arrays(ephs)
-    x = np.asarray(x_ecef_m, dtype=float)
-    ii = np.asarray(idx)
-    prn = tuple(epoch.prn[i] for i in idx)
-    pr = epoch.pr_m[ii]
-    if not np.isfinite(pr).all():
-        pr = np.array([recovered.get(p, v) for p, v in zip(prn, pr.tolist(), strict=True)])
-    tau = (pr - bias_m) / C_M_S
-    lost = ~np.isfinite(tau)
-    if lost.any():
-        first, _ = sat_pos_clock(arr, bdt_week, np.full(len(idx), t_rx - NOMINAL_FLIGHT_TIME_S))
-        tau = np.where(lost, np.linalg.norm(first - x, axis=1) / C_M_S, tau)
-    pos, vel, _, drift = sat_pos_vel_clock(arr, bdt_week, t_rx - tau)
-    return DopplerRows(
-        prn=prn,
-        range_rate_m_s=range_rate_m_s(prn, epoch.doppler_hz[ii]),
-        cn0_dbhz=epoch.cn0_dbhz[ii],
-        sat_ecef_m=sagnac_rotate(pos, tau),
-        sat_vel_ecef_m_s=sagnac_rotate(vel, tau),
-        sat_clock_drift_s_s=drift,
-    )
+        arr = store.arrays(ephs)
+        ii = np.asarray(idx)
+        prn = tuple(epoch.prn[i] for i in idx)
+        pr = epoch.pr_m[ii]
+        if not np.isfinite(pr).all():
+            recovered = req.pr_m or {}
+            pr = np.array([recovered.get(p, v) for p, v in zip(prn, pr.tolist(), strict=True)])
+        tau = (pr - bias_m) / C_M_S
+        lost = ~np.isfinite(tau)
+        if lost.any():
+            first, _ = sat_pos_clock(arr, bdt_week, np.full(len(idx), t_rx - NOMINAL_FLIGHT_TIME_S))
+            tau = np.where(lost, np.linalg.norm(first - req.x_ecef_m, axis=1) / C_M_S, tau)
+        sets.append(arr)
+        weeks.append(np.full(len(idx), bdt_week))
+        times.append(t_rx - tau)
+        taus.append(tau)
+        metas.append((k, prn, ii))
+    if not sets:
+        return out
+    arr = sets[0] if len(sets) == 1 else EphemerisArrays.concatenate(sets)
+    tau_all = np.concatenate(taus)
+    pos, vel, _, drift = sat_pos_vel_clock(arr, np.concatenate(weeks), np.concatenate(times))
+    pos, vel = sagnac_rotate(pos, tau_all), sagnac_rotate(vel, tau_all)
+    start = 0
+    for k, prn, ii in metas:
+        end = start + len(prn)
+        epoch = requests[k].epoch
+        out[k] = DopplerRows(
+            prn=prn,
+            range_rate_m_s=range_rate_m_s(prn, epoch.doppler_hz[ii]),
+            cn0_dbhz=epoch.cn0_dbhz[ii],
+            sat_ecef_m=pos[start:end],
+            sat_vel_ecef_m_s=vel[start:end],
+            sat_clock_drift_s_s=drift[start:end],
+        )
+        start = end
+    return out
 
 
 def with_velocity(
@@ -250,17 +348,37 @@ def with_velocity(
 ) -> Fix:
     """``fix`` with its :class:`Velocity` from ``epoch``'s Doppler (the satellites the fix
     used), or ``fix`` itself when it has no position or the velocity is not trusted."""
-    if not fix.ok or fix.x_ecef_m is None or not fix.used:
-        return fix
+    return with_velocities([(fix, epoch)], store, cfg)[0]
+
+
+def with_velocities(
+    pairs: Sequence[tuple[Fix, MeasurementEpoch]],
+    store: EphemerisStore,
+    cfg: VelocityConfig | None = None,
+) -> list[Fix]:
+    """:func:`with_velocity` of each (fix, epoch), computed together (the batch path of
+    ``bdsfix solve``; the same values as one by one)."""
+    requests: list[RowRequest] = []
+    owners: list[int] = []
+    for k, (fix, epoch) in enumerate(pairs):
+        if fix.ok and fix.x_ecef_m is not None and fix.used:
+            bias = fix.clock_bias_m if fix.clock_bias_m is not None else 0.0
+            x = np.asarray(fix.x_ecef_m, dtype=float)
+            requests.append(RowRequest(epoch, x, bias, fix.used, fix.recovered_pr_m))
+            owners.append(k)
+    out = [fix for fix, _ in pairs]
+    if not requests:
+        return out
     try:
         with np.errstate(all="ignore"):
-            x = np.asarray(fix.x_ecef_m, dtype=float)
-            bias = fix.clock_bias_m if fix.clock_bias_m is not None else 0.0
-            rows = doppler_rows(epoch, store, x, bias, fix.used, fix.recovered_pr_m)
-            vel = None if rows is None else solve_velocity(rows, x, cfg)
+            rows = doppler_rows_many(requests, store)
+            problems = [(r, req.x_ecef_m) for r, req in zip(rows, requests, strict=True) if r]
+            solved = iter(solve_velocities(problems, cfg))
     except (np.linalg.LinAlgError, ArithmeticError, ValueError):
-        log.debug("velocity failure at GPST %d %.3f", fix.gpst_week, fix.gpst_tow_s, exc_info=True)
-        return fix
-    if vel is None:
-        return fix
-    return replace(fix, velocity=vel)
+        log.debug("velocity failure", exc_info=True)
+        return out
+    for k, r in zip(owners, rows, strict=True):
+        vel = next(solved) if r is not None else None
+        if vel is not None:
+            out[k] = replace(out[k], velocity=vel)
+    return out

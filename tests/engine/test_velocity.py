@@ -86,3 +86,34 @@ def test_four_rows_have_no_test_and_three_no_solution():
     assert four is not None and four.redundancy == 0 and four.chi2 is None
     assert np.allclose(four.v_enu_m_s, (1.0, 0.0, 0.0), atol=1e-6)
     assert solve_velocity(_rows((1.0, 0.0, 0.0), 0.0, n=3), np.array(HKSC_ECEF_M)) is None
+
+
+def test_a_chunk_gives_what_each_epoch_gives_alone():
+    """bdsfix solve's path (with_velocities over the TST urban drive's SPP fixes, with
+    exclusions and failed tests among them) == the stream's path (with_velocity one
+    epoch at a time), to 1e-9 m/s."""
+    from drivers.rinex import RinexObsReader
+    from service.commands.solve import load_navigation
+    from service.engine.batch import solve_many
+    from service.engine.velocity import with_velocities, with_velocity
+    from tests.support.paths import DATA
+
+    tst = DATA / "hk-tst-urban-2019"
+    store, iono = load_navigation([str(tst / "hksc1180.19b")])
+    epochs = list(RinexObsReader(str(tst / "COM3_190428_124409.obs")))
+    fixes = solve_many(epochs, store, iono, None, "spp")
+    together = with_velocities(list(zip(fixes, epochs, strict=True)), store)
+    alone = [with_velocity(f, ep, store) for f, ep in zip(fixes, epochs, strict=True)]
+    n_vel = n_excl = 0
+    for a, b in zip(together, alone, strict=True):
+        assert (a.velocity is None) == (b.velocity is None)
+        if a.velocity is None:
+            continue
+        n_vel += 1
+        n_excl += bool(a.velocity.excluded)
+        assert a.velocity.excluded == b.velocity.excluded and a.velocity.used == b.velocity.used
+        assert np.allclose(a.velocity.v_enu_m_s, b.velocity.v_enu_m_s, atol=1e-9, rtol=0)
+        assert a.velocity.clock_drift_m_s == pytest.approx(b.velocity.clock_drift_m_s, abs=1e-9)
+        assert np.allclose(a.velocity.std_v_enu_m_s, b.velocity.std_v_enu_m_s, atol=1e-12)
+    assert n_vel >= 1000 and n_excl >= 10
+    assert sum(f.ok for f in fixes) > n_vel  # some fixes have no trusted velocity
