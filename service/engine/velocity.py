@@ -122,34 +122,39 @@ def solve_velocities(
     n_ep = len(problems)
     if n_ep == 0:
         return []
-    width = max(len(rows.prn) for rows, _ in problems)
+    counts = np.array([len(rows.prn) for rows, _ in problems])
+    width = int(counts.max())
+    # the rows of all epochs, one after the other; (epoch, slot) places each in the padding
+    ep_of = np.repeat(np.arange(n_ep), counts)
+    slot = np.arange(len(ep_of)) - np.repeat(np.cumsum(counts) - counts, counts)
+    cat = np.concatenate
+    sat = cat([rows.sat_ecef_m for rows, _ in problems])
+    x_ep = np.array([np.asarray(x, dtype=float) for _, x in problems])
+    d = sat - x_ep[ep_of]
+    e = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+    # one point at a time: the scalar path of ecef_to_geodetic costs a tenth of the array one
+    rots = np.array([enu_rotation(*(float(v) for v in ecef_to_geodetic(x)[:2])) for x in x_ep])
+    sin_el = np.einsum("ij,ij->i", e, rots[ep_of, 2])
+    y_row = (
+        cat([rows.range_rate_m_s for rows, _ in problems])
+        + C_M_S * cat([rows.sat_clock_drift_s_s for rows, _ in problems])
+        - np.einsum("ij,ij->i", e, cat([rows.sat_vel_ecef_m_s for rows, _ in problems]))
+    )
+    cn0 = cat([rows.cn0_dbhz for rows, _ in problems])
+    cn0 = np.where(np.isfinite(cn0), cn0, cfg.cn0_ref_dbhz)
+    s = np.maximum(sin_el, 0.05)
+    var_row = (cfg.sigma_a_m_s**2 + (cfg.sigma_b_m_s / s) ** 2) * 10.0 ** (
+        (cfg.cn0_ref_dbhz - cn0) / 10.0
+    )
     h = np.zeros((n_ep, width, N_UNKNOWNS))
+    h[ep_of, slot, :3] = -e
+    h[ep_of, slot, 3] = 1.0
     y = np.zeros((n_ep, width))
+    y[ep_of, slot] = y_row
     var = np.ones((n_ep, width))
+    var[ep_of, slot] = var_row
     keep = np.zeros((n_ep, width), dtype=bool)
-    rots = np.empty((n_ep, 3, 3))
-    sin_mask = math.sin(math.radians(cfg.elmask_deg))
-    for k, (rows, x_ecef_m) in enumerate(problems):
-        n = len(rows.prn)
-        x = np.asarray(x_ecef_m, dtype=float)
-        d = rows.sat_ecef_m - x
-        e = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
-        lat, lon, _ = (float(v) for v in ecef_to_geodetic(x))
-        rots[k] = enu_rotation(lat, lon)
-        sin_el = e @ rots[k, 2]
-        h[k, :n, :3] = -e
-        h[k, :n, 3] = 1.0
-        y[k, :n] = (
-            rows.range_rate_m_s
-            + C_M_S * rows.sat_clock_drift_s_s
-            - np.einsum("ij,ij->i", e, rows.sat_vel_ecef_m_s)
-        )
-        s = np.maximum(sin_el, 0.05)
-        cn0 = np.where(np.isfinite(rows.cn0_dbhz), rows.cn0_dbhz, cfg.cn0_ref_dbhz)
-        var[k, :n] = (cfg.sigma_a_m_s**2 + (cfg.sigma_b_m_s / s) ** 2) * 10.0 ** (
-            (cfg.cn0_ref_dbhz - cn0) / 10.0
-        )
-        keep[k, :n] = np.isfinite(y[k, :n]) & (sin_el >= sin_mask)
+    keep[ep_of, slot] = np.isfinite(y_row) & (sin_el >= math.sin(math.radians(cfg.elmask_deg)))
     y = np.where(keep, y, 0.0)
     w = 1.0 / var
     out: list[Velocity | None] = [None] * n_ep
@@ -161,23 +166,31 @@ def solve_velocities(
             break
         hk, yk, kk = h[todo], y[todo], keep[todo]
         wk = np.where(kk, w[todo], 0.0)
-        normal = np.einsum("esi,es,esj->eij", hk, wk, hk)
-        ok = np.abs(np.linalg.det(normal)) > 0.0
-        todo, hk, yk, kk, wk, normal = todo[ok], hk[ok], yk[ok], kk[ok], wk[ok], normal[ok]
-        cov = np.linalg.inv(normal)
-        sol = np.einsum("eij,esj,es,es->ei", cov, hk, wk, yk)
-        resid = np.where(kk, yk - np.einsum("esi,ei->es", hk, sol), 0.0)
-        chi2 = np.einsum("es,es,es->e", resid, wk, resid)
+        hw = hk * wk[:, :, None]  # (epochs, rows, 4): rows of H weighted
+        normal = hw.transpose(0, 2, 1) @ hk
+        try:
+            cov = np.linalg.inv(normal)
+        except np.linalg.LinAlgError:  # some epoch singular: find it, go on without
+            ok = np.array([np.linalg.matrix_rank(m) == N_UNKNOWNS for m in normal])
+            todo, hk, yk, kk, wk, hw = todo[ok], hk[ok], yk[ok], kk[ok], wk[ok], hw[ok]
+            cov = np.linalg.inv(normal[ok])
+        sol = (cov @ (hw.transpose(0, 2, 1) @ yk[:, :, None]))[:, :, 0]
+        resid = np.where(kk, yk - (hk @ sol[:, :, None])[:, :, 0], 0.0)
+        chi2 = (resid * wk * resid).sum(axis=1)
         dof = kk.sum(axis=1) - N_UNKNOWNS
         chi2_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r > 0 else np.inf for r in dof])
         passed = (dof == 0) | (chi2 <= chi2_max)
-        for j in np.flatnonzero(passed):
+        rot_p = rots[todo[passed]]
+        v_enu = (rot_p @ sol[passed, :3, None])[:, :, 0]
+        q_enu = rot_p @ cov[passed, :3, :3] @ rot_p.transpose(0, 2, 1)
+        for m, j in enumerate(np.flatnonzero(passed).tolist()):
             k = int(todo[j])
             out[k] = _velocity(
                 problems[k][0],
                 sol[j],
                 cov[j],
-                rots[k],
+                v_enu[m],
+                q_enu[m],
                 keep[k],
                 excluded[k],
                 int(dof[j]),
@@ -206,7 +219,8 @@ def _velocity(
     rows: DopplerRows,
     sol: np.ndarray,
     cov: np.ndarray,
-    rot: np.ndarray,
+    v_enu: np.ndarray,
+    q_enu: np.ndarray,
     keep: np.ndarray,
     excluded: list[str],
     redundancy: int,
@@ -217,8 +231,6 @@ def _velocity(
     course with their sigmas by first-order propagation."""
     if not np.all(np.isfinite(sol)):
         return None
-    v_enu = rot @ sol[:3]
-    q_enu = rot @ cov[:3, :3] @ rot.T
     ve, vn = float(v_enu[0]), float(v_enu[1])
     speed = math.hypot(ve, vn)
     qee, qnn, qen = float(q_enu[0, 0]), float(q_enu[1, 1]), float(q_enu[0, 1])
