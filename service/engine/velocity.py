@@ -62,8 +62,10 @@ class VelocityConfig:
 
     sigma_i^2 = (sigma_a^2 + (sigma_b / sin E)^2) * 10^((cn0_ref - C/N0) / 10): a
     range-rate noise that grows at low elevation and with the inverse of the signal power
-    (the carrier tracking loop's jitter, Kaplan & Hegarty 8.8); the defaults fit the static
-    HKSC and urban TST recordings (tests/engine/test_velocity_real.py).
+    (the carrier tracking loop's jitter, Kaplan & Hegarty 8.8). With the defaults the
+    residuals' chi2 / redundancy has median 0.53 on the urban TST u-blox drive (after
+    exclusions, in 475 of its 1448 tested epochs) and 0.12 on the HKSC geodetic receiver,
+    whose Doppler is about three times less noisy than the model says.
     """
 
     sigma_a_m_s: float = 0.03
