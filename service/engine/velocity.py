@@ -81,7 +81,7 @@ class DopplerRows:
     """The inputs of :func:`solve_velocity`: one row per satellite, all at one epoch.
 
     ``range_rate_m_s`` is -lambda * Doppler; satellite states are at transmit time, already
-    rotated into the receive-time Earth frame; ``clock_drift_s_s`` is the satellite clock's
+    rotated into the receive-time Earth frame; ``sat_clock_drift_s_s`` is the satellite clock's
     rate (dts/dt)."""
 
     prn: tuple[str, ...]
