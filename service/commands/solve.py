@@ -23,6 +23,7 @@ from service.core.files import open_output
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.batch import CHUNK_EPOCHS, solve_many
 from service.engine.solver import IonoSet, SolverConfig, fractionalize
+from service.engine.velocity import with_velocities
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,9 @@ def solve_epochs(
 
     The epochs are read and solved :data:`~service.engine.batch.CHUNK_EPOCHS` at a time by
     :func:`~service.engine.batch.solve_many` (the per-epoch solver's fixes, vectorised
-    across epochs), so a file of any length streams through in bounded memory."""
+    across epochs), so a file of any length streams through in bounded memory. Each fix
+    with a position gets its velocity from the epoch's Doppler, a chunk at a time
+    (:func:`~service.engine.velocity.with_velocities`)."""
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
@@ -86,6 +89,9 @@ def solve_epochs(
             per_solver.append(solve_many(fast_in, store, iono, opts.cfg, "fast", opts.with_sky))
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(chunk, store, iono, opts.cfg, "spp", opts.with_sky))
+        per_solver = [
+            with_velocities(list(zip(fixes, chunk, strict=True)), store) for fixes in per_solver
+        ]
         for k, epoch in enumerate(chunk):
             yield epoch, [fixes[k] for fixes in per_solver]
 

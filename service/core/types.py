@@ -184,6 +184,33 @@ class SatView:
     signal: str = "2I"
 
 
+@dataclass(frozen=True, slots=True)
+class Velocity:
+    """Receiver velocity and clock drift of one epoch from Doppler (service.engine.velocity).
+
+    ``v_enu_m_s`` is east, north, up in the local frame of the position fix; ``speed_m_s`` is
+    the horizontal speed over ground and ``course_deg`` its direction, clockwise from true
+    north in [0, 360); ``clock_drift_m_s`` is c times the receiver clock's rate. Every
+    ``std_*`` is the 1-sigma of the value from the weighted least-squares covariance;
+    ``redundancy`` = Doppler rows used - 4, ``chi2``/``chi2_max`` the sanity test of their
+    residuals (None at redundancy 0), ``excluded`` the satellites whose Doppler it removed.
+    """
+
+    v_enu_m_s: tuple[float, float, float]
+    std_v_enu_m_s: tuple[float, float, float]
+    speed_m_s: float
+    std_speed_m_s: float
+    course_deg: float
+    std_course_deg: float
+    clock_drift_m_s: float
+    std_clock_drift_m_s: float
+    used: tuple[str, ...] = ()
+    excluded: tuple[str, ...] = ()
+    redundancy: int = 0
+    chi2: float | None = None
+    chi2_max: float | None = None
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Fix:
     """A solver's result for one epoch; ``mode == "none"`` carries ``reason`` instead.
@@ -226,6 +253,8 @@ class Fix:
     vpl_m: float | None = None
     cov_enu_m2: tuple[tuple[float, float, float], ...] | None = None
     excluded: dict[str, str] = field(default_factory=dict)
+    # velocity and clock drift from the epoch's Doppler (None: not computed or not trusted)
+    velocity: Velocity | None = None
 
     @property
     def ok(self) -> bool:

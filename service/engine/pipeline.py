@@ -45,6 +45,7 @@ from service.engine.solver import (
     solve,
 )
 from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
+from service.engine.velocity import with_velocity
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +119,7 @@ class Pipeline:
     restart_at_s: float | None = None
     sync_seed: int = 0
     full_rule: str = DEFAULT_FULL_RULE  # when a restarted satellite is full (core.sow_rule)
+    velocity: bool = True  # velocity from Doppler on each fix (off for studies of positions)
     on_track: Callable[[TrackEvent], None] | None = None
     tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
     counters: Counters = field(default_factory=Counters)
@@ -198,6 +200,8 @@ class Pipeline:
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        if self.velocity:
+            fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)

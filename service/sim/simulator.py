@@ -34,7 +34,7 @@ from service.core.constants import C_M_S, WEEK_S
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
-from service.core.systems import prn_number
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, prn_number
 from service.core.timebase import BDT_GPST_OFFSET_S, diff_s, gpst_to_bdt, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rangegen import true_ranges
@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 
 CODE_PHASE_LSB_MS = 2.0**-21
 PR_LSB_M = C_M_S * 1e-3 * CODE_PHASE_LSB_MS
+B1I_WAVELENGTH_M = C_M_S / SYSTEM_CONSTANTS[GnssSystem.BDS].carrier_hz
 LEAP_S = 18
 UBX_OUTPUTS = ("RXM-SFRBX", "RXM-MEASX", "RXM-RAWX")
 """The UBX messages of an epoch, in the order the virtual receiver sends them."""
@@ -62,6 +63,7 @@ class SimConfig:
     rate_hz: float = 10.0
     clock_offset_s: float = 0.0123
     noise_m: float = 1.3
+    doppler_noise_hz: float = 0.05  # carrier-loop noise of a static receiver, 1 cm/s on B1I
     seed: int = 0
     elmask_deg: float = 5.0
     acq_delay_s: tuple[float, float] = (0.02, 0.10)  # warm start: Doppler and code known
@@ -102,6 +104,7 @@ class SimEpoch:
     pr_m: np.ndarray  # full pseudoranges (quantised), whatever the receiver knows
     full: np.ndarray  # bool: prMes valid
     cn0_dbhz: np.ndarray
+    doppler_hz: np.ndarray  # B1I Doppler, positive for an approaching satellite
     subframes: tuple[SimSubframe, ...] = ()
     truth_x_ecef_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
@@ -122,6 +125,9 @@ class Simulator:
         )
         rng = np.random.default_rng(self.cfg.seed)
         self._rng = rng
+        # the Doppler noise draws from its own stream, so the pseudoranges' stream (and every
+        # simulated position) does not depend on whether Doppler is generated
+        self._doppler_rng = np.random.default_rng([self.cfg.seed, 1])
         bw, bs = gpst_to_bdt(self.cfg.start_gpst_week, self.cfg.start_gpst_tow_s)
         chosen: dict[str, Ephemeris] = {}
         for e in ephemerides:
@@ -188,6 +194,9 @@ class Simulator:
             prev_t = t
             idx = np.asarray(tracked, dtype=int)
             cn0 = 45.0 - 10.0 * (1.0 - np.sin(np.clip(tr.el_rad[idx], 0, None)))
+            doppler = -tr.carrier_rate_m_s[idx] / B1I_WAVELENGTH_M
+            if cfg.doppler_noise_hz > 0:
+                doppler = doppler + self._doppler_rng.normal(0.0, cfg.doppler_noise_hz, len(idx))
             yield SimEpoch(
                 t_s=t,
                 tag_gpst_week=tr.tag_gpst_week,
@@ -196,6 +205,7 @@ class Simulator:
                 pr_m=pr_q[idx],
                 full=np.asarray(full, dtype=bool),
                 cn0_dbhz=np.round(cn0),
+                doppler_hz=doppler,
                 subframes=tuple(sorted(subframes, key=lambda s: s.received_s)),
                 truth_x_ecef_m=self.x_ecef_m,
             )
@@ -270,6 +280,7 @@ def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
             sig_id=1 if geo[i] else 0,
             locktime_ms=1000,
             cn0_dbhz=int(ep.cn0_dbhz[i]),
+            doppler_hz=float(ep.doppler_hz[i]),
             pr_std_index=5,
             pr_valid=bool(ep.full[i]),
         )
@@ -291,6 +302,8 @@ def _measx(ep: SimEpoch) -> bytes:
                 cn0_dbhz=int(ep.cn0_dbhz[i]),
                 whole_chips=(units * 2046) >> 21,
                 code_phase_units=units,
+                doppler_hz=float(ep.doppler_hz[i]),
+                wavelength_m=B1I_WAVELENGTH_M,
             )
         )
     return measx_frame(
@@ -325,6 +338,7 @@ def epoch_subset(
         pr_m=ep.pr_m[mask],
         full=ep.full[mask],
         cn0_dbhz=ep.cn0_dbhz[mask],
+        doppler_hz=ep.doppler_hz[mask],
         subframes=tuple(
             sf for sf in (ep.subframes if subframes is None else subframes) if keep(sf.prn)
         ),

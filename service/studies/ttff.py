@@ -64,7 +64,7 @@ def run_trial(
     and time, from there, the first fix of the pipeline (fast), the first conventional SPP of
     the same view (>= 4 full measurements) and the first GEO-only SPP."""
     t0 = epochs[r]
-    pipeline = Pipeline(store, iono, cfg, full_rule=full_rule)
+    pipeline = Pipeline(store, iono, cfg, full_rule=full_rule, velocity=False)
     pipeline.restart(t0, rng)
     fast = conv = geo = geo_err = diff = None
     for ep in epochs[r:]:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pynmeagps import NMEAReader
 
-from service.core.types import SatView
+from service.core.types import SatView, Velocity
 from service.output.nmea import sentences_for_fix
 from tests.support.fixes import SKY, declined_fix, ecef_m, hksc_fix
 from tests.support.nmea import C_M_S, dm_deg, hand_parse, horiz_err_m, sec_of_day, utc_of_gpst
@@ -35,7 +35,7 @@ def test_hksc_fix_sentences_parse_back_to_the_fix():
     utc = fix_time(fix)
     sentences = sentences_for_fix(fix, utc=utc, time_known=True)
     addresses = [hand_parse(s)[0] for s in sentences]
-    assert addresses == ["GNGGA", "GNRMC", "GBGSA", "GBGSV", "GBGSV", "GBGSV", "GNGST", "GNZDA"]
+    assert addresses == ["GNRMC", "GNGGA", "GBGSA", "GBGSV", "GBGSV", "GBGSV", "GNGST", "GNZDA"]
     for s in sentences:
         assert len(s) <= 82, s
         msg = NMEAReader.parse(s)
@@ -51,7 +51,7 @@ def test_hksc_fix_sentences_parse_back_to_the_fix():
     assert gga[5] == "1" and int(gga[6]) == len(fix.used) == 8
     assert float(gga[7]) == pytest.approx(fix.hdop, abs=0.005)
     assert abs(float(gga[8]) + float(gga[10]) - fix.alt_m) < 0.01 and gga[9] == gga[11] == "M"
-    parsed = NMEAReader.parse(sentences[0])
+    parsed = NMEAReader.parse(sentences[1])
     assert horiz_err_m(parsed.lat, parsed.lon, fix.lat_deg, fix.lon_deg) < 0.01
     assert abs(parsed.alt - fix.alt_m) < 0.01
 
@@ -120,7 +120,7 @@ def test_every_hemisphere_within_a_centimetre(lat_deg, lon_deg, alt_m, hemis):
 
 def test_minutes_that_round_to_sixty_carry_into_the_degrees():
     fix = replace(hksc_fix(), lat_deg=22.99999999999, lon_deg=-113.99999999999)
-    _, gga = hand_parse(sentences_for_fix(fix, utc=fix_time(fix))[0])
+    _, gga = hand_parse(sentences_for_fix(fix, utc=fix_time(fix))[1])
     assert gga[1:5] == ["2300.0000000", "N", "11400.0000000", "W"]
     assert horiz_err_m(dm_deg(gga[1], "N"), dm_deg(gga[3], "W"), 23.0, -114.0) < 1e-6
 
@@ -156,14 +156,14 @@ def test_rounding_to_the_hundredth_carries_into_the_date():
 
 def test_declined_fix_gives_gga_quality_0_and_rmc_void_only():
     sentences = sentences_for_fix(declined_fix(), utc=dt.datetime(2021, 6, 10, 3, 35, 36, 500_000))
-    (a_gga, gga), (a_rmc, rmc) = (hand_parse(s) for s in sentences)
-    assert (a_gga, a_rmc) == ("GNGGA", "GNRMC") and len(sentences) == 2
+    (a_rmc, rmc), (a_gga, gga) = (hand_parse(s) for s in sentences)
+    assert (a_rmc, a_gga) == ("GNRMC", "GNGGA") and len(sentences) == 2
     assert gga[0] == "033536.50" and gga[1] == gga[3] == "" and gga[5] == "0"
     assert gga[7] == gga[8] == ""  # no HDOP, no altitude
     assert rmc[1] == "V" and rmc[2] == rmc[4] == "" and rmc[11] == "N"
     for s in sentences:
         assert NMEAReader.parse(s) is not None
-    assert NMEAReader.parse(sentences[0]).quality == 0
+    assert NMEAReader.parse(sentences[1]).quality == 0
 
 
 @pytest.mark.parametrize(
@@ -258,8 +258,9 @@ def test_gsa_names_beidou_by_its_talker_unless_told_otherwise():
         ("GN", "GN", "GNGSA"),
     ]:
         sentences = sentences_for_fix(fix, utc=fix_time(fix), talker=talker, gsa_talker=gsa_talker)
-        address, fields = hand_parse(sentences[2])
-        assert address == want and fields[-1] == "4"
+        addresses = [hand_parse(s)[0] for s in sentences]
+        assert addresses[:3] == [f"{talker}RMC", f"{talker}GGA", want]
+        assert hand_parse(sentences[2])[1][-1] == "4"
     with pytest.raises(ValueError, match="talker"):
         sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GA")
 
@@ -280,3 +281,25 @@ def test_gst_error_ellipse_comes_from_the_covariance():
     assert (s_lat, s_lon, s_alt) == pytest.approx(
         (math.sqrt(en[1, 1]), math.sqrt(en[0, 0]), 3.0), abs=5e-4
     )
+
+
+def test_speed_and_course_in_rmc_and_vtg():
+    """A fix moving at 5 m/s toward 036.87 deg (east 3, north 4): RMC and VTG carry
+    5 * 3600 / 1852 = 9.719 kn, VTG 18.0 km/h, both the course; pynmeagps reads them back.
+    A course whose sigma exceeds 10 deg is left out (static receivers), the speed is not."""
+    vel = Velocity((3.0, 4.0, 0.0), (0.02, 0.02, 0.05), 5.0, 0.02, 36.8699, 0.23, 12.0, 0.05)
+    fix = replace(hksc_fix(), velocity=vel)
+    sentences = sentences_for_fix(fix, utc=fix_time(fix))
+    assert [hand_parse(s)[0] for s in sentences[:3]] == ["GNRMC", "GNVTG", "GNGGA"]
+    rmc, vtg = NMEAReader.parse(sentences[0]), NMEAReader.parse(sentences[1])
+    assert rmc.spd == pytest.approx(9.719, abs=5e-4) and rmc.cog == pytest.approx(36.87)
+    assert vtg.sogn == pytest.approx(9.719, abs=5e-4) and vtg.sogk == pytest.approx(18.0)
+    assert vtg.cogt == pytest.approx(36.87) and vtg.cogtUnit == "T" and vtg.posMode == "A"
+    vague = replace(fix, velocity=replace(vel, std_course_deg=10.5))
+    _, rmc_fields = hand_parse(sentences_for_fix(vague, utc=fix_time(fix))[0])
+    assert rmc_fields[6] == "9.719" and rmc_fields[7] == ""
+    # no velocity: no VTG and RMC's speed and course fields are empty
+    plain = sentences_for_fix(hksc_fix(), utc=fix_time(fix))
+    assert not any(b"VTG" in s for s in plain)
+    _, rmc_fields = hand_parse(plain[0])
+    assert rmc_fields[6] == rmc_fields[7] == ""

@@ -441,10 +441,10 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
 
         addresses = [hand_parse(s + b"\r\n")[0] for s in text.split(b"\r\n")[:-1]]
         # declined before any fix: no ZDA; the fix: the full set; declined later: no ZDA
-        assert addresses[:2] == ["GNGGA", "GNRMC"] and addresses[-2:] == ["GNGGA", "GNRMC"]
+        assert addresses[:2] == ["GNRMC", "GNGGA"] and addresses[-2:] == ["GNRMC", "GNGGA"]
         assert addresses[2:-2] == [
-            "GNGGA",
             "GNRMC",
+            "GNGGA",
             "GBGSA",
             "GBGSV",
             "GBGSV",
@@ -453,7 +453,7 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
             "GNZDA",
         ]
         # NMEA time is the fix's own time: time tag minus the solved clock bias
-        gga = hand_parse(text.split(b"\r\n")[2] + b"\r\n")[1]
+        gga = hand_parse(text.split(b"\r\n")[3] + b"\r\n")[1]
         utc = utc_of_gpst(fast.gpst_week, fast.gpst_tow_s - fast.clock_bias_m / C_M_S)
         want = (utc - utc.replace(hour=0, minute=0, second=0, microsecond=0)).total_seconds()
         assert abs(sec_of_day(gga[0]) - want) <= 0.005 + 1e-9
@@ -555,7 +555,7 @@ class Recorder(Sink):
         self.closed = True
 
 
-def test_fan_out_order_puts_gga_first_and_file_blocks_last():
+def test_fan_out_order_puts_rmc_and_gga_first_and_file_blocks_last():
     calls: list = []
     every = frozenset({"FIX", "SKY", "TRACK", "STATUS"})
     sinks = [
@@ -569,13 +569,13 @@ def test_fan_out_order_puts_gga_first_and_file_blocks_last():
     out.epoch(SimpleNamespace(fix=hksc_fix(), since_start_s=4.0))
     n_rest = calls[4][2]
     assert calls == [
-        ("tcp", "GGA", 1),
-        ("serial", "GGA", 1),
+        ("tcp", "RMC", 2),
+        ("serial", "RMC", 2),
         ("zmq", "FIX"),
         ("jsonl", "FIX"),
-        ("tcp", "RMC", n_rest),
-        ("serial", "RMC", n_rest),
-        ("file", "GGA", n_rest + 1),
+        ("tcp", "GSA", n_rest),
+        ("serial", "GSA", n_rest),
+        ("file", "RMC", n_rest + 2),
         ("zmq", "SKY"),
     ]
     calls.clear()
