@@ -15,14 +15,14 @@ from dataclasses import replace
 import numpy as np
 
 from service.commands.run import decode_chunks
-from service.core.constants import C_M_S, F_B1I_HZ
+from service.core.constants import C_M_S
 from service.core.types import MeasurementEpoch
 from service.engine.pipeline import Pipeline
 from service.sim.keplerian import table1_ephemerides
 from service.sim.scenario import builtin_scenario, scenario_config
 from service.sim.simulator import Simulator
 
-LAMBDA_M = C_M_S / F_B1I_HZ  # B1I, BDS-SIS-ICD-B1I-3.0 4.2
+LAMBDA_M = C_M_S / 1_561.098e6  # B1I carrier 1561.098 MHz, BDS-SIS-ICD-B1I-3.0 4.2
 HALF_SPAN_S = 5.0
 
 
