@@ -73,7 +73,7 @@ from pynmeagps import GET, NMEAMessage
 
 from service.core.constants import C_M_S
 from service.core.systems import prn_number
-from service.core.timebase import utc_from_gpst
+from service.core.timebase import gpst_in_leap_second, utc_from_gpst
 from service.core.types import UNKNOWN_WEEK, Fix, SatView
 
 TALKERS = ("GN", "GB", "BD", "GP")
@@ -225,14 +225,39 @@ def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
     return _serialize(talker, msg_id, fields)
 
 
-def fix_utc(fix: Fix) -> dt.datetime | None:
-    """The time NMEA gives a fix (naive UTC): the receiver's time tag minus the solved clock
-    bias for a published fix; a declined fix has no trusted clock, so its tag as is; None
-    when the tag has no GPS week (``no_time``), so no date either."""
+def _fix_gpst(fix: Fix) -> tuple[int, float] | None:
+    """GPST (week, tow) of a fix: the receiver's time tag minus the solved clock bias for a
+    published fix; a declined fix has no trusted clock, so its tag as is; None when the tag
+    has no GPS week (``no_time``)."""
     if fix.gpst_week == UNKNOWN_WEEK:
         return None
     bias_s = (fix.clock_bias_m or 0.0) / C_M_S if fix.ok else 0.0
-    return utc_from_gpst(fix.gpst_week, fix.gpst_tow_s - bias_s)
+    return fix.gpst_week, fix.gpst_tow_s - bias_s
+
+
+def fix_utc(fix: Fix) -> dt.datetime | None:
+    """The time NMEA gives a fix (naive UTC) from its GPST (:func:`_fix_gpst`); None when
+    the tag has no GPS week, so no date either."""
+    g = _fix_gpst(fix)
+    return None if g is None else utc_from_gpst(*g)
+
+
+def _clock(fix: Fix, utc: dt.datetime) -> tuple[dt.datetime, dt.time | str]:
+    """The date and the hhmmss.ss field NMEA gives ``fix`` at ``utc``, to the hundredth.
+
+    In an inserted leap second (UTC 23:59:60.xx, which a ``datetime`` cannot hold and
+    :func:`utc_from_gpst` gives as a repeated 23:59:59.xx) the field reads ``235960.xx``, as
+    NMEA 0183 allows seconds up to 60 (time field format hhmmss.ss)."""
+    when = nmea_time(utc)
+    g = _fix_gpst(fix)
+    if g is not None:
+        week, tow_s = g
+        tow_cs = round(tow_s * 100.0) / 100.0
+        if gpst_in_leap_second(week, tow_cs):
+            u = utc_from_gpst(week, tow_cs)
+            cs = min(round(u.microsecond / 10_000), 99)
+            return u.replace(microsecond=0), f"{u.hour:02d}:{u.minute:02d}:60.{cs:02d}"
+    return when, when.time()
 
 
 def nmea_time(utc: dt.datetime) -> dt.datetime:
@@ -447,8 +472,7 @@ def lead_sentences(
     has_fix = _checked(fix, utc, talker, gsa_talker)
     if utc is None:
         return [_rmc_void(talker), _gga(talker, "", fix, False)]
-    when = nmea_time(utc)
-    t = when.time()
+    when, t = _clock(fix, utc)
     pos: dict[str, object] = {"lat": "", "lon": ""}
     if has_fix:
         # signed degrees: pynmeagps derives N/S and E/W from the sign
@@ -506,8 +530,7 @@ def sentences_after_gga(
     has_fix = _checked(fix, utc, talker, gsa_talker)
     if utc is None or not has_fix:
         return []
-    when = nmea_time(utc)
-    t = when.time()
+    when, t = _clock(fix, utc)
     out = []
     gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
     used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]

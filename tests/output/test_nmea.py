@@ -13,7 +13,7 @@ import pytest
 from pynmeagps import NMEAReader
 
 from service.core.types import SatView, Velocity
-from service.output.nmea import sentences_for_fix
+from service.output.nmea import fix_utc, sentences_for_fix
 from tests.support.fixes import SKY, declined_fix, ecef_m, hksc_fix
 from tests.support.nmea import C_M_S, dm_deg, hand_parse, horiz_err_m, sec_of_day, utc_of_gpst
 
@@ -152,6 +152,26 @@ def test_rounding_to_the_hundredth_carries_into_the_date():
     assert f["GNGGA"][0][0] == "000000.00"
     assert f["GNRMC"][0][8] == "010125"
     assert [int(v) for v in f["GNZDA"][0][1:4]] == [1, 1, 2025]
+
+
+@pytest.mark.parametrize(
+    ("tow_s", "hhmmss", "ddmmyy"),
+    [
+        (259215.50, "235959.50", "300615"),
+        (259216.00, "235960.00", "300615"),  # the inserted second, 2015-06-30 23:59:60 UTC
+        (259216.50, "235960.50", "300615"),
+        (259216.999, "000000.00", "010715"),  # rounds to the hundredth past the leap
+        (259217.25, "000000.25", "010715"),
+    ],
+)
+def test_the_inserted_leap_second_reads_60(tow_s, hhmmss, ddmmyy):
+    """IERS Bulletin C 49: UTC 2015-06-30 23:59:60 was inserted, GPST - UTC 16 s before and
+    17 s after; GPS week 1851 began 2015-06-28, so 2015-07-01 00:00:00 UTC is tow
+    3 * 86400 + 17 = 259217 s. The time comes as the publisher takes it (fix_utc)."""
+    fix = hksc_fix(gpst_week=1851, gpst_tow_s=tow_s, clock_bias_m=0.0)
+    f = by_address(sentences_for_fix(fix, utc=fix_utc(fix), time_known=True))
+    assert f["GNGGA"][0][0] == f["GNRMC"][0][0] == f["GNZDA"][0][0] == hhmmss
+    assert f["GNRMC"][0][8] == ddmmyy
 
 
 def test_declined_fix_gives_gga_quality_0_and_rmc_void_only():
