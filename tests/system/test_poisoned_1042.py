@@ -74,11 +74,26 @@ def _ubx_without(raw: bytes, drop: tuple[int, int]) -> bytes:
     return bytes(out)
 
 
+def _ubx_repeating(raw: bytes, extra: bytes, every: int) -> bytes:
+    """The UBX frames of ``raw`` with ``extra`` after every ``every``-th RXM-RAWX."""
+    out, i, n_rawx = bytearray(), 0, 0
+    while i < len(raw):
+        n = raw[i + 4] | raw[i + 5] << 8
+        out += raw[i : i + n + 8]
+        if (raw[i + 2], raw[i + 3]) == (0x02, 0x15):
+            n_rawx += 1
+            if n_rawx % every == 0:
+                out += extra
+        i += n + 8
+    return bytes(out)
+
+
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory) -> dict[str, Path]:
     """clean: the simulator's capture (correct 1042s, then UBX); poisoned: the poisoned
     1042s, then the clean capture; poison-only: the poisoned 1042s, then the UBX stream (the
-    receiver decodes its own sets from RXM-SFRBX); meas-only: RAWX and MEASX alone."""
+    receiver decodes its own sets from RXM-SFRBX); meas-only: RAWX and MEASX alone;
+    ahead-repeated: sets valid field by field but 0.01 rad ahead, repeated in the stream."""
     tmp = tmp_path_factory.mktemp("poison")
     clean, bare = tmp / "clean.ubx", tmp / "bare.ubx"
     _bdsfix("simulate", "--out", str(clean), *SIM)
@@ -98,11 +113,15 @@ def captures(tmp_path_factory) -> dict[str, Path]:
         )
         for e in good
     )
+    # valid field by field, 0.01 rad ahead in mean anomaly (280-420 km along the orbit),
+    # the caster repeating it every 50 RAWX (5 s) as casters repeat their 1042s
+    ahead = b"".join(frame_1042(dataclasses.replace(e, m0_rad=e.m0_rad + 0.01)) for e in good)
     out = {"clean": clean, "bare": bare}
     for name, data in (
         ("poisoned", poison + raw),
         ("poison-only", poison + stream),
         ("meas-only", _ubx_without(stream, SFRBX)),
+        ("ahead-repeated", ahead + _ubx_repeating(stream, ahead, 50)),
     ):
         out[name] = tmp / f"{name}.ubx"
         out[name].write_bytes(data)
@@ -185,3 +204,25 @@ def test_a_store_saved_with_the_poison_is_cleaned_at_load(captures, tmp_path):
     assert len(fixes) >= 590 and max(map(_error_m, fixes)) < 30.0
     key = lambda e: (e["prn"], e["week"], e["toe_sow_s"])  # noqa: E731
     assert sorted(map(key, _stored(state))) == sorted(map(key, own))
+
+
+def test_repeated_inconsistent_1042s_give_way_to_the_receivers_own_sets(captures, tmp_path):
+    """A caster repeating sets that are valid field by field but put each satellite 280-420
+    km ahead (same week and t_oe as the true ones): once the receiver has decoded its own
+    sets, those win and the repeats are refused, so the replay fixes about as the capture
+    without any 1042 (before, each repeat replaced the own set: 0 fixes in 600 epochs). The
+    daemon saves only its own sets."""
+    own_only, _ = _replay(captures["bare"], tmp_path)
+    fixes, err = _replay(captures["ahead-repeated"], tmp_path)
+    assert len(own_only) >= 100  # measured 119: from 48 s, once the subframes decoded
+    # a satellite whose own set is not decoded yet still has the outside one, which a fix
+    # may meet: measured 118 fixes
+    assert len(fixes) >= 0.95 * len(own_only)
+    assert {f["gpst_tow_s"] for f in fixes} <= {f["gpst_tow_s"] for f in own_only}
+    assert max(map(_error_m, fixes)) < 30.0
+    dropped = [ln for ln in err.splitlines() if ln.startswith("WARNING") and "own set" in ln]
+    assert len(dropped) == 17, err  # one line per satellite (rate-limited)
+    state = tmp_path / "state"
+    _run(captures["ahead-repeated"], state, tmp_path / "run.jsonl")
+    stored = _stored(state)
+    assert len(stored) == 17 and {e["source"] for e in stored} == {"subframes"}
