@@ -374,15 +374,16 @@ class EphemerisStore:
         for held, (pos_m, clk_m, week, sow) in zip(
             others, _disagreements(eph, others), strict=True
         ):
-            if max(pos_m, clk_m) <= CONSISTENCY_MAX_M:  # also NaN: not judged here
-                continue
+            if not (pos_m > CONSISTENCY_MAX_M or clk_m > CONSISTENCY_MAX_M):
+                continue  # they agree (NaN, which entry-checked sets do not give, is no proof)
             what = (
                 f"{pos_m / 1e3:.1f} km in position, {clk_m / 1e3:.1f} km in clock at BDT "
                 f"week {week} sow {sow:.0f}"
             )
             if not own:
-                if worst is None or max(pos_m, clk_m) > worst[0]:
-                    worst = (max(pos_m, clk_m), held, what)
+                size_m = max(pos_m, clk_m)
+                if worst is None or size_m > worst[0]:
+                    worst = (size_m, held, what)
                 continue
             sets.remove((held.week, held.toe_sow_s))
             self._spans.pop(eph.prn, None)
