@@ -331,10 +331,12 @@ class EphemerisStore:
         return sorted(self._by_prn)
 
     def add(self, eph: Ephemeris) -> bool:
-        """Hold ``eph`` unless :func:`ephemeris_problem` refuses it; returns whether it was
-        kept. A refused set is counted (``refused``, ``refused_by_reason``) and logged, and
-        never replaces a set already held. A set with the (week, t_oe) of one held replaces
-        it; beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``)."""
+        """Hold ``eph`` unless :func:`ephemeris_problem` refuses it or a held set of the
+        receiver's own contradicts it (check ``inconsistent``, see :meth:`_settle`); returns
+        whether it was kept. A refused set is counted (``refused``, ``refused_by_reason``)
+        and logged, and never replaces a set already held. A set with the (week, t_oe) of
+        one held replaces it, except an outside copy of an own set (kept as it is, True);
+        beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``)."""
         problem = ephemeris_problem(eph)
         sets = self._by_prn.get(eph.prn)
         if problem is None and sets is not None:
