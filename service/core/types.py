@@ -201,9 +201,9 @@ class Fix:
     reason: str | None = None
     reason_code: str | None = None
     sky: tuple[SatView, ...] = ()
-    # integrity (service.engine.raim): redundancy n - 4 of the final solution; the chi-square
-    # statistic and its threshold (None at redundancy 0: no test possible); protection
-    # levels (inf: a satellite without redundancy, the fix is not protected against it);
+    # integrity (service.engine.raim): redundancy (rows - unknowns) of the final solution;
+    # the chi-square statistic and its threshold (None at redundancy 0: no test possible);
+    # protection levels (inf: a satellite without redundancy, the fix is not protected against it);
     # the east-north-up covariance [m^2] and the satellites excluded, with why
     redundancy: int | None = None
     chi2: float | None = None
@@ -212,6 +212,9 @@ class Fix:
     vpl_m: float | None = None
     cov_enu_m2: tuple[tuple[float, float, float], ...] | None = None
     excluded: dict[str, str] = field(default_factory=dict)
+    # the receiver clock of each satellite system [m] by its RINEX letter, when the rows
+    # came from more than one (``clock_bias_m`` is the first's: BeiDou's when present)
+    clocks_m: dict[str, float] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:

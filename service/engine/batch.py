@@ -45,6 +45,7 @@ from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_ang
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
+from service.engine.layout import BDS_ONLY, layout_of
 from service.engine.raim import chi2_threshold, noncentrality_md, normal_two_sided_quantile
 from service.engine.solver import (
     GROSS_SPREAD_M,
@@ -56,6 +57,11 @@ from service.engine.solver import (
 )
 
 log = logging.getLogger(__name__)
+
+_LAYOUT = BDS_ONLY
+"""The unknowns of the batch: position and one clock (epochs with rows of other systems,
+which have clocks of their own, go to the per-epoch solver)."""
+_NP = _LAYOUT.n_params
 
 CHUNK_EPOCHS = 256
 """Epochs solved together: large enough that numpy's per-call cost is spread thin, small
@@ -131,6 +137,7 @@ class _Chunk:
         cols = EphemerisArrays.from_ephemerides(unique)
         self.eph = _gather(cols, idx)
         self.frac = self.valid & (self.ct > 0)
+        self.other_system = np.array([layout_of(ps) is not _LAYOUT for ps in self.prn], bool)
         self.full = self.valid & ~self.frac
 
 
@@ -177,7 +184,7 @@ def _geometry(
 
 
 def _design(los: np.ndarray) -> np.ndarray:
-    return np.concatenate([-los, np.ones((*los.shape[:-1], 1))], axis=-1)
+    return _LAYOUT.design(los)
 
 
 def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -269,7 +276,9 @@ def _solve_chunk(
         gross = ch.full & ~(np.abs(ch.z - median) <= GROSS_SPREAD_M)
     n_rows = ch.valid.sum(axis=1)
     unsure |= gross.any(axis=1) | (n_rows == 0)  # (no rows: no ephemeris or no measurement)
-    too_few = ~unsure & (n_full < 4)
+    # an epoch with rows of more than one system (a clock each): the per-epoch solver
+    unsure |= ch.other_system
+    too_few = ~unsure & (n_full < _LAYOUT.n_params)
     ok &= ~unsure & ~too_few
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
@@ -338,7 +347,7 @@ def _solve_chunk(
         los[sel], pred[sel], sat[sel], sat0[sel], clk[sel] = los_n, pred_n, sat_n, sat0_n, clk_n
         cost[sel] = cost_n
         finite = np.isfinite(x_new).all(axis=1)
-        settled = (np.linalg.norm(lam[:, None] * step[:, :4], axis=1) < cfg.theta_m) & ~np.any(
+        settled = (np.linalg.norm(lam[:, None] * step[:, :_NP], axis=1) < cfg.theta_m) & ~np.any(
             dn != 0, axis=1
         )  # eq. (14)
         converged[sel] = finite & settled
@@ -391,7 +400,7 @@ def _solve_chunk(
     _, _, _, el, _ = _local(x[sel], sat[sel])
     keep = ch.valid.copy()
     keep[sel] &= el >= np.radians(cfg.elmask_deg)
-    ok &= (keep & ch.full).sum(axis=1) >= 4
+    ok &= (keep & ch.full).sum(axis=1) >= _LAYOUT.n_params
     keepw = keep.astype(float)
     model = iono.model(cfg.iono)
     sel = np.flatnonzero(ok)
@@ -521,12 +530,12 @@ def _assess(
     w = np.where(kept, 1.0 / sigma**2, 0.0)
     gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
     cov = np.linalg.inv(gtw @ g)
-    k = cov @ gtw  # (e, 4, s)
+    k = cov @ gtw  # (e, p, s)
     s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
     cov_enu = rot @ cov[:, :3, :3] @ np.swapaxes(rot, -1, -2)
     out = _Integrity(n_e)
     out.cov_enu = cov_enu
-    r = kept.sum(axis=1) - 4
+    r = np.asarray(_LAYOUT.redundancy(kept.sum(axis=1)))
     out.redundancy = r
     chi2 = np.einsum("es,es->e", v * v, w)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -627,7 +636,10 @@ def _base(ch: _Chunk, e: int, solver: Literal["fast", "spp"], **fields: object) 
 
 def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
     n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
-    reason = f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
+    need = _LAYOUT.n_params
+    reason = (
+        f"too few full measurements: {n_full} full, {n_frac} fractional (need at least {need} full)"
+    )
     return _base(ch, e, solver, reason=reason, reason_code="too_few_full")
 
 

@@ -5,10 +5,11 @@ Model (Brown & Chin 1998; Walter & Enge 1995, weighted RAIM): measurements y = G
 independent errors e_i ~ N(0, sigma_i^2), W = diag(1/sigma_i^2), K = (G^T W G)^-1 G^T W and
 the residual matrix S = I - G K, so that the residuals are v = S e.
 
-- Detection: the statistic T = v^T W v follows a central chi-square with r = n - 4 degrees
-  of freedom (the redundancy) when no measurement is faulty. A fault is declared when
-  T > T_max, the (1 - P_fa) quantile of that distribution. With r = 0 the residuals are all
-  zero and no test is possible.
+- Detection: the statistic T = v^T W v follows a central chi-square with r = n - p degrees
+  of freedom (the redundancy: n rows, p unknowns of the problem's
+  :class:`service.engine.layout.Layout`) when no measurement is faulty. A fault is declared
+  when T > T_max, the (1 - P_fa) quantile of that distribution. With r = 0 the residuals
+  are all zero and no test is possible.
 - A bias b on measurement i makes T non-central with lambda_i = b^2 S_ii / sigma_i^2 and moves
   the position by b K_i (column i of K). The smallest lambda that the test misses with
   probability P_md is lambda_md: P(chi2'(r, lambda_md) < T_max) = P_md. The slope of
@@ -35,6 +36,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+
+from service.engine.layout import BDS_ONLY, Layout
 
 _EPS = 1e-15
 _TINY = 1e-300
@@ -238,10 +241,12 @@ def assess(
     enu_rot: np.ndarray,
     p_fa: float,
     p_md: float,
+    layout: Layout = BDS_ONLY,
 ) -> Integrity:
-    """Test and protection levels of the solution with design ``g`` (n, 4: [-e^T, 1]),
-    post-fit residuals ``v_m`` and measurement sigmas ``sigma_m``; ``enu_rot`` is the ECEF
-    to east-north-up rotation at the solution."""
+    """Test and protection levels of the solution with design ``g`` (n, p: [-e^T, clock
+    columns] of ``layout``), post-fit residuals ``v_m`` and measurement sigmas ``sigma_m``;
+    ``enu_rot`` is the ECEF to east-north-up rotation at the solution. The degrees of
+    freedom are the layout's redundancy."""
     n = len(v_m)
     w = 1.0 / sigma_m**2
     gtw = g.T * w
@@ -249,7 +254,7 @@ def assess(
     k = cov @ gtw  # (4, n)
     s_ii = 1.0 - np.einsum("ij,ji->i", g, k)
     cov_enu = enu_rot @ cov[:3, :3] @ enu_rot.T
-    r = n - 4
+    r = int(layout.redundancy(n))
     ok = s_ii > 1e-10
     wtest = np.full(n, np.nan)
     wtest[ok] = v_m[ok] / (sigma_m[ok] * np.sqrt(s_ii[ok]))

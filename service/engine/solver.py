@@ -36,11 +36,12 @@ import numpy as np
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S, is_geo
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
 from service.core.ephemeris import EphemerisStore
-from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
+from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
+from service.engine.layout import Layout, dop, layout_of
 from service.engine.raim import Integrity, assess
 
 log = logging.getLogger(__name__)
@@ -177,6 +178,8 @@ class _Rows:
     ct_m: np.ndarray  # c*T for fractional rows, 0 for full rows
     cn0_dbhz: np.ndarray
     eph: EphemerisArrays
+    layout: Layout  # the unknowns: position and a clock per system among the rows
+    clk: np.ndarray  # each row's clock (index into layout.systems)
     # satellite positions and clocks at the transmit times of eqs. (4)-(5): those depend on
     # the receive time and z + N cT only, not on the receiver state, so iterations that keep
     # N reuse them (key: :func:`_orbit_key`)
@@ -192,14 +195,31 @@ class _Rows:
         for key, (sat, clk) in self.orbit_cache.items():
             n_int, when = np.frombuffer(key[: -_TIME_KEY.size]), key[-_TIME_KEY.size :]
             cache[n_int[idx].tobytes() + when] = (sat[idx], clk[idx])
+        prn = tuple(self.prn[i] for i in idx)
+        layout = layout_of(prn)
+        clk = self.clk[idx] if layout is self.layout else layout.clock_index(prn)
         return _Rows(
-            tuple(self.prn[i] for i in idx),
+            prn,
             self.z_m[idx],
             self.ct_m[idx],
             self.cn0_dbhz[idx],
             self.eph.take(idx),
+            layout,
+            clk,
             cache,
         )
+
+    def clocks(self, b: np.ndarray) -> np.ndarray | float:
+        """Each row's receiver clock [m] from the clocks ``b`` of :attr:`layout`."""
+        return float(b[0]) if self.layout.n_clocks == 1 else b[self.clk]
+
+    def design(self, los: np.ndarray) -> np.ndarray:
+        """The design matrix of these rows at line-of-sight vectors ``los``."""
+        return self.layout.design(los, self.clk)
+
+    def dop(self, los: np.ndarray, idx: np.ndarray) -> float:
+        """GDOP of rows ``idx`` (paper eq. 20, a clock per system; inf where singular)."""
+        return float(dop(self.layout.design(los[idx], self.clk[idx])))
 
 
 _TIME_KEY = struct.Struct("<id")
@@ -241,9 +261,12 @@ def _geometry(
     return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
 
 
-def _full_cost(rows: _Rows, geo: _Geometry, b: float, full_idx: np.ndarray) -> float:
+def _full_cost(rows: _Rows, geo: _Geometry, b: np.ndarray, full_idx: np.ndarray) -> float:
     """Sum of squared residuals of the full rows (no corrections): the line-search merit."""
-    r = rows.z_m[full_idx] - geo.pred_m[full_idx] - b
+    bc = rows.clocks(b)
+    if not isinstance(bc, float):
+        bc = bc[full_idx]
+    r = rows.z_m[full_idx] - geo.pred_m[full_idx] - bc
     return float(r @ r)
 
 
@@ -262,10 +285,6 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarr
             h, dz = h * sw[:, None], dz * sw
         step, *_ = np.linalg.lstsq(h, dz, rcond=None)
         return np.asarray(step)
-
-
-def _design(los: np.ndarray) -> np.ndarray:
-    return np.concatenate([-los, np.ones((len(los), 1))], axis=1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -341,7 +360,7 @@ class _State:
     """An iterate: position, clock bias [m], integers (0 for full rows) and its geometry."""
 
     x: np.ndarray
-    b: float
+    b: np.ndarray  # a clock per system of the rows' layout [m]
     n_int: np.ndarray
     geo: _Geometry
     iterations: int = 0
@@ -385,7 +404,8 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         x = np.array(start, dtype=float)
     else:
         x = np.zeros(3) if cfg.x0_ecef_m is None else np.array(cfg.x0_ecef_m, dtype=float)
-    b = 0.0
+    b = np.zeros(rows.layout.n_clocks)
+    p = 3 + rows.layout.n_clocks  # the position and clock columns; then the integers
     n_int = np.zeros(len(rows.prn))
     frac = rows.frac
     n_frac = int(frac.sum())
@@ -396,8 +416,8 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
     geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
     cost = _full_cost(rows, geo, b, full_idx)
     for it in range(1, cfg.max_iter + 1):
-        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b  # eqs. (7)-(8)
-        h = _design(geo.los)
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - rows.clocks(b)  # eqs. (7)-(8)
+        h = rows.design(geo.los)
         if n_frac:
             # eq. (11) with the ambiguity in metres (column -1 instead of -cT) for conditioning
             hn = np.zeros((len(rows.prn), n_frac))
@@ -414,8 +434,8 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         lam = 1.0
         while True:
             x_new = x + lam * step[:3]
-            b_new = b + lam * step[3]
-            dn = np.rint(lam * step[4:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
+            b_new = b + lam * step[3:p]
+            dn = np.rint(lam * step[p:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
             n_new = n_int.copy()
             n_new[frac_idx] += dn  # eq. (13)
             geo_new = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x_new, n_new)
@@ -426,7 +446,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
         if not np.all(np.isfinite(x)):
             break
-        if np.linalg.norm(lam * step[:4]) < cfg.theta_m and not np.any(dn):  # eq. (14)
+        if np.linalg.norm(lam * step[:p]) < cfg.theta_m and not np.any(dn):  # eq. (14)
             converged = True
             break
     if not np.all(np.isfinite(x)):
@@ -434,7 +454,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
 
     # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
     # phase-1 position (or at the last iterate when the iteration did not settle)
-    gd = float(gdop(geo.los[~frac]))
+    gd = rows.dop(geo.los, full_idx)
     beta = cfg.beta
     if not beta:
         t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
@@ -499,11 +519,12 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         )
         return _Attempt(fix, rows, np.zeros(0, dtype=int))
 
-    if n_full < 4:
+    need = rows.layout.n_params
+    if n_full < need:
         return declined(
             _Decline(
                 f"too few full measurements: {n_full} full, {n_frac} fractional "
-                "(need at least 4 full)",
+                f"(need at least {need} full)",
                 "too_few_full",
             )
         )
@@ -512,7 +533,8 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         # same solution as from the Earth's centre, see SolverConfig.x0_ecef_m)
         x = np.array(cfg.x0_ecef_m, dtype=float)
         n0 = np.zeros(len(rows.prn))
-        state = _State(x, 0.0, n0, _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n0))
+        b0 = np.zeros(rows.layout.n_clocks)
+        state = _State(x, b0, n0, _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n0))
     else:
         first = _phase1(rows, ctx, start)
         if isinstance(first, _Decline):
@@ -530,12 +552,12 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     kept = rows if len(keep) == len(rows.prn) else rows.take(keep)
     kfrac = kept.frac
     n_full_k = int((~kfrac).sum())
-    if n_full_k < 4:
+    if n_full_k < kept.layout.n_params:
         return declined(
             _Decline(
                 f"too few full measurements above the {cfg.elmask_deg:g} deg mask: {n_full_k}",
                 "too_few_full",
-                float(gdop(state.geo.los[~frac])) if n_frac else None,
+                rows.dop(state.geo.los, np.flatnonzero(~frac)) if n_frac else None,
                 state.iterations,
             )
         )
@@ -544,13 +566,13 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     state = _fixed_iterations(
         kept,
         ctx,
-        _State(state.x, state.b, state.n_int[keep], geo, state.iterations),
+        _State(state.x, _clocks_for(state.b, rows, kept), state.n_int[keep], geo, state.iterations),
         model,
         meaningful,
         loc0 if kept is rows else None,  # a subset's angles are computed on their own
     )
     x, b, it = state.x, state.b, state.iterations
-    if not (np.all(np.isfinite(x)) and np.isfinite(b)):
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(b))):
         return declined(_Decline("solution diverged", "diverged", iterations=it))
 
     # ---- judge the solution -----------------------------------------------------------------
@@ -558,13 +580,13 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     loc = _local(x, geo.sat_ecef_m)
     iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg) if meaningful else (None, None)
     corr = _total(iono_m, tropo_m, len(kept.prn))
-    v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - b - corr
+    v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - kept.clocks(b) - corr
     sigma = _sigma_m(kept, loc, iono_m, tropo_m, cfg, meaningful)
-    a = _design(geo.los)
+    a = kept.design(geo.los)
     rot = enu_rotation(loc.lat_rad, loc.lon_rad)
-    integ = assess(a, v, sigma, rot, cfg.p_fa, cfg.p_md)
+    integ = assess(a, v, sigma, rot, cfg.p_fa, cfg.p_md, kept.layout)
     resid_rms = float(np.sqrt(np.mean(v**2)))
-    gd_final = float(gdop(geo.los[~kfrac]))
+    gd_final = kept.dop(geo.los, np.flatnonzero(~kfrac))
     frac_idx = np.flatnonzero(kfrac)
     ambiguity = {kept.prn[i]: int(state.n_int[i]) for i in frac_idx}
     gdop_full = gd_final if ctx.solver == "fast" else None
@@ -591,10 +613,12 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         fix = judged(reason=reason, reason_code="chi2", ambiguity=ambiguity)
         return _Attempt(fix, rows, keep, integ, x)
     lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
-    if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b) > cfg.clock_max_s * C_M_S:
+    b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
+    if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b_max) > cfg.clock_max_s * C_M_S:
         reason = (
             f"implausible solution: altitude {loc.alt_m:.4g} m (allowed {cfg.alt_min_m:g} to "
-            f"{cfg.alt_max_m:g}), receiver clock {b / C_M_S:.4g} s (allowed +-{cfg.clock_max_s:g})"
+            f"{cfg.alt_max_m:g}), receiver clock {b_max / C_M_S:.4g} s "
+            f"(allowed +-{cfg.clock_max_s:g})"
         )
         return _Attempt(judged(reason=reason, reason_code="implausible"), rows, keep, integ, x)
     q_enu = rot @ np.linalg.inv(a.T @ a)[:3, :3] @ rot.T
@@ -621,7 +645,12 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         lat_deg=lat_deg,
         lon_deg=lon_deg,
         alt_m=loc.alt_m,
-        clock_bias_m=float(b),
+        clock_bias_m=float(b[0]),
+        clocks_m=(
+            {s.value: float(c) for s, c in zip(kept.layout.systems, b, strict=True)}
+            if kept.layout.n_clocks > 1
+            else {}
+        ),
         pdop=pdop,
         hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
         vdop=float(np.sqrt(q_enu[2, 2])),
@@ -638,6 +667,15 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         },
     )
     return _Attempt(fix, rows, keep, integ, x)
+
+
+def _clocks_for(b: np.ndarray, rows: _Rows, kept: _Rows) -> np.ndarray:
+    """The clocks ``b`` of ``rows``' layout for the subset ``kept`` (a system the subset
+    no longer has loses its clock)."""
+    if kept.layout is rows.layout:
+        return b
+    where = {s: k for k, s in enumerate(rows.layout.systems)}
+    return np.array([b[where[s]] for s in kept.layout.systems])
 
 
 def _std(cov: list[list[float]], k: int) -> float:
@@ -856,7 +894,7 @@ def _fixed_iterations(
     x, b, geo, n_int = state.x, state.b, state.geo, state.n_int
     it = 0
     for it in range(1, cfg.max_iter + 1):
-        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - rows.clocks(b)
         w = None
         if meaningful:
             loc = loc0 if loc0 is not None and it == 1 else _local(x, geo.sat_ecef_m)
@@ -864,10 +902,10 @@ def _fixed_iterations(
             dz = dz - _total(iono_m, tropo_m, len(dz))
             if cfg.weighted:
                 w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
-        step = _lsq(_design(geo.los), dz, w)
+        step = _lsq(rows.design(geo.los), dz, w)
         x = x + step[:3]
-        b += float(step[3])
-        if not (np.all(np.isfinite(x)) and np.isfinite(b)):
+        b = b + step[3:]
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(b))):
             break
         geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
         if np.linalg.norm(step) < cfg.conv_m:
@@ -929,12 +967,16 @@ def select_rows(
     ii = np.asarray(idx)
     z = np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii])
     ct = np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii])
+    prn = tuple(epoch.prn[i] for i in idx)
+    layout = layout_of(prn)
     rows = _Rows(
-        prn=tuple(epoch.prn[i] for i in idx),
+        prn=prn,
         z_m=z,
         ct_m=ct,
         cn0_dbhz=epoch.cn0_dbhz[ii],
         eph=store.arrays(ephs),
+        layout=layout,
+        clk=layout.clock_index(prn),
     )
     return rows, missing
 
