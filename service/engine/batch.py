@@ -45,13 +45,16 @@ from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_ang
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
+from service.engine.declines import Decline, excluded_why, reason
 from service.engine.layout import BDS_ONLY, layout_of
-from service.engine.raim import chi2_threshold, noncentrality_md, normal_two_sided_quantile
+from service.engine.raim import Integrity, assess_many
 from service.engine.solver import (
     GROSS_SPREAD_M,
     IonoSet,
     SolverConfig,
+    implausible_reason,
     measurement_sigma_m,
+    no_exclusion,
     sky_view,
     solve,
 )
@@ -331,7 +334,13 @@ def _solve_chunk(
             bp = b[p] + lp * step[pending, 3]
             dnp = np.where(frac[pending], np.rint(lp[:, None] * dn_m[pending] / ct[pending]), 0.0)
             np_int = n_int[p] + dnp  # eq. (13)
-            s0, ck = _orbits(ch, p, np_int)
+            # the orbits depend on the integers only (eqs. 4-5): computed again only for
+            # the epochs whose integers this step moves (never in SPP)
+            s0, ck = sat0[p], clk[p]
+            moved = np.flatnonzero(np.any(dnp != 0, axis=1))
+            if moved.size:
+                s0, ck = s0.copy(), ck.copy()
+                s0[moved], ck[moved] = _orbits(ch, p[moved], np_int[moved])
             lo, pr, st = _geometry(s0, ck, xp)
             cp = cost_of(p, pr, bp)
             with np.errstate(invalid="ignore"):
@@ -444,7 +453,7 @@ def _solve_chunk(
         sigma = np.full(kp.shape, cfg.sigma_uniform_m)
     g = _design(los[sel])
     rot = enu_rotation(lat, lon)
-    integ = _assess(g, v, sigma, kp, rot, cfg.p_fa, cfg.p_md)
+    integ = assess_many(g, v, sigma, kp, rot, cfg.p_fa, cfg.p_md, _LAYOUT)
     n_k = kp.sum(axis=1)
     resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
     kfull = kp & ch.full[sel]
@@ -463,32 +472,28 @@ def _solve_chunk(
         "pdop": pdop.tolist(),
         "hdop": np.sqrt(q_enu[:, 0, 0] + q_enu[:, 1, 1]).tolist(),
         "vdop": np.sqrt(q_enu[:, 2, 2]).tolist(),
-        "cov": integ.cov_enu.tolist(),
+        "cov": [i.cov_enu_m2.tolist() for i in integ],
         "resid": resid_rms.tolist(),
         "iters": iters[sel].tolist(),
-        "redundancy": integ.redundancy.tolist(),
-        "chi2": integ.chi2,
-        "chi2_max": integ.chi2_max,
-        "hpl": integ.hpl,
-        "vpl": integ.vpl,
+        "redundancy": [i.redundancy for i in integ],
+        "chi2": [i.chi2 for i in integ],
+        "chi2_max": [i.chi2_max for i in integ],
+        "hpl": [i.hpl_m for i in integ],
+        "vpl": [i.vpl_m for i in integ],
     }
     for k, e in enumerate(sel.tolist()):
-        chi2, chi2_max = integ.chi2[k], integ.chi2_max[k]
+        chi2, chi2_max = integ[k].chi2, integ[k].chi2_max
         if chi2 is not None and chi2_max is not None and not chi2 <= chi2_max:
             out[e] = _failed(ch, e, solver, n_int, kp[k], integ, numbers, k)
             continue
         a_m, bb = numbers["alt"][k], numbers["b"][k]
         if not (cfg.alt_min_m <= a_m <= cfg.alt_max_m) or abs(bb) > cfg.clock_max_s * C_M_S:
-            reason = (
-                f"implausible solution: altitude {a_m:.4g} m (allowed {cfg.alt_min_m:g} to "
-                f"{cfg.alt_max_m:g}), receiver clock {bb / C_M_S:.4g} s (allowed "
-                f"+-{cfg.clock_max_s:g})"
-            )
-            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "implausible")
+            why = implausible_reason(a_m, bb, cfg)
+            out[e] = _judged_decline(ch, e, solver, numbers, k, why, Decline.IMPLAUSIBLE)
             continue
         if not numbers["pdop"][k] <= cfg.pdop_max:
-            reason = f"PDOP gate failed: PDOP {numbers['pdop'][k]:.1f} > {cfg.pdop_max:g}"
-            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "pdop_gate")
+            why = reason(Decline.PDOP_GATE, pdop=numbers["pdop"][k], pdop_max=cfg.pdop_max)
+            out[e] = _judged_decline(ch, e, solver, numbers, k, why, Decline.PDOP_GATE)
             continue
         out[e] = _fix(ch, e, solver, n_int, kp[k], numbers, k)
     return out
@@ -500,69 +505,6 @@ def _total(io: np.ndarray | None, tr: np.ndarray | None) -> np.ndarray | float:
         out = out + np.where(np.isfinite(io), io, 0.0)
     if tr is not None:
         out = out + tr
-    return out
-
-
-class _Integrity:
-    """:class:`service.engine.raim.Integrity` of a batch (one entry per epoch)."""
-
-    def __init__(self, n: int) -> None:
-        self.redundancy = np.zeros(n, dtype=int)
-        self.chi2: list[float | None] = [None] * n
-        self.chi2_max: list[float | None] = [None] * n
-        self.hpl: list[float | None] = [None] * n
-        self.vpl: list[float | None] = [None] * n
-        self.cov_enu = np.zeros((n, 3, 3))
-        self.wtest = np.zeros((n, 0))
-
-
-def _assess(
-    g: np.ndarray,
-    v: np.ndarray,
-    sigma: np.ndarray,
-    kept: np.ndarray,
-    rot: np.ndarray,
-    p_fa: float,
-    p_md: float,
-) -> _Integrity:
-    """:func:`service.engine.raim.assess` for each epoch of a batch (rows ``kept``)."""
-    n_e = len(v)
-    w = np.where(kept, 1.0 / sigma**2, 0.0)
-    gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
-    cov = np.linalg.inv(gtw @ g)
-    k = cov @ gtw  # (e, p, s)
-    s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
-    cov_enu = rot @ cov[:, :3, :3] @ np.swapaxes(rot, -1, -2)
-    out = _Integrity(n_e)
-    out.cov_enu = cov_enu
-    r = np.asarray(_LAYOUT.redundancy(kept.sum(axis=1)))
-    out.redundancy = r
-    chi2 = np.einsum("es,es->e", v * v, w)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out.wtest = np.where(s_ii > 1e-10, v / (sigma * np.sqrt(s_ii)), np.nan)
-    k_enu = rot @ k[:, :3]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        root = np.sqrt(s_ii)
-        slope_h = np.where(kept, sigma * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root, -np.inf)
-        slope_v = np.where(kept, sigma * np.abs(k_enu[:, 2]) / root, -np.inf)
-    all_ok = np.all(~kept | (s_ii > 1e-10), axis=1)
-    major = np.linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1]
-    k_h = math.sqrt(-2.0 * math.log(p_md))
-    k_v = normal_two_sided_quantile(p_md)
-    for i in range(n_e):
-        ri = int(r[i])
-        if ri < 1:
-            continue
-        t_max = chi2_threshold(ri, p_fa)
-        out.chi2[i], out.chi2_max[i] = float(chi2[i]), t_max
-        if not all_ok[i]:
-            out.hpl[i] = out.vpl[i] = math.inf
-            continue
-        pbias = math.sqrt(noncentrality_md(ri, p_fa, p_md))
-        sigma_major = math.sqrt(max(float(major[i]), 0.0))
-        sigma_u = math.sqrt(max(float(cov_enu[i, 2, 2]), 0.0))
-        out.hpl[i] = float(np.max(slope_h[i])) * pbias + k_h * sigma_major
-        out.vpl[i] = float(np.max(slope_v[i])) * pbias + k_v * sigma_u
     return out
 
 
@@ -636,11 +578,9 @@ def _base(ch: _Chunk, e: int, solver: Literal["fast", "spp"], **fields: object) 
 
 def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
     n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
-    need = _LAYOUT.n_params
-    reason = (
-        f"too few full measurements: {n_full} full, {n_frac} fractional (need at least {need} full)"
-    )
-    return _base(ch, e, solver, reason=reason, reason_code="too_few_full")
+    code = Decline.TOO_FEW_FULL
+    why = reason(code, n_full=n_full, n_frac=n_frac, need=_LAYOUT.n_params)
+    return _base(ch, e, solver, reason=why, reason_code=code)
 
 
 def _judged_decline(
@@ -649,8 +589,8 @@ def _judged_decline(
     solver: Literal["fast", "spp"],
     numbers: dict[str, list],
     k: int,
-    reason: str,
-    code: str,
+    why: str,
+    code: Decline,
 ) -> Fix:
     """The per-epoch solver's decline of a solution that passed the test but not the
     plausible shell or the PDOP gate (its figures, no position)."""
@@ -664,7 +604,7 @@ def _judged_decline(
         redundancy=numbers["redundancy"][k],
         chi2=numbers["chi2"][k],
         chi2_max=numbers["chi2_max"][k],
-        reason=reason,
+        reason=why,
         reason_code=code,
     )
 
@@ -675,7 +615,7 @@ def _failed(
     solver: Literal["fast", "spp"],
     n_int: np.ndarray,
     kept: np.ndarray,
-    integ: _Integrity,
+    integ: list[Integrity],
     numbers: dict[str, list],
     k: int,
 ) -> _Failed:
@@ -687,13 +627,12 @@ def _failed(
     frac = ch.frac[e].tolist()
     kk = np.flatnonzero(kept[: len(prn)]).tolist()
     used = tuple(prn[i] for i in kk)
-    w = [float(integ.wtest[k, i]) for i in kk]
+    w = [float(integ[k].w[i]) for i in kk]
     chi2, chi2_max, r = numbers["chi2"][k], numbers["chi2_max"][k], numbers["redundancy"][k]
     finite = [abs(v) if math.isfinite(v) else -math.inf for v in w]
     worst = finite.index(max(finite)) if any(math.isfinite(v) for v in w) else 0
-    reason = (
-        f"chi-square test failed: {chi2:.1f} > {chi2_max:.1f} "
-        f"(redundancy {r}; largest w-test {used[worst]} {w[worst]:.1f})"
+    why = reason(
+        Decline.CHI2, chi2=chi2, chi2_max=chi2_max, redundancy=r, prn=used[worst], w=w[worst]
     )
     fix = Fix(
         solver=solver,
@@ -708,8 +647,8 @@ def _failed(
         redundancy=r,
         chi2=chi2,
         chi2_max=chi2_max,
-        reason=reason,
-        reason_code="chi2",
+        reason=why,
+        reason_code=Decline.CHI2,
         ambiguity={prn[i]: int(n_int[e, i]) for i in kk if frac[i]},
     )
     return _Failed(chi2, chi2_max, r, used, tuple(w), fix)
@@ -820,7 +759,7 @@ def _exclude(
 
 def _why(f: _Failed, k: int) -> str:
     """Why satellite ``f.kept[k]`` went (the per-epoch solver's words)."""
-    return f"chi-square test failed ({f.chi2:.1f} > {f.chi2_max:.1f}), w-test {f.wtest[k]:.1f}"
+    return excluded_why("chi2", chi2=f.chi2, chi2_max=f.chi2_max, w=f.wtest[k])
 
 
 def solve_many(
@@ -850,13 +789,10 @@ def solve_many(
             passed, hopeless = _exclude(failed, epochs, store, iono, cfg, solver)
             for i, fix in passed.items():
                 out[i] = fix
-            # no exclusion passes: the failed solution's decline, in the words of
-            # service.engine.solver._exclude
-            n = cfg.max_exclusions
+            # no exclusion passes: the failed solution's decline
             for i in hopeless:
                 fix = failed[i].fix
-                why = f"{fix.reason}; no exclusion of up to {n} satellites passes"
-                out[i] = replace(fix, reason=why)
+                out[i] = replace(fix, reason=no_exclusion(fix, cfg.max_exclusions))
         elif failed:  # no exclusion asked for: the failed solution's decline
             for i, f in failed.items():
                 out[i] = f.fix

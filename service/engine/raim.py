@@ -243,37 +243,64 @@ def assess(
     p_md: float,
     layout: Layout = BDS_ONLY,
 ) -> Integrity:
-    """Test and protection levels of the solution with design ``g`` (n, p: [-e^T, clock
+    """Test and protection levels of one solution with design ``g`` (n, p: [-e^T, clock
     columns] of ``layout``), post-fit residuals ``v_m`` and measurement sigmas ``sigma_m``;
-    ``enu_rot`` is the ECEF to east-north-up rotation at the solution. The degrees of
-    freedom are the layout's redundancy."""
-    n = len(v_m)
-    w = 1.0 / sigma_m**2
-    gtw = g.T * w
+    ``enu_rot`` is the ECEF to east-north-up rotation at the solution:
+    :func:`assess_many` of a batch of one."""
+    kept = np.ones((1, len(v_m)), dtype=bool)
+    return assess_many(g[None], v_m[None], sigma_m[None], kept, enu_rot[None], p_fa, p_md, layout)[
+        0
+    ]
+
+
+def assess_many(
+    g: np.ndarray,
+    v_m: np.ndarray,
+    sigma_m: np.ndarray,
+    kept: np.ndarray,
+    enu_rot: np.ndarray,
+    p_fa: float,
+    p_md: float,
+    layout: Layout = BDS_ONLY,
+) -> list[Integrity]:
+    """The integrity of each solution of a batch: designs ``g`` (e, s, p), residuals and
+    sigmas (e, s), ``kept`` (e, s) marking each solution's rows (the others are padding),
+    rotations ``enu_rot`` (e, 3, 3). The degrees of freedom are the layout's redundancy of
+    each solution's rows; ``w`` of an :class:`Integrity` covers every slot (padding: 0)."""
+    n_e = len(v_m)
+    w = np.where(kept, 1.0 / sigma_m**2, 0.0)
+    gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
     cov = np.linalg.inv(gtw @ g)
-    k = cov @ gtw  # (4, n)
-    s_ii = 1.0 - np.einsum("ij,ji->i", g, k)
-    cov_enu = enu_rot @ cov[:3, :3] @ enu_rot.T
-    r = int(layout.redundancy(n))
+    k = cov @ gtw  # (e, p, s)
+    s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
+    cov_enu = enu_rot @ cov[:, :3, :3] @ np.swapaxes(enu_rot, -1, -2)
+    r = np.asarray(layout.redundancy(kept.sum(axis=1))).tolist()
+    chi2 = np.einsum("es,es->e", v_m * v_m, w).tolist()
     ok = s_ii > 1e-10
-    wtest = np.full(n, np.nan)
-    wtest[ok] = v_m[ok] / (sigma_m[ok] * np.sqrt(s_ii[ok]))
-    if r < 1:
-        return Integrity(r, None, None, wtest, cov_enu, None, None)
-    chi2 = float(np.sum(v_m**2 * w))
-    t_max = chi2_threshold(r, p_fa)
-    if not bool(ok.all()):
-        return Integrity(r, chi2, t_max, wtest, cov_enu, math.inf, math.inf)
-    k_enu = enu_rot @ k[:3]
-    root = np.sqrt(s_ii)
-    slope_h = sigma_m * np.hypot(k_enu[0], k_enu[1]) / root
-    slope_v = sigma_m * np.abs(k_enu[2]) / root
-    pbias = math.sqrt(noncentrality_md(r, p_fa, p_md))
-    en = cov_enu[:2, :2]
-    sigma_major = math.sqrt(max(float(np.linalg.eigvalsh(en)[-1]), 0.0))
-    sigma_u = math.sqrt(max(float(cov_enu[2, 2]), 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        root = np.sqrt(s_ii)
+        wtest = np.where(ok, v_m / (sigma_m * root), np.nan)
+        k_enu = enu_rot @ k[:, :3]
+        slope_h = np.where(kept, sigma_m * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root, -np.inf)
+        slope_v = np.where(kept, sigma_m * np.abs(k_enu[:, 2]) / root, -np.inf)
+    all_ok = np.all(~kept | ok, axis=1).tolist()
+    major = np.linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1].tolist()
+    up = cov_enu[:, 2, 2].tolist()
+    h_max, v_max = np.max(slope_h, axis=1).tolist(), np.max(slope_v, axis=1).tolist()
     k_h = math.sqrt(-2.0 * math.log(p_md))
     k_v = normal_two_sided_quantile(p_md)
-    hpl = float(np.max(slope_h)) * pbias + k_h * sigma_major
-    vpl = float(np.max(slope_v)) * pbias + k_v * sigma_u
-    return Integrity(r, chi2, t_max, wtest, cov_enu, hpl, vpl)
+    out = []
+    for i in range(n_e):
+        ri = int(r[i])
+        if ri < 1:
+            out.append(Integrity(ri, None, None, wtest[i], cov_enu[i], None, None))
+            continue
+        t_max = chi2_threshold(ri, p_fa)
+        if not all_ok[i]:
+            out.append(Integrity(ri, chi2[i], t_max, wtest[i], cov_enu[i], math.inf, math.inf))
+            continue
+        pbias = math.sqrt(noncentrality_md(ri, p_fa, p_md))
+        hpl = h_max[i] * pbias + k_h * math.sqrt(max(major[i], 0.0))
+        vpl = v_max[i] * pbias + k_v * math.sqrt(max(up[i], 0.0))
+        out.append(Integrity(ri, chi2[i], t_max, wtest[i], cov_enu[i], hpl, vpl))
+    return out

@@ -41,6 +41,7 @@ from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
+from service.engine.declines import Decline, excluded_why, reason
 from service.engine.layout import Layout, dop, layout_of
 from service.engine.raim import Integrity, assess
 
@@ -368,31 +369,13 @@ class _State:
 
 @dataclass(frozen=True, slots=True)
 class _Decline:
-    """Why an attempt gave no solution (``code``: the counter key, see :data:`REASONS`)."""
+    """Why an attempt gave no solution (``code``: the counter key, see
+    :data:`service.engine.declines.DECLINES`)."""
 
     reason: str
-    code: str
+    code: Decline
     gdop_full: float | None = None
     iterations: int = 0
-
-
-REASONS: dict[str, str] = {
-    "no_measurements": "no measurements",
-    "no_ephemeris": "no usable ephemeris",
-    "too_few_full": "too few full measurements",
-    "singular": "singular geometry",
-    "no_convergence": "no convergence",
-    "gdop_gate": "GEO-GDOP gate",
-    "diverged": "solution diverged",
-    "chi2": "chi-square test failed, no exclusion passes",
-    "implausible": "implausible solution",
-    "pdop_gate": "PDOP gate",
-    "numerical": "numerical failure",
-    "no_time": "time unknown (no GPS week yet)",
-    "out_of_order": "epoch not after the previous one",
-}
-"""Decline codes (``Fix.reason_code``) and their meaning in words."""
-NO_TIME_REASON = "GPS week not known yet: the source gave only the time of week"
 
 
 def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _State | _Decline:
@@ -426,7 +409,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         try:
             step = _lsq(h, dz)  # eq. (10)
         except np.linalg.LinAlgError:
-            return _Decline("singular geometry in the fast-fix iteration", "singular")
+            return _Decline(reason(Decline.SINGULAR), Decline.SINGULAR)
         # Backtracking: the float ambiguities absorb the fractional rows, so x and b move on
         # the full rows alone; from the Earth's centre, near-equatorial GEOs make the plain
         # step overshoot (beyond GEO altitude, then divergence). A step that increases the
@@ -450,7 +433,8 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
             converged = True
             break
     if not np.all(np.isfinite(x)):
-        return _Decline(f"no convergence after {it} iterations", "no_convergence", iterations=it)
+        why = reason(Decline.NO_CONVERGENCE, iterations=it)
+        return _Decline(why, Decline.NO_CONVERGENCE, iterations=it)
 
     # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
     # phase-1 position (or at the last iterate when the iteration did not settle)
@@ -460,12 +444,12 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
-        settled = "" if converged else f" (no convergence after {it} iterations)"
-        return _Decline(
-            f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}{settled}", "gdop_gate", gd, it
-        )
+        variant = "" if converged else "unsettled"
+        why = reason(Decline.GDOP_GATE, variant, gdop=gd, beta=beta, iterations=it)
+        return _Decline(why, Decline.GDOP_GATE, gd, it)
     if not converged:
-        return _Decline(f"no convergence after {it} iterations", "no_convergence", gd, it)
+        why = reason(Decline.NO_CONVERGENCE, iterations=it)
+        return _Decline(why, Decline.NO_CONVERGENCE, gd, it)
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
     state = _fixed_iterations(rows, ctx, _State(x, b, n_int, geo, it), None, False)
@@ -523,9 +507,8 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     if n_full < need:
         return declined(
             _Decline(
-                f"too few full measurements: {n_full} full, {n_frac} fractional "
-                f"(need at least {need} full)",
-                "too_few_full",
+                reason(Decline.TOO_FEW_FULL, n_full=n_full, n_frac=n_frac, need=need),
+                Decline.TOO_FEW_FULL,
             )
         )
     if cfg.x0_ecef_m is not None and not n_frac:
@@ -555,8 +538,8 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     if n_full_k < kept.layout.n_params:
         return declined(
             _Decline(
-                f"too few full measurements above the {cfg.elmask_deg:g} deg mask: {n_full_k}",
-                "too_few_full",
+                reason(Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=n_full_k),
+                Decline.TOO_FEW_FULL,
                 rows.dop(state.geo.los, np.flatnonzero(~frac)) if n_frac else None,
                 state.iterations,
             )
@@ -573,7 +556,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     )
     x, b, it = state.x, state.b, state.iterations
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(b))):
-        return declined(_Decline("solution diverged", "diverged", iterations=it))
+        return declined(_Decline(reason(Decline.DIVERGED), Decline.DIVERGED, iterations=it))
 
     # ---- judge the solution -----------------------------------------------------------------
     geo = state.geo
@@ -605,27 +588,27 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
 
     if integ.chi2 is not None and not integ.passed:
         worst = int(np.nanargmax(np.abs(integ.w))) if np.any(np.isfinite(integ.w)) else 0
-        reason = (
-            f"chi-square test failed: {integ.chi2:.1f} > {integ.chi2_max:.1f} "
-            f"(redundancy {integ.redundancy}; largest w-test {kept.prn[worst]} "
-            f"{integ.w[worst]:.1f})"
+        why = reason(
+            Decline.CHI2,
+            chi2=integ.chi2,
+            chi2_max=integ.chi2_max,
+            redundancy=integ.redundancy,
+            prn=kept.prn[worst],
+            w=integ.w[worst],
         )
-        fix = judged(reason=reason, reason_code="chi2", ambiguity=ambiguity)
+        fix = judged(reason=why, reason_code=Decline.CHI2, ambiguity=ambiguity)
         return _Attempt(fix, rows, keep, integ, x)
     lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
     b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
     if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b_max) > cfg.clock_max_s * C_M_S:
-        reason = (
-            f"implausible solution: altitude {loc.alt_m:.4g} m (allowed {cfg.alt_min_m:g} to "
-            f"{cfg.alt_max_m:g}), receiver clock {b_max / C_M_S:.4g} s "
-            f"(allowed +-{cfg.clock_max_s:g})"
-        )
-        return _Attempt(judged(reason=reason, reason_code="implausible"), rows, keep, integ, x)
+        why = implausible_reason(loc.alt_m, b_max, cfg)
+        fix = judged(reason=why, reason_code=Decline.IMPLAUSIBLE)
+        return _Attempt(fix, rows, keep, integ, x)
     q_enu = rot @ np.linalg.inv(a.T @ a)[:3, :3] @ rot.T
     pdop = float(np.sqrt(np.trace(q_enu)))
     if not pdop <= cfg.pdop_max:
-        reason = f"PDOP gate failed: PDOP {pdop:.1f} > {cfg.pdop_max:g}"
-        fix = judged(pdop=None, reason=reason, reason_code="pdop_gate")
+        why = reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
+        fix = judged(pdop=None, reason=why, reason_code=Decline.PDOP_GATE)
         return _Attempt(fix, rows, keep, integ, x)
     cov = integ.cov_enu_m2
     cov_rows = cov.tolist()  # the same floats as element by element
@@ -669,6 +652,18 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     return _Attempt(fix, rows, keep, integ, x)
 
 
+def implausible_reason(alt_m: float, clock_m: float, cfg: SolverConfig) -> str:
+    """The reason of a solution outside the plausible shell (altitude, receiver clock)."""
+    return reason(
+        Decline.IMPLAUSIBLE,
+        alt_m=alt_m,
+        alt_min_m=cfg.alt_min_m,
+        alt_max_m=cfg.alt_max_m,
+        clock_s=clock_m / C_M_S,
+        clock_max_s=cfg.clock_max_s,
+    )
+
+
 def _clocks_for(b: np.ndarray, rows: _Rows, kept: _Rows) -> np.ndarray:
     """The clocks ``b`` of ``rows``' layout for the subset ``kept`` (a system the subset
     no longer has loses its clock)."""
@@ -700,9 +695,7 @@ def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
         gross = full & ~(dev <= GROSS_SPREAD_M)
         if gross.any():
             for i in np.flatnonzero(gross):
-                excluded[rows.prn[i]] = (
-                    f"pseudorange {dev[i] / 1e3:.4g} km from the epoch's median: impossible"
-                )
+                excluded[rows.prn[i]] = excluded_why("gross", dev_km=dev[i] / 1e3)
             rows = rows.take(np.flatnonzero(~gross))
     att = _attempt(rows, ctx)
     if att.failed_test and ctx.cfg.max_exclusions > 0:
@@ -735,10 +728,7 @@ def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]
         start = _warm_start(current)
         for k, i in enumerate(current.kept):
             prn = current.rows.prn[int(i)]
-            why = (
-                f"chi-square test failed ({integ.chi2:.1f} > {integ.chi2_max:.1f}), "
-                f"w-test {integ.w[k]:.1f}"
-            )
+            why = excluded_why("chi2", chi2=integ.chi2, chi2_max=integ.chi2_max, w=integ.w[k])
             cand = _attempt(current.rows.take(np.delete(every, int(i))), ctx, start)
             ci = cand.integrity
             ratio = (
@@ -758,12 +748,7 @@ def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]
             break
         _, current, prn, why = failing
         removed[prn] = why
-    fix = replace(
-        failed.fix,
-        reason=(
-            f"{failed.fix.reason}; no exclusion of up to {ctx.cfg.max_exclusions} satellites passes"
-        ),
-    )
+    fix = replace(failed.fix, reason=no_exclusion(failed.fix, ctx.cfg.max_exclusions))
     return replace(failed, fix=fix), {}
 
 
@@ -983,20 +968,26 @@ def select_rows(
 
 def declined(
     epoch: MeasurementEpoch,
-    code: str,
-    reason: str,
+    code: Decline,
+    why: str,
     solver: Literal["fast", "spp"] = "fast",
 ) -> Fix:
-    """A declined fix for ``epoch`` (``mode="none"``) with ``reason`` and ``code`` (one of
-    :data:`REASONS`)."""
+    """A declined fix for ``epoch`` (``mode="none"``) with reason ``why`` (from
+    :func:`service.engine.declines.reason`) and ``code``."""
     return Fix(
         solver=solver,
         mode="none",
         gpst_week=epoch.gpst_week,
         gpst_tow_s=epoch.gpst_tow_s,
-        reason=reason,
+        reason=why,
         reason_code=code,
     )
+
+
+def no_exclusion(fix: Fix, max_exclusions: int) -> str:
+    """The reason of a failed test that no exclusion of up to ``max_exclusions`` satellites
+    resolves (``fix``: the failed solution's decline)."""
+    return reason(Decline.CHI2, "no_exclusion", reason=fix.reason, max_exclusions=max_exclusions)
 
 
 def solve(
@@ -1012,16 +1003,17 @@ def solve(
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
     if not epoch.week_known:
-        return declined(epoch, "no_time", NO_TIME_REASON, solver)
+        return declined(epoch, Decline.NO_TIME, reason(Decline.NO_TIME), solver)
     with np.errstate(all="ignore"):
         try:
             rows, missing = select_rows(epoch, store, solver)
             if rows is None:
                 if missing:
-                    why = f"no usable ephemeris for {', '.join(missing)}"
-                    code = "no_ephemeris"
+                    code = Decline.NO_EPHEMERIS
+                    why = reason(code, prns=", ".join(missing))
                 else:
-                    why, code = "no measurements", "no_measurements"
+                    code = Decline.NO_MEASUREMENTS
+                    why = reason(code)
                 return declined(epoch, code, why, solver)
             bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
             ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
@@ -1032,8 +1024,8 @@ def solve(
             log.debug(
                 "solver failure at GPST %d %.3f", epoch.gpst_week, epoch.gpst_tow_s, exc_info=True
             )
-            why = f"numerical failure in the solver: {type(exc).__name__}: {exc}"
-            return declined(epoch, "numerical", why, solver)
+            why = reason(Decline.NUMERICAL, error=type(exc).__name__, message=exc)
+            return declined(epoch, Decline.NUMERICAL, why, solver)
     return fix
 
 
