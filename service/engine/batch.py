@@ -11,18 +11,25 @@ cost per epoch is paid once per chunk:
   the least-squares step over the full rows: each fractional row has its own ambiguity
   column in eq. (11), so its residual is absorbed by dN_j = h_j . [dx, db] - dz_j (in
   metres, rounded in units of c*T by eq. 13), which is the solution of the augmented
-  system of eq. (10) without forming it;
+  system of eq. (10) without forming it. The satellites' orbits (eqs. 4-5) depend on the
+  integers only: an epoch's are computed again only when a step moves its integers;
 - phase 2: the elevation mask, Klobuchar, Saastamoinen and the error model's weights,
-  iterated to convergence;
-- the judgement: the chi-square test and protection levels (:func:`service.engine.raim.assess`
-  per epoch, in batch form), the plausible shell and the PDOP gate.
+  iterated to convergence (the ranges, delays and weights are the per-epoch solver's own
+  functions, :func:`~service.engine.solver.ranges`, :func:`~service.engine.solver.delays`,
+  :func:`~service.engine.solver.measurement_sigma_m`, over (epoch, satellite) arrays);
+- the judgement: the chi-square test and protection levels
+  (:func:`service.engine.raim.assess_many`, which the per-epoch solver calls with one
+  epoch), the plausible shell and the PDOP gate; the declines of too few full ranges, a
+  failed test, an implausible solution and the PDOP gate are built here, in the words of
+  the one table (:mod:`service.engine.declines`);
+- fault exclusion: every candidate of every failed epoch of a stage in one batch.
 
-An epoch that leaves this common path (no week, too few full ranges, an impossible range,
-no convergence, the GDOP gate, a failed chi-square test and so fault exclusion, an
-implausible solution, the PDOP gate, a singular system) is solved again by
-:func:`~service.engine.solver.solve` itself, so every decline, reason and exclusion is the
-per-epoch solver's own. A fix from the batch equals the per-epoch solver's to floating-point
-rounding (tests/engine/test_batch.py holds them to 1e-6 m on real and simulated files).
+An epoch the batch cannot decide (no week, an impossible range, no convergence, the GDOP
+gate, too few full rows above the mask, a singular system, a position far from the Earth,
+rows of more than one satellite system) is solved by :func:`~service.engine.solver.solve`.
+A fix from the batch equals the per-epoch solver's to floating-point rounding
+(tests/engine/test_batch.py holds them to 1e-6 m on real files), and an epoch solved alone
+equals the same epoch inside a chunk (the same bits where the chunk has no padding slots).
 
 The stream path (daemon, replay) keeps the per-epoch solver: an epoch is solved as it
 arrives.
@@ -38,13 +45,12 @@ from typing import Literal
 
 import numpy as np
 
-from service.core.constants import C_M_S, OMEGA_E_RAD_S
-from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m
+from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
-from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
-from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
+from service.core.timebase import gpst_to_bdt
+from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine.declines import Decline, excluded_why, reason
 from service.engine.layout import BDS_ONLY, layout_of
 from service.engine.raim import Integrity, assess_many
@@ -52,11 +58,14 @@ from service.engine.solver import (
     GROSS_SPREAD_M,
     IonoSet,
     SolverConfig,
+    delays,
     implausible_reason,
     measurement_sigma_m,
     no_exclusion,
+    ranges,
     sky_view,
     solve,
+    total_delay,
 )
 
 log = logging.getLogger(__name__)
@@ -170,22 +179,6 @@ def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
     return EphemerisArrays(prn=(), **kw)
 
 
-def _geometry(
-    sat0: np.ndarray, clk_s: np.ndarray, x: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Line-of-sight unit vectors, predicted ranges (without clock and N) and the
-    Earth-rotation-corrected satellite positions for receivers ``x`` (e, 3)."""
-    d = sat0 - x[:, None, :]
-    ang = OMEGA_E_RAD_S * (np.sqrt(np.einsum("esk,esk->es", d, d)) / C_M_S)
-    c, s = np.cos(ang), np.sin(ang)
-    sat = sat0.copy()
-    sat[..., 0] = c * sat0[..., 0] + s * sat0[..., 1]
-    sat[..., 1] = c * sat0[..., 1] - s * sat0[..., 0]
-    d = sat - x[:, None, :]
-    rho = np.sqrt(np.einsum("esk,esk->es", d, d))
-    return d / rho[..., None], rho - C_M_S * clk_s, sat
-
-
 def _design(los: np.ndarray) -> np.ndarray:
     return _LAYOUT.design(los)
 
@@ -203,30 +196,6 @@ def _local(
     lat, lon, alt = ecef_to_geodetic(x)
     el, az = look_angles(x, sat, (lat, lon))
     return lat, lon, alt, el, az
-
-
-def _delays(
-    lat: np.ndarray,
-    lon: np.ndarray,
-    alt: np.ndarray,
-    el: np.ndarray,
-    az: np.ndarray,
-    bdt_sow: np.ndarray,
-    model: KlobucharParams | None,
-    cfg: SolverConfig,
-) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Ionospheric and tropospheric delays per row (None: not applied), as the per-epoch
-    solver's ``_delays``; the ionosphere only for receivers below 100 km."""
-    iono = None
-    if model is not None:
-        if model.system == "BDS":
-            iono = klobuchar_bds_m(model, lat[:, None], lon[:, None], el, az, bdt_sow[:, None])
-        else:
-            tow = bdt_sow[:, None] + BDT_GPST_OFFSET_S
-            iono = klobuchar_gps_m(model, lat[:, None], lon[:, None], el, az, tow)
-        iono = np.where((alt < 100e3)[:, None], iono, np.nan)
-    tropo = saastamoinen_m(lat[:, None], alt[:, None], el) if cfg.tropo != "off" else None
-    return iono, tropo
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,7 +260,7 @@ def _solve_chunk(
     iters = np.zeros(n_e, dtype=int)
     every = np.arange(n_e)
     sat0, clk = _orbits(ch, every, n_int)
-    los, pred, sat = _geometry(sat0, clk, x)
+    los, pred, sat = ranges(sat0, clk, x)
     fullw = ch.full.astype(float)
 
     def cost_of(sel: np.ndarray, pred_: np.ndarray, b_: np.ndarray) -> np.ndarray:
@@ -341,7 +310,7 @@ def _solve_chunk(
             if moved.size:
                 s0, ck = s0.copy(), ck.copy()
                 s0[moved], ck[moved] = _orbits(ch, p[moved], np_int[moved])
-            lo, pr, st = _geometry(s0, ck, xp)
+            lo, pr, st = ranges(s0, ck, xp)
             cp = cost_of(p, pr, bp)
             with np.errstate(invalid="ignore"):
                 accept = (cp <= cost[p]) | (lp < 1e-3) | ~np.isfinite(cost[p])
@@ -392,7 +361,7 @@ def _solve_chunk(
         b[sel] += step[:, 3]
         finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
         _fail(ok, sel, ~finite, unsure)
-        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel])
+        los[sel], pred[sel], sat[sel] = ranges(sat0[sel], clk[sel], x[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
 
     # ---- phase 2: mask, corrections, weights -------------------------------------------------
@@ -419,8 +388,8 @@ def _solve_chunk(
         iters[sel] += 1
         dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
         lat, lon, alt, el, az = _local(x[sel], sat[sel])
-        io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
-        dz = dz - _total(io, tr)
+        io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
+        dz = dz - total_delay(io, tr)
         w = keepw[sel]
         if cfg.weighted:
             w = w / measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2
@@ -433,7 +402,7 @@ def _solve_chunk(
         b[sel] += step[:, 3]
         finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
         _fail(ok, sel, ~finite, unsure)
-        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel])
+        los[sel], pred[sel], sat[sel] = ranges(sat0[sel], clk[sel], x[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
 
     # ---- judge the solution ------------------------------------------------------------------
@@ -443,9 +412,9 @@ def _solve_chunk(
     if not sel.size:
         return out
     lat, lon, alt, el, az = _local(x[sel], sat[sel])
-    io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
+    io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
     kp = keep[sel]
-    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - _total(io, tr)
+    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - total_delay(io, tr)
     v = np.where(kp, v, 0.0)
     if cfg.weighted:
         sigma = np.where(kp, measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg), 1.0)
@@ -496,15 +465,6 @@ def _solve_chunk(
             out[e] = _judged_decline(ch, e, solver, numbers, k, why, Decline.PDOP_GATE)
             continue
         out[e] = _fix(ch, e, solver, n_int, kp[k], numbers, k)
-    return out
-
-
-def _total(io: np.ndarray | None, tr: np.ndarray | None) -> np.ndarray | float:
-    out: np.ndarray | float = 0.0
-    if io is not None:
-        out = out + np.where(np.isfinite(io), io, 0.0)
-    if tr is not None:
-        out = out + tr
     return out
 
 

@@ -275,7 +275,7 @@ def assess_many(
     s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
     cov_enu = enu_rot @ cov[:, :3, :3] @ np.swapaxes(enu_rot, -1, -2)
     r = np.asarray(layout.redundancy(kept.sum(axis=1))).tolist()
-    chi2 = np.einsum("es,es->e", v_m * v_m, w).tolist()
+    chi2 = np.sum(v_m * v_m * w, axis=1).tolist()  # each row summed as one epoch's alone
     ok = s_ii > 1e-10
     with np.errstate(invalid="ignore", divide="ignore"):
         root = np.sqrt(s_ii)

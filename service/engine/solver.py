@@ -254,12 +254,23 @@ def _geometry(
         t1 = bdt_sow_s - (rows.z_m + n_int * rows.ct_m) / C_M_S
         t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
         cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
-    sat, clk_s = cached
+    los, pred, sat = ranges(*cached, x)
+    return _Geometry(los=los, pred_m=pred, sat_ecef_m=sat)
+
+
+def ranges(
+    sat0_ecef_m: np.ndarray, clock_s: np.ndarray, x_ecef_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Line-of-sight unit vectors, predicted pseudoranges without the receiver clock and
+    integer terms, and the satellite positions rotated by the Earth during the signal's
+    travel (Sagnac), for satellites at transmit time ``sat0_ecef_m`` (..., n, 3) with clocks
+    ``clock_s`` (..., n) and receivers ``x_ecef_m`` (..., 3): one epoch or a batch."""
+    x = x_ecef_m[..., None, :]
+    d = sat0_ecef_m - x
+    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(np.einsum("...k,...k->...", d, d)) / C_M_S)
     d = sat - x
-    sat = sagnac_rotate(sat, np.sqrt(np.einsum("ij,ij->i", d, d)) / C_M_S)
-    d = sat - x
-    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
-    return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
+    rho = np.sqrt(np.einsum("...k,...k->...", d, d))
+    return d / rho[..., None], rho - C_M_S * clock_s, sat
 
 
 def _full_cost(rows: _Rows, geo: _Geometry, b: np.ndarray, full_idx: np.ndarray) -> float:
@@ -562,7 +573,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     geo = state.geo
     loc = _local(x, geo.sat_ecef_m)
     iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg) if meaningful else (None, None)
-    corr = _total(iono_m, tropo_m, len(kept.prn))
+    corr = total_delay(iono_m, tropo_m)
     v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - kept.clocks(b) - corr
     sigma = _sigma_m(kept, loc, iono_m, tropo_m, cfg, meaningful)
     a = kept.design(geo.los)
@@ -841,23 +852,49 @@ def _delays(
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Ionospheric and tropospheric delays [m] for the rows at this iterate (None: not
     applied)."""
+    return delays(loc.lat_rad, loc.lon_rad, loc.alt_m, loc.el_rad, loc.az_rad, bdt_sow, model, cfg)
+
+
+def delays(
+    lat_rad: float | np.ndarray,
+    lon_rad: float | np.ndarray,
+    alt_m: float | np.ndarray,
+    el_rad: np.ndarray,
+    az_rad: np.ndarray,
+    bdt_sow_s: float | np.ndarray,
+    model: KlobucharParams | None,
+    cfg: SolverConfig,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Ionospheric (Klobuchar: BDS ICD 5.2.4.7, or GPS IS-GPS-200 20.3.3.5.2.5 scaled to
+    B1I) and tropospheric (Saastamoinen) delays [m] per row; None: not applied. One epoch
+    (receiver figures are floats, rows (n,)) or a batch (figures (e,), rows (e, s)). The
+    ionosphere applies only below 100 km: above, None for one epoch, NaN for that epoch's
+    rows in a batch (the error model then counts the whole delay as error)."""
+    batch = np.ndim(alt_m) > 0
+    if batch:  # receivers (e,) against rows (e, s)
+        lat_rad, lon_rad = np.asarray(lat_rad)[:, None], np.asarray(lon_rad)[:, None]
+        alt_m, bdt_sow_s = np.asarray(alt_m)[:, None], np.asarray(bdt_sow_s)[:, None]
     iono = None
-    if model is not None and loc.alt_m < 100e3:
+    if model is not None and (batch or alt_m < 100e3):
         if model.system == "BDS":
-            iono = klobuchar_bds_m(model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, bdt_sow)
+            iono = klobuchar_bds_m(model, lat_rad, lon_rad, el_rad, az_rad, bdt_sow_s)
         else:
-            gpst_tow = bdt_sow + BDT_GPST_OFFSET_S
-            iono = klobuchar_gps_m(
-                model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, gpst_tow
-            )
-    tropo = saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad) if cfg.tropo != "off" else None
+            gpst_tow = bdt_sow_s + BDT_GPST_OFFSET_S
+            iono = klobuchar_gps_m(model, lat_rad, lon_rad, el_rad, az_rad, gpst_tow)
+        if batch:
+            iono = np.where(alt_m < 100e3, iono, np.nan)
+    tropo = saastamoinen_m(lat_rad, alt_m, el_rad) if cfg.tropo != "off" else None
     return iono, tropo
 
 
-def _total(iono_m: np.ndarray | None, tropo_m: np.ndarray | None, n: int) -> np.ndarray:
-    out = np.zeros(n)
+def total_delay(iono_m: np.ndarray | None, tropo_m: np.ndarray | None) -> np.ndarray | float:
+    """The delays to take from the measured ranges: ionosphere (NaN: not modelled, 0) plus
+    troposphere (None: not applied)."""
+    out: np.ndarray | float = 0.0
     if iono_m is not None:
-        out = out + iono_m
+        out = out + (
+            iono_m if np.isfinite(iono_m).all() else np.where(np.isfinite(iono_m), iono_m, 0.0)
+        )
     if tropo_m is not None:
         out = out + tropo_m
     return out
@@ -884,7 +921,7 @@ def _fixed_iterations(
         if meaningful:
             loc = loc0 if loc0 is not None and it == 1 else _local(x, geo.sat_ecef_m)
             iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg)
-            dz = dz - _total(iono_m, tropo_m, len(dz))
+            dz = dz - total_delay(iono_m, tropo_m)
             if cfg.weighted:
                 w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
         step = _lsq(rows.design(geo.los), dz, w)
