@@ -51,6 +51,7 @@ from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_ang
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
+from service.engine import linalg
 from service.engine.declines import Decline, excluded_why, reason
 from service.engine.layout import BDS_ONLY, layout_of
 from service.engine.raim import Integrity, assess_many
@@ -187,7 +188,7 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Per epoch, the weighted least-squares step over rows with w > 0 (rows with w = 0 are
     out); raises LinAlgError when any system is singular."""
     ht = np.swapaxes(h, -1, -2) * w[:, None, :]
-    return np.linalg.solve(ht @ h, (ht @ dz[..., None]))[..., 0]
+    return linalg.solve(ht @ h, (ht @ dz[..., None]))[..., 0]
 
 
 def _local(
@@ -428,7 +429,7 @@ def _solve_chunk(
     kfull = kp & ch.full[sel]
     gd_final = gdop(np.where(kfull[..., None], los[sel], 0.0), kfull.astype(float))
     gu = g * kp[..., None]
-    q = np.linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
+    q = linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ np.swapaxes(rot, -1, -2)
     pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
     numbers: dict[str, list] = {

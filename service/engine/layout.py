@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 
 from service.core.systems import GnssSystem, system_of
+from service.engine import linalg
 
 _ORDER = tuple(GnssSystem)
 """Canonical order of the clock columns (BeiDou first: its clock is ``Fix.clock_bias_m``)."""
@@ -107,7 +108,7 @@ def dop(g: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     if weight is not None:
         g = g * np.asarray(weight, dtype=float)[..., None]
     d = np.einsum("...ni,...nj->...ij", g, g)
-    eig = np.linalg.eigvalsh(d)
+    eig = linalg.eigvalsh(d)
     floor = 1e-12 * np.max(eig, axis=-1, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(eig > floor, 1.0 / eig, np.inf)

@@ -37,6 +37,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from service.engine import linalg
 from service.engine.layout import BDS_ONLY, Layout
 
 _EPS = 1e-15
@@ -270,7 +271,7 @@ def assess_many(
     n_e = len(v_m)
     w = np.where(kept, 1.0 / sigma_m**2, 0.0)
     gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
-    cov = np.linalg.inv(gtw @ g)
+    cov = linalg.inv(gtw @ g)
     k = cov @ gtw  # (e, p, s)
     s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
     cov_enu = enu_rot @ cov[:, :3, :3] @ np.swapaxes(enu_rot, -1, -2)
@@ -284,7 +285,7 @@ def assess_many(
         slope_h = np.where(kept, sigma_m * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root, -np.inf)
         slope_v = np.where(kept, sigma_m * np.abs(k_enu[:, 2]) / root, -np.inf)
     all_ok = np.all(~kept | ok, axis=1).tolist()
-    major = np.linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1].tolist()
+    major = linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1].tolist()
     up = cov_enu[:, 2, 2].tolist()
     h_max, v_max = np.max(slope_h, axis=1).tolist(), np.max(slope_v, axis=1).tolist()
     k_h = math.sqrt(-2.0 * math.log(p_md))

@@ -41,6 +41,7 @@ from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
+from service.engine import linalg
 from service.engine.declines import Decline, excluded_why, reason
 from service.engine.layout import Layout, dop, layout_of
 from service.engine.raim import Integrity, assess
@@ -212,7 +213,7 @@ class _Rows:
 
     def clocks(self, b: np.ndarray) -> np.ndarray | float:
         """Each row's receiver clock [m] from the clocks ``b`` of :attr:`layout`."""
-        return float(b[0]) if self.layout.n_clocks == 1 else b[self.clk]
+        return b.item() if self.layout.n_clocks == 1 else b[self.clk]
 
     def design(self, los: np.ndarray) -> np.ndarray:
         """The design matrix of these rows at line-of-sight vectors ``los``."""
@@ -265,11 +266,13 @@ def ranges(
     integer terms, and the satellite positions rotated by the Earth during the signal's
     travel (Sagnac), for satellites at transmit time ``sat0_ecef_m`` (..., n, 3) with clocks
     ``clock_s`` (..., n) and receivers ``x_ecef_m`` (..., 3): one epoch or a batch."""
-    x = x_ecef_m[..., None, :]
+    one = x_ecef_m.ndim == 1
+    x = x_ecef_m if one else x_ecef_m[..., None, :]
+    dot = "ij,ij->i" if one else "esk,esk->es"
     d = sat0_ecef_m - x
-    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(np.einsum("...k,...k->...", d, d)) / C_M_S)
+    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(np.einsum(dot, d, d)) / C_M_S)
     d = sat - x
-    rho = np.sqrt(np.einsum("...k,...k->...", d, d))
+    rho = np.sqrt(np.einsum(dot, d, d))
     return d / rho[..., None], rho - C_M_S * clock_s, sat
 
 
@@ -290,7 +293,7 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarr
     minimum-norm least squares (raising LinAlgError only where that fails too)."""
     ht = h.T if w is None else h.T * w
     try:
-        return np.linalg.solve(ht @ h, ht @ dz)
+        return linalg.solve(ht @ h, ht @ dz)
     except np.linalg.LinAlgError:
         if w is not None:
             sw = np.sqrt(w)
@@ -340,9 +343,15 @@ class IonoSet:
         return self.preferred
 
 
+def _norm(v: np.ndarray) -> float:
+    """The Euclidean norm of a vector, as ``numpy.linalg.norm`` computes it (sqrt of the dot
+    product), without its per-call cost."""
+    return math.sqrt(float(v.dot(v)))
+
+
 def _meaningful(x: np.ndarray) -> bool:
     """A position near enough the Earth for masks and delays to mean something."""
-    r = float(np.linalg.norm(x))
+    r = _norm(x)
     return 6.0e6 < r < 8.5e6
 
 
@@ -440,7 +449,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
         if not np.all(np.isfinite(x)):
             break
-        if np.linalg.norm(lam * step[:p]) < cfg.theta_m and not np.any(dn):  # eq. (14)
+        if _norm(lam * step[:p]) < cfg.theta_m and not np.any(dn):  # eq. (14)
             converged = True
             break
     if not np.all(np.isfinite(x)):
@@ -566,7 +575,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         loc0 if kept is rows else None,  # a subset's angles are computed on their own
     )
     x, b, it = state.x, state.b, state.iterations
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(b))):
+    if not (np.isfinite(x).all() and np.isfinite(b).all()):
         return declined(_Decline(reason(Decline.DIVERGED), Decline.DIVERGED, iterations=it))
 
     # ---- judge the solution -----------------------------------------------------------------
@@ -615,7 +624,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         why = implausible_reason(loc.alt_m, b_max, cfg)
         fix = judged(reason=why, reason_code=Decline.IMPLAUSIBLE)
         return _Attempt(fix, rows, keep, integ, x)
-    q_enu = rot @ np.linalg.inv(a.T @ a)[:3, :3] @ rot.T
+    q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
     pdop = float(np.sqrt(np.trace(q_enu)))
     if not pdop <= cfg.pdop_max:
         why = reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
@@ -892,9 +901,8 @@ def total_delay(iono_m: np.ndarray | None, tropo_m: np.ndarray | None) -> np.nda
     troposphere (None: not applied)."""
     out: np.ndarray | float = 0.0
     if iono_m is not None:
-        out = out + (
-            iono_m if np.isfinite(iono_m).all() else np.where(np.isfinite(iono_m), iono_m, 0.0)
-        )
+        # NaN (a batch's epoch above 100 km): no model there, nothing to take
+        out = out + (iono_m if iono_m.ndim == 1 else np.where(np.isfinite(iono_m), iono_m, 0.0))
     if tropo_m is not None:
         out = out + tropo_m
     return out
@@ -927,10 +935,10 @@ def _fixed_iterations(
         step = _lsq(rows.design(geo.los), dz, w)
         x = x + step[:3]
         b = b + step[3:]
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(b))):
+        if not (np.isfinite(x).all() and np.isfinite(b).all()):
             break
         geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
-        if np.linalg.norm(step) < cfg.conv_m:
+        if _norm(step) < cfg.conv_m:
             break
     return _State(x, b, n_int, geo, state.iterations + it)
 
