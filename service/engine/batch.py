@@ -541,7 +541,7 @@ def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
     n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
     code = Decline.TOO_FEW_FULL
     why = reason(code, n_full=n_full, n_frac=n_frac, need=_LAYOUT.n_params)
-    return _base(ch, e, solver, reason=why, reason_code=code)
+    return _base(ch, e, solver, reason=why, reason_code=code.value)
 
 
 def _judged_decline(
@@ -566,7 +566,7 @@ def _judged_decline(
         chi2=numbers["chi2"][k],
         chi2_max=numbers["chi2_max"][k],
         reason=why,
-        reason_code=code,
+        reason_code=code.value,
     )
 
 
@@ -609,7 +609,7 @@ def _failed(
         chi2=chi2,
         chi2_max=chi2_max,
         reason=why,
-        reason_code=Decline.CHI2,
+        reason_code=Decline.CHI2.value,
         ambiguity={prn[i]: int(n_int[e, i]) for i in kk if frac[i]},
     )
     return _Failed(chi2, chi2_max, r, used, tuple(w), fix)

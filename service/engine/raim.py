@@ -248,8 +248,7 @@ def assess(
     columns] of ``layout``), post-fit residuals ``v_m`` and measurement sigmas ``sigma_m``;
     ``enu_rot`` is the ECEF to east-north-up rotation at the solution:
     :func:`assess_many` of a batch of one."""
-    kept = np.ones((1, len(v_m)), dtype=bool)
-    return assess_many(g[None], v_m[None], sigma_m[None], kept, enu_rot[None], p_fa, p_md, layout)[
+    return assess_many(g[None], v_m[None], sigma_m[None], None, enu_rot[None], p_fa, p_md, layout)[
         0
     ]
 
@@ -258,33 +257,38 @@ def assess_many(
     g: np.ndarray,
     v_m: np.ndarray,
     sigma_m: np.ndarray,
-    kept: np.ndarray,
+    kept: np.ndarray | None,
     enu_rot: np.ndarray,
     p_fa: float,
     p_md: float,
     layout: Layout = BDS_ONLY,
 ) -> list[Integrity]:
     """The integrity of each solution of a batch: designs ``g`` (e, s, p), residuals and
-    sigmas (e, s), ``kept`` (e, s) marking each solution's rows (the others are padding),
+    sigmas (e, s), ``kept`` (e, s) marking each solution's rows (the others are padding;
+    None: every slot is a row),
     rotations ``enu_rot`` (e, 3, 3). The degrees of freedom are the layout's redundancy of
     each solution's rows; ``w`` of an :class:`Integrity` covers every slot (padding: 0)."""
     n_e = len(v_m)
-    w = np.where(kept, 1.0 / sigma_m**2, 0.0)
+    w = 1.0 / sigma_m**2 if kept is None else np.where(kept, 1.0 / sigma_m**2, 0.0)
     gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
     cov = linalg.inv(gtw @ g)
     k = cov @ gtw  # (e, p, s)
     s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
     cov_enu = enu_rot @ cov[:, :3, :3] @ np.swapaxes(enu_rot, -1, -2)
-    r = np.asarray(layout.redundancy(kept.sum(axis=1))).tolist()
+    n_rows = np.full(n_e, v_m.shape[1]) if kept is None else kept.sum(axis=1)
+    r = np.asarray(layout.redundancy(n_rows)).tolist()
     chi2 = np.sum(v_m * v_m * w, axis=1).tolist()  # each row summed as one epoch's alone
     ok = s_ii > 1e-10
     with np.errstate(invalid="ignore", divide="ignore"):
         root = np.sqrt(s_ii)
         wtest = np.where(ok, v_m / (sigma_m * root), np.nan)
         k_enu = enu_rot @ k[:, :3]
-        slope_h = np.where(kept, sigma_m * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root, -np.inf)
-        slope_v = np.where(kept, sigma_m * np.abs(k_enu[:, 2]) / root, -np.inf)
-    all_ok = np.all(~kept | ok, axis=1).tolist()
+        slope_h = sigma_m * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root
+        slope_v = sigma_m * np.abs(k_enu[:, 2]) / root
+        if kept is not None:
+            slope_h = np.where(kept, slope_h, -np.inf)
+            slope_v = np.where(kept, slope_v, -np.inf)
+    all_ok = (ok.all(axis=1) if kept is None else np.all(~kept | ok, axis=1)).tolist()
     major = linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1].tolist()
     up = cov_enu[:, 2, 2].tolist()
     h_max, v_max = np.max(slope_h, axis=1).tolist(), np.max(slope_v, axis=1).tolist()

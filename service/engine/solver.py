@@ -276,6 +276,9 @@ def ranges(
     return d / rho[..., None], rho - C_M_S * clock_s, sat
 
 
+_NO_INTEGERS = np.zeros(0)
+
+
 def _full_cost(rows: _Rows, geo: _Geometry, b: np.ndarray, full_idx: np.ndarray) -> float:
     """Sum of squared residuals of the full rows (no corrections): the line-search merit."""
     bc = rows.clocks(b)
@@ -438,21 +441,24 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         while True:
             x_new = x + lam * step[:3]
             b_new = b + lam * step[3:p]
-            dn = np.rint(lam * step[p:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
-            n_new = n_int.copy()
-            n_new[frac_idx] += dn  # eq. (13)
+            if n_frac:
+                dn = np.rint(lam * step[p:] / rows.ct_m[frac_idx])
+                n_new = n_int.copy()
+                n_new[frac_idx] += dn  # eq. (13)
+            else:  # every row full: no integers to move
+                dn, n_new = _NO_INTEGERS, n_int
             geo_new = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x_new, n_new)
             cost_new = _full_cost(rows, geo_new, b_new, full_idx)
-            if cost_new <= cost or lam < 1e-3 or not np.isfinite(cost):
+            if cost_new <= cost or lam < 1e-3 or not math.isfinite(cost):
                 break
             lam /= 2.0
         x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
-        if not np.all(np.isfinite(x)):
+        if not np.isfinite(x).all():
             break
         if _norm(lam * step[:p]) < cfg.theta_m and not np.any(dn):  # eq. (14)
             converged = True
             break
-    if not np.all(np.isfinite(x)):
+    if not np.isfinite(x).all():
         why = reason(Decline.NO_CONVERGENCE, iterations=it)
         return _Decline(why, Decline.NO_CONVERGENCE, iterations=it)
 
@@ -517,7 +523,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     def declined(d: _Decline) -> _Attempt:
         fix = base(
             reason=d.reason,
-            reason_code=d.code,
+            reason_code=d.code.value,
             gdop_full=d.gdop_full,
             iterations=d.iterations,
         )
@@ -616,19 +622,19 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
             prn=kept.prn[worst],
             w=integ.w[worst],
         )
-        fix = judged(reason=why, reason_code=Decline.CHI2, ambiguity=ambiguity)
+        fix = judged(reason=why, reason_code=Decline.CHI2.value, ambiguity=ambiguity)
         return _Attempt(fix, rows, keep, integ, x)
     lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
     b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
     if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b_max) > cfg.clock_max_s * C_M_S:
         why = implausible_reason(loc.alt_m, b_max, cfg)
-        fix = judged(reason=why, reason_code=Decline.IMPLAUSIBLE)
+        fix = judged(reason=why, reason_code=Decline.IMPLAUSIBLE.value)
         return _Attempt(fix, rows, keep, integ, x)
     q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
     pdop = float(np.sqrt(np.trace(q_enu)))
     if not pdop <= cfg.pdop_max:
         why = reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
-        fix = judged(pdop=None, reason=why, reason_code=Decline.PDOP_GATE)
+        fix = judged(pdop=None, reason=why, reason_code=Decline.PDOP_GATE.value)
         return _Attempt(fix, rows, keep, integ, x)
     cov = integ.cov_enu_m2
     cov_rows = cov.tolist()  # the same floats as element by element
@@ -1025,7 +1031,7 @@ def declined(
         gpst_week=epoch.gpst_week,
         gpst_tow_s=epoch.gpst_tow_s,
         reason=why,
-        reason_code=code,
+        reason_code=code.value,
     )
 
 
