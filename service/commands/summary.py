@@ -5,44 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from service.engine.solver import REASONS
-
-HINTS: dict[str, str] = {
-    "no_ephemeris": "give the satellites' ephemerides: a RINEX 3 nav file of the same day "
-    "(replay/run --nav NAV, solve's NAV argument), or a capture that carries them (UBX "
-    "RXM-SFRBX, RTCM 1042)",
-    "no_measurements": "the input has no BDS B1I pseudoranges",
-    "no_time": "the GPS week is not known yet: give --gps-week N (RTCM without ephemerides)",
-    "too_few_full": "fewer than 4 full pseudoranges: the fast fix needs 4 GEOs in view, SPP "
-    "waits for each satellite's SOW",
-    "pdop_gate": "poor geometry (PDOP above --pdop-max)",
-    "gdop_gate": "GEO geometry too poor for the integer search (the paper's GDOP gate)",
-    "chi2": "inconsistent pseudoranges that fault exclusion could not resolve",
-}
-"""A hint per decline code (:data:`service.engine.solver.REASONS`), for the summaries."""
-
-COMMAND_HINTS: dict[str, dict[str, str]] = {
-    # where a command's own flags differ from replay's (HINTS and NO_EPOCHS_HINT name those)
-    "run": {
-        # run has no --gps-week: a live stream takes the week from the system clock
-        "no_time": "the GPS week is not known yet: a live stream takes it from the system "
-        "clock until the receiver's time tag or ephemerides give it; a capture file has no "
-        "clock: 'bdsfix replay FILE --gps-week N'",
-    },
-    "solve": {
-        "no_ephemeris": "give the satellites' ephemerides: a RINEX 3 nav file of the same "
-        "day as the obs file (the NAV argument)",
-        "no_time": "the obs file's epochs carry no GPS time: check its header and epoch lines",
-    },
-}
-"""Hints that differ by command, naming only its own flags: ``run`` has no ``--gps-week``,
-``solve`` takes its nav file as an argument (issue 23)."""
-
-
-def hint_for(code: str, command: str = "replay") -> str | None:
-    """The hint for decline ``code`` in ``command``'s words (its own flags only)."""
-    return COMMAND_HINTS.get(command, {}).get(code, HINTS.get(code))
-
+from service.engine.declines import hint, label
 
 TOP_REASONS = 3
 
@@ -56,14 +19,14 @@ def decline_lines(
     if not declined:
         return []
     ranked = sorted(declined.items(), key=lambda i: (-i[1], i[0]))
-    parts = ", ".join(f"{REASONS.get(code, code)} {n}" for code, n in ranked[:TOP_REASONS])
+    parts = ", ".join(f"{label(code)} {n}" for code, n in ranked[:TOP_REASONS])
     more = len(ranked) - TOP_REASONS
     if more > 0:
         parts += f", and {more} other reason{'s' if more > 1 else ''}"
     lines = [f"{indent}declined: {parts}"]
-    hint = hint_for(ranked[0][0], command)
-    if hint:
-        lines.append(f"{indent}hint: {hint}")
+    top = hint(ranked[0][0], command)
+    if top is not None:
+        lines.append(f"{indent}hint: {top}")
     return lines
 
 

@@ -242,9 +242,9 @@ class Fix:
     reason: str | None = None
     reason_code: str | None = None
     sky: tuple[SatView, ...] = ()
-    # integrity (service.engine.raim): redundancy n - 4 of the final solution; the chi-square
-    # statistic and its threshold (None at redundancy 0: no test possible); protection
-    # levels (inf: a satellite without redundancy, the fix is not protected against it);
+    # integrity (service.engine.raim): redundancy (rows - unknowns) of the final solution;
+    # the chi-square statistic and its threshold (None at redundancy 0: no test possible);
+    # protection levels (inf: a satellite without redundancy, the fix is not protected against it);
     # the east-north-up covariance [m^2] and the satellites excluded, with why
     redundancy: int | None = None
     chi2: float | None = None
@@ -255,6 +255,9 @@ class Fix:
     excluded: dict[str, str] = field(default_factory=dict)
     # velocity and clock drift from the epoch's Doppler (None: not computed or not trusted)
     velocity: Velocity | None = None
+    # the receiver clock of each satellite system [m] by its RINEX letter, when the rows
+    # came from more than one (``clock_bias_m`` is the first's: BeiDou's when present)
+    clocks_m: dict[str, float] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:

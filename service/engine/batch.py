@@ -11,18 +11,25 @@ cost per epoch is paid once per chunk:
   the least-squares step over the full rows: each fractional row has its own ambiguity
   column in eq. (11), so its residual is absorbed by dN_j = h_j . [dx, db] - dz_j (in
   metres, rounded in units of c*T by eq. 13), which is the solution of the augmented
-  system of eq. (10) without forming it;
+  system of eq. (10) without forming it. The satellites' orbits (eqs. 4-5) depend on the
+  integers only: an epoch's are computed again only when a step moves its integers;
 - phase 2: the elevation mask, Klobuchar, Saastamoinen and the error model's weights,
-  iterated to convergence;
-- the judgement: the chi-square test and protection levels (:func:`service.engine.raim.assess`
-  per epoch, in batch form), the plausible shell and the PDOP gate.
+  iterated to convergence (the ranges, delays and weights are the per-epoch solver's own
+  functions, :func:`~service.engine.solver.ranges`, :func:`~service.engine.solver.delays`,
+  :func:`~service.engine.solver.measurement_sigma_m`, over (epoch, satellite) arrays);
+- the judgement: the chi-square test and protection levels
+  (:func:`service.engine.raim.assess_many`, which the per-epoch solver calls with one
+  epoch), the plausible shell and the PDOP gate; the declines of too few full ranges, a
+  failed test, an implausible solution and the PDOP gate are built here, in the words of
+  the one table (:mod:`service.engine.declines`);
+- fault exclusion: every candidate of every failed epoch of a stage in one batch.
 
-An epoch that leaves this common path (no week, too few full ranges, an impossible range,
-no convergence, the GDOP gate, a failed chi-square test and so fault exclusion, an
-implausible solution, the PDOP gate, a singular system) is solved again by
-:func:`~service.engine.solver.solve` itself, so every decline, reason and exclusion is the
-per-epoch solver's own. A fix from the batch equals the per-epoch solver's to floating-point
-rounding (tests/engine/test_batch.py holds them to 1e-6 m on real and simulated files).
+An epoch the batch cannot decide (no week, an impossible range, no convergence, the GDOP
+gate, too few full rows above the mask, a singular system, a position far from the Earth,
+rows of more than one satellite system) is solved by :func:`~service.engine.solver.solve`.
+A fix from the batch equals the per-epoch solver's to floating-point rounding
+(tests/engine/test_batch.py holds them to 1e-6 m on real files), and an epoch solved alone
+equals the same epoch inside a chunk (the same bits where the chunk has no padding slots).
 
 The stream path (daemon, replay) keeps the per-epoch solver: an epoch is solved as it
 arrives.
@@ -39,23 +46,35 @@ from typing import Literal
 import numpy as np
 
 from service.core.constants import C_M_S
-from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
-from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
-from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
-from service.engine.raim import chi2_threshold, noncentrality_md, normal_two_sided_quantile
+from service.core.timebase import gpst_to_bdt
+from service.core.types import Ephemeris, Fix, MeasurementEpoch
+from service.engine import linalg
+from service.engine.declines import Decline, excluded_why, reason
+from service.engine.layout import BDS_ONLY, layout_of
+from service.engine.raim import Integrity, assess_many
 from service.engine.solver import (
     GROSS_SPREAD_M,
     IonoSet,
     SolverConfig,
+    delays,
+    implausible_reason,
     measurement_sigma_m,
+    no_exclusion,
+    ranges,
     sky_view,
     solve,
+    total_delay,
 )
 
 log = logging.getLogger(__name__)
+
+_LAYOUT = BDS_ONLY
+"""The unknowns of the batch: position and one clock (epochs with rows of other systems,
+which have clocks of their own, go to the per-epoch solver)."""
+_NP = _LAYOUT.n_params
 
 CHUNK_EPOCHS = 256
 """Epochs solved together: large enough that numpy's per-call cost is spread thin, small
@@ -131,6 +150,7 @@ class _Chunk:
         cols = EphemerisArrays.from_ephemerides(unique)
         self.eph = _gather(cols, idx)
         self.frac = self.valid & (self.ct > 0)
+        self.other_system = np.array([layout_of(ps) is not _LAYOUT for ps in self.prn], bool)
         self.full = self.valid & ~self.frac
 
 
@@ -160,32 +180,15 @@ def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
     return EphemerisArrays(prn=(), **kw)
 
 
-def _geometry(
-    sat0: np.ndarray, clk_s: np.ndarray, x: np.ndarray, omega_e_rad_s: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Line-of-sight unit vectors, predicted ranges (without clock and N) and the
-    Earth-rotation-corrected satellite positions (each row with its system's
-    ``omega_e_rad_s``) for receivers ``x`` (e, 3)."""
-    d = sat0 - x[:, None, :]
-    ang = omega_e_rad_s * (np.sqrt(np.einsum("esk,esk->es", d, d)) / C_M_S)
-    c, s = np.cos(ang), np.sin(ang)
-    sat = sat0.copy()
-    sat[..., 0] = c * sat0[..., 0] + s * sat0[..., 1]
-    sat[..., 1] = c * sat0[..., 1] - s * sat0[..., 0]
-    d = sat - x[:, None, :]
-    rho = np.sqrt(np.einsum("esk,esk->es", d, d))
-    return d / rho[..., None], rho - C_M_S * clk_s, sat
-
-
 def _design(los: np.ndarray) -> np.ndarray:
-    return np.concatenate([-los, np.ones((*los.shape[:-1], 1))], axis=-1)
+    return _LAYOUT.design(los)
 
 
 def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Per epoch, the weighted least-squares step over rows with w > 0 (rows with w = 0 are
     out); raises LinAlgError when any system is singular."""
     ht = np.swapaxes(h, -1, -2) * w[:, None, :]
-    return np.linalg.solve(ht @ h, (ht @ dz[..., None]))[..., 0]
+    return linalg.solve(ht @ h, (ht @ dz[..., None]))[..., 0]
 
 
 def _local(
@@ -194,33 +197,6 @@ def _local(
     lat, lon, alt = ecef_to_geodetic(x)
     el, az = look_angles(x, sat, (lat, lon))
     return lat, lon, alt, el, az
-
-
-def _delays(
-    lat: np.ndarray,
-    lon: np.ndarray,
-    alt: np.ndarray,
-    el: np.ndarray,
-    az: np.ndarray,
-    bdt_sow: np.ndarray,
-    carrier_hz: np.ndarray,
-    model: KlobucharParams | None,
-    cfg: SolverConfig,
-) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Ionospheric (on each row's ``carrier_hz``) and tropospheric delays per row (None: not
-    applied), as the per-epoch solver's ``_delays``; the ionosphere only for receivers below
-    100 km."""
-    iono = None
-    if model is not None:
-        la, lo, f = lat[:, None], lon[:, None], carrier_hz
-        if model.system == "BDS":
-            iono = klobuchar_bds_m(model, la, lo, el, az, bdt_sow[:, None], f)
-        else:
-            tow = bdt_sow[:, None] + BDT_GPST_OFFSET_S
-            iono = klobuchar_gps_m(model, la, lo, el, az, tow, f)
-        iono = np.where((alt < 100e3)[:, None], iono, np.nan)
-    tropo = saastamoinen_m(lat[:, None], alt[:, None], el) if cfg.tropo != "off" else None
-    return iono, tropo
 
 
 @dataclass(frozen=True, slots=True)
@@ -273,7 +249,9 @@ def _solve_chunk(
         gross = ch.full & ~(np.abs(ch.z - median) <= GROSS_SPREAD_M)
     n_rows = ch.valid.sum(axis=1)
     unsure |= gross.any(axis=1) | (n_rows == 0)  # (no rows: no ephemeris or no measurement)
-    too_few = ~unsure & (n_full < 4)
+    # an epoch with rows of more than one system (a clock each): the per-epoch solver
+    unsure |= ch.other_system
+    too_few = ~unsure & (n_full < _LAYOUT.n_params)
     ok &= ~unsure & ~too_few
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
@@ -284,7 +262,7 @@ def _solve_chunk(
     every = np.arange(n_e)
     sat0, clk = _orbits(ch, every, n_int)
     omega = ch.eph.omega_e_rad_s
-    los, pred, sat = _geometry(sat0, clk, x, omega)
+    los, pred, sat = ranges(sat0, clk, x, omega)
     fullw = ch.full.astype(float)
 
     def cost_of(sel: np.ndarray, pred_: np.ndarray, b_: np.ndarray) -> np.ndarray:
@@ -327,8 +305,14 @@ def _solve_chunk(
             bp = b[p] + lp * step[pending, 3]
             dnp = np.where(frac[pending], np.rint(lp[:, None] * dn_m[pending] / ct[pending]), 0.0)
             np_int = n_int[p] + dnp  # eq. (13)
-            s0, ck = _orbits(ch, p, np_int)
-            lo, pr, st = _geometry(s0, ck, xp, omega[p])
+            # the orbits depend on the integers only (eqs. 4-5): computed again only for
+            # the epochs whose integers this step moves (never in SPP)
+            s0, ck = sat0[p], clk[p]
+            moved = np.flatnonzero(np.any(dnp != 0, axis=1))
+            if moved.size:
+                s0, ck = s0.copy(), ck.copy()
+                s0[moved], ck[moved] = _orbits(ch, p[moved], np_int[moved])
+            lo, pr, st = ranges(s0, ck, xp, omega[p])
             cp = cost_of(p, pr, bp)
             with np.errstate(invalid="ignore"):
                 accept = (cp <= cost[p]) | (lp < 1e-3) | ~np.isfinite(cost[p])
@@ -343,7 +327,7 @@ def _solve_chunk(
         los[sel], pred[sel], sat[sel], sat0[sel], clk[sel] = los_n, pred_n, sat_n, sat0_n, clk_n
         cost[sel] = cost_n
         finite = np.isfinite(x_new).all(axis=1)
-        settled = (np.linalg.norm(lam[:, None] * step[:, :4], axis=1) < cfg.theta_m) & ~np.any(
+        settled = (np.linalg.norm(lam[:, None] * step[:, :_NP], axis=1) < cfg.theta_m) & ~np.any(
             dn != 0, axis=1
         )  # eq. (14)
         converged[sel] = finite & settled
@@ -379,7 +363,7 @@ def _solve_chunk(
         b[sel] += step[:, 3]
         finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
         _fail(ok, sel, ~finite, unsure)
-        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel], omega[sel])
+        los[sel], pred[sel], sat[sel] = ranges(sat0[sel], clk[sel], x[sel], omega[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
 
     # ---- phase 2: mask, corrections, weights -------------------------------------------------
@@ -396,7 +380,7 @@ def _solve_chunk(
     _, _, _, el, _ = _local(x[sel], sat[sel])
     keep = ch.valid.copy()
     keep[sel] &= el >= np.radians(cfg.elmask_deg)
-    ok &= (keep & ch.full).sum(axis=1) >= 4
+    ok &= (keep & ch.full).sum(axis=1) >= _LAYOUT.n_params
     keepw = keep.astype(float)
     model = iono.model(cfg.iono)
     sel = np.flatnonzero(ok)
@@ -406,8 +390,8 @@ def _solve_chunk(
         iters[sel] += 1
         dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
         lat, lon, alt, el, az = _local(x[sel], sat[sel])
-        io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
-        dz = dz - _total(io, tr)
+        io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
+        dz = dz - total_delay(io, tr)
         w = keepw[sel]
         if cfg.weighted:
             w = w / measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2
@@ -420,7 +404,7 @@ def _solve_chunk(
         b[sel] += step[:, 3]
         finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
         _fail(ok, sel, ~finite, unsure)
-        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel], omega[sel])
+        los[sel], pred[sel], sat[sel] = ranges(sat0[sel], clk[sel], x[sel], omega[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
 
     # ---- judge the solution ------------------------------------------------------------------
@@ -430,9 +414,9 @@ def _solve_chunk(
     if not sel.size:
         return out
     lat, lon, alt, el, az = _local(x[sel], sat[sel])
-    io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
+    io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
     kp = keep[sel]
-    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - _total(io, tr)
+    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - total_delay(io, tr)
     v = np.where(kp, v, 0.0)
     if cfg.weighted:
         sigma = np.where(kp, measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg), 1.0)
@@ -440,13 +424,13 @@ def _solve_chunk(
         sigma = np.full(kp.shape, cfg.sigma_uniform_m)
     g = _design(los[sel])
     rot = enu_rotation(lat, lon)
-    integ = _assess(g, v, sigma, kp, rot, cfg.p_fa, cfg.p_md)
+    integ = assess_many(g, v, sigma, kp, rot, cfg.p_fa, cfg.p_md, _LAYOUT)
     n_k = kp.sum(axis=1)
     resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
     kfull = kp & ch.full[sel]
     gd_final = gdop(np.where(kfull[..., None], los[sel], 0.0), kfull.astype(float))
     gu = g * kp[..., None]
-    q = np.linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
+    q = linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ np.swapaxes(rot, -1, -2)
     pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
     numbers: dict[str, list] = {
@@ -459,106 +443,30 @@ def _solve_chunk(
         "pdop": pdop.tolist(),
         "hdop": np.sqrt(q_enu[:, 0, 0] + q_enu[:, 1, 1]).tolist(),
         "vdop": np.sqrt(q_enu[:, 2, 2]).tolist(),
-        "cov": integ.cov_enu.tolist(),
+        "cov": [i.cov_enu_m2.tolist() for i in integ],
         "resid": resid_rms.tolist(),
         "iters": iters[sel].tolist(),
-        "redundancy": integ.redundancy.tolist(),
-        "chi2": integ.chi2,
-        "chi2_max": integ.chi2_max,
-        "hpl": integ.hpl,
-        "vpl": integ.vpl,
+        "redundancy": [i.redundancy for i in integ],
+        "chi2": [i.chi2 for i in integ],
+        "chi2_max": [i.chi2_max for i in integ],
+        "hpl": [i.hpl_m for i in integ],
+        "vpl": [i.vpl_m for i in integ],
     }
     for k, e in enumerate(sel.tolist()):
-        chi2, chi2_max = integ.chi2[k], integ.chi2_max[k]
+        chi2, chi2_max = integ[k].chi2, integ[k].chi2_max
         if chi2 is not None and chi2_max is not None and not chi2 <= chi2_max:
             out[e] = _failed(ch, e, solver, n_int, kp[k], integ, numbers, k)
             continue
         a_m, bb = numbers["alt"][k], numbers["b"][k]
         if not (cfg.alt_min_m <= a_m <= cfg.alt_max_m) or abs(bb) > cfg.clock_max_s * C_M_S:
-            reason = (
-                f"implausible solution: altitude {a_m:.4g} m (allowed {cfg.alt_min_m:g} to "
-                f"{cfg.alt_max_m:g}), receiver clock {bb / C_M_S:.4g} s (allowed "
-                f"+-{cfg.clock_max_s:g})"
-            )
-            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "implausible")
+            why = implausible_reason(a_m, bb, cfg)
+            out[e] = _judged_decline(ch, e, solver, numbers, k, why, Decline.IMPLAUSIBLE)
             continue
         if not numbers["pdop"][k] <= cfg.pdop_max:
-            reason = f"PDOP gate failed: PDOP {numbers['pdop'][k]:.1f} > {cfg.pdop_max:g}"
-            out[e] = _judged_decline(ch, e, solver, numbers, k, reason, "pdop_gate")
+            why = reason(Decline.PDOP_GATE, pdop=numbers["pdop"][k], pdop_max=cfg.pdop_max)
+            out[e] = _judged_decline(ch, e, solver, numbers, k, why, Decline.PDOP_GATE)
             continue
         out[e] = _fix(ch, e, solver, n_int, kp[k], numbers, k)
-    return out
-
-
-def _total(io: np.ndarray | None, tr: np.ndarray | None) -> np.ndarray | float:
-    out: np.ndarray | float = 0.0
-    if io is not None:
-        out = out + np.where(np.isfinite(io), io, 0.0)
-    if tr is not None:
-        out = out + tr
-    return out
-
-
-class _Integrity:
-    """:class:`service.engine.raim.Integrity` of a batch (one entry per epoch)."""
-
-    def __init__(self, n: int) -> None:
-        self.redundancy = np.zeros(n, dtype=int)
-        self.chi2: list[float | None] = [None] * n
-        self.chi2_max: list[float | None] = [None] * n
-        self.hpl: list[float | None] = [None] * n
-        self.vpl: list[float | None] = [None] * n
-        self.cov_enu = np.zeros((n, 3, 3))
-        self.wtest = np.zeros((n, 0))
-
-
-def _assess(
-    g: np.ndarray,
-    v: np.ndarray,
-    sigma: np.ndarray,
-    kept: np.ndarray,
-    rot: np.ndarray,
-    p_fa: float,
-    p_md: float,
-) -> _Integrity:
-    """:func:`service.engine.raim.assess` for each epoch of a batch (rows ``kept``)."""
-    n_e = len(v)
-    w = np.where(kept, 1.0 / sigma**2, 0.0)
-    gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
-    cov = np.linalg.inv(gtw @ g)
-    k = cov @ gtw  # (e, 4, s)
-    s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
-    cov_enu = rot @ cov[:, :3, :3] @ np.swapaxes(rot, -1, -2)
-    out = _Integrity(n_e)
-    out.cov_enu = cov_enu
-    r = kept.sum(axis=1) - 4
-    out.redundancy = r
-    chi2 = np.einsum("es,es->e", v * v, w)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out.wtest = np.where(s_ii > 1e-10, v / (sigma * np.sqrt(s_ii)), np.nan)
-    k_enu = rot @ k[:, :3]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        root = np.sqrt(s_ii)
-        slope_h = np.where(kept, sigma * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root, -np.inf)
-        slope_v = np.where(kept, sigma * np.abs(k_enu[:, 2]) / root, -np.inf)
-    all_ok = np.all(~kept | (s_ii > 1e-10), axis=1)
-    major = np.linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1]
-    k_h = math.sqrt(-2.0 * math.log(p_md))
-    k_v = normal_two_sided_quantile(p_md)
-    for i in range(n_e):
-        ri = int(r[i])
-        if ri < 1:
-            continue
-        t_max = chi2_threshold(ri, p_fa)
-        out.chi2[i], out.chi2_max[i] = float(chi2[i]), t_max
-        if not all_ok[i]:
-            out.hpl[i] = out.vpl[i] = math.inf
-            continue
-        pbias = math.sqrt(noncentrality_md(ri, p_fa, p_md))
-        sigma_major = math.sqrt(max(float(major[i]), 0.0))
-        sigma_u = math.sqrt(max(float(cov_enu[i, 2, 2]), 0.0))
-        out.hpl[i] = float(np.max(slope_h[i])) * pbias + k_h * sigma_major
-        out.vpl[i] = float(np.max(slope_v[i])) * pbias + k_v * sigma_u
     return out
 
 
@@ -632,8 +540,9 @@ def _base(ch: _Chunk, e: int, solver: Literal["fast", "spp"], **fields: object) 
 
 def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
     n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
-    reason = f"too few full measurements: {n_full} full, {n_frac} fractional (need at least 4 full)"
-    return _base(ch, e, solver, reason=reason, reason_code="too_few_full")
+    code = Decline.TOO_FEW_FULL
+    why = reason(code, n_full=n_full, n_frac=n_frac, need=_LAYOUT.n_params)
+    return _base(ch, e, solver, reason=why, reason_code=code.value)
 
 
 def _judged_decline(
@@ -642,8 +551,8 @@ def _judged_decline(
     solver: Literal["fast", "spp"],
     numbers: dict[str, list],
     k: int,
-    reason: str,
-    code: str,
+    why: str,
+    code: Decline,
 ) -> Fix:
     """The per-epoch solver's decline of a solution that passed the test but not the
     plausible shell or the PDOP gate (its figures, no position)."""
@@ -657,8 +566,8 @@ def _judged_decline(
         redundancy=numbers["redundancy"][k],
         chi2=numbers["chi2"][k],
         chi2_max=numbers["chi2_max"][k],
-        reason=reason,
-        reason_code=code,
+        reason=why,
+        reason_code=code.value,
     )
 
 
@@ -668,7 +577,7 @@ def _failed(
     solver: Literal["fast", "spp"],
     n_int: np.ndarray,
     kept: np.ndarray,
-    integ: _Integrity,
+    integ: list[Integrity],
     numbers: dict[str, list],
     k: int,
 ) -> _Failed:
@@ -680,13 +589,12 @@ def _failed(
     frac = ch.frac[e].tolist()
     kk = np.flatnonzero(kept[: len(prn)]).tolist()
     used = tuple(prn[i] for i in kk)
-    w = [float(integ.wtest[k, i]) for i in kk]
+    w = [float(integ[k].w[i]) for i in kk]
     chi2, chi2_max, r = numbers["chi2"][k], numbers["chi2_max"][k], numbers["redundancy"][k]
     finite = [abs(v) if math.isfinite(v) else -math.inf for v in w]
     worst = finite.index(max(finite)) if any(math.isfinite(v) for v in w) else 0
-    reason = (
-        f"chi-square test failed: {chi2:.1f} > {chi2_max:.1f} "
-        f"(redundancy {r}; largest w-test {used[worst]} {w[worst]:.1f})"
+    why = reason(
+        Decline.CHI2, chi2=chi2, chi2_max=chi2_max, redundancy=r, prn=used[worst], w=w[worst]
     )
     fix = Fix(
         solver=solver,
@@ -701,8 +609,8 @@ def _failed(
         redundancy=r,
         chi2=chi2,
         chi2_max=chi2_max,
-        reason=reason,
-        reason_code="chi2",
+        reason=why,
+        reason_code=Decline.CHI2.value,
         ambiguity={prn[i]: int(n_int[e, i]) for i in kk if frac[i]},
     )
     return _Failed(chi2, chi2_max, r, used, tuple(w), fix)
@@ -813,7 +721,7 @@ def _exclude(
 
 def _why(f: _Failed, k: int) -> str:
     """Why satellite ``f.kept[k]`` went (the per-epoch solver's words)."""
-    return f"chi-square test failed ({f.chi2:.1f} > {f.chi2_max:.1f}), w-test {f.wtest[k]:.1f}"
+    return excluded_why("chi2", chi2=f.chi2, chi2_max=f.chi2_max, w=f.wtest[k])
 
 
 def solve_many(
@@ -843,13 +751,10 @@ def solve_many(
             passed, hopeless = _exclude(failed, epochs, store, iono, cfg, solver)
             for i, fix in passed.items():
                 out[i] = fix
-            # no exclusion passes: the failed solution's decline, in the words of
-            # service.engine.solver._exclude
-            n = cfg.max_exclusions
+            # no exclusion passes: the failed solution's decline
             for i in hopeless:
                 fix = failed[i].fix
-                why = f"{fix.reason}; no exclusion of up to {n} satellites passes"
-                out[i] = replace(fix, reason=why)
+                out[i] = replace(fix, reason=no_exclusion(fix, cfg.max_exclusions))
         elif failed:  # no exclusion asked for: the failed solution's decline
             for i, f in failed.items():
                 out[i] = f.fix

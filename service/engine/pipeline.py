@@ -36,8 +36,8 @@ from service.core.types import (
     NavSubframe,
     SatView,
 )
+from service.engine.declines import Decline, reason
 from service.engine.solver import (
-    NO_TIME_REASON,
     IonoSet,
     SolverConfig,
     declined,
@@ -233,14 +233,14 @@ class Pipeline:
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
         """The declined fix of an epoch without a week or not after the latest one."""
         if not epoch.week_known:
-            return declined(epoch, "no_time", NO_TIME_REASON)
+            return declined(epoch, Decline.NO_TIME, reason(Decline.NO_TIME))
         last = self._latest
         if last is not None:
             step = diff_s(epoch.gpst_week, epoch.gpst_tow_s, *last)
             if step < SAME_EPOCH_S:
                 what = "repeats" if step > -SAME_EPOCH_S else f"is {-step:.3f} s before"
-                why = f"epoch {what} the previous one (GPST {last[0]} {last[1]:.3f})"
-                return declined(epoch, "out_of_order", why)
+                why = reason(Decline.OUT_OF_ORDER, what=what, week=last[0], tow_s=last[1])
+                return declined(epoch, Decline.OUT_OF_ORDER, why)
         return None
 
     def restart(self, epoch: MeasurementEpoch, rng: np.random.Generator) -> None:

@@ -5,10 +5,11 @@ Model (Brown & Chin 1998; Walter & Enge 1995, weighted RAIM): measurements y = G
 independent errors e_i ~ N(0, sigma_i^2), W = diag(1/sigma_i^2), K = (G^T W G)^-1 G^T W and
 the residual matrix S = I - G K, so that the residuals are v = S e.
 
-- Detection: the statistic T = v^T W v follows a central chi-square with r = n - 4 degrees
-  of freedom (the redundancy) when no measurement is faulty. A fault is declared when
-  T > T_max, the (1 - P_fa) quantile of that distribution. With r = 0 the residuals are all
-  zero and no test is possible.
+- Detection: the statistic T = v^T W v follows a central chi-square with r = n - p degrees
+  of freedom (the redundancy: n rows, p unknowns of the problem's
+  :class:`service.engine.layout.Layout`) when no measurement is faulty. A fault is declared
+  when T > T_max, the (1 - P_fa) quantile of that distribution. With r = 0 the residuals
+  are all zero and no test is possible.
 - A bias b on measurement i makes T non-central with lambda_i = b^2 S_ii / sigma_i^2 and moves
   the position by b K_i (column i of K). The smallest lambda that the test misses with
   probability P_md is lambda_md: P(chi2'(r, lambda_md) < T_max) = P_md. The slope of
@@ -35,6 +36,9 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+
+from service.engine import linalg
+from service.engine.layout import BDS_ONLY, Layout
 
 _EPS = 1e-15
 _TINY = 1e-300
@@ -238,37 +242,70 @@ def assess(
     enu_rot: np.ndarray,
     p_fa: float,
     p_md: float,
+    layout: Layout = BDS_ONLY,
 ) -> Integrity:
-    """Test and protection levels of the solution with design ``g`` (n, 4: [-e^T, 1]),
-    post-fit residuals ``v_m`` and measurement sigmas ``sigma_m``; ``enu_rot`` is the ECEF
-    to east-north-up rotation at the solution."""
-    n = len(v_m)
-    w = 1.0 / sigma_m**2
-    gtw = g.T * w
-    cov = np.linalg.inv(gtw @ g)
-    k = cov @ gtw  # (4, n)
-    s_ii = 1.0 - np.einsum("ij,ji->i", g, k)
-    cov_enu = enu_rot @ cov[:3, :3] @ enu_rot.T
-    r = n - 4
+    """Test and protection levels of one solution with design ``g`` (n, p: [-e^T, clock
+    columns] of ``layout``), post-fit residuals ``v_m`` and measurement sigmas ``sigma_m``;
+    ``enu_rot`` is the ECEF to east-north-up rotation at the solution:
+    :func:`assess_many` of a batch of one."""
+    return assess_many(g[None], v_m[None], sigma_m[None], None, enu_rot[None], p_fa, p_md, layout)[
+        0
+    ]
+
+
+def assess_many(
+    g: np.ndarray,
+    v_m: np.ndarray,
+    sigma_m: np.ndarray,
+    kept: np.ndarray | None,
+    enu_rot: np.ndarray,
+    p_fa: float,
+    p_md: float,
+    layout: Layout = BDS_ONLY,
+) -> list[Integrity]:
+    """The integrity of each solution of a batch: designs ``g`` (e, s, p), residuals and
+    sigmas (e, s), ``kept`` (e, s) marking each solution's rows (the others are padding;
+    None: every slot is a row),
+    rotations ``enu_rot`` (e, 3, 3). The degrees of freedom are the layout's redundancy of
+    each solution's rows; ``w`` of an :class:`Integrity` covers every slot (padding: 0)."""
+    n_e = len(v_m)
+    w = 1.0 / sigma_m**2 if kept is None else np.where(kept, 1.0 / sigma_m**2, 0.0)
+    gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
+    cov = linalg.inv(gtw @ g)
+    k = cov @ gtw  # (e, p, s)
+    s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
+    cov_enu = enu_rot @ cov[:, :3, :3] @ np.swapaxes(enu_rot, -1, -2)
+    n_rows = np.full(n_e, v_m.shape[1]) if kept is None else kept.sum(axis=1)
+    r = np.asarray(layout.redundancy(n_rows)).tolist()
+    chi2 = np.sum(v_m * v_m * w, axis=1).tolist()  # each row summed as one epoch's alone
     ok = s_ii > 1e-10
-    wtest = np.full(n, np.nan)
-    wtest[ok] = v_m[ok] / (sigma_m[ok] * np.sqrt(s_ii[ok]))
-    if r < 1:
-        return Integrity(r, None, None, wtest, cov_enu, None, None)
-    chi2 = float(np.sum(v_m**2 * w))
-    t_max = chi2_threshold(r, p_fa)
-    if not bool(ok.all()):
-        return Integrity(r, chi2, t_max, wtest, cov_enu, math.inf, math.inf)
-    k_enu = enu_rot @ k[:3]
-    root = np.sqrt(s_ii)
-    slope_h = sigma_m * np.hypot(k_enu[0], k_enu[1]) / root
-    slope_v = sigma_m * np.abs(k_enu[2]) / root
-    pbias = math.sqrt(noncentrality_md(r, p_fa, p_md))
-    en = cov_enu[:2, :2]
-    sigma_major = math.sqrt(max(float(np.linalg.eigvalsh(en)[-1]), 0.0))
-    sigma_u = math.sqrt(max(float(cov_enu[2, 2]), 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        root = np.sqrt(s_ii)
+        wtest = np.where(ok, v_m / (sigma_m * root), np.nan)
+        k_enu = enu_rot @ k[:, :3]
+        slope_h = sigma_m * np.hypot(k_enu[:, 0], k_enu[:, 1]) / root
+        slope_v = sigma_m * np.abs(k_enu[:, 2]) / root
+        if kept is not None:
+            slope_h = np.where(kept, slope_h, -np.inf)
+            slope_v = np.where(kept, slope_v, -np.inf)
+    all_ok = (ok.all(axis=1) if kept is None else np.all(~kept | ok, axis=1)).tolist()
+    major = linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1].tolist()
+    up = cov_enu[:, 2, 2].tolist()
+    h_max, v_max = np.max(slope_h, axis=1).tolist(), np.max(slope_v, axis=1).tolist()
     k_h = math.sqrt(-2.0 * math.log(p_md))
     k_v = normal_two_sided_quantile(p_md)
-    hpl = float(np.max(slope_h)) * pbias + k_h * sigma_major
-    vpl = float(np.max(slope_v)) * pbias + k_v * sigma_u
-    return Integrity(r, chi2, t_max, wtest, cov_enu, hpl, vpl)
+    out = []
+    for i in range(n_e):
+        ri = int(r[i])
+        if ri < 1:
+            out.append(Integrity(ri, None, None, wtest[i], cov_enu[i], None, None))
+            continue
+        t_max = chi2_threshold(ri, p_fa)
+        if not all_ok[i]:
+            out.append(Integrity(ri, chi2[i], t_max, wtest[i], cov_enu[i], math.inf, math.inf))
+            continue
+        pbias = math.sqrt(noncentrality_md(ri, p_fa, p_md))
+        hpl = h_max[i] * pbias + k_h * math.sqrt(max(major[i], 0.0))
+        vpl = v_max[i] * pbias + k_v * math.sqrt(max(up[i], 0.0))
+        out.append(Integrity(ri, chi2[i], t_max, wtest[i], cov_enu[i], hpl, vpl))
+    return out

@@ -37,12 +37,15 @@ from service.core.bds import is_geo
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
 from service.core.ephemeris import EphemerisStore
-from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
+from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.systems import constants_of
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
+from service.engine import linalg
+from service.engine.declines import Decline, excluded_why, reason
+from service.engine.layout import Layout, dop, layout_of
 from service.engine.raim import Integrity, assess
 
 log = logging.getLogger(__name__)
@@ -179,6 +182,8 @@ class _Rows:
     ct_m: np.ndarray  # c*T for fractional rows, 0 for full rows
     cn0_dbhz: np.ndarray
     eph: EphemerisArrays
+    layout: Layout  # the unknowns: position and a clock per system among the rows
+    clk: np.ndarray  # each row's clock (index into layout.systems)
     # satellite positions and clocks at the transmit times of eqs. (4)-(5): those depend on
     # the receive time and z + N cT only, not on the receiver state, so iterations that keep
     # N reuse them (key: :func:`_orbit_key`)
@@ -194,14 +199,31 @@ class _Rows:
         for key, (sat, clk) in self.orbit_cache.items():
             n_int, when = np.frombuffer(key[: -_TIME_KEY.size]), key[-_TIME_KEY.size :]
             cache[n_int[idx].tobytes() + when] = (sat[idx], clk[idx])
+        prn = tuple(self.prn[i] for i in idx)
+        layout = layout_of(prn)
+        clk = self.clk[idx] if layout is self.layout else layout.clock_index(prn)
         return _Rows(
-            tuple(self.prn[i] for i in idx),
+            prn,
             self.z_m[idx],
             self.ct_m[idx],
             self.cn0_dbhz[idx],
             self.eph.take(idx),
+            layout,
+            clk,
             cache,
         )
+
+    def clocks(self, b: np.ndarray) -> np.ndarray | float:
+        """Each row's receiver clock [m] from the clocks ``b`` of :attr:`layout`."""
+        return b.item() if self.layout.n_clocks == 1 else b[self.clk]
+
+    def design(self, los: np.ndarray) -> np.ndarray:
+        """The design matrix of these rows at line-of-sight vectors ``los``."""
+        return self.layout.design(los, self.clk)
+
+    def dop(self, los: np.ndarray, idx: np.ndarray) -> float:
+        """GDOP of rows ``idx`` (paper eq. 20, a clock per system; inf where singular)."""
+        return float(dop(self.layout.design(los[idx], self.clk[idx])))
 
 
 _TIME_KEY = struct.Struct("<id")
@@ -235,17 +257,37 @@ def _geometry(
         t1 = bdt_sow_s - (rows.z_m + n_int * rows.ct_m) / C_M_S
         t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
         cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
-    sat, clk_s = cached
-    d = sat - x
-    sat = sagnac_rotate(sat, np.sqrt(np.einsum("ij,ij->i", d, d)) / C_M_S, rows.eph.omega_e_rad_s)
-    d = sat - x
-    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
-    return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
+    los, pred, sat = ranges(*cached, x, rows.eph.omega_e_rad_s)
+    return _Geometry(los=los, pred_m=pred, sat_ecef_m=sat)
 
 
-def _full_cost(rows: _Rows, geo: _Geometry, b: float, full_idx: np.ndarray) -> float:
+def ranges(
+    sat0_ecef_m: np.ndarray, clock_s: np.ndarray, x_ecef_m: np.ndarray, omega_e_rad_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Line-of-sight unit vectors, predicted pseudoranges without the receiver clock and
+    integer terms, and the satellite positions rotated by the Earth during the signal's
+    travel (Sagnac), for satellites at transmit time ``sat0_ecef_m`` (..., n, 3) with clocks
+    ``clock_s`` (..., n), each with its system's Earth rotation rate ``omega_e_rad_s``
+    (..., n), and receivers ``x_ecef_m`` (..., 3): one epoch or a batch."""
+    one = x_ecef_m.ndim == 1
+    x = x_ecef_m if one else x_ecef_m[..., None, :]
+    dot = "ij,ij->i" if one else "esk,esk->es"
+    d = sat0_ecef_m - x
+    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(np.einsum(dot, d, d)) / C_M_S, omega_e_rad_s)
+    d = sat - x
+    rho = np.sqrt(np.einsum(dot, d, d))
+    return d / rho[..., None], rho - C_M_S * clock_s, sat
+
+
+_NO_INTEGERS = np.zeros(0)
+
+
+def _full_cost(rows: _Rows, geo: _Geometry, b: np.ndarray, full_idx: np.ndarray) -> float:
     """Sum of squared residuals of the full rows (no corrections): the line-search merit."""
-    r = rows.z_m[full_idx] - geo.pred_m[full_idx] - b
+    bc = rows.clocks(b)
+    if not isinstance(bc, float):
+        bc = bc[full_idx]
+    r = rows.z_m[full_idx] - geo.pred_m[full_idx] - bc
     return float(r @ r)
 
 
@@ -257,17 +299,13 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarr
     minimum-norm least squares (raising LinAlgError only where that fails too)."""
     ht = h.T if w is None else h.T * w
     try:
-        return np.linalg.solve(ht @ h, ht @ dz)
+        return linalg.solve(ht @ h, ht @ dz)
     except np.linalg.LinAlgError:
         if w is not None:
             sw = np.sqrt(w)
             h, dz = h * sw[:, None], dz * sw
         step, *_ = np.linalg.lstsq(h, dz, rcond=None)
         return np.asarray(step)
-
-
-def _design(los: np.ndarray) -> np.ndarray:
-    return np.concatenate([-los, np.ones((len(los), 1))], axis=1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -311,9 +349,15 @@ class IonoSet:
         return self.preferred
 
 
+def _norm(v: np.ndarray) -> float:
+    """The Euclidean norm of a vector, as ``numpy.linalg.norm`` computes it (sqrt of the dot
+    product), without its per-call cost."""
+    return math.sqrt(float(v.dot(v)))
+
+
 def _meaningful(x: np.ndarray) -> bool:
     """A position near enough the Earth for masks and delays to mean something."""
-    r = float(np.linalg.norm(x))
+    r = _norm(x)
     return 6.0e6 < r < 8.5e6
 
 
@@ -343,7 +387,7 @@ class _State:
     """An iterate: position, clock bias [m], integers (0 for full rows) and its geometry."""
 
     x: np.ndarray
-    b: float
+    b: np.ndarray  # a clock per system of the rows' layout [m]
     n_int: np.ndarray
     geo: _Geometry
     iterations: int = 0
@@ -351,31 +395,13 @@ class _State:
 
 @dataclass(frozen=True, slots=True)
 class _Decline:
-    """Why an attempt gave no solution (``code``: the counter key, see :data:`REASONS`)."""
+    """Why an attempt gave no solution (``code``: the counter key, see
+    :data:`service.engine.declines.DECLINES`)."""
 
     reason: str
-    code: str
+    code: Decline
     gdop_full: float | None = None
     iterations: int = 0
-
-
-REASONS: dict[str, str] = {
-    "no_measurements": "no measurements",
-    "no_ephemeris": "no usable ephemeris",
-    "too_few_full": "too few full measurements",
-    "singular": "singular geometry",
-    "no_convergence": "no convergence",
-    "gdop_gate": "GEO-GDOP gate",
-    "diverged": "solution diverged",
-    "chi2": "chi-square test failed, no exclusion passes",
-    "implausible": "implausible solution",
-    "pdop_gate": "PDOP gate",
-    "numerical": "numerical failure",
-    "no_time": "time unknown (no GPS week yet)",
-    "out_of_order": "epoch not after the previous one",
-}
-"""Decline codes (``Fix.reason_code``) and their meaning in words."""
-NO_TIME_REASON = "GPS week not known yet: the source gave only the time of week"
 
 
 def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _State | _Decline:
@@ -387,7 +413,8 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         x = np.array(start, dtype=float)
     else:
         x = np.zeros(3) if cfg.x0_ecef_m is None else np.array(cfg.x0_ecef_m, dtype=float)
-    b = 0.0
+    b = np.zeros(rows.layout.n_clocks)
+    p = 3 + rows.layout.n_clocks  # the position and clock columns; then the integers
     n_int = np.zeros(len(rows.prn))
     frac = rows.frac
     n_frac = int(frac.sum())
@@ -398,8 +425,8 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
     geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
     cost = _full_cost(rows, geo, b, full_idx)
     for it in range(1, cfg.max_iter + 1):
-        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b  # eqs. (7)-(8)
-        h = _design(geo.los)
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - rows.clocks(b)  # eqs. (7)-(8)
+        h = rows.design(geo.los)
         if n_frac:
             # eq. (11) with the ambiguity in metres (column -1 instead of -cT) for conditioning
             hn = np.zeros((len(rows.prn), n_frac))
@@ -408,7 +435,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         try:
             step = _lsq(h, dz)  # eq. (10)
         except np.linalg.LinAlgError:
-            return _Decline("singular geometry in the fast-fix iteration", "singular")
+            return _Decline(reason(Decline.SINGULAR), Decline.SINGULAR)
         # Backtracking: the float ambiguities absorb the fractional rows, so x and b move on
         # the full rows alone; from the Earth's centre, near-equatorial GEOs make the plain
         # step overshoot (beyond GEO altitude, then divergence). A step that increases the
@@ -416,38 +443,42 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         lam = 1.0
         while True:
             x_new = x + lam * step[:3]
-            b_new = b + lam * step[3]
-            dn = np.rint(lam * step[4:] / rows.ct_m[frac_idx]) if n_frac else np.zeros(0)
-            n_new = n_int.copy()
-            n_new[frac_idx] += dn  # eq. (13)
+            b_new = b + lam * step[3:p]
+            if n_frac:
+                dn = np.rint(lam * step[p:] / rows.ct_m[frac_idx])
+                n_new = n_int.copy()
+                n_new[frac_idx] += dn  # eq. (13)
+            else:  # every row full: no integers to move
+                dn, n_new = _NO_INTEGERS, n_int
             geo_new = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x_new, n_new)
             cost_new = _full_cost(rows, geo_new, b_new, full_idx)
-            if cost_new <= cost or lam < 1e-3 or not np.isfinite(cost):
+            if cost_new <= cost or lam < 1e-3 or not math.isfinite(cost):
                 break
             lam /= 2.0
         x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
-        if not np.all(np.isfinite(x)):
+        if not np.isfinite(x).all():
             break
-        if np.linalg.norm(lam * step[:4]) < cfg.theta_m and not np.any(dn):  # eq. (14)
+        if _norm(lam * step[:p]) < cfg.theta_m and not np.any(dn):  # eq. (14)
             converged = True
             break
-    if not np.all(np.isfinite(x)):
-        return _Decline(f"no convergence after {it} iterations", "no_convergence", iterations=it)
+    if not np.isfinite(x).all():
+        why = reason(Decline.NO_CONVERGENCE, iterations=it)
+        return _Decline(why, Decline.NO_CONVERGENCE, iterations=it)
 
     # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
     # phase-1 position (or at the last iterate when the iteration did not settle)
-    gd = float(gdop(geo.los[~frac]))
+    gd = rows.dop(geo.los, full_idx)
     beta = cfg.beta
     if not beta:
         t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
-        settled = "" if converged else f" (no convergence after {it} iterations)"
-        return _Decline(
-            f"GDOP gate failed: GDOP_full {gd:.1f} >= beta {beta:.0f}{settled}", "gdop_gate", gd, it
-        )
+        variant = "" if converged else "unsettled"
+        why = reason(Decline.GDOP_GATE, variant, gdop=gd, beta=beta, iterations=it)
+        return _Decline(why, Decline.GDOP_GATE, gd, it)
     if not converged:
-        return _Decline(f"no convergence after {it} iterations", "no_convergence", gd, it)
+        why = reason(Decline.NO_CONVERGENCE, iterations=it)
+        return _Decline(why, Decline.NO_CONVERGENCE, gd, it)
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
     state = _fixed_iterations(rows, ctx, _State(x, b, n_int, geo, it), None, False)
@@ -495,18 +526,18 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     def declined(d: _Decline) -> _Attempt:
         fix = base(
             reason=d.reason,
-            reason_code=d.code,
+            reason_code=d.code.value,
             gdop_full=d.gdop_full,
             iterations=d.iterations,
         )
         return _Attempt(fix, rows, np.zeros(0, dtype=int))
 
-    if n_full < 4:
+    need = rows.layout.n_params
+    if n_full < need:
         return declined(
             _Decline(
-                f"too few full measurements: {n_full} full, {n_frac} fractional "
-                "(need at least 4 full)",
-                "too_few_full",
+                reason(Decline.TOO_FEW_FULL, n_full=n_full, n_frac=n_frac, need=need),
+                Decline.TOO_FEW_FULL,
             )
         )
     if cfg.x0_ecef_m is not None and not n_frac:
@@ -514,7 +545,8 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         # same solution as from the Earth's centre, see SolverConfig.x0_ecef_m)
         x = np.array(cfg.x0_ecef_m, dtype=float)
         n0 = np.zeros(len(rows.prn))
-        state = _State(x, 0.0, n0, _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n0))
+        b0 = np.zeros(rows.layout.n_clocks)
+        state = _State(x, b0, n0, _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n0))
     else:
         first = _phase1(rows, ctx, start)
         if isinstance(first, _Decline):
@@ -532,12 +564,12 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     kept = rows if len(keep) == len(rows.prn) else rows.take(keep)
     kfrac = kept.frac
     n_full_k = int((~kfrac).sum())
-    if n_full_k < 4:
+    if n_full_k < kept.layout.n_params:
         return declined(
             _Decline(
-                f"too few full measurements above the {cfg.elmask_deg:g} deg mask: {n_full_k}",
-                "too_few_full",
-                float(gdop(state.geo.los[~frac])) if n_frac else None,
+                reason(Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=n_full_k),
+                Decline.TOO_FEW_FULL,
+                rows.dop(state.geo.los, np.flatnonzero(~frac)) if n_frac else None,
                 state.iterations,
             )
         )
@@ -546,14 +578,14 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     state = _fixed_iterations(
         kept,
         ctx,
-        _State(state.x, state.b, state.n_int[keep], geo, state.iterations),
+        _State(state.x, _clocks_for(state.b, rows, kept), state.n_int[keep], geo, state.iterations),
         model,
         meaningful,
         loc0 if kept is rows else None,  # a subset's angles are computed on their own
     )
     x, b, it = state.x, state.b, state.iterations
-    if not (np.all(np.isfinite(x)) and np.isfinite(b)):
-        return declined(_Decline("solution diverged", "diverged", iterations=it))
+    if not (np.isfinite(x).all() and np.isfinite(b).all()):
+        return declined(_Decline(reason(Decline.DIVERGED), Decline.DIVERGED, iterations=it))
 
     # ---- judge the solution -----------------------------------------------------------------
     geo = state.geo
@@ -561,14 +593,14 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     iono_m, tropo_m = (
         _delays(loc, ctx.bdt_sow_s, model, cfg, kept.eph.carrier_hz) if meaningful else (None, None)
     )
-    corr = _total(iono_m, tropo_m, len(kept.prn))
-    v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - b - corr
+    corr = total_delay(iono_m, tropo_m)
+    v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - kept.clocks(b) - corr
     sigma = _sigma_m(kept, loc, iono_m, tropo_m, cfg, meaningful)
-    a = _design(geo.los)
+    a = kept.design(geo.los)
     rot = enu_rotation(loc.lat_rad, loc.lon_rad)
-    integ = assess(a, v, sigma, rot, cfg.p_fa, cfg.p_md)
+    integ = assess(a, v, sigma, rot, cfg.p_fa, cfg.p_md, kept.layout)
     resid_rms = float(np.sqrt(np.mean(v**2)))
-    gd_final = float(gdop(geo.los[~kfrac]))
+    gd_final = kept.dop(geo.los, np.flatnonzero(~kfrac))
     frac_idx = np.flatnonzero(kfrac)
     ambiguity = {kept.prn[i]: int(state.n_int[i]) for i in frac_idx}
     gdop_full = gd_final if ctx.solver == "fast" else None
@@ -587,25 +619,27 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
 
     if integ.chi2 is not None and not integ.passed:
         worst = int(np.nanargmax(np.abs(integ.w))) if np.any(np.isfinite(integ.w)) else 0
-        reason = (
-            f"chi-square test failed: {integ.chi2:.1f} > {integ.chi2_max:.1f} "
-            f"(redundancy {integ.redundancy}; largest w-test {kept.prn[worst]} "
-            f"{integ.w[worst]:.1f})"
+        why = reason(
+            Decline.CHI2,
+            chi2=integ.chi2,
+            chi2_max=integ.chi2_max,
+            redundancy=integ.redundancy,
+            prn=kept.prn[worst],
+            w=integ.w[worst],
         )
-        fix = judged(reason=reason, reason_code="chi2", ambiguity=ambiguity)
+        fix = judged(reason=why, reason_code=Decline.CHI2.value, ambiguity=ambiguity)
         return _Attempt(fix, rows, keep, integ, x)
     lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
-    if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b) > cfg.clock_max_s * C_M_S:
-        reason = (
-            f"implausible solution: altitude {loc.alt_m:.4g} m (allowed {cfg.alt_min_m:g} to "
-            f"{cfg.alt_max_m:g}), receiver clock {b / C_M_S:.4g} s (allowed +-{cfg.clock_max_s:g})"
-        )
-        return _Attempt(judged(reason=reason, reason_code="implausible"), rows, keep, integ, x)
-    q_enu = rot @ np.linalg.inv(a.T @ a)[:3, :3] @ rot.T
+    b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
+    if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b_max) > cfg.clock_max_s * C_M_S:
+        why = implausible_reason(loc.alt_m, b_max, cfg)
+        fix = judged(reason=why, reason_code=Decline.IMPLAUSIBLE.value)
+        return _Attempt(fix, rows, keep, integ, x)
+    q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
     pdop = float(np.sqrt(np.trace(q_enu)))
     if not pdop <= cfg.pdop_max:
-        reason = f"PDOP gate failed: PDOP {pdop:.1f} > {cfg.pdop_max:g}"
-        fix = judged(pdop=None, reason=reason, reason_code="pdop_gate")
+        why = reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
+        fix = judged(pdop=None, reason=why, reason_code=Decline.PDOP_GATE.value)
         return _Attempt(fix, rows, keep, integ, x)
     cov = integ.cov_enu_m2
     cov_rows = cov.tolist()  # the same floats as element by element
@@ -625,7 +659,12 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         lat_deg=lat_deg,
         lon_deg=lon_deg,
         alt_m=loc.alt_m,
-        clock_bias_m=float(b),
+        clock_bias_m=float(b[0]),
+        clocks_m=(
+            {s.value: float(c) for s, c in zip(kept.layout.systems, b, strict=True)}
+            if kept.layout.n_clocks > 1
+            else {}
+        ),
         pdop=pdop,
         hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
         vdop=float(np.sqrt(q_enu[2, 2])),
@@ -642,6 +681,27 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
         },
     )
     return _Attempt(fix, rows, keep, integ, x)
+
+
+def implausible_reason(alt_m: float, clock_m: float, cfg: SolverConfig) -> str:
+    """The reason of a solution outside the plausible shell (altitude, receiver clock)."""
+    return reason(
+        Decline.IMPLAUSIBLE,
+        alt_m=alt_m,
+        alt_min_m=cfg.alt_min_m,
+        alt_max_m=cfg.alt_max_m,
+        clock_s=clock_m / C_M_S,
+        clock_max_s=cfg.clock_max_s,
+    )
+
+
+def _clocks_for(b: np.ndarray, rows: _Rows, kept: _Rows) -> np.ndarray:
+    """The clocks ``b`` of ``rows``' layout for the subset ``kept`` (a system the subset
+    no longer has loses its clock)."""
+    if kept.layout is rows.layout:
+        return b
+    where = {s: k for k, s in enumerate(rows.layout.systems)}
+    return np.array([b[where[s]] for s in kept.layout.systems])
 
 
 def _std(cov: list[list[float]], k: int) -> float:
@@ -666,9 +726,7 @@ def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
         gross = full & ~(dev <= GROSS_SPREAD_M)
         if gross.any():
             for i in np.flatnonzero(gross):
-                excluded[rows.prn[i]] = (
-                    f"pseudorange {dev[i] / 1e3:.4g} km from the epoch's median: impossible"
-                )
+                excluded[rows.prn[i]] = excluded_why("gross", dev_km=dev[i] / 1e3)
             rows = rows.take(np.flatnonzero(~gross))
     att = _attempt(rows, ctx)
     if att.failed_test and ctx.cfg.max_exclusions > 0:
@@ -701,10 +759,7 @@ def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]
         start = _warm_start(current)
         for k, i in enumerate(current.kept):
             prn = current.rows.prn[int(i)]
-            why = (
-                f"chi-square test failed ({integ.chi2:.1f} > {integ.chi2_max:.1f}), "
-                f"w-test {integ.w[k]:.1f}"
-            )
+            why = excluded_why("chi2", chi2=integ.chi2, chi2_max=integ.chi2_max, w=integ.w[k])
             cand = _attempt(current.rows.take(np.delete(every, int(i))), ctx, start)
             ci = cand.integrity
             ratio = (
@@ -724,12 +779,7 @@ def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]
             break
         _, current, prn, why = failing
         removed[prn] = why
-    fix = replace(
-        failed.fix,
-        reason=(
-            f"{failed.fix.reason}; no exclusion of up to {ctx.cfg.max_exclusions} satellites passes"
-        ),
-    )
+    fix = replace(failed.fix, reason=no_exclusion(failed.fix, ctx.cfg.max_exclusions))
     return replace(failed, fix=fix), {}
 
 
@@ -826,22 +876,51 @@ def _delays(
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Ionospheric (on each row's ``carrier_hz``) and tropospheric delays [m] for the rows at
     this iterate (None: not applied)."""
+    return delays(
+        loc.lat_rad, loc.lon_rad, loc.alt_m, loc.el_rad, loc.az_rad, bdt_sow, carrier_hz, model, cfg
+    )
+
+
+def delays(
+    lat_rad: float | np.ndarray,
+    lon_rad: float | np.ndarray,
+    alt_m: float | np.ndarray,
+    el_rad: np.ndarray,
+    az_rad: np.ndarray,
+    bdt_sow_s: float | np.ndarray,
+    carrier_hz: np.ndarray,
+    model: KlobucharParams | None,
+    cfg: SolverConfig,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Ionospheric (Klobuchar: BDS ICD 5.2.4.7, or GPS IS-GPS-200 20.3.3.5.2.5, scaled to
+    each row's ``carrier_hz``) and tropospheric (Saastamoinen) delays [m] per row; None:
+    not applied. One epoch (receiver figures are floats, rows (n,)) or a batch (figures (e,), rows (e, s)). The
+    ionosphere applies only below 100 km: above, None for one epoch, NaN for that epoch's
+    rows in a batch (the error model then counts the whole delay as error)."""
+    batch = np.ndim(alt_m) > 0
+    if batch:  # receivers (e,) against rows (e, s)
+        lat_rad, lon_rad = np.asarray(lat_rad)[:, None], np.asarray(lon_rad)[:, None]
+        alt_m, bdt_sow_s = np.asarray(alt_m)[:, None], np.asarray(bdt_sow_s)[:, None]
     iono = None
-    if model is not None and loc.alt_m < 100e3:
-        lat, lon, el, az = loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad
+    if model is not None and (batch or alt_m < 100e3):
         if model.system == "BDS":
-            iono = klobuchar_bds_m(model, lat, lon, el, az, bdt_sow, carrier_hz)
+            iono = klobuchar_bds_m(model, lat_rad, lon_rad, el_rad, az_rad, bdt_sow_s, carrier_hz)
         else:
-            gpst_tow = bdt_sow + BDT_GPST_OFFSET_S
-            iono = klobuchar_gps_m(model, lat, lon, el, az, gpst_tow, carrier_hz)
-    tropo = saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad) if cfg.tropo != "off" else None
+            gpst_tow = bdt_sow_s + BDT_GPST_OFFSET_S
+            iono = klobuchar_gps_m(model, lat_rad, lon_rad, el_rad, az_rad, gpst_tow, carrier_hz)
+        if batch:
+            iono = np.where(alt_m < 100e3, iono, np.nan)
+    tropo = saastamoinen_m(lat_rad, alt_m, el_rad) if cfg.tropo != "off" else None
     return iono, tropo
 
 
-def _total(iono_m: np.ndarray | None, tropo_m: np.ndarray | None, n: int) -> np.ndarray:
-    out = np.zeros(n)
+def total_delay(iono_m: np.ndarray | None, tropo_m: np.ndarray | None) -> np.ndarray | float:
+    """The delays to take from the measured ranges: ionosphere (NaN: not modelled, 0) plus
+    troposphere (None: not applied)."""
+    out: np.ndarray | float = 0.0
     if iono_m is not None:
-        out = out + iono_m
+        # NaN (a batch's epoch above 100 km): no model there, nothing to take
+        out = out + (iono_m if iono_m.ndim == 1 else np.where(np.isfinite(iono_m), iono_m, 0.0))
     if tropo_m is not None:
         out = out + tropo_m
     return out
@@ -863,21 +942,21 @@ def _fixed_iterations(
     x, b, geo, n_int = state.x, state.b, state.geo, state.n_int
     it = 0
     for it in range(1, cfg.max_iter + 1):
-        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - b
+        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - rows.clocks(b)
         w = None
         if meaningful:
             loc = loc0 if loc0 is not None and it == 1 else _local(x, geo.sat_ecef_m)
             iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg, rows.eph.carrier_hz)
-            dz = dz - _total(iono_m, tropo_m, len(dz))
+            dz = dz - total_delay(iono_m, tropo_m)
             if cfg.weighted:
                 w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
-        step = _lsq(_design(geo.los), dz, w)
+        step = _lsq(rows.design(geo.los), dz, w)
         x = x + step[:3]
-        b += float(step[3])
-        if not (np.all(np.isfinite(x)) and np.isfinite(b)):
+        b = b + step[3:]
+        if not (np.isfinite(x).all() and np.isfinite(b).all()):
             break
         geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
-        if np.linalg.norm(step) < cfg.conv_m:
+        if _norm(step) < cfg.conv_m:
             break
     return _State(x, b, n_int, geo, state.iterations + it)
 
@@ -936,32 +1015,42 @@ def select_rows(
     ii = np.asarray(idx)
     z = np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii])
     ct = np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii])
+    prn = tuple(epoch.prn[i] for i in idx)
+    layout = layout_of(prn)
     rows = _Rows(
-        prn=tuple(epoch.prn[i] for i in idx),
+        prn=prn,
         z_m=z,
         ct_m=ct,
         cn0_dbhz=epoch.cn0_dbhz[ii],
         eph=store.arrays(ephs),
+        layout=layout,
+        clk=layout.clock_index(prn),
     )
     return rows, missing
 
 
 def declined(
     epoch: MeasurementEpoch,
-    code: str,
-    reason: str,
+    code: Decline,
+    why: str,
     solver: Literal["fast", "spp"] = "fast",
 ) -> Fix:
-    """A declined fix for ``epoch`` (``mode="none"``) with ``reason`` and ``code`` (one of
-    :data:`REASONS`)."""
+    """A declined fix for ``epoch`` (``mode="none"``) with reason ``why`` (from
+    :func:`service.engine.declines.reason`) and ``code``."""
     return Fix(
         solver=solver,
         mode="none",
         gpst_week=epoch.gpst_week,
         gpst_tow_s=epoch.gpst_tow_s,
-        reason=reason,
-        reason_code=code,
+        reason=why,
+        reason_code=code.value,
     )
+
+
+def no_exclusion(fix: Fix, max_exclusions: int) -> str:
+    """The reason of a failed test that no exclusion of up to ``max_exclusions`` satellites
+    resolves (``fix``: the failed solution's decline)."""
+    return reason(Decline.CHI2, "no_exclusion", reason=fix.reason, max_exclusions=max_exclusions)
 
 
 def solve(
@@ -977,16 +1066,17 @@ def solve(
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
     if not epoch.week_known:
-        return declined(epoch, "no_time", NO_TIME_REASON, solver)
+        return declined(epoch, Decline.NO_TIME, reason(Decline.NO_TIME), solver)
     with np.errstate(all="ignore"):
         try:
             rows, missing = select_rows(epoch, store, solver)
             if rows is None:
                 if missing:
-                    why = f"no usable ephemeris for {', '.join(missing)}"
-                    code = "no_ephemeris"
+                    code = Decline.NO_EPHEMERIS
+                    why = reason(code, prns=", ".join(missing))
                 else:
-                    why, code = "no measurements", "no_measurements"
+                    code = Decline.NO_MEASUREMENTS
+                    why = reason(code)
                 return declined(epoch, code, why, solver)
             bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
             ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
@@ -997,8 +1087,8 @@ def solve(
             log.debug(
                 "solver failure at GPST %d %.3f", epoch.gpst_week, epoch.gpst_tow_s, exc_info=True
             )
-            why = f"numerical failure in the solver: {type(exc).__name__}: {exc}"
-            return declined(epoch, "numerical", why, solver)
+            why = reason(Decline.NUMERICAL, error=type(exc).__name__, message=exc)
+            return declined(epoch, Decline.NUMERICAL, why, solver)
     return fix
 
 

@@ -24,7 +24,7 @@ Field rules, common to all classes:
   (the fast solver, also on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
   eq. (13)} when not empty, which is the fast solver's fractional satellites (also on a
   fast fix declined by the chi-square test, for diagnosis); ``reason`` (and a
-  ``reason_code``, one of :data:`service.engine.solver.REASONS`) exactly when ``mode`` is
+  ``reason_code``, one of :class:`service.engine.declines.Decline`) exactly when ``mode`` is
   ``none`` (a declined fix has no position fields).
   Integrity (:mod:`service.engine.raim`): ``redundancy`` (used satellites - 4) once a solution
   was judged, with ``chi2`` and its threshold ``chi2_max`` when it is >= 1; on a fix,

@@ -45,7 +45,8 @@ from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem
 from service.core.timebase import bdt_to_gpst
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
-from service.engine.solver import IonoSet, SolverConfig, solve
+from service.engine.batch import solve_many
+from service.engine.solver import IonoSet, SolverConfig
 from service.sim.simulator import SimConfig, Simulator
 
 PERIOD_S = SYSTEM_CONSTANTS[GnssSystem.BDS].code_period_s
@@ -211,6 +212,7 @@ def run_trials(
     rng = np.random.default_rng(seed)
     out = {f"{s} {k}": Tally() for s in ("fast", "spp") for k in ("single", "dual")}
     names = sorted(PLACES)
+    trials: dict[Literal["fast", "spp"], list[tuple]] = {"fast": [], "spp": []}
     for k in range(n):
         place = names[int(rng.integers(len(names)))]
         lat, lon = PLACES[place]
@@ -249,18 +251,22 @@ def run_trials(
             ("spp", np.ones(len(prn), dtype=bool)),
         )
         for solver, full in views:
-            clean = solve(_view(prn, pr_true, full, week_tag, tow_tag), store, ionoset, cfg, solver)
-            fix = solve(_view(prn, pr, full, week_tag, tow_tag), store, ionoset, cfg, solver)
+            trials[solver].append(
+                (
+                    _view(prn, pr_true, full, week_tag, tow_tag),
+                    _view(prn, pr, full, week_tag, tow_tag),
+                    (kind, ep.truth_x_ecef_m, faulty, mags, pr_true, np.mod(pr, CT_M), prn),
+                    f"trial {k} {place} {solver}",
+                )
+            )
+    # every trial's clean and faulted epochs solved in batches by the one engine
+    for solver, items in trials.items():
+        cleans = solve_many([t[0] for t in items], store, ionoset, cfg, solver)
+        fixes = solve_many([t[1] for t in items], store, ionoset, cfg, solver)
+        for (_, _, (kind_, truth, faulty_, mags_, true_, z, prn_), label), clean, fix in zip(
+            items, cleans, fixes, strict=True
+        ):
             _judge(
-                out[f"{solver} {kind}"],
-                clean,
-                fix,
-                ep.truth_x_ecef_m,
-                faulty,
-                mags,
-                pr_true,
-                np.mod(pr, CT_M),
-                prn,
-                f"trial {k} {place} {solver}",
+                out[f"{solver} {kind_}"], clean, fix, truth, faulty_, mags_, true_, z, prn_, label
             )
     return out

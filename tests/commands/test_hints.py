@@ -12,7 +12,8 @@ import sys
 import pytest
 
 from service.commands.cli import build_parser
-from service.commands.summary import HINTS, hint_for, no_epochs_hint
+from service.commands.summary import no_epochs_hint
+from service.engine.declines import Decline, hint
 from tests.support.paths import ROOT
 
 HANG_S = 120.0
@@ -28,7 +29,7 @@ def _options(command: str) -> set[str]:
 def test_every_hint_names_only_the_commands_own_flags(command):
     options = _options(command)
     texts = [no_epochs_hint(command), no_epochs_hint(command, {"source_open_failures": 3})]
-    texts += [hint_for(code, command) or "" for code in HINTS]
+    texts += [hint(code, command) or "" for code in Decline]
     for text in texts:
         # a flag of another command is named with that command ('bdsfix replay ... --x')
         own = re.sub(r"'bdsfix \w+[^']*'", "", text)

@@ -29,7 +29,8 @@ from service.core.bds import is_geo
 from service.core.constants import C_M_S
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.solver import fractionalize, solve
+from service.engine.batch import solve_many
+from service.engine.solver import fractionalize
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA, ROOT
 
@@ -42,10 +43,8 @@ MAGNITUDES_M = (30.0, 100.0, 300.0, 1e3, 3e3, 150e3, MS_M)
 def hksc():
     store, iono = load_navigation([str(HK / "hksc1610.nav")])
     epochs = list(RinexObsReader(HK / "hksc1610.obs"))
-    clean = [
-        (solve(fractionalize(ep), store, iono, solver="fast"), solve(ep, store, iono, solver="spp"))
-        for ep in epochs
-    ]
+    fast = solve_many([fractionalize(ep) for ep in epochs], store, iono, solver="fast")
+    clean = list(zip(fast, solve_many(epochs, store, iono, solver="spp"), strict=True))
     return store, iono, epochs, clean
 
 
@@ -82,24 +81,22 @@ def test_clean_run_is_unchanged_by_integrity(hksc):
 
 
 def _run(hksc, faults_of):
-    """Solve every faulted epoch (k % 4 == 0) with both solvers; the published fixes are
-    checked against the clean SPP and returned with the faults."""
+    """Solve every faulted epoch (k % 4 == 0) with both solvers (in one batch each); the
+    published fixes are checked against the clean SPP and returned with the faults."""
     store, iono, epochs, clean = hksc
+    ks = range(0, len(epochs), 4)
+    faults = [faults_of(epochs[k], k) for k in ks]
+    bad = [_faulted(epochs[k], f) for k, f in zip(ks, faults, strict=True)]
+    fast = solve_many([fractionalize(b) for b in bad], store, iono, solver="fast")
+    spp = solve_many(bad, store, iono, solver="spp")
     out = []
-    for k, ep in enumerate(epochs):
-        if k % 4:
-            continue
-        faults = faults_of(ep, k)
-        bad = _faulted(ep, faults)
+    for k, faults_k, pair in zip(ks, faults, zip(fast, spp, strict=True), strict=True):
         ref = clean[k][1]
-        for fix in (
-            solve(fractionalize(bad), store, iono, solver="fast"),
-            solve(bad, store, iono, solver="spp"),
-        ):
+        for fix in pair:
             if fix.ok:
                 h, v, _ = _offset(fix, ref)
-                assert h <= fix.hpl_m and v <= fix.vpl_m, (k, faults, fix.solver, h, v, fix)
-            out.append((k, faults, fix))
+                assert h <= fix.hpl_m and v <= fix.vpl_m, (k, faults_k, fix.solver, h, v, fix)
+            out.append((k, faults_k, fix))
     return out
 
 

@@ -19,8 +19,8 @@ from service.commands.solve import load_navigation
 from service.core.ephemeris import EphemerisStore
 from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 from service.daemon.loop import Runner
+from service.engine.declines import DECLINES, Decline
 from service.engine.pipeline import EpochResult, Pipeline
-from service.engine.solver import REASONS
 from service.output.nmea import fix_utc, sentences_for_fix
 from service.output.records import SCHEMAS, fix_record
 from tests.support.paths import DATA
@@ -44,7 +44,7 @@ def test_epochs_without_a_week_are_declined_no_time_and_change_nothing():
     results = [pipe.on_epoch(e) for e in [*blind, *epochs[5:]]]
     assert [r.fix.reason_code for r in results[:5]] == ["no_time"] * 5
     assert pipe.counters["declined_no_time"] == 5 and pipe.counters["epochs"] == 205
-    assert REASONS["no_time"]
+    assert DECLINES[Decline.NO_TIME].label
     for r, e in zip(results[:5], epochs, strict=False):
         assert not r.fix.ok and r.since_start_s is None and not r.track
         rec = fix_record(r.fix, r.since_start_s)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import pytest
 
 from service.commands.cli import main
-from service.commands.summary import HINTS, hint_for
+from service.engine.declines import Decline, hint
 from tests.support.paths import DATA, GOLDEN
 from tests.system.test_replay_golden import CASES as REPLAY_CASES
 
@@ -169,7 +169,7 @@ def test_run_on_a_capture_ends_with_the_replay_summary(name, request, capsys, tm
     summary = _block(capsys.readouterr().err, "run")
     _check(request, GOLDEN / f"run-{name}.summary", summary)
     replayed = (GOLDEN / f"{name}.summary").read_text().splitlines()
-    own = {f"  hint: {HINTS[c]}": f"  hint: {hint_for(c, 'run')}" for c in HINTS}
+    own = {f"  hint: {hint(c)}": f"  hint: {hint(c, 'run')}" for c in Decline if hint(c)}
     want = [replayed[0].replace("replay", "run", 1), *(own.get(x, x) for x in replayed[1:])]
     assert summary.splitlines() == want
     assert "give --gps-week" not in summary

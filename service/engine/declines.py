@@ -1,0 +1,170 @@
+"""A decline is a value: its code, and the one table of the words users see for it.
+
+Every epoch the engine does not fix comes back as a :class:`service.core.types.Fix` with
+``mode="none"``, a ``reason_code`` (a :class:`Decline`) and a ``reason`` made from that
+code's template here. The summaries of ``replay``, ``run`` and ``solve`` name each code by
+its label and give its hint, from the same table; so do the reasons fault exclusion gives
+for a satellite it removed (:data:`EXCLUSIONS`). No other module writes these words
+(tests/engine/test_declines.py reads the table and checks the summaries use it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+
+class Decline(StrEnum):
+    """Why an epoch has no fix (``Fix.reason_code``, the ``declined_<code>`` counters)."""
+
+    NO_MEASUREMENTS = "no_measurements"
+    NO_EPHEMERIS = "no_ephemeris"
+    TOO_FEW_FULL = "too_few_full"
+    SINGULAR = "singular"
+    NO_CONVERGENCE = "no_convergence"
+    GDOP_GATE = "gdop_gate"
+    DIVERGED = "diverged"
+    CHI2 = "chi2"
+    IMPLAUSIBLE = "implausible"
+    PDOP_GATE = "pdop_gate"
+    NUMERICAL = "numerical"
+    NO_TIME = "no_time"
+    OUT_OF_ORDER = "out_of_order"
+
+
+@dataclass(frozen=True, slots=True)
+class DeclineText:
+    """The words of one decline code: ``label`` names it in the summaries, ``templates``
+    make the record's ``reason`` (``str.format`` fields; ``""`` is the usual one, other keys
+    name a variant), ``hint`` tells the user what to do about it (None: nothing to say),
+    ``command_hints`` the hint where a command's own flags differ from replay's (``run`` has
+    no ``--gps-week``; ``solve`` takes its nav file as an argument)."""
+
+    label: str
+    templates: dict[str, str] = field(default_factory=dict)
+    hint: str | None = None
+    command_hints: dict[str, str] = field(default_factory=dict)
+
+
+DECLINES: dict[Decline, DeclineText] = {
+    Decline.NO_MEASUREMENTS: DeclineText(
+        "no measurements",
+        {"": "no measurements"},
+        "the input has no BDS B1I pseudoranges",
+    ),
+    Decline.NO_EPHEMERIS: DeclineText(
+        "no usable ephemeris",
+        {"": "no usable ephemeris for {prns}"},
+        "give the satellites' ephemerides: a RINEX 3 nav file of the same day "
+        "(replay/run --nav NAV, solve's NAV argument), or a capture that carries them (UBX "
+        "RXM-SFRBX, RTCM 1042)",
+        {
+            "solve": "give the satellites' ephemerides: a RINEX 3 nav file of the same "
+            "day as the obs file (the NAV argument)",
+        },
+    ),
+    Decline.TOO_FEW_FULL: DeclineText(
+        "too few full measurements",
+        {
+            "": "too few full measurements: {n_full} full, {n_frac} fractional "
+            "(need at least {need} full)",
+            "mask": "too few full measurements above the {mask_deg:g} deg mask: {n_full}",
+        },
+        "fewer than 4 full pseudoranges: the fast fix needs 4 GEOs in view, SPP waits for "
+        "each satellite's SOW",
+    ),
+    Decline.SINGULAR: DeclineText(
+        "singular geometry", {"": "singular geometry in the fast-fix iteration"}
+    ),
+    Decline.NO_CONVERGENCE: DeclineText(
+        "no convergence", {"": "no convergence after {iterations} iterations"}
+    ),
+    Decline.GDOP_GATE: DeclineText(
+        "GEO-GDOP gate",
+        {
+            "": "GDOP gate failed: GDOP_full {gdop:.1f} >= beta {beta:.0f}",
+            "unsettled": "GDOP gate failed: GDOP_full {gdop:.1f} >= beta {beta:.0f} "
+            "(no convergence after {iterations} iterations)",
+        },
+        "GEO geometry too poor for the integer search (the paper's GDOP gate)",
+    ),
+    Decline.DIVERGED: DeclineText("solution diverged", {"": "solution diverged"}),
+    Decline.CHI2: DeclineText(
+        "chi-square test failed, no exclusion passes",
+        {
+            "": "chi-square test failed: {chi2:.1f} > {chi2_max:.1f} (redundancy "
+            "{redundancy}; largest w-test {prn} {w:.1f})",
+            "no_exclusion": "{reason}; no exclusion of up to {max_exclusions} satellites passes",
+        },
+        "inconsistent pseudoranges that fault exclusion could not resolve",
+    ),
+    Decline.IMPLAUSIBLE: DeclineText(
+        "implausible solution",
+        {
+            "": "implausible solution: altitude {alt_m:.4g} m (allowed {alt_min_m:g} to "
+            "{alt_max_m:g}), receiver clock {clock_s:.4g} s (allowed +-{clock_max_s:g})"
+        },
+    ),
+    Decline.PDOP_GATE: DeclineText(
+        "PDOP gate",
+        {"": "PDOP gate failed: PDOP {pdop:.1f} > {pdop_max:g}"},
+        "poor geometry (PDOP above --pdop-max)",
+    ),
+    Decline.NUMERICAL: DeclineText(
+        "numerical failure", {"": "numerical failure in the solver: {error}: {message}"}
+    ),
+    Decline.NO_TIME: DeclineText(
+        "time unknown (no GPS week yet)",
+        {"": "GPS week not known yet: the source gave only the time of week"},
+        "the GPS week is not known yet: give --gps-week N (RTCM without ephemerides)",
+        {
+            # run has no --gps-week: a live stream takes the week from the system clock
+            "run": "the GPS week is not known yet: a live stream takes it from the system "
+            "clock until the receiver's time tag or ephemerides give it; a capture file has "
+            "no clock: 'bdsfix replay FILE --gps-week N'",
+            "solve": "the obs file's epochs carry no GPS time: check its header and epoch lines",
+        },
+    ),
+    Decline.OUT_OF_ORDER: DeclineText(
+        "epoch not after the previous one",
+        {"": "epoch {what} the previous one (GPST {week} {tow_s:.3f})"},
+    ),
+}
+"""The one table of decline words: label, reason templates and hint per code."""
+
+
+def reason(code: Decline, variant: str = "", **fields: object) -> str:
+    """The record's ``reason`` for ``code``: its template (``variant``) filled with
+    ``fields``."""
+    return DECLINES[code].templates[variant].format(**fields)
+
+
+def label(code: str) -> str:
+    """The summaries' name of a decline code (the code itself when it is not one)."""
+    try:
+        return DECLINES[Decline(code)].label
+    except ValueError:
+        return code
+
+
+def hint(code: str, command: str = "replay") -> str | None:
+    """What the user of ``command`` can do about a decline code, naming only that command's
+    own flags (None: no hint)."""
+    try:
+        text = DECLINES[Decline(code)]
+    except ValueError:
+        return None
+    return text.command_hints.get(command, text.hint)
+
+
+EXCLUSIONS: dict[str, str] = {
+    "gross": "pseudorange {dev_km:.4g} km from the epoch's median: impossible",
+    "chi2": "chi-square test failed ({chi2:.1f} > {chi2_max:.1f}), w-test {w:.1f}",
+}
+"""Why fault exclusion removed a satellite (``Fix.excluded``): an impossible range, or the
+failed test and the satellite's w-test."""
+
+
+def excluded_why(kind: str, **fields: object) -> str:
+    """The reason a satellite was excluded (:data:`EXCLUSIONS`)."""
+    return EXCLUSIONS[kind].format(**fields)

@@ -1,0 +1,43 @@
+"""Small dense linear algebra for the solver's hot path: numpy's own LAPACK gufuncs (the ones
+``numpy.linalg.solve``, ``inv`` and ``eigvalsh`` call), called directly.
+
+An epoch solves about nine 4x4 systems, inverts two matrices and takes two or three
+eigenvalue sets; ``numpy.linalg``'s per-call set-up (type checks, an error-state context)
+costs more than the LAPACK call itself at that size. The same gufunc gives the same bits.
+Where its result is not finite (a singular matrix, no convergence, or non-finite input) the
+call is made again through ``numpy.linalg``, so that errors are raised, and results
+returned, exactly as numpy's public functions give them. The solver runs under
+``np.errstate(all="ignore")``; elsewhere a singular matrix also gives numpy's
+"invalid value" warning before the error.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.linalg import _umath_linalg  # numpy's LAPACK gufuncs (numpy/linalg/_linalg.py)
+
+
+def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.solve(a, b)`` for float64 ``a`` (..., n, n) and ``b`` (n,) or
+    (..., n, k)."""
+    gufunc = _umath_linalg.solve1 if b.ndim == 1 else _umath_linalg.solve
+    x = gufunc(a, b, signature="dd->d")
+    if np.isfinite(x).all():
+        return x
+    return np.linalg.solve(a, b)
+
+
+def inv(a: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.inv(a)`` for float64 ``a`` (..., n, n)."""
+    x = _umath_linalg.inv(a, signature="d->d")
+    if np.isfinite(x).all():
+        return x
+    return np.linalg.inv(a)
+
+
+def eigvalsh(a: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.eigvalsh(a)`` (lower triangle) for float64 symmetric ``a``."""
+    w = _umath_linalg.eigvalsh_lo(a, signature="d->d")
+    if np.isfinite(w).all():
+        return w
+    return np.linalg.eigvalsh(a)

@@ -1,0 +1,116 @@
+"""A decline is a value: one table (service.engine.declines.DECLINES) holds the words of
+every decline code, and the records, the summaries and the hints take them from it.
+
+Read from the table: every reason in the golden records matches its code's template, every
+decline line of the golden summaries names codes by their label, the summary of any code
+gives its label and hint, and no template or hint is written anywhere else in service/.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import string
+from pathlib import Path
+
+import pytest
+
+from service.commands.summary import decline_lines
+from service.engine.declines import DECLINES, EXCLUSIONS, Decline, hint, label, reason
+
+ROOT = Path(__file__).resolve().parents[2]
+GOLDEN = ROOT / "tests" / "golden"
+
+
+def _pattern(template: str) -> re.Pattern[str]:
+    """A regular expression matching what ``template`` formats to (any field values)."""
+    out = []
+    for text, name, _spec, _conv in string.Formatter().parse(template):
+        out.append(re.escape(text))
+        if name is not None:
+            out.append(".+?")
+    return re.compile("".join(out))
+
+
+def test_every_code_has_a_label_and_a_reason():
+    assert set(DECLINES) == set(Decline)
+    for code, text in DECLINES.items():
+        assert text.label and "" in text.templates, code
+        assert label(code.value) == text.label
+        assert hint(code.value) == text.hint
+    assert label("not_a_code") == "not_a_code" and hint("not_a_code") is None
+
+
+def test_reasons_are_formatted_from_the_table():
+    assert reason(Decline.NO_EPHEMERIS, prns="C01, C02") == "no usable ephemeris for C01, C02"
+    assert (
+        reason(Decline.TOO_FEW_FULL, n_full=3, n_frac=7, need=4)
+        == "too few full measurements: 3 full, 7 fractional (need at least 4 full)"
+    )
+    assert (
+        reason(Decline.PDOP_GATE, pdop=12.345, pdop_max=10.0) == "PDOP gate failed: PDOP 12.3 > 10"
+    )
+
+
+def test_golden_records_carry_the_table_words():
+    seen: set[str] = set()
+    n = 0
+    for path in sorted(GOLDEN.glob("*.jsonl")):
+        for line in path.read_text().splitlines():
+            rec = json.loads(line)
+            if rec.get("class") != "FIX" or rec.get("mode") != "none":
+                continue
+            code = Decline(rec["reason_code"])
+            pats = [_pattern(t) for t in DECLINES[code].templates.values()]
+            assert any(p.fullmatch(rec["reason"]) for p in pats), (path.name, rec["reason"])
+            seen.add(code)
+            n += 1
+    assert n > 100 and {Decline.NO_TIME, Decline.NO_EPHEMERIS} <= seen
+
+
+def test_golden_summaries_name_declines_by_their_label():
+    labels = sorted((t.label for t in DECLINES.values()), key=len, reverse=True)
+    one = "(?:" + "|".join(re.escape(x) for x in labels) + r") \d+"
+    declined = re.compile(rf"{one}(?:, {one})*(?:, and \d+ other reasons?)?")
+    hints = {t.hint for t in DECLINES.values() if t.hint}
+    n_lines = n_hints = 0
+    for path in sorted(GOLDEN.glob("*.summary")):
+        for line in path.read_text().splitlines():
+            if "declined: " in line:
+                assert declined.fullmatch(line.split("declined: ", 1)[1]), (path.name, line)
+                n_lines += 1
+            if re.match(r"\s+(?:\w+ solver )?hint: ", line):
+                assert line.split("hint: ", 1)[1] in hints, (path.name, line)
+                n_hints += 1
+    assert n_lines >= 5 and n_hints >= 5
+
+
+@pytest.mark.parametrize("code", list(Decline))
+def test_summary_of_each_code_uses_its_label_and_hint(code):
+    lines = decline_lines({f"declined_{code.value}": 7})
+    assert lines[0] == f"  declined: {DECLINES[code].label} 7"
+    if DECLINES[code].hint is None:
+        assert len(lines) == 1
+    else:
+        assert lines[1] == f"  hint: {DECLINES[code].hint}"
+
+
+def _literal_parts(template: str) -> list[str]:
+    """The fixed text between a template's fields, where long enough to be telling."""
+    return [t for t, *_ in string.Formatter().parse(template) if len(t.strip()) >= 16]
+
+
+def test_no_decline_words_are_written_twice_in_service():
+    texts: list[str] = []
+    for t in DECLINES.values():
+        for tpl in t.templates.values():
+            texts += _literal_parts(tpl)
+        if t.hint:
+            texts.append(t.hint)
+    for tpl in EXCLUSIONS.values():
+        texts += _literal_parts(tpl)
+    table = ROOT / "service" / "engine" / "declines.py"
+    sources = {p: p.read_text() for p in (ROOT / "service").rglob("*.py") if p != table}
+    for text in texts:
+        where = [p.relative_to(ROOT) for p, src in sources.items() if text in src]
+        assert not where, (text, where)

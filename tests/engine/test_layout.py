@@ -1,0 +1,122 @@
+"""The unknowns as data (service.engine.layout): a clock per satellite system.
+
+Rows named for another system ("G06", ...) get a receiver clock of their own: the solver
+recovers an inter-system bias put on them, the redundancy is rows - (3 + clocks), and the
+statistics use it. The other system's rows are physically real: HKSC's own BeiDou MEO/IGSO
+measurements and broadcast orbits, relabelled, with a known bias added to their ranges.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from drivers.rinex import RinexObsReader
+from service.commands.solve import load_navigation
+from service.core.constants import C_M_S, is_geo
+from service.core.ephemeris import EphemerisStore
+from service.core.orbit import EphemerisArrays
+from service.core.systems import GnssSystem
+from service.core.types import Ephemeris, MeasurementEpoch
+from service.engine.layout import BDS_ONLY, Layout, layout_of
+from service.engine.solver import SolverConfig, solve
+from tests.support.independent import HKSC_TRUTH_ECEF_M
+from tests.support.paths import DATA
+
+ISB_M = 123.456
+"""The inter-system bias put on the relabelled rows [m]."""
+
+
+class _Relabelled:
+    """An ephemeris store that answers "G<n>" with BeiDou satellite "C<n>"'s broadcast set
+    under the other name (the solver asks ``select`` and ``arrays`` only)."""
+
+    def __init__(self, store: EphemerisStore) -> None:
+        self.store = store
+
+    def select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
+        e = self.store.select("C" + prn[1:], bdt_week, bdt_sow_s)
+        return None if e is None else replace(e, prn=prn)
+
+    def arrays(self, ephs: list[Ephemeris]) -> EphemerisArrays:
+        return EphemerisArrays.from_ephemerides(ephs)
+
+
+def _relabel(ep: MeasurementEpoch, take: int) -> MeasurementEpoch:
+    """``ep`` with its first ``take`` non-GEO satellites named "G<n>" and ``ISB_M`` added
+    to their pseudoranges."""
+    others = [i for i, p in enumerate(ep.prn) if not is_geo(p)][:take]
+    prn = tuple("G" + p[1:] if i in others else p for i, p in enumerate(ep.prn))
+    pr = ep.pr_m.copy()
+    pr[others] += ISB_M
+    return replace(ep, prn=prn, pr_m=pr, frac_pr_m=np.mod(pr, C_M_S * 1e-3))
+
+
+@pytest.fixture(scope="module")
+def hksc() -> tuple[list[MeasurementEpoch], EphemerisStore, object]:
+    store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
+    return list(RinexObsReader(DATA / "hksc-2021" / "hksc1610.obs"))[::20], store, iono
+
+
+def test_layout_counts_one_clock_per_system():
+    assert layout_of(("C01", "C06")) is BDS_ONLY
+    assert BDS_ONLY.n_params == 4 and BDS_ONLY.redundancy(10) == 6
+    two = layout_of(("G12", "C01", "E03", "C06"))
+    assert two.systems == (GnssSystem.BDS, GnssSystem.GPS, GnssSystem.GAL)
+    assert two.n_params == 6 and two.redundancy(10) == 4
+    assert two.names == ("x", "y", "z", "clock_C", "clock_G", "clock_E")
+    assert list(two.clock_index(("G12", "C01", "E03", "C06"))) == [1, 0, 2, 0]
+    vel = Layout((GnssSystem.BDS,), problem="velocity", coarse_time=False)
+    assert vel.names == ("vx", "vy", "vz", "drift_C") and vel.n_params == 4
+    g = two.design(np.eye(3)[[0, 1, 2, 0]], two.clock_index(("G12", "C01", "E03", "C06")))
+    assert g.shape == (4, 6)
+    assert g[:, 3:].tolist() == [[0, 1, 0], [1, 0, 0], [0, 0, 1], [1, 0, 0]]
+
+
+@pytest.mark.parametrize("take", [3, 5])
+def test_rows_of_another_system_get_their_own_clock(hksc, take):
+    epochs, store, iono = hksc
+    cfg = SolverConfig()
+    for ep in epochs:
+        ref = solve(ep, store, iono, cfg, "spp")
+        mixed = _relabel(ep, take)
+        fix = solve(mixed, _Relabelled(store), iono, cfg, "spp")  # type: ignore[arg-type]
+        assert fix.mode == "spp", fix.reason
+        n_g = sum(p.startswith("G") for p in fix.used)
+        assert n_g == take
+        assert fix.redundancy == len(fix.used) - 5  # x, y, z and two clocks
+        assert set(fix.clocks_m) == {"C", "G"}
+        assert fix.clock_bias_m == fix.clocks_m["C"]
+        # the bias is recovered, and the position is as good as BeiDou alone gives
+        isb = fix.clocks_m["G"] - fix.clocks_m["C"]
+        assert isb == pytest.approx(ISB_M, abs=3.0)
+        err = np.linalg.norm(np.subtract(fix.x_ecef_m, HKSC_TRUTH_ECEF_M))
+        ref_err = np.linalg.norm(np.subtract(ref.x_ecef_m, HKSC_TRUTH_ECEF_M))
+        assert err <= max(2.0 * ref_err, 5.0)
+        assert fix.chi2 is not None and fix.chi2 <= fix.chi2_max
+
+
+def test_one_clock_for_every_system_would_fail_the_test(hksc):
+    """Without its own clock the bias is a fault: the same rows named C fail the chi-square
+    test (or exclusion removes them), which is why the layout gives each system a clock."""
+    epochs, store, iono = hksc
+    ep = epochs[0]
+    biased = _relabel(ep, 3)
+    as_bds = replace(biased, prn=ep.prn)  # the same ranges, all named for BeiDou
+    fix = solve(as_bds, store, iono, SolverConfig(), "spp")
+    assert not fix.ok or fix.excluded
+    mixed = solve(biased, _Relabelled(store), iono, SolverConfig(), "spp")  # type: ignore[arg-type]
+    assert mixed.ok and not mixed.excluded
+
+
+def test_batch_gives_the_mixed_epochs_the_same_clocks(hksc):
+    from service.engine.batch import solve_many
+
+    epochs, store, iono = hksc
+    mixed = [_relabel(ep, 4) for ep in epochs]
+    one = [solve(ep, _Relabelled(store), iono, solver="spp") for ep in mixed]  # type: ignore[arg-type]
+    many = solve_many(mixed, _Relabelled(store), iono, solver="spp")  # type: ignore[arg-type]
+    for a, b in zip(one, many, strict=True):
+        assert a.clocks_m == b.clocks_m and a.x_ecef_m == b.x_ecef_m
