@@ -894,9 +894,10 @@ def delays(
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Ionospheric (Klobuchar: BDS ICD 5.2.4.7, or GPS IS-GPS-200 20.3.3.5.2.5, scaled to
     each row's ``carrier_hz``) and tropospheric (Saastamoinen) delays [m] per row; None:
-    not applied. One epoch (receiver figures are floats, rows (n,)) or a batch (figures (e,), rows (e, s)). The
-    ionosphere applies only below 100 km: above, None for one epoch, NaN for that epoch's
-    rows in a batch (the error model then counts the whole delay as error)."""
+    not applied. One epoch (receiver figures are floats, rows (n,)) or a batch (figures
+    (e,), rows (e, s)). The ionosphere applies only below 100 km: above, None for one epoch,
+    NaN for that epoch's rows in a batch (the error model then counts the whole delay as
+    error)."""
     batch = np.ndim(alt_m) > 0
     if batch:  # receivers (e,) against rows (e, s)
         lat_rad, lon_rad = np.asarray(lat_rad)[:, None], np.asarray(lon_rad)[:, None]

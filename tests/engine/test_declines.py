@@ -73,6 +73,7 @@ def test_golden_summaries_name_declines_by_their_label():
     one = "(?:" + "|".join(re.escape(x) for x in labels) + r") \d+"
     declined = re.compile(rf"{one}(?:, {one})*(?:, and \d+ other reasons?)?")
     hints = {t.hint for t in DECLINES.values() if t.hint}
+    hints |= {h for t in DECLINES.values() for h in t.command_hints.values()}
     n_lines = n_hints = 0
     for path in sorted(GOLDEN.glob("*.summary")):
         for line in path.read_text().splitlines():
@@ -107,6 +108,7 @@ def test_no_decline_words_are_written_twice_in_service():
             texts += _literal_parts(tpl)
         if t.hint:
             texts.append(t.hint)
+        texts += t.command_hints.values()
     for tpl in EXCLUSIONS.values():
         texts += _literal_parts(tpl)
     table = ROOT / "service" / "engine" / "declines.py"

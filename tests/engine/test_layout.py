@@ -15,7 +15,8 @@ import pytest
 
 from drivers.rinex import RinexObsReader
 from service.commands.solve import load_navigation
-from service.core.constants import C_M_S, is_geo
+from service.core.bds import is_geo
+from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
 from service.core.orbit import EphemerisArrays
 from service.core.systems import GnssSystem
