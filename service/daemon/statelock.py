@@ -22,8 +22,9 @@ _HELD: dict[Path, int] = {}  # lock file -> descriptor, held until the process e
 
 def lock_state_dir(state_dir: Path) -> Path:
     """Take the state directory's lock (once per process); InputError naming the holder if
-    another process has it. Returns the lock file's path."""
-    path = (state_dir / LOCK_NAME).resolve()
+    another process has it, or if the lock file is a symlink (never followed: the pid would
+    be written over its target). Returns the lock file's path."""
+    path = state_dir.resolve() / LOCK_NAME
     if path in _HELD:
         return path
     try:

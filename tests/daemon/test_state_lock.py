@@ -11,7 +11,10 @@ import sys
 import time
 from pathlib import Path
 
-from service.daemon.statelock import LOCK_NAME
+import pytest
+
+from service.core.errors import InputError
+from service.daemon.statelock import LOCK_NAME, lock_state_dir
 from tests.support.paths import ROOT
 
 HANG_S = 60.0
@@ -95,3 +98,17 @@ def test_a_killed_daemon_leaves_no_stale_lock(tmp_path):
         assert _stop(second) == 0
         os.close(master)
         os.close(slave)
+
+
+def test_a_lock_file_that_is_a_symlink_is_refused_and_its_target_left_alone(tmp_path):
+    """The lock file is opened with O_NOFOLLOW on the state directory's own entry: a
+    symlink planted there is refused (InputError, exit 3 for the daemon), and the file it
+    points to keeps its content (the pid is never written through it)."""
+    state = tmp_path / "state"
+    state.mkdir()
+    precious = tmp_path / "precious"
+    precious.write_text("precious\n")
+    (state / LOCK_NAME).symlink_to(precious)
+    with pytest.raises(InputError, match="cannot open"):
+        lock_state_dir(state)
+    assert precious.read_text() == "precious\n"
