@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import lru_cache
 
+from service.core.constants import C_M_S
 from service.core.errors import BdsfixError
 
 
@@ -125,3 +127,10 @@ def constants_of(sat: str) -> SystemConstants:
         return SYSTEM_CONSTANTS[system]
     except KeyError:
         raise BdsfixError(f"{system.name} satellites are not supported ({sat!r})") from None
+
+
+@lru_cache(maxsize=256)
+def wavelength_m(sat: str) -> float:
+    """Carrier wavelength [m] of the signal bdsfix uses from ``sat``'s system: what turns a
+    Doppler [Hz] into a range rate (-lambda D)."""
+    return C_M_S / constants_of(sat).carrier_hz

@@ -47,13 +47,13 @@ import numpy as np
 
 from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
-from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
+from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine import linalg
 from service.engine.declines import Decline, excluded_why, reason
-from service.engine.layout import BDS_ONLY, layout_of
+from service.engine.layout import BDS_ONLY, dop, layout_of
 from service.engine.raim import Integrity, assess_many
 from service.engine.solver import (
     GROSS_SPREAD_M,
@@ -339,7 +339,7 @@ def _solve_chunk(
     gd = np.full(n_e, np.nan)
     if solver == "fast":
         with np.errstate(all="ignore"):
-            gd = gdop(np.where(ch.full[..., None], los, 0.0), fullw)
+            gd = dop(_design(los), fullw)
         beta = np.full(n_e, float(cfg.beta))
         if not cfg.beta:
             t_min = np.min(np.where(ch.frac, ch.ct, np.inf), axis=1) / C_M_S
@@ -428,7 +428,7 @@ def _solve_chunk(
     n_k = kp.sum(axis=1)
     resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
     kfull = kp & ch.full[sel]
-    gd_final = gdop(np.where(kfull[..., None], los[sel], 0.0), kfull.astype(float))
+    gd_final = dop(_design(los[sel]), kfull.astype(float))
     gu = g * kp[..., None]
     q = linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ np.swapaxes(rot, -1, -2)

@@ -40,7 +40,7 @@ from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
-from service.core.systems import constants_of
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, constants_of
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 from service.engine import linalg
@@ -280,6 +280,8 @@ def ranges(
 
 
 _NO_INTEGERS = np.zeros(0)
+_B1I_PERIOD_S = SYSTEM_CONSTANTS[GnssSystem.BDS].code_period_s
+"""The GDOP gate's period when an epoch has no fractional row (beta of eq. 21)."""
 
 
 def _full_cost(rows: _Rows, geo: _Geometry, b: np.ndarray, full_idx: np.ndarray) -> float:
@@ -470,7 +472,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
     gd = rows.dop(geo.los, full_idx)
     beta = cfg.beta
     if not beta:
-        t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else 1e-3
+        t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else _B1I_PERIOD_S
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
         variant = "" if converged else "unsettled"

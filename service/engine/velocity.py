@@ -33,27 +33,21 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from functools import lru_cache
 
 import numpy as np
 
-from service.core.constants import C_M_S
+from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import sagnac_rotate
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
-from service.core.systems import constants_of
+from service.core.systems import wavelength_m
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch, Velocity
+from service.engine.layout import layout_of
 from service.engine.raim import chi2_threshold
 
 log = logging.getLogger(__name__)
-
-N_UNKNOWNS = 4
-"""Velocity east, north, up and the clock drift."""
-
-NOMINAL_FLIGHT_TIME_S = 0.075
-"""First guess of the signal's flight time, refined once from the receiver position."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,14 +86,8 @@ class DopplerRows:
     sat_clock_drift_s_s: np.ndarray
 
 
-@lru_cache(maxsize=256)
-def wavelength_m(sat: str) -> float:
-    """Carrier wavelength [m] of the signal bdsfix uses from ``sat``'s system."""
-    return C_M_S / constants_of(sat).carrier_hz
-
-
 def range_rate_m_s(prn: tuple[str, ...] | list[str], doppler_hz: np.ndarray) -> np.ndarray:
-    """-lambda * D with each satellite system's carrier (:func:`constants_of`)."""
+    """-lambda * D with each satellite system's carrier (:func:`wavelength_m`)."""
     lam = np.array([wavelength_m(p) for p in prn])
     return -lam * np.asarray(doppler_hz, dtype=float)
 
@@ -148,9 +136,12 @@ def solve_velocities(
     var_row = (cfg.sigma_a_m_s**2 + (cfg.sigma_b_m_s / s) ** 2) * 10.0 ** (
         (cfg.cn0_ref_dbhz - cn0) / 10.0
     )
-    h = np.zeros((n_ep, width, N_UNKNOWNS))
-    h[ep_of, slot, :3] = -e
-    h[ep_of, slot, 3] = 1.0
+    # the unknowns: velocity (ECEF) and one clock drift per system (service/engine/layout.py)
+    prn_all = [p for rows, _ in problems for p in rows.prn]
+    layout = replace(layout_of(prn_all), problem="velocity")
+    n_params = layout.n_params
+    h = np.zeros((n_ep, width, n_params))
+    h[ep_of, slot] = layout.design(e, None if layout.n_clocks == 1 else layout.clock_index(prn_all))
     y = np.zeros((n_ep, width))
     y[ep_of, slot] = y_row
     var = np.ones((n_ep, width))
@@ -163,23 +154,23 @@ def solve_velocities(
     excluded: list[list[str]] = [[] for _ in range(n_ep)]
     todo = np.arange(n_ep)
     for _ in range(cfg.max_exclusions + 1):
-        todo = todo[keep[todo].sum(axis=1) >= N_UNKNOWNS]
+        todo = todo[keep[todo].sum(axis=1) >= n_params]
         if len(todo) == 0:
             break
         hk, yk, kk = h[todo], y[todo], keep[todo]
         wk = np.where(kk, w[todo], 0.0)
-        hw = hk * wk[:, :, None]  # (epochs, rows, 4): rows of H weighted
+        hw = hk * wk[:, :, None]  # (epochs, rows, unknowns): rows of H weighted
         normal = hw.transpose(0, 2, 1) @ hk
         try:
             cov = np.linalg.inv(normal)
         except np.linalg.LinAlgError:  # some epoch singular: find it, go on without
-            ok = np.array([np.linalg.matrix_rank(m) == N_UNKNOWNS for m in normal])
+            ok = np.array([np.linalg.matrix_rank(m) == n_params for m in normal])
             todo, hk, yk, kk, wk, hw = todo[ok], hk[ok], yk[ok], kk[ok], wk[ok], hw[ok]
             cov = np.linalg.inv(normal[ok])
         sol = (cov @ (hw.transpose(0, 2, 1) @ yk[:, :, None]))[:, :, 0]
         resid = np.where(kk, yk - (hk @ sol[:, :, None])[:, :, 0], 0.0)
         chi2 = (resid * wk * resid).sum(axis=1)
-        dof = kk.sum(axis=1) - N_UNKNOWNS
+        dof = np.asarray(layout.redundancy(kk.sum(axis=1)))
         chi2_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r > 0 else np.inf for r in dof])
         passed = (dof == 0) | (chi2 <= chi2_max)
         rot_p = rots[todo[passed]]
@@ -271,19 +262,6 @@ class RowRequest:
     clock_bias_m: float = 0.0
     prns: tuple[str, ...] | None = None
     pr_m: dict[str, float] | None = None
-
-
-def doppler_rows(
-    epoch: MeasurementEpoch,
-    store: EphemerisStore,
-    x_ecef_m: np.ndarray,
-    clock_bias_m: float = 0.0,
-    prns: tuple[str, ...] | None = None,
-    pr_m: dict[str, float] | None = None,
-) -> DopplerRows | None:
-    """The Doppler rows of one epoch (:func:`doppler_rows_many`)."""
-    req = RowRequest(epoch, np.asarray(x_ecef_m, dtype=float), clock_bias_m, prns, pr_m)
-    return doppler_rows_many([req], store)[0]
 
 
 def doppler_rows_many(

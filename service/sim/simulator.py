@@ -34,7 +34,7 @@ from service.core.constants import C_M_S, WEEK_S
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
-from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, prn_number
+from service.core.systems import prn_number, wavelength_m
 from service.core.timebase import BDT_GPST_OFFSET_S, diff_s, gpst_to_bdt, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rangegen import true_ranges
@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 CODE_PHASE_LSB_MS = 2.0**-21
 PR_LSB_M = C_M_S * 1e-3 * CODE_PHASE_LSB_MS
-B1I_WAVELENGTH_M = C_M_S / SYSTEM_CONSTANTS[GnssSystem.BDS].carrier_hz
+B1I_WAVELENGTH_M = wavelength_m("C01")
 LEAP_S = 18
 UBX_OUTPUTS = ("RXM-SFRBX", "RXM-MEASX", "RXM-RAWX")
 """The UBX messages of an epoch, in the order the virtual receiver sends them."""
