@@ -18,6 +18,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import os
 import queue
 import sys
 import threading
@@ -40,6 +41,11 @@ log = logging.getLogger(__name__)
 _END = object()
 SWITCH_INTERVAL_S = 0.0005
 TIMER_SLACK_S = 1.0
+EPOCH_TIMES_ENV = "BDSFIX_EPOCH_TIMES"
+"""When this environment variable names a file, the loop keeps each epoch's solve start,
+solve end and publish end (:func:`time.perf_counter`, ``CLOCK_MONOTONIC`` on Linux, the
+clock of every process) and writes them there, one epoch a line, when it ends: for
+``bench/bench_latency.py``, which pairs them with its own write and arrival times."""
 SKIP_KEYS = frozenset({"resyncs"})
 SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
 """Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
@@ -93,6 +99,7 @@ class Runner:
     _store_dirty: bool = False
     _store_writer: StoreWriter | None = None
     _latency: LatencyStats = field(default_factory=lambda: LatencyStats())
+    _epoch_times: list[tuple[float, float, float]] | None = None
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -190,6 +197,8 @@ class Runner:
         # stall an epoch by milliseconds (~4 ms for a daemon's start-up heap).
         gc.collect()
         gc.freeze()
+        times_path = os.environ.get(EPOCH_TIMES_ENV)
+        self._epoch_times = [] if times_path else None
         q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
         take = self._inline_taker() if self.inline else self._queue_taker(q)
         if not self.inline:
@@ -247,6 +256,8 @@ class Runner:
             self._stop.set()
             self.save_store(final=True)
             self.outputs.status(self.counters())
+            if times_path and self._epoch_times is not None:
+                self._write_epoch_times(Path(times_path))
         if self._error is not None:
             raise self._error
         return n
@@ -264,7 +275,10 @@ class Runner:
             result = self.pipeline.on_epoch(ev)
             t1 = time.perf_counter()
             self.outputs.epoch(result)
-            self._latency.add(t0, t1, time.perf_counter())
+            t2 = time.perf_counter()
+            self._latency.add(t0, t1, t2)
+            if self._epoch_times is not None:
+                self._epoch_times.append((t0, t1, t2))
             if self.on_result is not None:
                 self.on_result(result)
             return 1
@@ -278,6 +292,16 @@ class Runner:
         elif isinstance(ev, KlobucharParams):
             self.pipeline.set_iono(ev)
         return 0
+
+    def _write_epoch_times(self, path: Path) -> None:
+        """The epochs' times (:data:`EPOCH_TIMES_ENV`): solve start, solve end, publish end
+        [s], one epoch a line."""
+        try:
+            with open(path, "w", encoding="ascii") as fh:
+                for t in self._epoch_times or ():
+                    fh.write(" ".join(f"{x:.9f}" for x in t) + "\n")
+        except OSError as exc:
+            log.warning("%s: epoch times not written: %s", path, exc.strerror)
 
     def _handle_networked(self, ev: Networked) -> None:
         """Ephemerides of a network source through the age gate; nothing else is used."""
