@@ -42,9 +42,11 @@ _END = object()
 SWITCH_INTERVAL_S = 0.0005
 TIMER_SLACK_S = 1.0
 EPOCH_TIMES_ENV = "BDSFIX_EPOCH_TIMES"
-"""When this environment variable names a file, the loop keeps each epoch's solve start,
-solve end and publish end (:func:`time.perf_counter`, ``CLOCK_MONOTONIC`` on Linux, the
-clock of every process) and writes them there, one epoch a line, when it ends: for
+"""When this environment variable names a file, the loop keeps five times of each epoch
+(:func:`time.perf_counter`, ``CLOCK_MONOTONIC`` on Linux, the clock of every process) and
+writes them there, one epoch a line, when it ends: the source's last read with bytes
+(``read_at_s`` of a live source read inline, else NaN), solve start, solve end, GGA handed
+to the live NMEA sinks (the outputs' ``gga_out_s``, NaN without them) and publish end. For
 ``bench/bench_latency.py``, which pairs them with its own write and arrival times."""
 SKIP_KEYS = frozenset({"resyncs"})
 SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
@@ -99,7 +101,7 @@ class Runner:
     _store_dirty: bool = False
     _store_writer: StoreWriter | None = None
     _latency: LatencyStats = field(default_factory=lambda: LatencyStats())
-    _epoch_times: list[tuple[float, float, float]] | None = None
+    _epoch_times: list[tuple[float, ...]] | None = None
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -278,7 +280,9 @@ class Runner:
             t2 = time.perf_counter()
             self._latency.add(t0, t1, t2)
             if self._epoch_times is not None:
-                self._epoch_times.append((t0, t1, t2))
+                self._epoch_times.append(
+                    (math.nan, t0, t1, getattr(self.outputs, "gga_out_s", math.nan), t2)
+                )
             if self.on_result is not None:
                 self.on_result(result)
             return 1
@@ -294,8 +298,7 @@ class Runner:
         return 0
 
     def _write_epoch_times(self, path: Path) -> None:
-        """The epochs' times (:data:`EPOCH_TIMES_ENV`): solve start, solve end, publish end
-        [s], one epoch a line."""
+        """The epochs' times (:data:`EPOCH_TIMES_ENV`) [s], one epoch a line."""
         try:
             with open(path, "w", encoding="ascii") as fh:
                 for t in self._epoch_times or ():

@@ -9,6 +9,7 @@ NMEA sinks, then all of the epoch's sentences to the epoch-wise NMEA sinks (file
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -42,6 +43,9 @@ class Publishers:
         self.gsa_talker = gsa_talker
         self.counters = Counters()
         self._time_known = False
+        self.gga_out_s = 0.0
+        """:func:`time.perf_counter` when the last GGA was handed to the live NMEA sinks:
+        where the latency path ends in the daemon (``bench/bench_latency.py``)."""
         self._nmea_live = [s for s in self.sinks if s.nmea == "live"]
         self._nmea_epoch = [s for s in self.sinks if s.nmea == "epoch"]
         self._takes = {c: [s for s in self.sinks if c in s.records] for c in RECORD_CLASSES}
@@ -68,6 +72,7 @@ class Publishers:
             gga = gga_sentence(fix, utc=utc, talker=self.talker, gsa_talker=self.gsa_talker)
             for sink in self._nmea_live:
                 sink.write_nmea(gga)
+            self.gga_out_s = time.perf_counter()
         if self._takes["FIX"]:
             rec = fix_record(fix, since_start_s)
             for sink in self._takes["FIX"]:
