@@ -39,6 +39,11 @@ T = TypeVar("T")
 
 RECONNECT_MAX_S = 0.5
 """Longest wait between two attempts to reopen a lost device or connection [s]."""
+READ_TIMEOUT_S = 0.1
+"""Longest a serial or TCP ``read`` waits, for bytes or (while the line is down) between
+two attempts to reopen it [s]: the daemon's loop, which reads in its own thread, keeps its
+timers and notices a stop request at least this often (a TCP connect attempt may take up
+to its ``connect_timeout_s``)."""
 
 
 class Transport(Protocol):
@@ -230,7 +235,7 @@ class SerialTransport(_Reconnecting):
         device: str,
         baud: int = 38400,
         *,
-        timeout_s: float = 0.1,
+        timeout_s: float = READ_TIMEOUT_S,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = RECONNECT_MAX_S,
     ) -> None:
@@ -277,7 +282,7 @@ class TcpClientTransport(_Reconnecting):
         host: str,
         port: int,
         *,
-        timeout_s: float = 0.1,
+        timeout_s: float = READ_TIMEOUT_S,
         connect_timeout_s: float = 2.0,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = RECONNECT_MAX_S,
