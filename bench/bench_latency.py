@@ -25,7 +25,13 @@ clock as this script's), so every epoch's latency splits into its parts [ms]:
 main plus this instrumentation): the runs alternate between the trees, A B A B..., so a
 machine shared with other work loads them alike; the load average is printed per run.
 
-Run: python bench/bench_latency.py [--seconds 60] [--runs 3] [--root DIR ...]
+``--line-rate BAUD`` writes each epoch as a receiver's serial line delivers it, in small
+writes over its transmission time (the daemon decodes the epoch's first messages while the
+rest is on the line), instead of in one write: the latency is still timed from the last
+byte.
+
+Run: python bench/bench_latency.py [--seconds 60] [--runs 3] [--root DIR ...] [--rt PRIO]
+[--line-rate BAUD]
 (prints per-run and pooled p50/p99/max, fast-fix and SPP epochs apart; no assertions)
 """
 
@@ -53,6 +59,7 @@ from service.sim.simulator import Simulator  # noqa: E402
 
 GOAL_P99_MS = 5.0
 GOAL_NONSOLVE_P50_MS, GOAL_NONSOLVE_P99_MS = 0.5, 2.0
+LINE_CHUNK_BYTES = 32  # --line-rate: bytes a write, as a UART's FIFO hands them on
 
 
 def _free_port() -> int:
@@ -62,7 +69,7 @@ def _free_port() -> int:
 
 
 def one_run(
-    epochs: list[bytes], root: Path, rt_priority: int = 0
+    epochs: list[bytes], root: Path, rt_priority: int = 0, line_rate: int = 0
 ) -> tuple[dict[str, np.ndarray], list[bytes]] | None:
     """Per-epoch times [ms] of one daemon run (``latency``, ``solve``, ``nonsolve``,
     ``before``, ``after``) and the GGA sentences, or None if GGAs or epochs went missing."""
@@ -129,10 +136,16 @@ def one_run(
     t = threading.Thread(target=read, daemon=True)
     t.start()
     sent: list[float] = []
+    chunk = LINE_CHUNK_BYTES if line_rate else 1 << 30
+    chunk_s = chunk * 10 / line_rate if line_rate else 0.0  # 8N1: 10 bits a byte
     for data in epochs:
-        os.write(master, data)
+        start = time.perf_counter()
+        for k in range(0, len(data), chunk):
+            if k:
+                time.sleep(max(0.0, start + (k // chunk) * chunk_s - time.perf_counter()))
+            os.write(master, data[k : k + chunk])
         sent.append(time.perf_counter())
-        time.sleep(0.1)
+        time.sleep(max(0.0, start + 0.1 - time.perf_counter()))
     time.sleep(1.0)
     proc.terminate()
     proc.wait(10)
@@ -234,6 +247,15 @@ def main() -> None:
         "SCHED_FIFO priority, as a unit with CPUSchedulingPolicy=fifo would (needs root or "
         "CAP_SYS_NICE); 0: normal scheduling",
     )
+    ap.add_argument(
+        "--line-rate",
+        type=int,
+        default=0,
+        metavar="BAUD",
+        help="write each epoch as a serial line at BAUD carries it (8N1, "
+        f"{LINE_CHUNK_BYTES}-byte writes), the latency still timed from its last byte; "
+        "0: each epoch in one write",
+    )
     args = ap.parse_args()
     if args.rt:
         # this thread (the writer) and the client thread it starts later inherit it
@@ -241,6 +263,8 @@ def main() -> None:
     roots: list[Path] = [r.resolve() for r in args.root or [ROOT]]
     sim = Simulator(table1_ephemerides(0.0), scenario_config(duration_s=args.seconds))
     epochs = [data for _ep, data in sim.ubx_epochs()]
+    if args.line_rate and max(map(len, epochs)) * 10 / args.line_rate > 0.1:
+        raise SystemExit(f"--line-rate {args.line_rate}: an epoch does not fit in 0.1 s")
     runs: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
     fast: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
     spp: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
@@ -248,7 +272,7 @@ def main() -> None:
         for root in roots:
             load = " ".join(f"{x:.2f}" for x in os.getloadavg())
             print(f"run {k + 1}/{args.runs} of {root} (load average {load})")
-            got = one_run(epochs, root, args.rt)
+            got = one_run(epochs, root, args.rt, args.line_rate)
             if got is None:
                 print("  a count differs from the epoch count: run not measured")
                 continue
