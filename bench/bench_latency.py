@@ -31,7 +31,7 @@ rest is on the line), instead of in one write: the latency is still timed from t
 byte.
 
 Run: python bench/bench_latency.py [--seconds 60] [--runs 3] [--root DIR ...] [--rt PRIO]
-[--line-rate BAUD]
+[--nice N] [--line-rate BAUD] [--tcp]
 (prints per-run and pooled p50/p99/max, fast-fix and SPP epochs apart; no assertions)
 """
 
@@ -69,7 +69,12 @@ def _free_port() -> int:
 
 
 def one_run(
-    epochs: list[bytes], root: Path, rt_priority: int = 0, line_rate: int = 0
+    epochs: list[bytes],
+    root: Path,
+    rt_priority: int = 0,
+    line_rate: int = 0,
+    nice: int = 0,
+    tcp: bool = False,
 ) -> tuple[dict[str, np.ndarray], list[bytes]] | None:
     """Per-epoch times [ms] of one daemon run (``latency``, ``solve``, ``nonsolve``,
     ``before``, ``after``) and the GGA sentences, or None if GGAs or epochs went missing."""
@@ -80,7 +85,10 @@ def one_run(
     store.add_all(table1_ephemerides(0.0))
     store.save(tmp / "ephemeris.json")
     master, slave = os.openpty()
+    server = socket.create_server(("127.0.0.1", 0)) if tcp else None
+    source = f"tcp:127.0.0.1:{server.getsockname()[1]}" if server else os.ttyname(slave)
     chrt = ["chrt", "--fifo", str(rt_priority)] if rt_priority else []
+    chrt += ["nice", "-n", str(nice)] if nice else []
     proc = subprocess.Popen(
         [
             *chrt,
@@ -89,7 +97,7 @@ def one_run(
             "service",
             "run",
             "--source",
-            os.ttyname(slave),
+            source,
             "--state-dir",
             str(tmp),
             "--zmq",
@@ -112,6 +120,18 @@ def one_run(
     if client is None:
         proc.kill()
         raise SystemExit("bdsfix run did not open its NMEA port")
+    conn = None
+    if server is not None:
+        server.settimeout(10.0)
+        conn = server.accept()[0]  # the daemon's connection
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def write(data: bytes) -> None:
+        if conn is not None:
+            conn.sendall(data)
+        else:
+            os.write(master, data)
+
     time.sleep(0.5)
     arrivals: list[float] = []
     ggas: list[bytes] = []
@@ -143,7 +163,7 @@ def one_run(
         for k in range(0, len(data), chunk):
             if k:
                 time.sleep(max(0.0, start + (k // chunk) * chunk_s - time.perf_counter()))
-            os.write(master, data[k : k + chunk])
+            write(data[k : k + chunk])
         sent.append(time.perf_counter())
         time.sleep(max(0.0, start + 0.1 - time.perf_counter()))
     time.sleep(1.0)
@@ -152,6 +172,9 @@ def one_run(
     client.close()
     os.close(master)
     os.close(slave)
+    if server is not None and conn is not None:
+        conn.close()
+        server.close()
     times = np.loadtxt(times_path, ndmin=2) if times_path.exists() else np.zeros((0, 5))
     print(
         f"  epochs written {len(sent)}, GGA received {len(arrivals)}, "
@@ -248,6 +271,18 @@ def main() -> None:
         "CAP_SYS_NICE); 0: normal scheduling",
     )
     ap.add_argument(
+        "--tcp",
+        action="store_true",
+        help="serve the UBX on a TCP socket the daemon connects to (tcp:HOST:PORT), not a pty",
+    )
+    ap.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="run the daemon at this niceness (nice -n; below 0 needs root or "
+        "CAP_SYS_NICE), as a unit with Nice= would",
+    )
+    ap.add_argument(
         "--line-rate",
         type=int,
         default=0,
@@ -272,7 +307,7 @@ def main() -> None:
         for root in roots:
             load = " ".join(f"{x:.2f}" for x in os.getloadavg())
             print(f"run {k + 1}/{args.runs} of {root} (load average {load})")
-            got = one_run(epochs, root, args.rt, args.line_rate)
+            got = one_run(epochs, root, args.rt, args.line_rate, args.nice, args.tcp)
             if got is None:
                 print("  a count differs from the epoch count: run not measured")
                 continue
