@@ -188,10 +188,12 @@ class BinarySource(EventSource):
 
     @property
     def live(self) -> bool:
-        """True for a serial or TCP source: a read returns within the transport's timeout
-        (:data:`drivers.transport.READ_TIMEOUT_S`) even while nothing comes or the line is
-        down, so :meth:`ticks` can be read in a loop that keeps timers of its own."""
-        return isinstance(self.transport, _Reconnecting)
+        """True for a serial source and a TCP source given by address: a read returns
+        within the transport's timeout (:data:`drivers.transport.READ_TIMEOUT_S`) even while
+        nothing comes or the line is down, so :meth:`ticks` can be read in a loop that keeps
+        timers of its own (a TCP host name is resolved at each connect attempt, which a
+        silent resolver can hold for tens of seconds: not live)."""
+        return isinstance(self.transport, _Reconnecting) and self.transport.waits_bounded
 
     def __iter__(self) -> Iterator[Event]:
         return (ev for ev in self.ticks() if ev is not None)

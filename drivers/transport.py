@@ -17,6 +17,7 @@ Counter keys: ``transport_bytes``, ``disconnects``, ``reconnects``, ``connects``
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import math
 import os
@@ -124,6 +125,12 @@ class _Reconnecting:
     @property
     def finished(self) -> bool:
         return self._closed
+
+    @property
+    def waits_bounded(self) -> bool:
+        """Whether every ``read`` returns within about ``timeout_s`` (plus, for TCP, a
+        connect attempt's ``connect_timeout_s``), so a loop may read in its own thread."""
+        return True
 
     @property
     def connected(self) -> bool:
@@ -300,6 +307,18 @@ class TcpClientTransport(_Reconnecting):
 
     def _handle(self) -> Any:
         return self._sock
+
+    @property
+    def waits_bounded(self) -> bool:
+        """Only for an address (or ``localhost``): a host name is resolved at each connect
+        attempt, and a resolver that does not answer can hold it for tens of seconds."""
+        if self.host == "localhost":
+            return True
+        try:
+            ipaddress.ip_address(self.host.strip("[]"))
+        except ValueError:
+            return False
+        return True
 
     def _connect(self) -> None:
         sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)

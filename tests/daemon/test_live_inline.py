@@ -304,3 +304,22 @@ def test_a_network_nav_thread_feeds_the_inline_loop(receiver):
     assert any(r.fix.mode == "fast" for r in until.results)
     c = until.runner.counters()
     assert c["ntrip_ephemerides"] == len(sets) == len(store)
+
+
+@pytest.mark.parametrize(
+    ("spec", "live"),
+    [
+        ("tcp:127.0.0.1:2101", True),
+        ("tcp:[::1]:2101", True),
+        ("tcp:localhost:2101", True),
+        ("tcp:receiver.example.invalid:2101", False),
+    ],
+)
+def test_a_tcp_source_is_read_inline_only_by_address(spec, live):
+    """A TCP receiver given by a host name keeps the reader thread: its name is resolved at
+    every connect attempt, which a silent resolver holds far longer than the loop may wait
+    (nothing is connected here: the sources are only opened)."""
+    src = open_source(spec)
+    assert isinstance(src, BinarySource)
+    assert src.live is live
+    src.close()
