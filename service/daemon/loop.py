@@ -212,8 +212,10 @@ class Runner:
     def run(self) -> int:
         """Process until the source ends or a stop is requested; returns the epoch count."""
         self.pipeline.on_track = self.outputs.track
-        # The reader, the loop and the publishers' I/O threads hand each epoch on: with the
-        # interpreter's default 5 ms switch interval every hand-off may wait that long.
+        # A live receiver's epoch stays in this thread from its read to its GGA; with a
+        # reader thread (other sources), and whenever a network nav or an output's I/O
+        # thread holds the interpreter lock as an epoch arrives, the interpreter's default
+        # 5 ms switch interval is what a hand-over may wait.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         # What exists now (modules, tables, the ephemeris store) lives as long as the loop:
         # keep it out of the collector's full passes, which would otherwise walk it all and
@@ -279,7 +281,7 @@ class Runner:
                 if now >= next_save + (slack if self.store_save_interval_s > 0 else 0.0):
                     self.save_store()
                     next_save = now + self.store_save_interval_s
-                if self.silence_warn_s > 0:
+                if self.silence_warn_s > 0 and caught_up:  # seconds matter, not events
                     self._watch_silence(now)
                 if self.watchdog is not None and now >= next_dog:
                     self.watchdog()
