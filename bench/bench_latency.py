@@ -73,7 +73,6 @@ def one_run(
     root: Path,
     rt_priority: int = 0,
     line_rate: int = 0,
-    nice: int = 0,
     tcp: bool = False,
 ) -> tuple[dict[str, np.ndarray], list[bytes]] | None:
     """Per-epoch times [ms] of one daemon run (``latency``, ``solve``, ``nonsolve``,
@@ -88,7 +87,6 @@ def one_run(
     server = socket.create_server(("127.0.0.1", 0)) if tcp else None
     source = f"tcp:127.0.0.1:{server.getsockname()[1]}" if server else os.ttyname(slave)
     chrt = ["chrt", "--fifo", str(rt_priority)] if rt_priority else []
-    chrt += ["nice", "-n", str(nice)] if nice else []
     proc = subprocess.Popen(
         [
             *chrt,
@@ -279,8 +277,9 @@ def main() -> None:
         "--nice",
         type=int,
         default=0,
-        help="run the daemon at this niceness (nice -n; below 0 needs root or "
-        "CAP_SYS_NICE), as a unit with Nice= would",
+        help="run the daemon at this niceness, as a unit with Nice= would, and this script "
+        "too (below 0 needs root or CAP_SYS_NICE): a writer at a lower priority than the "
+        "daemon's would be preempted between its write() and its time stamp",
     )
     ap.add_argument(
         "--line-rate",
@@ -292,6 +291,8 @@ def main() -> None:
         "0: each epoch in one write",
     )
     args = ap.parse_args()
+    if args.nice:
+        os.nice(args.nice)  # the daemon, started later, inherits it
     if args.rt:
         # this thread (the writer) and the client thread it starts later inherit it
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt))
@@ -307,7 +308,7 @@ def main() -> None:
         for root in roots:
             load = " ".join(f"{x:.2f}" for x in os.getloadavg())
             print(f"run {k + 1}/{args.runs} of {root} (load average {load})")
-            got = one_run(epochs, root, args.rt, args.line_rate, args.nice, args.tcp)
+            got = one_run(epochs, root, args.rt, args.line_rate, args.tcp)
             if got is None:
                 print("  a count differs from the epoch count: run not measured")
                 continue
