@@ -84,7 +84,7 @@ def profile_shares(capture: Path, workdir: Path) -> None:
 
     total = cum("service/daemon/loop.py", "run")
     parts = {
-        "NMEA sentences": cum("service/output/nmea.py", "gga_sentence")
+        "NMEA sentences": cum("service/output/nmea.py", "lead_sentences")
         + cum("service/output/nmea.py", "sentences_after_gga"),
         "per-epoch solver": cum("service/engine/solver.py", "solve")
         - cum("service/engine/solver.py", "sky_view"),

@@ -48,7 +48,8 @@ def fde_cost(repeats: int = 3) -> None:
     excluded in turn), and clean with the test and exclusion off."""
     from dataclasses import replace
 
-    from service.core.constants import C_M_S, is_geo
+    from service.core.bds import is_geo
+    from service.core.constants import C_M_S
     from service.engine.solver import SolverConfig
 
     store, iono = load_navigation([str(HKSC / "hksc1610.nav")])

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from service.core.counters import Counters
+from service.core.ratelog import RateLimitedLog
 from service.core.timebase import (
     MIN_SANE_GPS_WEEK,
     diff_s,
@@ -140,6 +141,7 @@ class Framer:
     ) -> None:
         self.counters = counters if counters is not None else Counters()
         self.max_comment = max_comment
+        self._log = RateLimitedLog(log)  # garbage fails a checksum at every sync byte
         protocols = list(protocols)
         self.max_payload: dict[str, int] = {p.name: p.framing.max_payload for p in protocols}
         for name, limit in (max_payload or {}).items():
@@ -202,7 +204,7 @@ class Framer:
                     self.counters[f"bad_checksum_{name}"] += 1
                     if isinstance(framing, BinaryFraming):  # not for text: noisy lines are common
                         at = self._offset + pos
-                        log.debug("%s checksum failure at stream offset %d", name, at)
+                        self._log.debug(name, "%s checksum failure at stream offset %d", name, at)
                     size = NOT_A_FRAME
             elif b == 0x23 and (buf[pos - 1] if pos else self._prev) == 0x0A:  # '#' at BOL
                 size = self._try_comment(pos)

@@ -21,7 +21,19 @@ one WARNING per outage) and is about a hundred lines.
 Behaviour:
 
 - connection refused, reset, closed by the caster, or no byte for :data:`IDLE_S`: reconnect
-  with exponential backoff (``backoff_initial_s`` doubling to ``backoff_max_s``);
+  with exponential backoff (``backoff_initial_s`` doubling to ``backoff_max_s``); the
+  backoff is reset only once a connection has brought a whole RTCM 3 frame (CRC-24Q
+  checked, RTCM 10403.3 section 4.2), not at each answer, so a caster that answers 200 and
+  closes, or sends a bad chunk size, is tried every ``backoff_max_s``, with a log line a
+  minute (``drops_before_data``, see :class:`drivers.transport._Reconnecting`);
+- the answer's header must be whole within ``header_timeout_s`` (:data:`HEADER_TIMEOUT_S`),
+  however slowly it trickles in, or the attempt fails (``header_timeouts``; the first
+  failure of an outage is a WARNING), so a caster sending its header a byte a second cannot
+  hold network ephemerides for hours;
+- a connection that brings :data:`NO_RTCM_BYTES` bytes, or ends, without one RTCM 3 frame is
+  counted ``no_rtcm_streams``; the first such stream is logged once at INFO (is the
+  mountpoint an RTCM 3 stream?): the framer's per-byte resync lines stay at DEBUG,
+  rate-limited;
 - HTTP 401/403 (credentials refused), 404 or a source table (no such mountpoint), any other
   4xx: :class:`NtripRefusedError`, not retried (casters block addresses that retry bad
   credentials); 5xx and malformed answers are retried;
@@ -29,16 +41,22 @@ Behaviour:
   (:meth:`~service.core.ntripurl.NtripUrl.redacted`): never the user or the password.
 
 Counter keys (with those of :mod:`drivers.transport` and :class:`~drivers.source.StreamDecoder`;
-the daemon's STATUS shows them with the prefix ``ntrip_``): ``refused``, ``http_errors``.
+the daemon's STATUS shows them with the prefix ``ntrip_``): ``refused``, ``http_errors``,
+``header_timeouts``, ``no_rtcm_streams``.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import socket
 import time
 from typing import Any
 
+from drivers.framing import NEED_MORE
+from drivers.rtcm import FRAMING as RTCM_FRAMING
+from drivers.rtcm import MAX_PAYLOAD as RTCM_MAX_PAYLOAD
+from drivers.rtcm import PREAMBLE as RTCM_PREAMBLE
 from drivers.source import BinarySource, StreamDecoder
 from drivers.transport import _Reconnecting
 from service.core.errors import InputError
@@ -53,6 +71,14 @@ IDLE_S = 60.0
 """A connection that brings no byte for this long is dropped and reopened [s]."""
 RECONNECT_MAX_S = 4.0
 """Default longest wait between two attempts to reach the caster [s]."""
+HEADER_TIMEOUT_S = 10.0
+"""Default longest time for the caster's whole answer header [s]."""
+NO_RTCM_BYTES = 65536
+"""Body bytes without one RTCM 3 frame after which a stream is judged not RTCM 3."""
+
+
+_CHUNK_SIZE = re.compile(rb"[0-9A-Fa-f]{1,15}")
+"""A chunk size (RFC 9112 section 7.1: ``1*HEXDIG``; 15 digits bound it below 2**60)."""
 
 
 class NtripRefusedError(InputError):
@@ -95,10 +121,10 @@ class ChunkDecoder:
                     raise ValueError("chunked body: chunk size line too long")
                 break
             size_text = bytes(self._buf[:end]).split(b";", 1)[0].strip()
-            try:
-                size = int(size_text, 16)
-            except ValueError as err:
-                raise ValueError(f"chunked body: bad chunk size {size_text[:16]!r}") from err
+            # chunk-size = 1*HEXDIG: not int(x, 16), which takes "-5", "+5", "0x5" and "5_0"
+            if not _CHUNK_SIZE.fullmatch(size_text):
+                raise ValueError(f"chunked body: bad chunk size {size_text[:16]!r}")
+            size = int(size_text, 16)
             del self._buf[: end + 2]
             if size == 0:
                 self.done = True
@@ -107,8 +133,41 @@ class ChunkDecoder:
         return bytes(out)
 
 
+class RtcmFrameSeen:
+    """Whether a byte stream has held one whole RTCM 3 frame (preamble, length, CRC-24Q:
+    RTCM 10403.3 section 4.2, measured by :data:`drivers.rtcm.FRAMING`): ``feed(bytes)``
+    returns True from the first frame on, whatever the split; memory is bounded by one
+    frame."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.seen = False
+
+    def feed(self, data: bytes) -> bool:
+        if self.seen:
+            return True
+        self._buf += data
+        pos = 0
+        while True:
+            pos = self._buf.find(RTCM_PREAMBLE, pos)
+            if pos < 0:
+                self._buf.clear()
+                return False
+            size = RTCM_FRAMING.measure(self._buf, pos, RTCM_MAX_PAYLOAD)
+            if size == NEED_MORE:
+                del self._buf[:pos]
+                return False
+            if size > 0:
+                self.seen = True
+                self._buf.clear()
+                return True
+            pos += 1
+
+
 class NtripTransport(_Reconnecting):
     """The RTCM stream of one NTRIP mountpoint (see the module), reconnecting on loss."""
+
+    confirm_by_data = True
 
     def __init__(
         self,
@@ -117,6 +176,7 @@ class NtripTransport(_Reconnecting):
         timeout_s: float = 0.1,
         connect_timeout_s: float = 5.0,
         idle_s: float = IDLE_S,
+        header_timeout_s: float = HEADER_TIMEOUT_S,
         backoff_initial_s: float = 0.25,
         backoff_max_s: float = RECONNECT_MAX_S,
     ) -> None:
@@ -129,7 +189,12 @@ class NtripTransport(_Reconnecting):
         self.url = url
         self.connect_timeout_s = connect_timeout_s
         self.idle_s = idle_s
+        self.header_timeout_s = header_timeout_s
         self._sock: socket.socket | None = None
+        self._frames = RtcmFrameSeen()  # of the current connection
+        self._body_bytes = 0  # of the current connection
+        self._no_rtcm_judged = False  # the current connection counted as no RTCM
+        self._no_rtcm_logged = False
         self._pending = b""  # body bytes that came with the response header
         self._chunks: ChunkDecoder | None = None
         self._last_byte = 0.0
@@ -166,10 +231,17 @@ class NtripTransport(_Reconnecting):
         self._sock = sock
         self._pending = body
         self._last_byte = time.monotonic()
+        self._frames = RtcmFrameSeen()
+        self._body_bytes = 0
+        self._no_rtcm_judged = False
 
     def _read_response(self, sock: socket.socket) -> bytes:
-        """Read and judge the response header; returns the body bytes that came with it."""
+        """Read and judge the response header; returns the body bytes that came with it.
+
+        The whole header must come within ``header_timeout_s`` (TimeoutError otherwise,
+        counted ``header_timeouts``), however it trickles in."""
         buf = b""
+        deadline = time.monotonic() + self.header_timeout_s
         while True:
             if buf.startswith(ICY_OK):
                 # NTRIP v1: the data follow the status line, after an empty line or not
@@ -183,7 +255,18 @@ class NtripTransport(_Reconnecting):
                 break
             if len(buf) > MAX_HEADER_BYTES:
                 raise ConnectionError("the caster's answer has no end of header")
-            data = sock.recv(4096)
+            left_s = deadline - time.monotonic()
+            if left_s <= 0:
+                self.counters["header_timeouts"] += 1
+                raise TimeoutError(
+                    f"no whole answer header within {self.header_timeout_s:g} s "
+                    f"({len(buf)} bytes of it)"
+                )
+            sock.settimeout(min(self.connect_timeout_s, left_s))
+            try:
+                data = sock.recv(4096)
+            except TimeoutError:
+                continue  # the deadline above decides
             if not data:
                 raise ConnectionError(
                     "the caster closed the connection before answering"
@@ -252,11 +335,42 @@ class NtripTransport(_Reconnecting):
             if self._chunks.done:
                 self._pending = b""
                 if data:
+                    self._judge_body(data)
                     return data
                 raise ConnectionResetError("the caster ended the stream")
+        self._judge_body(data)
         return data
 
+    def _judge_body(self, data: bytes) -> None:
+        """Confirm the connection at its first whole RTCM 3 frame (see the module)."""
+        if self._healthy or not data:
+            return
+        self._body_bytes += len(data)
+        if self._frames.feed(data):
+            self._confirmed()
+        elif self._body_bytes >= NO_RTCM_BYTES:
+            self._no_rtcm()
+
+    def _no_rtcm(self) -> None:
+        """The current connection brought bytes and no RTCM 3 frame: counted, logged once."""
+        if self._no_rtcm_judged:
+            return
+        self._no_rtcm_judged = True
+        self.counters["no_rtcm_streams"] += 1
+        if not self._no_rtcm_logged:
+            self._no_rtcm_logged = True
+            log.info(
+                "nav %s: the caster sends no RTCM 3 (%d bytes and not one frame); is %r an "
+                "RTCM 3 mountpoint? (counted no_rtcm_streams; retried)",
+                self.name,
+                self._body_bytes,
+                self.url.mount,
+            )
+
     def _release(self) -> None:
+        if self._body_bytes and not self._healthy and not self._closed:
+            self._no_rtcm()
+        self._body_bytes = 0
         sock, self._sock = self._sock, None
         self._pending = b""
         self._chunks = None
@@ -269,8 +383,11 @@ def open_ntrip(
     *,
     reconnect_max_s: float = RECONNECT_MAX_S,
     idle_s: float = IDLE_S,
+    header_timeout_s: float = HEADER_TIMEOUT_S,
     gps_week: int | None = None,
 ) -> BinarySource:
     """Events (ephemerides, and whatever else the mountpoint carries) of an NTRIP source."""
-    transport = NtripTransport(url, backoff_max_s=reconnect_max_s, idle_s=idle_s)
+    transport = NtripTransport(
+        url, backoff_max_s=reconnect_max_s, idle_s=idle_s, header_timeout_s=header_timeout_s
+    )
     return BinarySource(transport, StreamDecoder(gps_week=gps_week))

@@ -46,6 +46,10 @@ line (the ``>`` record identifier of the RINEX 3 data record description):
 - an unreadable observation record: that record is skipped, the rest of the epoch is kept
   (``records_skipped``);
 - lines that belong to no epoch (before the next ``>``): ``lines_skipped``.
+
+An epoch flag above 6 (RINEX 3 defines 0-6) is not damage to the framing: the epoch and its
+announced records are skipped with a warning and counted (``epochs_skipped``) by both
+readers, so ``bdsfix solve`` and ``bdsfix replay`` read such a file alike.
 """
 
 from __future__ import annotations
@@ -66,6 +70,8 @@ from typing import IO, Literal
 import numpy as np
 
 from service.core.errors import ConfigError, FramingError
+from service.core.ntripurl import looks_like_url
+from service.core.systems import GnssSystem
 from service.core.timebase import (
     BDT_GPS_WEEK_OFFSET,
     BDT_GPST_OFFSET_S,
@@ -79,14 +85,33 @@ log = logging.getLogger(__name__)
 _GPS_EPOCH_ORDINAL = dt.date(1980, 1, 6).toordinal()
 _BDT_EPOCH_ORDINAL = dt.date(2006, 1, 1).toordinal()
 
+_READ = GnssSystem.BDS.value
+"""The system letter whose observations and ephemerides are read (BeiDou); the records of
+the others are counted and skipped."""
+
 _B1I_CODES = ("2I", "1I")
 """B1I code suffixes in order of preference: the 3.03+ name, then the 3.02 one."""
 
-_DEFAULT_TIME_SYSTEM = {"G": "GPS", "R": "GLO", "E": "GAL", "J": "QZS", "C": "BDT", "I": "IRN"}
+_DEFAULT_TIME_SYSTEM: dict[str, str] = {
+    GnssSystem.GPS: "GPS",
+    GnssSystem.GLO: "GLO",
+    GnssSystem.GAL: "GAL",
+    GnssSystem.QZS: "QZS",
+    GnssSystem.BDS: "BDT",
+    GnssSystem.IRN: "IRN",
+}
 _GPS_ALIGNED = frozenset({"GPS", "GAL", "QZS", "IRN"})
 """Time systems whose RINEX calendar epochs read directly as GPST (section 3.1)."""
 
-_NAV_RECORD_LINES = {"G": 8, "E": 8, "J": 8, "C": 8, "I": 8, "S": 4, "R": 4}
+_NAV_RECORD_LINES: dict[str, int] = {
+    GnssSystem.GPS: 8,
+    GnssSystem.GAL: 8,
+    GnssSystem.QZS: 8,
+    GnssSystem.BDS: 8,
+    GnssSystem.IRN: 8,
+    GnssSystem.SBAS: 4,
+    GnssSystem.GLO: 4,
+}
 """Lines per navigation record by system (GLONASS: 5 from RINEX 3.05 on)."""
 
 _BDS_RECORD: tuple[tuple[str | None, ...], ...] = (
@@ -332,7 +357,7 @@ def _parse_obs_header(h: _Header, path: Path) -> ObsHeader:
     if (line := h.first("INTERVAL")) is not None:
         interval = _float(line[:10])
         interval = None if math.isnan(interval) else interval
-    bds = types.get("C", ())
+    bds = types.get(_READ, ())
     code = _choose_bds_code(bds)
     if code is None and bds:
         log.warning("%s: no B1I code (C2I/C1I) among the BDS types %s", path, " ".join(bds))
@@ -426,7 +451,7 @@ class RinexObsReader:
         return week, tow + (sod_s - whole)
 
     def _epochs(self) -> Generator[MeasurementEpoch, None, None]:
-        cols = _BdsColumns.from_types(self.header.obs_types.get("C", ()))
+        cols = _BdsColumns.from_types(self.header.obs_types.get(_READ, ()))
         types = dict(self.header.obs_types)
         counters = self.counters
         with _open(self.path) as fh:
@@ -455,10 +480,13 @@ class RinexObsReader:
                     flag, count, when = self._epoch_line(line, lines)
                     body_start = lines.n + 1
                     body = self._body(count, body_start, lines)
+                    if flag > 6:
+                        self._unknown_flag(flag, body, body_start - 1, counters)
+                        continue
                     if flag >= 2:
                         self._special(flag, body, body_start, types, counters)
-                        if flag == 4 and "C" in types:
-                            cols = _BdsColumns.from_types(types["C"])
+                        if flag == 4 and _READ in types:
+                            cols = _BdsColumns.from_types(types[_READ])
                         continue
                     if when is None:  # only flags 2-4 may leave the time blank
                         raise lines.error("observation epoch without a time", body_start - 1)
@@ -502,7 +530,7 @@ class RinexObsReader:
         try:
             flag = int(line[31:32])
             count = int(line[32:35])
-            if flag > 6 or count < 0:
+            if count < 0:
                 raise ValueError(f"flag {flag}, count {count}")
             if flag in (2, 3, 4) and not line[2:29].strip():
                 return flag, count, None
@@ -514,6 +542,21 @@ class RinexObsReader:
         except (ValueError, OverflowError) as exc:  # OverflowError: GLO time near year 1
             raise lines.error(f"bad epoch line {line.rstrip()!r}: {exc}") from exc
         return flag, count, when
+
+    def _unknown_flag(
+        self, flag: int, body: list[str], lineno: int, counters: Counter[str]
+    ) -> None:
+        """An epoch flag RINEX 3 does not define (7-9): its announced records are skipped
+        with the epoch, with a warning, in a strict reader as in a lenient one (what it
+        means is unknown, the file's framing is not broken)."""
+        counters["epochs_skipped"] += 1
+        log.warning(
+            "%s:%d: epoch flag %d (RINEX 3 defines 0-6); epoch and its %d records skipped",
+            self.path,
+            lineno,
+            flag,
+            len(body),
+        )
 
     def _special(
         self,
@@ -554,7 +597,7 @@ class RinexObsReader:
         i_pr, i_cn0, i_dop = cols.pr, cols.cn0, cols.doppler
         for k, rec in enumerate(body):
             head = rec[:1]
-            if head != "C":
+            if head != _READ:
                 if head == ">" or not head.strip():
                     raise lines.error(
                         f"expected an observation record, got {rec.rstrip()[:40]!r} "
@@ -653,7 +696,7 @@ def _leap_seconds(h: _Header, path: Path) -> int | None:
         log.warning("%s: unreadable LEAP SECONDS %r", path, line[:24])
         return None
     ident = line[24:27].strip()
-    if ident == "BDS" or (not ident and h.system == "C"):
+    if ident == "BDS" or (not ident and h.system == GnssSystem.BDS):
         return value + round(BDT_GPST_OFFSET_S)
     return value
 
@@ -704,10 +747,10 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
 
 
 NTRIP_NAV_HERE = (
-    "nav: an NTRIP source (ntrip://...) is read by 'bdsfix run' (its 'nav' key); here give a "
-    "RINEX nav file"
+    "nav: a URL is no nav file; an NTRIP source (ntrip://...) is read by 'bdsfix run' (its "
+    "'nav' key); here give a RINEX nav file"
 )
-"""The error (no URL in it: it may hold credentials) for an NTRIP URL given as a nav file."""
+"""The error (no URL in it: it may hold credentials) for a URL given as a nav file."""
 
 
 def read_nav(path: str | Path) -> NavData:
@@ -717,7 +760,7 @@ def read_nav(path: str | Path) -> NavData:
     (PRN, week, toe) appears more than once, the latest transmission time wins, so a
     health change broadcast later is kept.
     """
-    if str(path).lower().startswith("ntrip:/"):  # also as a Path, which folds the "//"
+    if looks_like_url(str(path)):  # ntrip://, ntrips://, http://... (a Path folds the "//")
         raise ConfigError(NTRIP_NAV_HERE)
     path = Path(path)
     counters: Counter[str] = Counter()
@@ -726,7 +769,7 @@ def read_nav(path: str | Path) -> NavData:
         h = _read_header(lines, "N")
         record_lines = dict(_NAV_RECORD_LINES)
         if h.version >= 3.05:
-            record_lines["R"] = 5
+            record_lines[GnssSystem.GLO] = 5
         held: dict[str, dict[tuple[int, float], tuple[float, Ephemeris]]] = {}
         while (line := lines.next()) is not None:
             if not line.strip():
@@ -746,7 +789,7 @@ def read_nav(path: str | Path) -> NavData:
                 rec.pop()  # trailing blank lines belong to no record
             want = record_lines[sys_char]
             if len(rec) != want:
-                if sys_char == "C":
+                if sys_char == _READ:
                     raise FramingError(
                         f"{path}:{start}: BDS record {line[:3]!r} has {len(rec)} lines, "
                         f"expected {want}"
@@ -761,7 +804,7 @@ def read_nav(path: str | Path) -> NavData:
                     want,
                 )
             counters[f"records_{sys_char}"] += 1
-            if sys_char != "C":
+            if sys_char != _READ:
                 continue
             prn = _sat_id(line[:3])
             eph = _bds_ephemeris(prn, rec, path, start)

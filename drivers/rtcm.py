@@ -44,15 +44,25 @@ import numpy as np
 from pyrtcm import RTCMReader
 
 from drivers.framing import BinaryFraming, Event, WeekContext
-from service.core.constants import C_M_S, F_B1I_HZ, MS_RANGE_M, URA_M, WEEK_S, prn_id
+from service.core.constants import C_M_S, URA_M, WEEK_S
 from service.core.counters import Counters
 from service.core.rtcm1042 import EPH_1042_FIELDS, EPH_1042_INT_FIELDS
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
 from service.core.timebase import BDT_GPST_OFFSET_S, GST_GPS_WEEK_OFFSET, bdt_to_gpst, diff_s
 from service.core.types import UNKNOWN_WEEK, Ephemeris, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
-B1I_WAVELENGTH_M = C_M_S / F_B1I_HZ
+MSM_SYSTEM = GnssSystem.BDS
+"""The system of the MSM messages read (1124-1127); the others are counted and dropped."""
+_BDS = SYSTEM_CONSTANTS[MSM_SYSTEM]
+LIGHT_MS_M = C_M_S * 1e-3
+"""The range unit of MSM (DF397, DF398, the fine ranges): one light-millisecond [m]."""
+B1I_CODE_RANGE_M = C_M_S * _BDS.code_period_s
+"""c times the B1I code period: a range known from the code phase alone is known modulo
+this [m]."""
+B1I_CODE_PERIOD_MS = _BDS.code_period_s * 1e3
+B1I_WAVELENGTH_M = C_M_S / _BDS.carrier_hz
 
 # --- frame (section 4, "Transport layer") ---------------------------------------------------
 PREAMBLE = 0xD3
@@ -229,7 +239,7 @@ def ephemeris_from_1042(msg: Any) -> Ephemeris:
         values[name] = int(v) if name in EPH_1042_INT_FIELDS else float(v) * factor
     ura_index = int(msg.DF490)
     return Ephemeris(
-        prn=prn_id(int(msg.DF488)),
+        prn=sat_id(GnssSystem.BDS, int(msg.DF488)),
         ura_m=URA_M[ura_index] if 0 <= ura_index < len(URA_M) else math.nan,
         source="rtcm",
         **values,
@@ -311,7 +321,7 @@ class RtcmMapper:
                 [B1I_CODE] * len(prns),
                 col["pr_m"],
                 frac_pr_m=col["frac_pr_m"],
-                period_s=1e-3,
+                period_s=_BDS.code_period_s,
                 cn0_dbhz=col["cn0_dbhz"],
                 doppler_hz=col["doppler_hz"],
                 lock_s=col["lock_s"],
@@ -321,7 +331,7 @@ class RtcmMapper:
 
     # --- 1042 -----------------------------------------------------------------------------
     def _on_1042(self, msg: Any) -> list[Event]:
-        if not 1 <= int(msg.DF488) <= 63:
+        if not 1 <= int(msg.DF488) <= _BDS.prn_max:
             self.counters["eph_bad_prn"] += 1
             return []
         eph = ephemeris_from_1042(msg)
@@ -363,7 +373,7 @@ class RtcmMapper:
 
     def _merge(self, msg: Any, level: int) -> None:
         lay = MSM_LAYOUT[level]
-        for k, (si, sat_id, sig_id) in enumerate(msm_cells(msg), start=1):
+        for k, (si, sat, sig_id) in enumerate(msm_cells(msg), start=1):
             if BDS_MSM_SIGNALS.get(sig_id) != B1I_CODE:
                 self.counters["msm_cells_other_signal"] += 1
                 continue
@@ -376,11 +386,11 @@ class RtcmMapper:
                 continue
             if int_ms == ROUGH_INT_MS_UNKNOWN:
                 pr = math.nan
-                frac = MS_RANGE_M * ((mod_ms + fine_ms) % 1.0)
+                frac = LIGHT_MS_M * ((mod_ms + fine_ms) % B1I_CODE_PERIOD_MS)
                 self.counters["msm_cells_fractional"] += 1
             else:
-                pr = MS_RANGE_M * (int_ms + mod_ms + fine_ms)
-                frac = float(np.mod(pr, MS_RANGE_M))
+                pr = LIGHT_MS_M * (int_ms + mod_ms + fine_ms)
+                frac = float(np.mod(pr, B1I_CODE_RANGE_M))
             cnr = float(getattr(msg, f"{lay.cnr}_{k:02d}"))
             doppler = math.nan
             if lay.rates:
@@ -396,7 +406,7 @@ class RtcmMapper:
                 doppler_hz=doppler,
                 lock_s=msm_lock_time_s(level, int(getattr(msg, f"{lay.lock}_{k:02d}"))),
             )
-            prn = prn_id(sat_id)
+            prn = sat_id(MSM_SYSTEM, sat)
             old = self._cells.get(prn)
             if old is None:
                 self.counters["msm_cells_b1i"] += 1

@@ -18,14 +18,25 @@ from __future__ import annotations
 import logging
 from typing import Any, Literal
 
+from service.core.bds import nav_type as bds_nav_type
 from service.core.bds_nav import parse_header
-from service.core.constants import is_geo, prn_id
 from service.core.errors import DecodeError
+from service.core.systems import GnssSystem, sat_id
 from service.core.types import NavSubframe
 
 log = logging.getLogger(__name__)
 
-GNSS_BDS = 3
+UBX_GNSS: dict[int, GnssSystem] = {
+    0: GnssSystem.GPS,
+    1: GnssSystem.SBAS,
+    2: GnssSystem.GAL,
+    3: GnssSystem.BDS,
+    5: GnssSystem.QZS,
+    6: GnssSystem.GLO,
+    7: GnssSystem.IRN,
+}
+"""u-blox gnssId -> system (u-blox F9 HPG Interface Description, "GNSS identifiers"; 4 is
+IMES, no satellite system). bdsfix reads BeiDou's (gnssId 3) and counts the others."""
 B1I_SIGIDS = {0: "D1", 1: "D2"}
 """u-blox sigId -> the message type u-blox names for B1I."""
 WORD_MASK = (1 << 30) - 1
@@ -37,17 +48,18 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
     None for other GNSS or signals, a word count other than 10, or a subframe that fails
     the preamble/header checks (:func:`service.core.bds_nav.parse_header`).
     """
-    if int(msg.gnssId) != GNSS_BDS or int(msg.numWords) != 10:
+    if UBX_GNSS.get(int(msg.gnssId)) is not GnssSystem.BDS or int(msg.numWords) != 10:
         return None
     sig_type = B1I_SIGIDS.get(int(msg.sigId))
     if sig_type is None:
         return None
     svid = int(msg.svId)
-    nav_type: Literal["D1", "D2"] = "D2" if is_geo(svid) else "D1"
+    prn = sat_id(GnssSystem.BDS, svid)
+    nav_type: Literal["D1", "D2"] = bds_nav_type(prn)
     if sig_type != nav_type:
         log.debug(
-            "C%02d: sigId %d says %s, the satellite broadcasts %s",
-            svid,
+            "%s: sigId %d says %s, the satellite broadcasts %s",
+            prn,
             int(msg.sigId),
             sig_type,
             nav_type,
@@ -60,10 +72,10 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
     try:
         head = parse_header(words, nav_type)
     except DecodeError as exc:
-        log.debug("C%02d SFRBX rejected: %s", svid, exc)
+        log.debug("%s SFRBX rejected: %s", prn, exc)
         return None
     return NavSubframe(
-        prn=prn_id(svid),
+        prn=prn,
         nav_type=nav_type,
         fra_id=head.fra_id,
         sow_s=head.sow_s,

@@ -12,7 +12,7 @@ outage's length. A transport never holds more than its one descriptor, whatever 
 disconnections. Transports know nothing about protocols.
 
 Counter keys: ``transport_bytes``, ``disconnects``, ``reconnects``, ``connects``,
-``open_failures``.
+``open_failures``, ``drops_before_data`` (see :class:`_Reconnecting`).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import serial
 
 from service.core.counters import Counters
 from service.core.errors import ConfigError, InputError
+from service.core.ratelog import RateLimitedLog
 from service.core.timebase import diff_s
 from service.core.types import MeasurementEpoch
 
@@ -100,7 +101,20 @@ class FileTransport:
 
 
 class _Reconnecting:
-    """Connect on demand; on failure, back off exponentially up to ``backoff_max_s``."""
+    """Connect on demand; on failure, back off exponentially up to ``backoff_max_s``.
+
+    A connection is *confirmed* when it has proved to work: at once for a device or a TCP
+    server (the default), or, for a transport with ``confirm_by_data`` (NTRIP), when the
+    subclass has seen real data on it (:meth:`_confirmed`). Only a confirmed connection
+    resets the backoff, ends an outage ("reconnected after") and makes its loss a new outage
+    (one WARNING "disconnected"). A connection lost before it was confirmed (a server that
+    accepts and closes at once, or answers and sends nothing usable) is counted
+    ``drops_before_data`` and the backoff goes on doubling; its log line is rate-limited
+    (:class:`~service.core.ratelog.RateLimitedLog`: the first at once, then at most one a
+    minute saying how many it stands for), so such a server gets a connection every
+    ``backoff_max_s`` and the journal a line a minute, not a storm of both."""
+
+    confirm_by_data = False
 
     def __init__(
         self,
@@ -117,10 +131,12 @@ class _Reconnecting:
         self.backoff_max_s = backoff_max_s
         self._backoff_s = backoff_initial_s
         self._next_try = 0.0
-        self._ever_connected = False
+        self._ever_connected = False  # ever confirmed
+        self._healthy = False  # the current connection is confirmed
         self._failures_logged = 0
         self._closed = False
         self._down_since: float | None = None
+        self._drop_log = RateLimitedLog(log)
 
     @property
     def finished(self) -> bool:
@@ -159,7 +175,8 @@ class _Reconnecting:
             self.counters["open_failures"] += 1
             raise InputError(f"{self.name}: cannot open: {_why(err)}") from err
         self.counters["connects"] += 1
-        self._ever_connected = True
+        if not self.confirm_by_data:
+            self._ever_connected = self._healthy = True
         log.debug("%s: connected", self.name)  # the caller reports its start-up in one line
 
     def _ensure(self) -> bool:
@@ -189,6 +206,17 @@ class _Reconnecting:
             self._release()
             return False
         self.counters["connects"] += 1
+        if self.confirm_by_data:
+            log.debug("%s: connected; waiting for data", self.name)
+        else:
+            self._confirmed()
+        return True
+
+    def _confirmed(self) -> None:
+        """The current connection works: end the outage, reset the backoff (once)."""
+        if self._healthy:
+            return
+        self._healthy = True
         if self._ever_connected:
             self.counters["reconnects"] += 1
             down_s = time.monotonic() - (self._down_since or time.monotonic())
@@ -199,13 +227,24 @@ class _Reconnecting:
         self._down_since = None
         self._failures_logged = 0
         self._backoff_s = self.backoff_initial_s
-        return True
 
     def _drop(self, reason: object) -> None:
         self.counters["disconnects"] += 1
-        log.warning("%s: disconnected (%s); reconnecting", self.name, _why(reason))
-        self._release()
-        self._down_since = time.monotonic()
+        was_healthy = self._healthy
+        self._release()  # sees the connection as it was (confirmed or not)
+        self._healthy = False
+        if was_healthy:
+            log.warning("%s: disconnected (%s); reconnecting", self.name, _why(reason))
+            self._down_since = time.monotonic()
+        else:
+            self.counters["drops_before_data"] += 1
+            self._drop_log.warning(
+                "drop",
+                "%s: connection lost before any data (%s); retry in %.1f s",
+                self.name,
+                _why(reason),
+                self._backoff_s,
+            )
         self._next_try = time.monotonic() + self._backoff_s
         self._backoff_s = min(self._backoff_s * 2.0, self.backoff_max_s)
 

@@ -57,17 +57,17 @@ from typing import Any
 from pyubx2 import UBX_MSGIDS, UBXReader
 
 from drivers.framing import BinaryFraming, Event, WeekContext
-from drivers.sfrbx import nav_subframe_from_sfrbx
-from service.core.constants import C_M_S, WEEK_S, prn_id
+from drivers.sfrbx import UBX_GNSS, nav_subframe_from_sfrbx
+from service.core.constants import C_M_S, WEEK_S
 from service.core.counters import Counters
 from service.core.ratelog import RateLimitedLog
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
 from service.core.timebase import diff_s, gpst_from_utc, normalize
 from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
-GNSS_BDS = 3
-B1I_PERIOD_S = 1e-3
+B1I_PERIOD_S = SYSTEM_CONSTANTS[GnssSystem.BDS].code_period_s
 B1I_RANGE_M = C_M_S * B1I_PERIOD_S
 
 # u-blox signal identifiers (gnssId 3) -> RINEX 3 observation code; only B1I is used.
@@ -419,14 +419,15 @@ class UbxMapper:
         if pending is None:
             return out
         for m in _blocks(msg, "numMeas"):
-            if m["gnssId"] != GNSS_BDS:
+            system = UBX_GNSS.get(m["gnssId"])
+            if system is not GnssSystem.BDS:
                 self.counters["rawx_meas_other_gnss"] += 1
                 continue
             sig = BDS_SIGNALS.get(int(m["sigId"]))
             if sig is None:
                 self.counters["rawx_bds_other_signal"] += 1
                 continue
-            sat = self._sat(pending, prn_id(int(m["svId"])))
+            sat = self._sat(pending, sat_id(system, int(m["svId"])))
             pr_m = float(m["prMes"])
             if not m["prValid"]:
                 self.counters["rawx_pr_invalid"] += 1
@@ -450,7 +451,8 @@ class UbxMapper:
         if pending is None:
             return out
         for sv in _blocks(msg, "numSv"):
-            if sv["gnssId"] != GNSS_BDS:
+            system = UBX_GNSS.get(sv["gnssId"])
+            if system is not GnssSystem.BDS:
                 continue
             int_ms = int(sv["intCodePhase"])
             chips = int(sv["wholeChips"])
@@ -458,7 +460,7 @@ class UbxMapper:
                 self.counters["measx_invalid"] += 1
                 continue
             code_ms = int_ms + float(sv["codePhase"])
-            sat = self._sat(pending, prn_id(int(sv["svId"])))
+            sat = self._sat(pending, sat_id(system, int(sv["svId"])))
             # Python's float % is numpy.mod's floor-mod (fmod, then the divisor's sign), for
             # a tenth of the per-call cost
             sat.raw_frac_m = (C_M_S * code_ms * 1e-3) % B1I_RANGE_M
@@ -607,7 +609,7 @@ class UbxMapper:
 
     # --- navigation subframes ---------------------------------------------------------------
     def _on_sfrbx(self, msg: Any) -> list[Event]:
-        if int(msg.gnssId) != GNSS_BDS:
+        if UBX_GNSS.get(int(msg.gnssId)) is not GnssSystem.BDS:
             self.counters["sfrbx_other_gnss"] += 1
             return []
         self.counters["sfrbx_bds"] += 1

@@ -135,8 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--period-ms",
         type=int,
         choices=[1, 20],
-        default=1,
-        help="T of the fractional ranges [ms]: 1 (code period) or 20 (D1 bit)",
+        default=None,
+        help="T of the fractional ranges [ms]: 1 or 20 (D1 bit); default each satellite "
+        "system's code period (1 for B1I)",
     )
     s.add_argument(
         "--format", choices=["jsonl", "csv", "nmea"], default="jsonl", help="output format"
@@ -263,7 +264,12 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--seed", type=int, default=0, help="random seed (noise, sync delays)")
     dest = m.add_mutually_exclusive_group()
     dest.add_argument("--out", help="file, - for stdout (default)")
-    dest.add_argument("--pty", action="store_true", help="write to a new pty (path on stderr)")
+    dest.add_argument(
+        "--pty",
+        action="store_true",
+        help="write to a new pty (path on stderr); the stream starts when a program opens it",
+    )
+    m.add_argument("--link", metavar="PATH", help="--pty: a symlink to the pty at PATH")
     m.add_argument("--realtime", action="store_true", help="pace file/stdout output in real time")
     m.add_argument(
         "--no-ephemerides",
@@ -271,6 +277,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_false",
         help="do not start the stream with the ephemerides it was made with (RTCM 1042), so "
         "a replay must learn them from the subframes or a nav file",
+    )
+    m.add_argument(
+        "--ephemerides-every-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="repeat the RTCM 1042 ephemerides this often, as a receiver repeats its "
+        "navigation data (default: 1 with --pty, else only at the start; 0: only at the start)",
     )
     m.add_argument(
         "--max-speed", action="store_true", help="as fast as possible (no pacing by data time)"
@@ -377,12 +391,22 @@ def build_parser() -> argparse.ArgumentParser:
         "sub",
         "print ZeroMQ messages",
         "Subscribe to a bdsfix ZeroMQ PUB endpoint and print each message as "
-        "'TOPIC JSON' (a running 'bdsfix run', or 'bdsfix replay --zmq ENDPOINT').",
+        "'TOPIC JSON' (a running 'bdsfix run', or 'bdsfix replay --zmq ENDPOINT'); "
+        "--json prints the JSON alone.",
     )
     z.add_argument(
         "endpoint", nargs="?", default="tcp://127.0.0.1:10111", help="ZeroMQ PUB endpoint"
     )
-    z.add_argument("--topic", action="append", help="FIX, SKY, TRACK or STATUS (default all)")
+    z.add_argument(
+        "--topic",
+        action="append",
+        help="FIX, SKY, TRACK or STATUS, in any case; repeatable (default all)",
+    )
+    z.add_argument(
+        "--json",
+        action="store_true",
+        help="print the JSON record alone, one per line (for jq), without the topic",
+    )
     z.add_argument("--count", type=int, default=None, help="exit after N messages")
     z.add_argument("--timeout-s", type=float, default=None, help="exit after this idle time")
     z.add_argument("--curve-server-key", metavar="FILE", help="CURVE: server public certificate")

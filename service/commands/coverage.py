@@ -8,8 +8,8 @@ import logging
 
 import numpy as np
 
-from service.commands.options import check_output_path, parse_start
-from service.core.constants import is_geo
+from service.commands.options import check_output_path, check_plot, parse_start
+from service.core.bds import is_geo
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
 from service.studies.coverage import (
@@ -37,7 +37,7 @@ def main_coverage(args: argparse.Namespace) -> int:
         elmask_deg=args.elmask_deg,
     )
     check_output_path(args.json_out, "--json")
-    check_output_path(args.plot, "--plot")
+    check_plot(args.plot)
     if cfg.days <= 0 or cfg.step_s <= 0 or cfg.grid_deg <= 0 or not cfg.altitudes_m:
         raise ConfigError("--days, --step-s and --grid-deg must be positive, with an altitude")
     t_s = np.arange(cfg.n_epochs) * cfg.step_s

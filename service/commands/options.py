@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from service.core.errors import ConfigError, InputError
+from service.core.files import PLOT_HINT
 from service.core.settings import build, given
 from service.core.sow_rule import FullRuleConfig
 from service.engine.solver import SolverConfig
@@ -57,6 +58,18 @@ def check_output_path(path: str | None, flag: str) -> None:
         raise InputError(f"{flag} {path}: no such directory {folder}")
     if not os.access(folder, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
         raise InputError(f"{flag} {path}: permission denied")
+
+
+def check_plot(path: str | None) -> None:
+    """``--plot PATH`` asked for: its directory is writable (:func:`check_output_path`) and
+    matplotlib imports, checked before any computing (ConfigError, exit 2, with the hint)."""
+    if not path:
+        return
+    check_output_path(path, "--plot")
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as exc:
+        raise ConfigError(PLOT_HINT) from exc
 
 
 def check_range(flag: str, value: float, low: float, high: float) -> None:

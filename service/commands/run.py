@@ -34,6 +34,7 @@ from service.daemon.config import (
 )
 from service.daemon.loop import Runner
 from service.daemon.sdnotify import Notifier
+from service.daemon.statelock import lock_state_dir
 from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.solver import IonoSet
 from service.output.publish import Publishers
@@ -90,6 +91,21 @@ def _check_source(spec: str) -> None:
             check_capture(path)
         except OSError as exc:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
+
+
+def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> None:
+    """RINEX nav files without a BDS ephemeris, or (for a capture file source) of another
+    day than its first epoch, refuse the start: one line, exit 3
+    (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows)."""
+    if not nav:
+        return
+    from service.commands.navcheck import check_navigation, first_epoch_time, read_navigation
+
+    navs = read_navigation(nav)
+    first = None
+    if _is_regular_file(spec):
+        first = first_epoch_time(spec.removeprefix("file:"), gps_week)
+    check_navigation(nav, navs, first)
 
 
 def _is_regular_file(spec: str) -> bool:
@@ -153,7 +169,12 @@ def _open_ntrip(cfg: DaemonConfig) -> list[Any]:
     from drivers.ntrip import open_ntrip
 
     return [
-        open_ntrip(url, reconnect_max_s=cfg.ntrip_reconnect_max_s) for url in ntrip_sources(cfg)
+        open_ntrip(
+            url,
+            reconnect_max_s=cfg.ntrip_reconnect_max_s,
+            header_timeout_s=cfg.ntrip_header_timeout_s,
+        )
+        for url in ntrip_sources(cfg)
     ]
 
 
@@ -190,7 +211,9 @@ def main_run(args: argparse.Namespace) -> int:
     specs = output_specs(cfg)
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
+    _check_nav(cfg.source, nav_files(cfg))
     _check_state_dir(cfg.resolved_state_dir())
+    lock_state_dir(cfg.resolved_state_dir())  # a second daemon on it: exit 3, one line
     if cfg.configure:  # before the source opens: the set-up has the port to itself
         from service.commands.configure import setup_receiver
 
@@ -213,6 +236,7 @@ def main_run(args: argparse.Namespace) -> int:
     state_dir = cfg.resolved_state_dir()
     log.info("ephemeris store kept in %s", state_dir.resolve())
     store = load_store(state_dir, cfg.max_eph_age_s)
+    timeline = Timeline()
     pipeline = Pipeline(
         store,
         IonoSet.of([store.iono]),
@@ -232,6 +256,7 @@ def main_run(args: argparse.Namespace) -> int:
         silence_warn_s=cfg.silence_warn_s,
         nav_sources=[(src.name, src, src.counters) for src in nav_sources],
         nav_max_age_s=cfg.ntrip_max_age_s,
+        on_result=timeline.log_first_fixes,
     )
     signals = _Signals(runner)
     notifier.ready(f"reading {cfg.source}")
@@ -255,6 +280,8 @@ def main_run(args: argparse.Namespace) -> int:
     log.info("final counters: %s", " ".join(f"{k}={v}" for k, v in sorted(counters.items())))
     for line in stream_lines("run", n, counters, runner.skipped()):
         print(line, file=sys.stderr)
+    for line in timeline.lines() if n else []:  # as replay's (no epoch: no time scale)
+        print(line, file=sys.stderr)
     return signals.exit_code()
 
 
@@ -264,19 +291,52 @@ class Timeline:
     def __init__(self) -> None:
         self.first: dict[str, float] = {}
 
-    def mark(self, key: str, t_s: float) -> None:
-        self.first.setdefault(key, t_s)
+    def mark(self, key: str, t_s: float) -> bool:
+        """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
+        if key in self.first:
+            return False
+        self.first[key] = t_s
+        return True
 
     def on_result(self, r: EpochResult) -> None:
+        """Mark the first events ``r`` brings."""
+        self.marks(r)
+
+    def marks(self, r: EpochResult) -> list[str]:
+        """Mark the first events ``r`` brings; the keys that are new."""
+        if r.restarted:  # the timeline is the restarted receiver's
+            self.first.clear()
+        new = []
         for ev in r.track:
             kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
-            self.mark(f"first {kind} SOW decoded", ev.since_start_s)
+            if self.mark(f"first {kind} SOW decoded", ev.since_start_s):
+                new.append(f"first {kind} SOW decoded")
         if r.since_start_s is None:
-            return
-        if r.fix.mode == "fast":
-            self.mark("first fast fix", r.since_start_s)
-        if r.fix.mode == "spp":
-            self.mark("first conventional fix", r.since_start_s)
+            return new
+        key = {"fast": "first fast fix", "spp": "first conventional fix"}.get(r.fix.mode)
+        if key and self.mark(key, r.since_start_s):
+            new.append(key)
+        return new
+
+    def log_first_fixes(self, r: EpochResult) -> None:
+        """:meth:`on_result`, and one INFO line at the first fast and the first conventional
+        fix: the data time since the first measurement, the fix's GPS time and position
+        (what ``run`` tells the journal; the timeline follows at stop)."""
+        for key in self.marks(r):
+            if key.endswith(" fix"):
+                fix = r.fix
+                log.info(
+                    "%s: t = %.2f s after the first measurement (GPST week %d, tow %.3f s), "
+                    "%.7f %.7f %.1f m, %d satellites",
+                    key,
+                    self.first[key],
+                    fix.gpst_week,
+                    fix.gpst_tow_s,
+                    fix.lat_deg,
+                    fix.lon_deg,
+                    fix.alt_m,
+                    len(fix.used),
+                )
 
     def lines(self, offset_s: float = 0.0, restarted: bool = False) -> list[str]:
         since = "the emulated restart" if restarted else "the first measurement"
@@ -322,6 +382,7 @@ def main_replay(args: argparse.Namespace) -> int:
         store = EphemerisStore()
         iono = IonoSet()
         _check_source(args.files[0])
+        _check_nav(args.files[0], args.nav or [], args.gps_week)
         src = open_source(args.files[0], nav=args.nav or None, gps_week=args.gps_week)
         events = src
         counters = src.counters
@@ -372,18 +433,44 @@ SUB_NOTICE_AFTER_S = 3.0
 """``bdsfix sub`` says on stderr what it waits for when nothing came in this long [s]."""
 
 
+def sub_topics(asked: list[str] | None) -> list[str]:
+    """The ZeroMQ subscriptions for ``--topic`` values: the record classes, named in any
+    case; an unknown one is refused with the list (a SUB socket would wait for it forever).
+    None: every message."""
+    from service.output.sinks.base import RECORD_CLASSES
+
+    if not asked:
+        return [""]
+    topics = []
+    for name in asked:
+        topic = name.strip().upper()
+        if topic not in RECORD_CLASSES:
+            raise ConfigError(
+                f"--topic {name!r}: no such topic; bdsfix publishes {', '.join(RECORD_CLASSES)}"
+            )
+        topics.append(topic)
+    return topics
+
+
 def main_sub(args: argparse.Namespace) -> int:
-    """Print each ZeroMQ message as ``TOPIC JSON``. While no publisher is there it idles
-    (reconnects back off to 5 s) and says so once on stderr; SIGTERM ends it with 0
-    (Ctrl-C: 130, as every command)."""
+    """Print each ZeroMQ message as ``TOPIC JSON`` (``--json``: the JSON alone, one object
+    per line, for jq). While no publisher is there it idles (reconnects back off to 5 s)
+    and says so once on stderr; SIGTERM ends it with 0 (Ctrl-C: 130, as every command)."""
     import zmq
 
+    topics = sub_topics(args.topic)
+    endpoint = args.endpoint
+    if "://" not in endpoint:
+        raise ConfigError(
+            f"endpoint {endpoint!r} names no transport: a ZeroMQ endpoint is "
+            f"TRANSPORT://ADDRESS, e.g. tcp://{endpoint}"
+        )
     ctx: Any = zmq.Context.instance()
     sock = ctx.socket(zmq.SUB)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RECONNECT_IVL, 200)
     sock.setsockopt(zmq.RECONNECT_IVL_MAX, 5000)  # back off while no publisher listens
-    for topic in args.topic or [""]:
+    for topic in topics:
         sock.setsockopt_string(zmq.SUBSCRIBE, topic)
     _curve_client(sock, getattr(args, "curve_server_key", None), getattr(args, "curve_key", None))
     try:
@@ -419,7 +506,7 @@ def main_sub(args: argparse.Namespace) -> int:
                 continue
             idle_s = 0.0
             topic, body = sock.recv_multipart()
-            print(f"{topic.decode()} {body.decode()}", flush=True)
+            print(body.decode() if args.json else f"{topic.decode()} {body.decode()}", flush=True)
             n += 1
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -1,19 +1,32 @@
 """``bdsfix simulate``: the virtual receiver's UBX stream to a file, stdout or a pty.
 
 Ephemerides come from a RINEX nav file (``--nav``) or the built-in Table 1 set; the start
-time defaults to the nav file's first BDS toe (or Table 1's epoch). ``--pty`` creates a
-pseudo-terminal pair, prints the device path to stderr and writes to it, paced in real time
-unless ``--max-speed``. ``--pty --wait-config`` makes it a configurable u-blox receiver that
-answers CFG messages and starts silent (:mod:`service.sim.configurable`).
+time defaults to the nav file's first BDS toe (or Table 1's epoch). ``--pty --wait-config``
+makes it a configurable u-blox receiver that answers CFG messages and starts silent
+(:mod:`service.sim.configurable`).
+
+``--pty`` creates a pseudo-terminal pair (raw), prints the device path to stderr (and links
+``--link PATH`` to it), and waits for a reader: the scenario starts when a program opens
+the device (the master stops reporting POLLHUP), so nothing is written to nobody. The
+stream is paced in real time unless ``--max-speed``. The RTCM 1042 ephemerides go out at
+the start and again every ``--ephemerides-every-s`` (1 s by default on a pty), as a real
+receiver repeats its navigation data: a reader that flushes its input on open (pyserial
+does) or comes late still gets them within a second (issue 23: without the repeat the
+first fast fix of ``bdsfix run`` came 44 s late). The writes never block the scenario:
+when the reader leaves (POLLHUP again), what is written is dropped and counted, and the
+command ends at ``--duration-s`` all the same; with ``--max-speed`` the pty's flow control
+paces the stream while a reader is there.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import select
 import sys
 import time
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 from service.commands.options import check_range, full_rule, parse_start
 from service.core.errors import ConfigError, InputError
@@ -71,8 +84,10 @@ def _serve_configurable(
 
     master, slave = os.openpty()
     tty.setraw(slave)
-    print(os.ttyname(slave), file=sys.stderr, flush=True)
+    device = os.ttyname(slave)
     try:
+        _link(device, args.link)
+        print(device, file=sys.stderr, flush=True)
         stats = ConfigurableReceiver(
             master, make_sim, responder, base_period_ms=round(base_ms)
         ).serve()
@@ -80,6 +95,7 @@ def _serve_configurable(
         time.sleep(0.5)
         os.close(master)
         os.close(slave)
+        _unlink(device, args.link)
     sent = ", ".join(sorted(responder.outputs)) or "no output"
     print(
         f"bdsfix simulate: {stats.epochs_sent} epochs sent ({sent}), "
@@ -88,6 +104,96 @@ def _serve_configurable(
         file=sys.stderr,
     )
     return 0
+
+
+PTY_POLL_S = 0.05
+"""How often the pty is looked at while it waits for a reader or for room [s]."""
+
+
+@dataclass
+class PtyWriter:
+    """The master side of a pty whose slave is closed here: the reader is whoever opens
+    the device. Writes are non-blocking; bytes that find no reader (or, unless ``wait``,
+    a full buffer) are dropped and counted, as a UART drops them."""
+
+    fd: int
+    wait: bool = False
+    """Wait for room while a reader is there (``--max-speed``: its flow control paces)."""
+    written: int = 0
+    dropped: int = 0
+
+    def __post_init__(self) -> None:
+        os.set_blocking(self.fd, False)
+        self._poll = select.poll()
+        self._poll.register(self.fd, select.POLLOUT)
+
+    def reader_present(self) -> bool:
+        """Whether a program has the slave open (the master reports no POLLHUP)."""
+        return not any(ev & select.POLLHUP for _, ev in self._poll.poll(0))
+
+    def wait_for_reader(self) -> None:
+        while not self.reader_present():
+            time.sleep(PTY_POLL_S)
+
+    def write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            if not self.reader_present():
+                self.dropped += len(view)
+                return
+            try:
+                n = os.write(self.fd, view)
+            except BlockingIOError:
+                if not self.wait:
+                    self.dropped += len(view)
+                    return
+                self._poll.poll(round(PTY_POLL_S * 1000))
+                continue
+            self.written += n
+            view = view[n:]
+
+
+def _link(device: str, link: str | None) -> None:
+    """Point the symlink ``link`` at ``device`` (an old symlink there is replaced, anything
+    else refused: InputError)."""
+    if not link:
+        return
+    if os.path.lexists(link) and not os.path.islink(link):
+        raise InputError(f"--link {link}: exists and is not a symlink")
+    tmp = f"{link}.new"
+    try:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        os.symlink(device, tmp)
+        os.replace(tmp, link)
+    except OSError as exc:
+        raise InputError(f"--link {link}: {exc.strerror}") from exc
+
+
+def _unlink(device: str, link: str | None) -> None:
+    """Remove ``link`` if it still points at ``device``."""
+    try:
+        if link and os.readlink(link) == device:
+            os.unlink(link)
+    except OSError:
+        pass
+
+
+def _open_pty(link: str | None) -> tuple[int, str]:
+    """A raw pty pair whose slave is closed again (the master reports POLLHUP until a
+    reader opens it); its master and device path, linked from ``link`` if given."""
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)  # binary from the first byte, before the reader configures the port
+    device = os.ttyname(slave)
+    os.close(slave)
+    try:
+        _link(device, link)
+    except InputError:
+        os.close(master)
+        raise
+    return master, device
 
 
 def main_simulate(args: argparse.Namespace) -> int:
@@ -122,38 +228,56 @@ def main_simulate(args: argparse.Namespace) -> int:
         return _serve_configurable(args, ephs, cfg, iono)
     if args.nak or args.no_answer:
         raise ConfigError("--nak and --no-answer need --pty --wait-config")
-    master = slave = None
+    if args.link and not args.pty:
+        raise ConfigError("--link needs --pty")
+    every_s = args.ephemerides_every_s
+    if every_s is None:
+        every_s = 1.0 if args.pty else 0.0
+    if not (every_s >= 0 and every_s < float("inf")):
+        raise ConfigError(f"--ephemerides-every-s must be 0 or a positive number, got {every_s}")
+    master = None
+    pty: PtyWriter | None = None
+    write: Callable[[bytes], object]
     if args.pty:
-        master, slave = os.openpty()
-        print(os.ttyname(slave), file=sys.stderr, flush=True)
-        write = lambda b: os.write(master, b)  # noqa: E731
+        master, device = _open_pty(args.link)
+        print(device, file=sys.stderr, flush=True)
+        pty = PtyWriter(master, wait=args.max_speed)
+        write = pty.write
     elif args.out in (None, "-"):
         write = sys.stdout.buffer.write
     else:
         fh = open_output(args.out, binary=True)  # InputError: unwritable or a symlink
         write = fh.write
-    t0 = time.monotonic()
+    sets = b"".join(frame_1042(e) for e in broadcast_sets(ephs, sim.prns, week, tow))
     try:
-        if args.ephemerides:  # what the stream was made with, as an assisted receiver has it
-            write(b"".join(frame_1042(e) for e in broadcast_sets(ephs, sim.prns, week, tow)))
+        if pty is not None:
+            print("bdsfix simulate: waiting for a reader of the pty", file=sys.stderr, flush=True)
+            pty.wait_for_reader()
+        t0 = time.monotonic()
+        next_sets_s = 0.0
         for ep, data in sim.ubx_epochs():
             if not args.max_speed and (args.pty or args.realtime):
                 delay = t0 + ep.t_s - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
+            if args.ephemerides and ep.t_s >= next_sets_s:
+                # what the stream was made with, as an assisted receiver has it, repeated
+                write(sets)
+                next_sets_s = ep.t_s + every_s if every_s > 0 else float("inf")
             write(data)
     finally:
-        if master is not None and slave is not None:
-            time.sleep(0.5)
+        if master is not None:
+            time.sleep(0.5)  # the reader takes what is in the pty before it hangs up
             os.close(master)
-            os.close(slave)
+            _unlink(device, args.link)
         elif args.out not in (None, "-"):
             fh.close()
         else:
             sys.stdout.buffer.flush()
+    lost = f", {pty.dropped} bytes lost while nobody read" if pty is not None else ""
     print(
         f"bdsfix simulate: {len(sim.prns)} satellites ({', '.join(sim.prns)}), "
-        f"{round(cfg.duration_s * cfg.rate_hz)} epochs",
+        f"{round(cfg.duration_s * cfg.rate_hz)} epochs{lost}",
         file=sys.stderr,
     )
     return 0

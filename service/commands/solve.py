@@ -23,6 +23,7 @@ from service.core.files import open_output
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.batch import CHUNK_EPOCHS, solve_many
 from service.engine.solver import IonoSet, SolverConfig, fractionalize
+from service.engine.velocity import with_velocities
 
 log = logging.getLogger(__name__)
 
@@ -33,24 +34,30 @@ class BatchOptions:
 
     mode: Literal["fast", "spp", "both"] = "both"
     fractional: Literal["non-geo", "none"] = "non-geo"
-    period_s: float = 1e-3
+    period_s: float | None = None
+    """T of the fractional ranges; None: each satellite's system's code period."""
     cfg: SolverConfig = field(default_factory=SolverConfig)
     with_sky: bool = True
     """Attach the sky view to each fix (only the NMEA output shows it: GSV)."""
 
 
-def load_navigation(paths: list[str], max_age_s: float = 7200.0) -> tuple[EphemerisStore, IonoSet]:
-    """Ephemeris store and broadcast ionosphere from one or more RINEX 3 nav files."""
-    from drivers.rinex import read_nav
+def load_navigation(
+    paths: list[str], max_age_s: float = 7200.0, first: tuple[int, float] | None = None
+) -> tuple[EphemerisStore, IonoSet]:
+    """Ephemeris store and broadcast ionosphere from one or more RINEX 3 nav files, refused
+    (exit 3) without a BDS ephemeris or, given the observations' ``first`` epoch (GPST
+    week, tow), when they are of another day (:mod:`service.commands.navcheck`)."""
+    from service.commands.navcheck import check_navigation, read_navigation
 
+    navs = read_navigation(paths)
+    check_navigation(paths, navs, first)
     store = EphemerisStore(max_age_s=max_age_s)
     params = []
-    for path in paths:
-        nav = read_nav(path)
+    for nav in navs:
         for ephs in nav.ephemerides.values():
             store.add_all(ephs)
         params += [nav.iono_bds, nav.iono_gps]
-    if len(store) == 0:
+    if len(store) == 0:  # every set refused by the store's sanity checks
         raise InputError(f"no usable BDS ephemeris in {', '.join(paths)}")
     iono = IonoSet.of(params)
     if iono.bds is None and iono.gps is not None:
@@ -70,7 +77,9 @@ def solve_epochs(
 
     The epochs are read and solved :data:`~service.engine.batch.CHUNK_EPOCHS` at a time by
     :func:`~service.engine.batch.solve_many` (the per-epoch solver's fixes, vectorised
-    across epochs), so a file of any length streams through in bounded memory."""
+    across epochs), so a file of any length streams through in bounded memory. Each fix
+    with a position gets its velocity from the epoch's Doppler, a chunk at a time
+    (:func:`~service.engine.velocity.with_velocities`)."""
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
@@ -80,6 +89,9 @@ def solve_epochs(
             per_solver.append(solve_many(fast_in, store, iono, opts.cfg, "fast", opts.with_sky))
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(chunk, store, iono, opts.cfg, "spp", opts.with_sky))
+        per_solver = [
+            with_velocities(list(zip(fixes, chunk, strict=True)), store) for fixes in per_solver
+        ]
         for k, epoch in enumerate(chunk):
             yield epoch, [fixes[k] for fixes in per_solver]
 
@@ -96,7 +108,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.rinex import RinexObsReader
     from service.commands.options import solver_config
-    from service.commands.summary import NO_EPOCHS_HINT, decline_lines
+    from service.commands.summary import decline_lines, no_epochs_hint, skipped_line
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
     if args.format == "nmea":  # pynmeagps only when asked for (start-up)
@@ -106,12 +118,15 @@ def main_solve(args: argparse.Namespace) -> int:
     opts = BatchOptions(
         mode=args.mode,
         fractional=args.fractional,
-        period_s=args.period_ms * 1e-3,
+        period_s=None if args.period_ms is None else args.period_ms * 1e-3,
         cfg=cfg,
         with_sky=args.format == "nmea",
     )
-    store, iono = load_navigation(list(args.nav))
     reader = RinexObsReader(args.obs)
+    first = next(
+        ((e.gpst_week, e.gpst_tow_s) for e in RinexObsReader(args.obs, lenient=True)), None
+    )
+    store, iono = load_navigation(list(args.nav), first=first)
     counts, excluded = Counters(), Counters()
     declined = {"fast": Counters(), "spp": Counters()}
     n_epochs = 0
@@ -147,11 +162,14 @@ def main_solve(args: argparse.Namespace) -> int:
             parts.append(f"{solver} solver {n_fixes} fixes ({modes or 'none'})")
     print(f"bdsfix solve: {n_epochs} epochs; " + "; ".join(parts), file=sys.stderr)
     for solver, c in declined.items():
-        for line in decline_lines(c, indent=f"  {solver} solver "):
+        for line in decline_lines(c, indent=f"  {solver} solver ", command="solve"):
             print(line, file=sys.stderr)
     if excluded:
         parts_ex = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
         print(f"  excluded by fault detection: {parts_ex}", file=sys.stderr)
+    skipped = {k: n for k, n in sorted(reader.counters.items()) if k.endswith("_skipped") and n}
+    for line in skipped_line(skipped):
+        print(line, file=sys.stderr)
     if n_epochs == 0:
-        print(f"  {NO_EPOCHS_HINT}", file=sys.stderr)
+        print(f"  {no_epochs_hint('solve')}", file=sys.stderr)
     return 0

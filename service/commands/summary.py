@@ -21,12 +21,37 @@ HINTS: dict[str, str] = {
 }
 """A hint per decline code (:data:`service.engine.solver.REASONS`), for the summaries."""
 
+COMMAND_HINTS: dict[str, dict[str, str]] = {
+    # where a command's own flags differ from replay's (HINTS and NO_EPOCHS_HINT name those)
+    "run": {
+        # run has no --gps-week: a live stream takes the week from the system clock
+        "no_time": "the GPS week is not known yet: a live stream takes it from the system "
+        "clock until the receiver's time tag or ephemerides give it; a capture file has no "
+        "clock: 'bdsfix replay FILE --gps-week N'",
+    },
+    "solve": {
+        "no_ephemeris": "give the satellites' ephemerides: a RINEX 3 nav file of the same "
+        "day as the obs file (the NAV argument)",
+        "no_time": "the obs file's epochs carry no GPS time: check its header and epoch lines",
+    },
+}
+"""Hints that differ by command, naming only its own flags: ``run`` has no ``--gps-week``,
+``solve`` takes its nav file as an argument (issue 23)."""
+
+
+def hint_for(code: str, command: str = "replay") -> str | None:
+    """The hint for decline ``code`` in ``command``'s words (its own flags only)."""
+    return COMMAND_HINTS.get(command, {}).get(code, HINTS.get(code))
+
+
 TOP_REASONS = 3
 
 
-def decline_lines(counters: Mapping[str, int | float], indent: str = "  ") -> list[str]:
+def decline_lines(
+    counters: Mapping[str, int | float], indent: str = "  ", command: str = "replay"
+) -> list[str]:
     """The top decline reasons (``declined_<code>`` counters) in words with counts, and a
-    hint for the commonest when it has one."""
+    hint for the commonest when it has one (in ``command``'s words)."""
     declined = {k[9:]: int(v) for k, v in counters.items() if k.startswith("declined_") and v}
     if not declined:
         return []
@@ -36,9 +61,9 @@ def decline_lines(counters: Mapping[str, int | float], indent: str = "  ") -> li
     if more > 0:
         parts += f", and {more} other reason{'s' if more > 1 else ''}"
     lines = [f"{indent}declined: {parts}"]
-    top = ranked[0][0]
-    if top in HINTS:
-        lines.append(f"{indent}hint: {HINTS[top]}")
+    hint = hint_for(ranked[0][0], command)
+    if hint:
+        lines.append(f"{indent}hint: {hint}")
     return lines
 
 
@@ -71,9 +96,9 @@ def stream_lines(
         f"spp {int(c.get('fix_spp', 0))}, none {int(c.get('fix_none', 0))}; integrity checks "
         f"{int(c.get('integrity_checks', 0))}, failures {int(c.get('integrity_failures', 0))}"
     ]
-    lines += [*excluded_lines(c), *decline_lines(c), *skipped_line(skipped)]
+    lines += [*excluded_lines(c), *decline_lines(c, command=command), *skipped_line(skipped)]
     if n_epochs == 0:
-        lines.append(f"  {NO_EPOCHS_HINT}")
+        lines.append(f"  {no_epochs_hint(command, c)}")
     return lines
 
 
@@ -82,3 +107,25 @@ NO_EPOCHS_HINT = (
     "RTCM3 MSM 1124-1127, or a RINEX 3 obs file with C2I/C1I); for RTCM without ephemerides "
     "give --gps-week"
 )
+"""What ``replay`` says when its input gave no epoch (it has ``--gps-week``)."""
+
+
+def no_epochs_hint(command: str, counters: Mapping[str, int | float] | None = None) -> str:
+    """What to do when ``command`` saw no measurement epoch, with that command's own flags:
+    ``replay`` has ``--gps-week``; ``run`` has not (the system clock gives a live stream its
+    week) and says when its source never opened; ``solve`` reads RINEX obs only."""
+    c = counters or {}
+    if command == "solve":
+        return "no measurement epoch in the obs file: it needs BDS pseudoranges (C2I or C1I)"
+    if command != "run":
+        return NO_EPOCHS_HINT
+    failures = int(c.get("source_open_failures", 0))
+    if failures and not c.get("source_events"):
+        return (
+            f"the source never opened ({failures} attempts, see the WARNING lines): is the "
+            "receiver plugged in, or the server listening?"
+        )
+    return (
+        "no measurement epoch from the source: it needs BDS raw measurements (UBX "
+        "RXM-RAWX/MEASX or RTCM3 MSM 1124-1127); 'bdsfix configure' sets a u-blox receiver up"
+    )

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from drivers.rinex import RinexObsReader
-from service.commands.options import check_output_path, full_rule, parse_start, solver_config
+from service.commands.options import check_plot, full_rule, parse_start, solver_config
 from service.commands.solve import load_navigation
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
@@ -39,7 +39,7 @@ from service.studies.ttff_sim import (
 def main_ttff(args: argparse.Namespace) -> int:
     if args.trials < 1:
         raise ConfigError(f"--trials must be at least 1, got {args.trials}")
-    check_output_path(args.plot, "--plot")
+    check_plot(args.plot)
     rule = full_rule(args)
     if not args.simulate and (not args.obs or not args.nav):
         raise ConfigError("ttff needs OBS and NAV (or --simulate)")

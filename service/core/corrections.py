@@ -1,12 +1,14 @@
-"""Propagation corrections for B1I code ranges, vectorised over satellites.
+"""Propagation corrections for code ranges, vectorised over satellites.
 
 - Sagnac (Earth rotation during signal flight): the satellite position at transmit time is
-  rotated about Z by Omega_e * tau into the ECEF frame at receive time.
+  rotated about Z by Omega_e * tau into the ECEF frame at receive time, with the Omega_e of
+  each satellite's system.
 - Ionosphere: the BDS broadcast Klobuchar model of BDS-SIS-ICD-B1I-3.0 section 5.2.4.7,
   which differs from the GPS one (IS-GPS-200 20.3.3.5.2.5): it uses a 375 km shell, the
   *geographic* latitude of the pierce point, |phi_M| in the polynomials, and gives the B1I
-  delay directly. The GPS form is kept for files that only carry GPSA/GPSB, scaled from L1 to
-  B1I by (f_L1 / f_B1I)^2.
+  delay. The GPS form gives the L1 delay (it serves files that only carry GPSA/GPSB). Both
+  are scaled to the carrier of each row's signal by (f_model / f)^2, the first-order
+  ionospheric dispersion (1 for B1I under the BDS model).
 - Troposphere: Saastamoinen (1972) zenith delays with a standard atmosphere (1013.25 hPa,
   15 degC at sea level, 70 % humidity) and a 1/cos(z) mapping.
 """
@@ -17,16 +19,25 @@ import math
 
 import numpy as np
 
-from service.core.constants import C_M_S, F_B1I_HZ, F_GPS_L1_HZ, OMEGA_E_RAD_S
+from service.core.constants import C_M_S
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem
 from service.core.types import KlobucharParams
 
 _SEMI = np.pi  # semicircles -> radians
 _ONE_DEG_RAD = math.radians(1.0)
+_F_B1I_HZ = SYSTEM_CONSTANTS[GnssSystem.BDS].carrier_hz
+"""The carrier the BDS Klobuchar model gives its delay for (ICD 5.2.4.7)."""
+_F_L1_HZ = SYSTEM_CONSTANTS[GnssSystem.GPS].carrier_hz
+"""The carrier the GPS Klobuchar model gives its delay for (IS-GPS-200 20.3.3.5.2.5)."""
 
 
-def sagnac_rotate(sat_ecef_m: np.ndarray, travel_time_s: np.ndarray) -> np.ndarray:
-    """Rotate satellite positions (n, 3) by Omega_e * travel time into the receive-time frame."""
-    ang = OMEGA_E_RAD_S * np.asarray(travel_time_s, dtype=float)
+def sagnac_rotate(
+    sat_ecef_m: np.ndarray, travel_time_s: np.ndarray, omega_e_rad_s: float | np.ndarray
+) -> np.ndarray:
+    """Rotate satellite positions (n, 3) by Omega_e * travel time into the receive-time
+    frame; ``omega_e_rad_s`` is each satellite's system's Earth rotation rate
+    (:attr:`service.core.orbit.EphemerisArrays.omega_e_rad_s`)."""
+    ang = omega_e_rad_s * np.asarray(travel_time_s, dtype=float)
     c, s = np.cos(ang), np.sin(ang)
     x, y = sat_ecef_m[..., 0], sat_ecef_m[..., 1]
     out = np.array(sat_ecef_m, dtype=float)  # z unchanged
@@ -48,15 +59,17 @@ def klobuchar_bds_m(
     el_rad: np.ndarray,
     az_rad: np.ndarray,
     bdt_sow_s: float | np.ndarray,
+    carrier_hz: float | np.ndarray,
 ) -> np.ndarray:
-    """B1I ionospheric delay [m], BDS Klobuchar form (ICD B1I 5.2.4.7).
+    """Ionospheric delay [m] on ``carrier_hz`` (per row), BDS Klobuchar form (ICD B1I 5.2.4.7).
 
     One receiver, or one per row when ``lat_rad``, ``lon_rad`` and ``bdt_sow_s`` are arrays
     that broadcast against ``el_rad`` (the batch solver's epochs x satellites).
 
     Pierce point on a 375 km shell (R = 6378 km), geographic latitude; vertical delay
     5 ns + A2 cos(2 pi (t - 50400) / A4) during the day, 5 ns at night; slant factor
-    1 / sqrt(1 - (R cos E / (R + h))^2).
+    1 / sqrt(1 - (R cos E / (R + h))^2). The model's B1I delay is scaled to the carrier by
+    (f_B1I / f)^2.
     """
     r_km, h_km = 6378.0, 375.0
     el = np.asarray(el_rad, dtype=float)
@@ -72,7 +85,7 @@ def klobuchar_bds_m(
     t = np.mod(bdt_sow_s + lon_m * 43200.0 / np.pi, 86400.0)
     day = np.abs(t - 50400.0) < a4 / 4.0
     iz = 5e-9 + np.where(day, a2 * np.cos(2 * np.pi * (t - 50400.0) / a4), 0.0)
-    return C_M_S * iz / np.sqrt(1.0 - ratio**2)
+    return C_M_S * iz / np.sqrt(1.0 - ratio**2) * (_F_B1I_HZ / np.asarray(carrier_hz)) ** 2
 
 
 def klobuchar_gps_m(
@@ -82,13 +95,15 @@ def klobuchar_gps_m(
     el_rad: np.ndarray,
     az_rad: np.ndarray,
     gpst_tow_s: float | np.ndarray,
+    carrier_hz: float | np.ndarray,
 ) -> np.ndarray:
-    """B1I ionospheric delay [m] from GPS Klobuchar coefficients (IS-GPS-200 20.3.3.5.2.5).
+    """Ionospheric delay [m] on ``carrier_hz`` (per row) from GPS Klobuchar coefficients
+    (IS-GPS-200 20.3.3.5.2.5).
 
     One receiver, or one per row as in :func:`klobuchar_bds_m`.
 
     Geomagnetic latitude, 350 km shell, obliquity 1 + 16 (0.53 - E)^3 (semicircles); the L1
-    delay is scaled to B1I by (f_L1 / f_B1I)^2.
+    delay is scaled to the carrier by (f_L1 / f)^2 (to B1I for BeiDou rows).
     """
     el_sc = np.asarray(el_rad, dtype=float) / _SEMI
     az = np.asarray(az_rad, dtype=float)
@@ -103,7 +118,7 @@ def klobuchar_gps_m(
     x = 2 * np.pi * (t - 50400.0) / per
     night = np.abs(x) >= 1.57
     delay = f * (5e-9 + np.where(night, 0.0, amp * (1 - x**2 / 2 + x**4 / 24)))
-    return C_M_S * delay * (F_GPS_L1_HZ / F_B1I_HZ) ** 2
+    return C_M_S * delay * (_F_L1_HZ / np.asarray(carrier_hz)) ** 2
 
 
 def saastamoinen_m(

@@ -29,11 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from service.core.constants import WEEK_S, prn_number
+from service.core.constants import WEEK_S
 from service.core.counters import Counters
-from service.core.errors import EphemerisError
+from service.core.errors import BdsfixError, EphemerisError
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.ratelog import RateLimitedLog
+from service.core.systems import SYSTEM_CONSTANTS, constants_of, prn_number
 from service.core.timebase import diff_s
 from service.core.types import Ephemeris, KlobucharParams
 
@@ -57,21 +58,28 @@ MAX_SETS_PER_PRN = 64
 the reference at one set an hour (49) with room for off-hour uploads. This bounds the
 store whatever the times it is fed."""
 
+# The windows below hold for every system of service.core.systems.SYSTEM_CONSTANTS (checked
+# in tests/core/test_ephemeris_sanity.py against the GPS and Galileo sets of a real
+# navigation file); a system whose orbits fall outside them (Galileo E14/E18, e = 0.16) needs
+# its own windows here.
 SQRT_A_MIN_SQRT_M = 5000.0
 SQRT_A_MAX_SQRT_M = 6700.0
 """Window for sqrt(A) [sqrt(m)]: a from 25,000 to 44,890 km. BDS MEOs have a = 27,906 km
-(sqrt(A) 5282.6), IGSOs and GEOs a = 42,164 km (sqrt(A) 6493.4). The broadcast field
+(sqrt(A) 5282.6), IGSOs and GEOs a = 42,164 km (sqrt(A) 6493.4); GPS a = 26,560 km
+(5153.6), Galileo 29,600 km (5440.6), QZSS 42,164 km. The BDS broadcast field
 (ICD B1I 5.2.4.12: 32 bits unsigned, scale 2^-19) spans 0-8192, far wider."""
 ECCENTRICITY_MAX = 0.1
-"""Upper bound (exclusive) for e. BDS orbits are near circular (e of order 0.001-0.01);
-the broadcast field (32 bits unsigned, scale 2^-33) spans 0-0.5."""
+"""Upper bound (exclusive) for e. BDS, GPS and Galileo orbits are near circular (e of order
+0.001-0.03; QZSS IGSOs 0.075); the broadcast field (32 bits unsigned, scale 2^-33) spans
+0-0.5."""
 I0_MAX_RAD = math.radians(70.0)
-"""Upper bound for i0 (lower bound 0). IGSOs and MEOs fly at about 55 deg, GEOs
-below 10 deg."""
+"""Upper bound for i0 (lower bound 0). IGSOs and MEOs fly at 41-56 deg, GEOs below
+10 deg."""
 R_MIN_M = 25_000_000.0
 R_MAX_M = 45_000_000.0
-"""Window for the satellite's geocentric radius at t_oe [m]: MEO 27,906 km and IGSO/GEO
-42,164 km, each within a * e (< 0.02) plus the C_rc/C_rs harmonics."""
+"""Window for the satellite's geocentric radius at t_oe [m]: GPS 26,560 km, BDS MEO 27,906
+km, Galileo 29,600 km and IGSO/GEO 42,164 km, each within a * e plus the C_rc/C_rs
+harmonics."""
 URA_MAX_M = 6144.0
 """URAI 14 is URA <= 6144 m, URAI 15 is URA > 6144 m (ICD B1I 5.2.4.5): no bound at all,
 so such a set is refused. 0.0 means "not stated" (RINEX writers, Table 1) and passes."""
@@ -108,24 +116,31 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
 
     Checks, in order, with the ``check`` names used as counter keys:
 
-    - ``prn``: the ID is a BDS satellite (``Cnn``);
-    - ``unhealthy``: SatH1 (ICD B1I 5.2.4.6) is not 0;
+    - ``prn``: the ID names a supported system (:data:`service.core.systems.SYSTEM_CONSTANTS`)
+      and a PRN number within its range (``C01``-``C63``, ``G01``-``G32``, ...);
+    - ``unhealthy``: the health field (BDS SatH1, ICD B1I 5.2.4.6; GPS SV health,
+      IS-GPS-200 20.3.3.3.1.4) is not 0;
     - ``not_finite``: a numeric field is not a finite number;
     - ``ura``: URA is the unusable class URAI 15, > 6144 m, or not a number (5.2.4.5);
     - ``sqrt_a``, ``eccentricity``, ``inclination``: sqrt(A), e and i0 (ephemeris
-      parameters, 5.2.4.12) within the BDS windows of this module's constants;
-    - ``radius``: the position at t_oe by the user algorithm (5.2.4.12, Table 5-11,
+      parameters, 5.2.4.12) within the windows of this module's constants;
+    - ``radius``: the position at t_oe by the user algorithm of the satellite's system
+      (5.2.4.12, Table 5-11, and the BeiDou GEO algorithm for C01-C05/C59-C63;
       :func:`service.core.orbit.sat_pos_clock`) is finite and its radius within
       [R_MIN_M, R_MAX_M]; this also catches absurd harmonic corrections.
 
     Computed with numpy warnings silenced, so a bad set never prints a RuntimeWarning.
     """
     try:
+        prn_max = constants_of(eph.prn).prn_max
         number = prn_number(eph.prn)
-    except (ValueError, TypeError, IndexError):
-        number = 0
-    if not (isinstance(eph.prn, str) and eph.prn.startswith("C") and 1 <= number <= 63):
-        return EphemerisProblem("prn", f"PRN {eph.prn!r} is not a BDS satellite ID")
+    except (BdsfixError, ValueError, TypeError, IndexError):
+        prn_max, number = 0, 0
+    if not (isinstance(eph.prn, str) and 1 <= number <= prn_max):
+        supported = ", ".join(s.name for s in SYSTEM_CONSTANTS)
+        return EphemerisProblem(
+            "prn", f"PRN {eph.prn!r} is not a satellite ID of a supported system ({supported})"
+        )
     if _finite(eph.health) and eph.health != 0:
         return EphemerisProblem("unhealthy", f"unhealthy (SatH1={eph.health})")
     for name in _NUMERIC_FIELDS:

@@ -18,6 +18,10 @@ from typing import IO, Any
 
 from service.core.errors import InputError
 
+PLOT_HINT = "--plot needs matplotlib: pip install '.[plot]' in the bdsfix checkout"
+"""What ``--plot`` without matplotlib says (the ``plot`` extra of pyproject.toml): the
+commands check it before computing, the plotting functions if called directly."""
+
 OUTPUT_MODE = 0o644
 """Mode of a newly created output file (rw-r--r--), independent of the umask."""
 

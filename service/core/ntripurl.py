@@ -6,9 +6,15 @@ reads the RTCM 3 stream it relays. The daemon reads broadcast ephemerides from i
 
 The credentials are secrets: :meth:`NtripUrl.redacted` (also ``str()`` and ``repr()``) shows
 neither user nor password, and every message of :func:`parse_ntrip_url` names the URL in
-that form, so no log line or error carries them. A URL with a user and no password takes the
-password from ``$BDSFIX_NTRIP_PASSWORD`` (keeps it out of the process list and the config).
-User and password may be percent-encoded (``%40`` for ``@``, ``%3A`` for ``:``).
+that form, so no log line or error carries them. :func:`redact` is the one function that
+hides them in any other text that may be a URL, whatever its scheme (``ntrips://``,
+``http://``, ``ntrip:user:pass@...`` without ``//``) and whatever the password holds (``@``,
+``/``, a newline); :func:`looks_like_url` tells such a ``nav`` entry from a file name, so a
+URL of another scheme is refused as a URL (redacted), never opened as a file.
+
+A URL with a user and no password takes the password from ``$BDSFIX_NTRIP_PASSWORD`` (keeps
+it out of the process list and the config). User and password may be percent-encoded
+(``%40`` for ``@``, ``%3A`` for ``:``).
 """
 
 from __future__ import annotations
@@ -39,9 +45,32 @@ def is_ntrip(text: str) -> bool:
     return text.strip().lower().startswith(SCHEME)
 
 
+_SCHEME_HEAD = re.compile(r"[A-Za-z][A-Za-z0-9+.\-]*:/{1,2}")
+"""A URL's ``scheme://`` (or ``scheme:/``, as a :class:`~pathlib.Path` folds ``//``)."""
+_SCHEME = re.compile(r"[A-Za-z][A-Za-z0-9+.\-]*:")
+
+
+def looks_like_url(text: str) -> bool:
+    """Whether ``text`` is (or is meant as) a URL rather than a file name: a scheme followed
+    by ``/`` (``ntrips://``, ``http://``, a Path-folded ``ntrip:/``), or a scheme and an
+    ``@`` (``ntrip:alice:pw@host/M``, ``alice:pw@host/M``)."""
+    t = text.strip()
+    m = _SCHEME.match(t)
+    return m is not None and (t[m.end() :].startswith("/") or "@" in t)
+
+
 def redact(text: str) -> str:
-    """``text`` with the ``user[:password]@`` of a URL (up to its last ``@``) as ``***@``."""
-    return re.sub(r"(?<=//).*@", "***@", text)
+    """``text`` with everything before its last ``@`` but a leading ``scheme://`` shown as
+    ``***``: ``ntrips://u:p@h/M`` -> ``ntrips://***@h/M``, ``ntrip:u:p@h/M`` -> ``***@h/M``.
+
+    Whatever the scheme, and whatever the user or the password hold (``@``, ``:``, ``/``, a
+    newline), since a URL's host and path never hold ``@``. Text without ``@`` is returned
+    as it is."""
+    head, at, tail = text.rpartition("@")
+    if not at:
+        return text
+    m = _SCHEME_HEAD.match(head)
+    return f"{m.group(0) if m else ''}***@{tail}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,7 +113,10 @@ def parse_ntrip_url(text: str, env: dict[str, str] | None = None) -> NtripUrl:
 
     raw = text.strip()
     if not is_ntrip(raw):
-        raise bad("not an NTRIP URL")
+        m = _SCHEME_HEAD.match(raw)  # "ntrip:user:pw@" has no scheme to show: it is the user
+        scheme = m.group(0).rstrip("/")[:-1][:20] if m else ""
+        scheme = f" (scheme {scheme!r}: only ntrip:// is read)" if m else ""
+        raise bad(f"not an NTRIP URL{scheme}")
     rest = raw[len(SCHEME) :]
     # A mountpoint never holds "@": the credentials end at the last one (a password may
     # hold "/", "@" or ":" unencoded), the host at the first "/" after it.

@@ -1,10 +1,14 @@
-"""Satellite position and clock from BDS broadcast ephemerides, vectorised over satellites.
+"""Satellite position and clock from broadcast Keplerian ephemerides, vectorised over satellites.
 
-Implements BDS-SIS-ICD-B1I-3.0 section 5.2.4.12 (Table 5-11, user algorithm for BDS ephemeris):
-IGSO/MEO use the GPS-style node Omega_k = Omega0 + (Omega_dot - Omega_e) t_k - Omega_e t_oe;
-GEOs (C01-C05 and C59-C63) use Omega_k = Omega0 + Omega_dot t_k - Omega_e t_oe, then the
-position is rotated by R_z(Omega_e t_k) R_x(-5 deg). The clock follows section 5.2.4.10
-(polynomial plus relativistic term F e sqrt(A) sin E_k) and 5.2.4.11 (B1I uses T_GD1).
+Implements BDS-SIS-ICD-B1I-3.0 section 5.2.4.12 (Table 5-11, user algorithm for BDS ephemeris),
+which for IGSO/MEO is the algorithm of IS-GPS-200 20.3.3.4.3 (Table 20-IV) and Galileo OS SIS
+ICD 5.1.1: the node Omega_k = Omega0 + (Omega_dot - Omega_e) t_k - Omega_e t_oe. Each row
+takes GM, Omega_e and F of its satellite's system (:data:`service.core.systems.SYSTEM_CONSTANTS`
+by the satellite ID). BeiDou GEOs only (C01-C05 and C59-C63, :func:`service.core.bds.is_geo`)
+use Omega_k = Omega0 + Omega_dot t_k - Omega_e t_oe, then the position is rotated by
+R_z(Omega_e t_k) R_x(-5 deg). The clock follows BDS ICD 5.2.4.10 (IS-GPS-200 20.3.3.3.3.1):
+polynomial plus relativistic term F e sqrt(A) sin E_k, less the group delay of the signal in
+use (B1I: T_GD1, ICD 5.2.4.11).
 """
 
 from __future__ import annotations
@@ -14,14 +18,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from service.core.constants import (
-    F_REL_S_PER_SQRT_M,
-    GEO_TILT_RAD,
-    GM_M3_S2,
-    OMEGA_E_RAD_S,
-    WEEK_S,
-    is_geo,
-)
+from service.core.bds import GEO_TILT_RAD, is_geo
+from service.core.constants import WEEK_S
+from service.core.systems import constants_of
 from service.core.types import Ephemeris
 
 _HALF_WEEK_S = WEEK_S / 2
@@ -54,10 +53,16 @@ _ARRAY_FIELDS = (
 
 @dataclass(frozen=True, slots=True, eq=False)
 class EphemerisArrays:
-    """Ephemerides of n satellites as numpy columns (one row per satellite, same order)."""
+    """Ephemerides of n satellites as numpy columns (one row per satellite, same order), with
+    the constants of each satellite's system (``gm_m3_s2`` ... ``carrier_hz``, from
+    :func:`service.core.systems.constants_of`) and whether it is a BeiDou GEO (``geo``)."""
 
     prn: tuple[str, ...]
     geo: np.ndarray
+    gm_m3_s2: np.ndarray
+    omega_e_rad_s: np.ndarray
+    f_rel_s_per_sqrt_m: np.ndarray
+    carrier_hz: np.ndarray
     week: np.ndarray
     toe_sow_s: np.ndarray
     toc_sow_s: np.ndarray
@@ -86,11 +91,26 @@ class EphemerisArrays:
         cols = {
             name: np.array([getattr(e, name) for e in ephs], dtype=float) for name in _ARRAY_FIELDS
         }
+        systems = [constants_of(e.prn) for e in ephs]
         return cls(
             prn=tuple(e.prn for e in ephs),
             geo=np.array([is_geo(e.prn) for e in ephs], dtype=bool),
+            gm_m3_s2=np.array([k.gm_m3_s2 for k in systems], dtype=float),
+            omega_e_rad_s=np.array([k.omega_e_rad_s for k in systems], dtype=float),
+            f_rel_s_per_sqrt_m=np.array([k.f_rel_s_per_sqrt_m for k in systems], dtype=float),
+            carrier_hz=np.array([k.carrier_hz for k in systems], dtype=float),
             **cols,
         )
+
+    @classmethod
+    def concatenate(cls, sets: Sequence[EphemerisArrays]) -> EphemerisArrays:
+        """The rows of ``sets``, one after the other."""
+        kw = {
+            f.name: np.concatenate([getattr(s, f.name) for s in sets])
+            for f in fields(cls)
+            if f.name != "prn"
+        }
+        return cls(prn=tuple(p for s in sets for p in s.prn), **kw)
 
     def take(self, index: np.ndarray | Sequence[int]) -> EphemerisArrays:
         """Rows ``index`` as a new set."""
@@ -137,11 +157,11 @@ def _constants(eph: EphemerisArrays) -> _OrbitConstants:
     a = eph.sqrt_a_sqrt_m**2
     k = _OrbitConstants(
         a_m=a,
-        n_rad_s=np.sqrt(GM_M3_S2 / a**3) + eph.delta_n_rad_s,
+        n_rad_s=np.sqrt(eph.gm_m3_s2 / a**3) + eph.delta_n_rad_s,
         sqrt_1_e2=np.sqrt(1.0 - eph.e**2),
-        omega_dot_rel_rad_s=eph.omega_dot_rad_s - OMEGA_E_RAD_S,
-        omega_e_toe_rad=OMEGA_E_RAD_S * eph.toe_sow_s,
-        f_e_sqrt_a=F_REL_S_PER_SQRT_M * eph.e * eph.sqrt_a_sqrt_m,
+        omega_dot_rel_rad_s=eph.omega_dot_rad_s - eph.omega_e_rad_s,
+        omega_e_toe_rad=eph.omega_e_rad_s * eph.toe_sow_s,
+        f_e_sqrt_a=eph.f_rel_s_per_sqrt_m * eph.e * eph.sqrt_a_sqrt_m,
         any_geo=bool(eph.geo.any()),
     )
     if len(_CONSTANTS) >= _CONSTANTS_MAX:
@@ -153,10 +173,12 @@ def _constants(eph: EphemerisArrays) -> _OrbitConstants:
 def sat_pos_clock(
     eph: EphemerisArrays, bdt_week: int | np.ndarray, bdt_sow_s: np.ndarray | float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ECEF position [m] (n, 3) and B1I clock offset [s] (n,) at BDT transmit times.
+    """ECEF position [m] (n, 3) and clock offset [s] (n,) of the signal in use at transmit
+    times given in the ephemerides' week and time of week (BDT for BDS sets).
 
-    The clock offset includes the relativistic term and subtracts T_GD1, so that the
-    predicted B1I pseudorange is rho - c * clock_s (ICD 5.2.4.10, 5.2.4.11).
+    The clock offset includes the relativistic term and subtracts the group delay ``tgd1_s``
+    (B1I: T_GD1), so that the predicted pseudorange is rho - c * clock_s (ICD 5.2.4.10,
+    5.2.4.11).
     """
     t_sow = np.asarray(bdt_sow_s, dtype=float)
     dweek = (np.asarray(bdt_week, dtype=float) - eph.week) * WEEK_S
@@ -166,7 +188,7 @@ def sat_pos_clock(
     a = k.a_m
     mk = eph.m0_rad + k.n_rad_s * tk
     ek = mk.copy()
-    for _ in range(5):  # Kepler's equation by Newton (quadratic); e < 0.01 for BDS
+    for _ in range(5):  # Kepler's equation by Newton (quadratic); e < 0.1 (ephemeris.py)
         ek = ek - (ek - eph.e * np.sin(ek) - mk) / (1.0 - eph.e * np.cos(ek))
     sin_e, cos_e = np.sin(ek), np.cos(ek)
     nu = np.arctan2(k.sqrt_1_e2 * sin_e, cos_e - eph.e)
@@ -192,7 +214,7 @@ def sat_pos_clock(
         ct, st = _COS_TILT, _SIN_TILT
         yg = ct * y + st * z
         zg = -st * y + ct * z
-        ang = OMEGA_E_RAD_S * tk
+        ang = eph.omega_e_rad_s * tk
         ca, sa = np.cos(ang), np.sin(ang)
         xr = ca * x + sa * yg
         yr = -sa * x + ca * yg
@@ -205,3 +227,32 @@ def sat_pos_clock(
         eph.af0_s + eph.af1_s_s * dtc + eph.af2_s_s2 * dtc**2 + k.f_e_sqrt_a * sin_e - eph.tgd1_s
     )
     return np.stack([x, y, z], axis=-1), clock_s
+
+
+VELOCITY_STEP_S = 0.01
+"""Half-width [s] of the central difference in :func:`sat_pos_vel_clock`: the truncation
+error (h^2/6 times the orbit's third derivative, ~1e-5 m/s^3) is far below 1e-6 m/s, the
+rounding error (1e-8 m over 2 h) a few 1e-7 m/s."""
+
+
+def sat_pos_vel_clock(
+    eph: EphemerisArrays, bdt_week: int | np.ndarray, bdt_sow_s: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """ECEF position [m] (n, 3), velocity [m/s] (n, 3), B1I clock offset [s] (n,) and clock
+    drift [s/s] (n,) at BDT transmit times.
+
+    The velocity and drift are the time derivatives of the user algorithm of
+    BDS-SIS-ICD-B1I-3.0 5.2.4.12 (orbit, including the GEO rotation R_z(Omega_e t_k)) and
+    5.2.4.10 (clock polynomial a1 + 2 a2 dt plus the derivative of the relativistic term),
+    taken by a central difference of :func:`sat_pos_clock` over +-:data:`VELOCITY_STEP_S`,
+    as RTKLIB's ``ephpos`` takes them by a forward one; the velocity is in the rotating
+    Earth frame (ECEF). The position and clock are the means of the two evaluations (within
+    1e-4 m and 1e-15 s of those at the time itself).
+    """
+    t = np.broadcast_to(np.asarray(bdt_sow_s, dtype=float), (len(eph),))
+    h = VELOCITY_STEP_S
+    # both evaluations in one call: times (2, n) broadcast against the (n,) ephemerides
+    pos, clk = sat_pos_clock(eph, bdt_week, np.stack([t - h, t + h]))
+    vel = (pos[1] - pos[0]) / (2 * h)
+    drift = (clk[1] - clk[0]) / (2 * h)
+    return (pos[0] + pos[1]) / 2, vel, (clk[0] + clk[1]) / 2, drift

@@ -9,8 +9,9 @@ A field's name is its TOML key; its flag is the name with dashes (``elmask_deg``
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import Field, dataclass, field, fields
 from typing import Any, TypeVar
 
@@ -70,6 +71,25 @@ def setting(
 
 T = TypeVar("T")
 _PY = {"str": str, "int": int, "float": float, "bool": bool}
+SHOWN_CHARS = 200
+"""A bad value is echoed in at most this many characters (a config may hold megabytes)."""
+
+
+def shown(value: Any) -> str:
+    """``repr(value)`` cut to :data:`SHOWN_CHARS` characters, saying how long it was."""
+    text = repr(value)
+    if len(text) <= SHOWN_CHARS:
+        return text
+    return f"{text[:SHOWN_CHARS]}... ({len(text)} characters)"
+
+
+def unknown_key_message(where: str, key: str, known: Iterable[str]) -> str:
+    """``where: unknown key 'KEY'``, with the nearest known key when one is close
+    (:func:`difflib.get_close_matches`): a misspelt key says what was meant."""
+    near = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.6)
+    hint = f" (did you mean '{near[0]}'?)" if near else ""
+    name = key if len(key) <= 60 else f"{key[:60]}..."
+    return f"{where}: unknown key {name!r}{hint}"
 
 
 def settings_of(cls: type) -> Iterator[tuple[Field[Any], Setting]]:
@@ -98,12 +118,12 @@ def coerce(name: str, meta: Setting, value: Any, where: str) -> Any:
         value = float(value)
     if not isinstance(value, want) or (want is not bool and isinstance(value, bool)):
         raise ConfigError(
-            f"{where}: key '{name}' must be {meta.kind}, got {type(value).__name__} {value!r}"
+            f"{where}: key '{name}' must be {meta.kind}, got {type(value).__name__} {shown(value)}"
         )
     if isinstance(value, float) and math.isnan(value):
         raise ConfigError(f"{where}: key '{name}' must be {meta.describe()}, got nan")
     if not meta.allowed(value):
-        raise ConfigError(f"{where}: key '{name}' must be {meta.describe()}, got {value!r}")
+        raise ConfigError(f"{where}: key '{name}' must be {meta.describe()}, got {shown(value)}")
     return value
 
 
@@ -119,7 +139,7 @@ def build(
     for name, value in values.items():
         origin = where if isinstance(where, str) else where.get(name, flag(name))
         if name not in known:
-            raise ConfigError(f"{origin}: unknown key '{name}'")
+            raise ConfigError(unknown_key_message(origin, name, known))
         kw[name.removeprefix(prefix)] = coerce(name, known[name], value, origin)
     return cls(**kw)
 

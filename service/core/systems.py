@@ -42,17 +42,57 @@ class SystemConstants:
     """Carrier frequency of that signal [Hz]."""
     signal: str
     """RINEX 3 name of that signal's band and code (without the leading observable type)."""
+    f_rel_s_per_sqrt_m: float
+    """Relativistic clock correction constant F = -2 sqrt(GM) / c^2 as the ICD prints it
+    [s/sqrt(m)] (the printed value, not one recomputed from GM)."""
+    prn_max: int
+    """Highest PRN number of the system's RINEX 3 satellite IDs (``C63``, ``G32``)."""
 
 
 SYSTEM_CONSTANTS: dict[GnssSystem, SystemConstants] = {
-    # BDS-SIS-ICD-B1I-3.0 3.2 (CGCS2000), 4.2 (B1I 1561.098 MHz), 4.3 (1 ms ranging code)
-    GnssSystem.BDS: SystemConstants(3.986004418e14, 7.2921150e-5, 1e-3, 1_561.098e6, "2I"),
-    # IS-GPS-200N 20.3.3.4.3 (WGS-84 values), 3.3.2 (C/A 1 ms), L1 1575.42 MHz
-    GnssSystem.GPS: SystemConstants(3.986005e14, 7.2921151467e-5, 1e-3, 1_575.42e6, "1C"),
-    # Galileo OS SIS ICD 2.1, 5.1.1 (GM, Earth rate), 3.4 (E1-B/C primary code 4 ms)
-    GnssSystem.GAL: SystemConstants(3.986004418e14, 7.2921151467e-5, 4e-3, 1_575.42e6, "1C"),
-    # IS-QZSS-PNT 4.1.2 (GPS values), L1 C/A
-    GnssSystem.QZS: SystemConstants(3.986005e14, 7.2921151467e-5, 1e-3, 1_575.42e6, "1C"),
+    # BDS-SIS-ICD-B1I-3.0 3.2 (CGCS2000), 4.2 (B1I 1561.098 MHz), 4.3 (1 ms ranging code),
+    # 5.2.4.10 (F); PRNs 1-63 (C01-C63)
+    GnssSystem.BDS: SystemConstants(
+        gm_m3_s2=3.986004418e14,
+        omega_e_rad_s=7.2921150e-5,
+        code_period_s=1e-3,
+        carrier_hz=1_561.098e6,
+        signal="2I",
+        f_rel_s_per_sqrt_m=-4.442807309e-10,
+        prn_max=63,
+    ),
+    # IS-GPS-200N 20.3.3.4.3 (WGS-84 values), 3.3.2 (C/A 1 ms), L1 1575.42 MHz,
+    # 20.3.3.3.3.1 (F); PRNs 1-32
+    GnssSystem.GPS: SystemConstants(
+        gm_m3_s2=3.986005e14,
+        omega_e_rad_s=7.2921151467e-5,
+        code_period_s=1e-3,
+        carrier_hz=1_575.42e6,
+        signal="1C",
+        f_rel_s_per_sqrt_m=-4.442807633e-10,
+        prn_max=32,
+    ),
+    # Galileo OS SIS ICD 2.1, 5.1.1 (GM, Earth rate), 3.4 (E1-B/C primary code 4 ms),
+    # 5.1.4 (F); PRNs 1-36
+    GnssSystem.GAL: SystemConstants(
+        gm_m3_s2=3.986004418e14,
+        omega_e_rad_s=7.2921151467e-5,
+        code_period_s=4e-3,
+        carrier_hz=1_575.42e6,
+        signal="1C",
+        f_rel_s_per_sqrt_m=-4.442807309e-10,
+        prn_max=36,
+    ),
+    # IS-QZSS-PNT 4.1.2 (GPS values), L1 C/A; RINEX 3 J01-J10 (PRN 193-202)
+    GnssSystem.QZS: SystemConstants(
+        gm_m3_s2=3.986005e14,
+        omega_e_rad_s=7.2921151467e-5,
+        code_period_s=1e-3,
+        carrier_hz=1_575.42e6,
+        signal="1C",
+        f_rel_s_per_sqrt_m=-4.442807633e-10,
+        prn_max=10,
+    ),
 }
 """Constants per system that bdsfix can position with (GLONASS, SBAS and NavIC: none yet)."""
 
@@ -65,6 +105,17 @@ def system_of(sat: str) -> GnssSystem:
         return GnssSystem(sat[:1])
     except ValueError:
         raise BdsfixError(f"satellite ID {sat!r} names no satellite system") from None
+
+
+def prn_number(sat: str) -> int:
+    """PRN number of a satellite ID like ``"C06"``, ``"C 6"`` or ``"G6"`` (any system)."""
+    return int(sat[1:].strip())
+
+
+def sat_id(system: GnssSystem, number: int) -> str:
+    """Canonical RINEX 3 satellite ID of a system's PRN number: ``sat_id(GnssSystem.BDS, 6)``
+    is ``"C06"``."""
+    return f"{system.value}{number:02d}"
 
 
 def constants_of(sat: str) -> SystemConstants:

@@ -18,8 +18,22 @@ BDT_GPS_WEEK_OFFSET = 1356
 BDT_GPST_OFFSET_S = 14.0
 GPS_EPOCH = dt.datetime(1980, 1, 6)
 
-# (first UTC day in force, GPST - UTC in seconds); IERS Bulletin C.
+# (first UTC day in force, GPST - UTC in seconds from then on): every leap second since the
+# GPS epoch (GPST = UTC on 1980-01-06), IERS Bulletin C; each one is inserted as 23:59:60 on
+# the day before. The last was announced in Bulletin C 52 (2016): none since, at writing.
 _LEAP_TABLE: tuple[tuple[dt.datetime, int], ...] = (
+    (dt.datetime(1981, 7, 1), 1),
+    (dt.datetime(1982, 7, 1), 2),
+    (dt.datetime(1983, 7, 1), 3),
+    (dt.datetime(1985, 7, 1), 4),
+    (dt.datetime(1988, 1, 1), 5),
+    (dt.datetime(1990, 1, 1), 6),
+    (dt.datetime(1991, 1, 1), 7),
+    (dt.datetime(1992, 7, 1), 8),
+    (dt.datetime(1993, 7, 1), 9),
+    (dt.datetime(1994, 7, 1), 10),
+    (dt.datetime(1996, 1, 1), 11),
+    (dt.datetime(1997, 7, 1), 12),
     (dt.datetime(1999, 1, 1), 13),
     (dt.datetime(2006, 1, 1), 14),
     (dt.datetime(2009, 1, 1), 15),
@@ -67,8 +81,8 @@ def datetime_from_gpst(week: int, tow_s: float) -> dt.datetime:
 
 
 def leap_seconds(utc: dt.datetime) -> int:
-    """GPST - UTC [s] at a UTC instant (table from 1999 on)."""
-    value = _LEAP_TABLE[0][1]
+    """GPST - UTC [s] at a UTC instant (0 before the first leap second, 1981-07-01)."""
+    value = 0
     for start, leap in _LEAP_TABLE:
         if utc >= start:
             value = leap
@@ -76,9 +90,31 @@ def leap_seconds(utc: dt.datetime) -> int:
 
 
 def utc_from_gpst(week: int, tow_s: float) -> dt.datetime:
-    """GPST (week, tow) to naive UTC datetime."""
+    """GPST (week, tow) to naive UTC datetime.
+
+    The offset is the one in force at the UTC instant, found on the GPST scale: the leap
+    second that makes GPST - UTC = n starts at GPST ``day + n - 1`` s (UTC ``day - 1 s``,
+    23:59:60) and ends at GPST ``day + n`` s (UTC 00:00:00 of ``day``). A datetime has no
+    second 60, so the inserted second itself is given as 23:59:59.x (the second before it
+    is repeated, as the Linux kernel does; :func:`gpst_in_leap_second` tells them apart);
+    every other instant is exact.
+    """
     t = datetime_from_gpst(week, tow_s)
-    return t - dt.timedelta(seconds=leap_seconds(t - dt.timedelta(seconds=18)))
+    offset = 0
+    for start, leap in _LEAP_TABLE:
+        if t >= start + dt.timedelta(seconds=leap - 1):
+            offset = leap
+    return t - dt.timedelta(seconds=offset)
+
+
+def gpst_in_leap_second(week: int, tow_s: float) -> bool:
+    """Whether GPST (week, tow) falls in an inserted UTC second (23:59:60.x), which
+    :func:`utc_from_gpst` gives as a repeated 23:59:59.x."""
+    t = datetime_from_gpst(week, tow_s)
+    return any(
+        start + dt.timedelta(seconds=leap - 1) <= t < start + dt.timedelta(seconds=leap)
+        for start, leap in _LEAP_TABLE
+    )
 
 
 J2000_UTC = dt.datetime(2000, 1, 1, 12)

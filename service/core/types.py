@@ -10,6 +10,8 @@ from typing import Literal
 
 import numpy as np
 
+from service.core.systems import constants_of
+
 FixMode = Literal["fast", "spp", "none"]
 
 UNKNOWN_WEEK = -1
@@ -20,11 +22,13 @@ the pipeline, which declines it (``no_time``), and ``gpst_tow_s`` is the time of
 
 @dataclass(frozen=True, slots=True, eq=False)
 class MeasurementEpoch:
-    """One receive epoch of BDS code measurements.
+    """One receive epoch of code measurements, each row a satellite named by its RINEX 3 ID
+    (its system: :func:`service.core.systems.system_of`).
 
     Times are the receiver's time tag on the GPST scale. ``pr_m`` is the full pseudorange or
     NaN when the satellite's transmit time is not yet known; ``frac_pr_m`` is the pseudorange
-    modulo c*T with T = ``period_s`` (0.001 or 0.020), NaN when unknown. ``gpst_week`` is
+    modulo c*T with T = ``period_s`` (the code period of the satellite's signal, 0.001 s for
+    B1I, or a longer known period such as 0.020), NaN when unknown. ``gpst_week`` is
     :data:`UNKNOWN_WEEK` while the source knows only the time of week.
     """
 
@@ -57,15 +61,19 @@ class MeasurementEpoch:
         signal: list[str] | tuple[str, ...],
         pr_m: np.ndarray | list[float],
         frac_pr_m: np.ndarray | list[float] | None = None,
-        period_s: np.ndarray | list[float] | float = 0.001,
+        period_s: np.ndarray | list[float] | float | None = None,
         cn0_dbhz: np.ndarray | list[float] | None = None,
         doppler_hz: np.ndarray | list[float] | None = None,
         lock_s: np.ndarray | list[float] | None = None,
         source: str = "",
     ) -> MeasurementEpoch:
-        """Build an epoch, filling absent columns with NaN and deriving ``frac_pr_m``."""
+        """Build an epoch, filling absent columns with NaN and deriving ``frac_pr_m``;
+        ``period_s`` None is each satellite's system's code period
+        (:attr:`service.core.systems.SystemConstants.code_period_s`)."""
         n = len(prn)
         pr = np.asarray(pr_m, dtype=float).reshape(n)
+        if period_s is None:
+            period_s = [constants_of(p).code_period_s for p in prn]
         period = np.broadcast_to(np.asarray(period_s, dtype=float), (n,)).copy()
         if frac_pr_m is None:
             frac = np.mod(pr, period * 299_792_458.0)
@@ -92,10 +100,16 @@ class MeasurementEpoch:
 
 @dataclass(frozen=True, slots=True)
 class Ephemeris:
-    """BDS broadcast ephemeris and clock (ICD B1I 5.2.4.9-5.2.4.12, Table 5-11).
+    """Broadcast Keplerian ephemeris and clock of the satellite ``prn`` (BDS: ICD B1I
+    5.2.4.9-5.2.4.12, Table 5-11; the fields are those of GPS LNAV and Galileo too, and
+    :func:`service.core.orbit.sat_pos_clock` evaluates them with the constants of the ID's
+    system).
 
-    ``toe_sow_s``/``toc_sow_s`` are BDT seconds of week in BDT ``week``. Angles in radians,
-    rates in rad/s. ``health`` is SatH1 (0 = healthy). ``tgd1_s`` is the B1I group delay.
+    ``toe_sow_s``/``toc_sow_s`` are BDT seconds of week in BDT ``week``: the store and the
+    solver select and evaluate every set on BDT, so a set of another system must be put on
+    BDT before it enters (not done yet: only BeiDou sets are read). Angles in radians,
+    rates in rad/s. ``health`` is SatH1 (0 = healthy). ``tgd1_s`` is the group delay of the
+    signal in use (B1I: T_GD1).
     """
 
     prn: str
@@ -170,6 +184,33 @@ class SatView:
     signal: str = "2I"
 
 
+@dataclass(frozen=True, slots=True)
+class Velocity:
+    """Receiver velocity and clock drift of one epoch from Doppler (service.engine.velocity).
+
+    ``v_enu_m_s`` is east, north, up in the local frame of the position fix; ``speed_m_s`` is
+    the horizontal speed over ground and ``course_deg`` its direction, clockwise from true
+    north in [0, 360); ``clock_drift_m_s`` is c times the receiver clock's rate. Every
+    ``std_*`` is the 1-sigma of the value from the weighted least-squares covariance;
+    ``redundancy`` = Doppler rows used - 4, ``chi2``/``chi2_max`` the sanity test of their
+    residuals (None at redundancy 0), ``excluded`` the satellites whose Doppler it removed.
+    """
+
+    v_enu_m_s: tuple[float, float, float]
+    std_v_enu_m_s: tuple[float, float, float]
+    speed_m_s: float
+    std_speed_m_s: float
+    course_deg: float
+    std_course_deg: float
+    clock_drift_m_s: float
+    std_clock_drift_m_s: float
+    used: tuple[str, ...] = ()
+    excluded: tuple[str, ...] = ()
+    redundancy: int = 0
+    chi2: float | None = None
+    chi2_max: float | None = None
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Fix:
     """A solver's result for one epoch; ``mode == "none"`` carries ``reason`` instead.
@@ -212,6 +253,8 @@ class Fix:
     vpl_m: float | None = None
     cov_enu_m2: tuple[tuple[float, float, float], ...] | None = None
     excluded: dict[str, str] = field(default_factory=dict)
+    # velocity and clock drift from the epoch's Doppler (None: not computed or not trusted)
+    velocity: Velocity | None = None
 
     @property
     def ok(self) -> bool:

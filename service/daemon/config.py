@@ -6,22 +6,43 @@ receiver set-up run with ``configure = true``) and of
 :class:`service.engine.solver.SolverConfig` (the solver, shared by every command), declared
 once with their help, type and allowed values; :mod:`service.core.settings` parses and
 checks them. Unknown keys, wrong types and bad values raise
-:class:`~service.core.errors.ConfigError` with one line naming the file or flag and the key.
+:class:`~service.core.errors.ConfigError` with one line naming the file or flag and the key
+(an unknown key with the nearest known one, a bad value in at most
+:data:`~service.core.settings.SHOWN_CHARS` characters).
+
+The keys are flat: every key is at the top level of the file, as every key is a flag
+(``elmask_deg = 10.0``, ``--elmask-deg 10``); a table (``[solver]``) is refused with that
+hint.
+
+The file is read within bounds before tomllib sees it (issue 23): at most
+:data:`MAX_CONFIG_BYTES` (``--config /dev/zero`` is refused after 1 MiB, not read until
+memory runs out), and :func:`toml_shape_problem` refuses nesting deeper than
+:data:`MAX_NESTING` and dotted keys of more than :data:`MAX_KEY_PARTS` parts (tomllib
+recurses on nesting, to a RecursionError, and takes quadratic time and memory in the parts
+of a dotted key: over 11.8 GB for one key of 100,000 parts).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from service.core.errors import ConfigError
-from service.core.ntripurl import NtripUrl, is_ntrip, parse_ntrip_url
+from service.core.ntripurl import NtripUrl, is_ntrip, looks_like_url, parse_ntrip_url
 from service.core.receiver_setup import DAEMON_PREFIX, ReceiverSetup
-from service.core.settings import add_flags, build, given, setting, settings_of
+from service.core.settings import (
+    add_flags,
+    build,
+    given,
+    setting,
+    settings_of,
+    unknown_key_message,
+)
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
 from service.output.sinks.base import NMEA_TCP_MAX_CLIENTS
@@ -59,6 +80,14 @@ class DaemonConfig:
     ntrip_reconnect_max_s: float = setting(
         4.0,
         "longest wait between two attempts to reach an NTRIP caster [s] (backoff from 0.25 s)",
+        kind="float",
+        low=0.1,
+        high=300.0,
+    )
+    ntrip_header_timeout_s: float = setting(
+        10.0,
+        "longest time for an NTRIP caster's whole answer header [s]; a slower answer is "
+        "dropped and retried (counted ntrip_header_timeouts)",
         kind="float",
         low=0.1,
         high=300.0,
@@ -131,6 +160,86 @@ class DaemonConfig:
         return Path(self.state_dir or os.environ.get("BDSFIX_STATE_DIR", "") or "bdsfix-state")
 
 
+MAX_CONFIG_BYTES = 1 << 20
+"""Largest config file read [bytes] (the example file is 4 KB)."""
+MAX_NESTING = 8
+"""Deepest nesting of arrays, inline tables and table headers in a config file."""
+MAX_KEY_PARTS = 8
+"""Most parts of one dotted key (``a.b.c`` has 3)."""
+
+_TOML_TOKEN = re.compile(
+    r"""
+      (?P<comment>\#[^\n]*)
+    | (?P<string>"{3}(?:[^"\\]|\\.|"(?!""))*"{3,5}
+        | '{3}(?:[^']|'(?!''))*'{3,5}
+        | "(?:[^"\\\n]|\\.)*"
+        | '[^'\n]*')
+    | (?P<open>[\[{])
+    | (?P<close>[\]}])
+    | (?P<dot>\.)
+    | (?P<quote>["'])
+    | (?P<key>[A-Za-z0-9_\-]+|[ \t]+)
+    | (?P<other>.)
+    """,
+    re.VERBOSE | re.DOTALL,
+)
+"""TOML's tokens as far as nesting and dotted keys go (TOML 1.0: comments, the four kinds of
+string, brackets, dots); ``quote`` is a string that does not end (tomllib refuses the file
+there, so the scan stops)."""
+
+
+def toml_shape_problem(text: str) -> str | None:
+    """Why ``text`` is too deep for tomllib (None if it is not): nesting of ``[`` and ``{``
+    beyond :data:`MAX_NESTING`, or a dotted key of more than :data:`MAX_KEY_PARTS` parts
+    (bare or quoted parts joined by dots, spaces between; any other token ends the key).
+    One linear pass; strings are skipped whole, so what they hold counts for nothing."""
+    depth = 0
+    dots = 0
+    for m in _TOML_TOKEN.finditer(text):
+        kind = m.lastgroup
+        if kind == "quote":
+            return None  # an unterminated string: tomllib stops there
+        if kind == "dot":
+            dots += 1
+            if dots >= MAX_KEY_PARTS:
+                return f"a dotted key of more than {MAX_KEY_PARTS} parts"
+        elif kind not in ("key", "string"):
+            dots = 0
+        if kind == "open":
+            depth += 1
+            if depth > MAX_NESTING:
+                return f"nesting deeper than {MAX_NESTING} levels"
+        elif kind == "close":
+            depth = max(0, depth - 1)
+    return None
+
+
+def _read_toml(p: Path) -> dict[str, Any]:
+    """The TOML document of ``p``, read within the bounds of the module docstring."""
+    try:
+        with p.open("rb") as fh:
+            data = fh.read(MAX_CONFIG_BYTES + 1)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{p}: config file not found") from exc
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from exc
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{p}: config larger than {MAX_CONFIG_BYTES >> 20} MiB: not read")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: not UTF-8 (byte {exc.start})") from exc
+    problem = toml_shape_problem(text)
+    if problem is not None:
+        raise ConfigError(f"{p}: not read: {problem}")
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {str(exc)[:200]}") from exc
+    except RecursionError as exc:  # the scan above should make this unreachable
+        raise ConfigError(f"{p}: not read: nested too deeply") from exc
+
+
 def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None) -> DaemonConfig:
     """Read ``path`` (None: defaults only) and apply command-line ``overrides``."""
     values: dict[str, Any] = {}
@@ -138,19 +247,18 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
     daemon_keys = {f.name for f, _ in settings_of(DaemonConfig)}
     solver_keys = {f.name for f, _ in settings_of(SolverConfig)}
     setup_keys = {DAEMON_PREFIX + f.name for f, _ in settings_of(ReceiverSetup)}
+    known = daemon_keys | solver_keys | setup_keys
     if path is not None:
         p = Path(path)
-        try:
-            doc = tomllib.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError as exc:
-            raise ConfigError(f"{p}: config file not found") from exc
-        except OSError as exc:
-            raise ConfigError(f"{p}: cannot read config: {exc.strerror}") from exc
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
-        for key, value in doc.items():
-            if key not in daemon_keys | solver_keys | setup_keys:
-                raise ConfigError(f"{p}: unknown key '{key}'")
+        for key, value in _read_toml(p).items():
+            if key not in known:
+                if isinstance(value, dict):
+                    raise ConfigError(
+                        f"{p}: [{key[:60]}] is a table, and bdsfix.toml has none: every key "
+                        "is at the top level, as in systemd/bdsfix.toml (elmask_deg = 10.0, "
+                        "not under [solver])"
+                    )
+                raise ConfigError(unknown_key_message(str(p), key, known))
             values[key] = value
             origin[key] = str(p)
     for key, value in (overrides or {}).items():
@@ -166,13 +274,19 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
 
 
 def ntrip_sources(cfg: DaemonConfig) -> list[NtripUrl]:
-    """The NTRIP sources among ``nav``, parsed (ConfigError naming the URL redacted)."""
-    return [parse_ntrip_url(entry) for entry in cfg.nav if is_ntrip(entry)]
+    """The NTRIP sources among ``nav``, parsed (ConfigError naming the URL redacted): every
+    entry that looks like a URL, so that one of another scheme (``ntrips://``, ``http://``)
+    is refused as a URL, never opened as a file whose error would show its password."""
+    return [parse_ntrip_url(entry) for entry in cfg.nav if _is_url(entry)]
+
+
+def _is_url(entry: str) -> bool:
+    return is_ntrip(entry) or looks_like_url(entry)
 
 
 def nav_files(cfg: DaemonConfig) -> list[str]:
     """The RINEX nav files among ``nav``."""
-    return [entry for entry in cfg.nav if not is_ntrip(entry)]
+    return [entry for entry in cfg.nav if not _is_url(entry)]
 
 
 def _with_parts(cfg: DaemonConfig, solver: SolverConfig, setup: ReceiverSetup) -> DaemonConfig:

@@ -38,7 +38,7 @@ from typing import Literal
 
 import numpy as np
 
-from service.core.constants import C_M_S, OMEGA_E_RAD_S
+from service.core.constants import C_M_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
@@ -161,12 +161,13 @@ def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
 
 
 def _geometry(
-    sat0: np.ndarray, clk_s: np.ndarray, x: np.ndarray
+    sat0: np.ndarray, clk_s: np.ndarray, x: np.ndarray, omega_e_rad_s: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Line-of-sight unit vectors, predicted ranges (without clock and N) and the
-    Earth-rotation-corrected satellite positions for receivers ``x`` (e, 3)."""
+    Earth-rotation-corrected satellite positions (each row with its system's
+    ``omega_e_rad_s``) for receivers ``x`` (e, 3)."""
     d = sat0 - x[:, None, :]
-    ang = OMEGA_E_RAD_S * (np.sqrt(np.einsum("esk,esk->es", d, d)) / C_M_S)
+    ang = omega_e_rad_s * (np.sqrt(np.einsum("esk,esk->es", d, d)) / C_M_S)
     c, s = np.cos(ang), np.sin(ang)
     sat = sat0.copy()
     sat[..., 0] = c * sat0[..., 0] + s * sat0[..., 1]
@@ -202,18 +203,21 @@ def _delays(
     el: np.ndarray,
     az: np.ndarray,
     bdt_sow: np.ndarray,
+    carrier_hz: np.ndarray,
     model: KlobucharParams | None,
     cfg: SolverConfig,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Ionospheric and tropospheric delays per row (None: not applied), as the per-epoch
-    solver's ``_delays``; the ionosphere only for receivers below 100 km."""
+    """Ionospheric (on each row's ``carrier_hz``) and tropospheric delays per row (None: not
+    applied), as the per-epoch solver's ``_delays``; the ionosphere only for receivers below
+    100 km."""
     iono = None
     if model is not None:
+        la, lo, f = lat[:, None], lon[:, None], carrier_hz
         if model.system == "BDS":
-            iono = klobuchar_bds_m(model, lat[:, None], lon[:, None], el, az, bdt_sow[:, None])
+            iono = klobuchar_bds_m(model, la, lo, el, az, bdt_sow[:, None], f)
         else:
             tow = bdt_sow[:, None] + BDT_GPST_OFFSET_S
-            iono = klobuchar_gps_m(model, lat[:, None], lon[:, None], el, az, tow)
+            iono = klobuchar_gps_m(model, la, lo, el, az, tow, f)
         iono = np.where((alt < 100e3)[:, None], iono, np.nan)
     tropo = saastamoinen_m(lat[:, None], alt[:, None], el) if cfg.tropo != "off" else None
     return iono, tropo
@@ -279,7 +283,8 @@ def _solve_chunk(
     iters = np.zeros(n_e, dtype=int)
     every = np.arange(n_e)
     sat0, clk = _orbits(ch, every, n_int)
-    los, pred, sat = _geometry(sat0, clk, x)
+    omega = ch.eph.omega_e_rad_s
+    los, pred, sat = _geometry(sat0, clk, x, omega)
     fullw = ch.full.astype(float)
 
     def cost_of(sel: np.ndarray, pred_: np.ndarray, b_: np.ndarray) -> np.ndarray:
@@ -323,7 +328,7 @@ def _solve_chunk(
             dnp = np.where(frac[pending], np.rint(lp[:, None] * dn_m[pending] / ct[pending]), 0.0)
             np_int = n_int[p] + dnp  # eq. (13)
             s0, ck = _orbits(ch, p, np_int)
-            lo, pr, st = _geometry(s0, ck, xp)
+            lo, pr, st = _geometry(s0, ck, xp, omega[p])
             cp = cost_of(p, pr, bp)
             with np.errstate(invalid="ignore"):
                 accept = (cp <= cost[p]) | (lp < 1e-3) | ~np.isfinite(cost[p])
@@ -374,7 +379,7 @@ def _solve_chunk(
         b[sel] += step[:, 3]
         finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
         _fail(ok, sel, ~finite, unsure)
-        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel])
+        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel], omega[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
 
     # ---- phase 2: mask, corrections, weights -------------------------------------------------
@@ -401,7 +406,7 @@ def _solve_chunk(
         iters[sel] += 1
         dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
         lat, lon, alt, el, az = _local(x[sel], sat[sel])
-        io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
+        io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
         dz = dz - _total(io, tr)
         w = keepw[sel]
         if cfg.weighted:
@@ -415,7 +420,7 @@ def _solve_chunk(
         b[sel] += step[:, 3]
         finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
         _fail(ok, sel, ~finite, unsure)
-        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel])
+        los[sel], pred[sel], sat[sel] = _geometry(sat0[sel], clk[sel], x[sel], omega[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
 
     # ---- judge the solution ------------------------------------------------------------------
@@ -425,7 +430,7 @@ def _solve_chunk(
     if not sel.size:
         return out
     lat, lon, alt, el, az = _local(x[sel], sat[sel])
-    io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], model, cfg)
+    io, tr = _delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
     kp = keep[sel]
     v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - _total(io, tr)
     v = np.where(kp, v, 0.0)

@@ -45,6 +45,7 @@ from service.engine.solver import (
     solve,
 )
 from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
+from service.engine.velocity import with_velocity
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +81,9 @@ class EpochResult:
     track: tuple[TrackEvent, ...] = ()
     integrity: tuple[IntegrityCheck, ...] = ()
     sky: Callable[[Fix], tuple[SatView, ...]] | None = None
+    restarted: bool = False
+    """The emulated receiver restart (``restart_at_s``) happened at this epoch: what came
+    before it (first fixes, decoded SOWs) belongs to the receiver before the restart."""
 
 
 def count_fix(counters: Counters, fix: Fix) -> None:
@@ -115,6 +119,7 @@ class Pipeline:
     restart_at_s: float | None = None
     sync_seed: int = 0
     full_rule: str = DEFAULT_FULL_RULE  # when a restarted satellite is full (core.sow_rule)
+    velocity: bool = True  # velocity from Doppler on each fix (off for studies of positions)
     on_track: Callable[[TrackEvent], None] | None = None
     tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
     counters: Counters = field(default_factory=Counters)
@@ -188,11 +193,15 @@ class Pipeline:
             and not self._restarted
             and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) >= self.restart_at_s
         ):
-            self._restarted = True
+            self._restarted = restarted_now = True
             self.restart(epoch, np.random.default_rng(self.sync_seed))
+        else:
+            restarted_now = False
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        if self.velocity:
+            fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
@@ -205,7 +214,13 @@ class Pipeline:
         self._emit(events)
         since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
         return EpochResult(
-            view, fix, since, tuple(events), tuple(checks), partial(sky_view, view, self.store)
+            view,
+            fix,
+            since,
+            tuple(events),
+            tuple(checks),
+            partial(sky_view, view, self.store),
+            restarted_now,
         )
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:

@@ -33,12 +33,14 @@ from typing import Literal
 
 import numpy as np
 
-from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S, is_geo
+from service.core.bds import is_geo
+from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, gdop, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
+from service.core.systems import constants_of
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 from service.engine.raim import Integrity, assess
@@ -142,7 +144,7 @@ class SolverConfig:
         2, "integrity: satellites fault exclusion may remove", kind="int", low=0, high=10
     )
     pdop_max: float = setting(
-        10.0, "largest PDOP of a published fix", kind="float", low=0.0, low_open=True
+        25.0, "largest PDOP of a published fix", kind="float", low=0.0, low_open=True
     )
     alt_min_m: float = setting(-1_000.0, "plausible shell: lowest altitude [m]", kind="float")
     alt_max_m: float = setting(1_100_000.0, "plausible shell: highest altitude [m]", kind="float")
@@ -235,7 +237,7 @@ def _geometry(
         cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
     sat, clk_s = cached
     d = sat - x
-    sat = sagnac_rotate(sat, np.sqrt(np.einsum("ij,ij->i", d, d)) / C_M_S)
+    sat = sagnac_rotate(sat, np.sqrt(np.einsum("ij,ij->i", d, d)) / C_M_S, rows.eph.omega_e_rad_s)
     d = sat - x
     rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     return _Geometry(los=d / rho[:, None], pred_m=rho - C_M_S * clk_s, sat_ecef_m=sat)
@@ -556,7 +558,9 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     # ---- judge the solution -----------------------------------------------------------------
     geo = state.geo
     loc = _local(x, geo.sat_ecef_m)
-    iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg) if meaningful else (None, None)
+    iono_m, tropo_m = (
+        _delays(loc, ctx.bdt_sow_s, model, cfg, kept.eph.carrier_hz) if meaningful else (None, None)
+    )
     corr = _total(iono_m, tropo_m, len(kept.prn))
     v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - b - corr
     sigma = _sigma_m(kept, loc, iono_m, tropo_m, cfg, meaningful)
@@ -814,19 +818,22 @@ def _sigma_m(
 
 
 def _delays(
-    loc: _Local, bdt_sow: float, model: KlobucharParams | None, cfg: SolverConfig
+    loc: _Local,
+    bdt_sow: float,
+    model: KlobucharParams | None,
+    cfg: SolverConfig,
+    carrier_hz: np.ndarray,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Ionospheric and tropospheric delays [m] for the rows at this iterate (None: not
-    applied)."""
+    """Ionospheric (on each row's ``carrier_hz``) and tropospheric delays [m] for the rows at
+    this iterate (None: not applied)."""
     iono = None
     if model is not None and loc.alt_m < 100e3:
+        lat, lon, el, az = loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad
         if model.system == "BDS":
-            iono = klobuchar_bds_m(model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, bdt_sow)
+            iono = klobuchar_bds_m(model, lat, lon, el, az, bdt_sow, carrier_hz)
         else:
             gpst_tow = bdt_sow + BDT_GPST_OFFSET_S
-            iono = klobuchar_gps_m(
-                model, loc.lat_rad, loc.lon_rad, loc.el_rad, loc.az_rad, gpst_tow
-            )
+            iono = klobuchar_gps_m(model, lat, lon, el, az, gpst_tow, carrier_hz)
     tropo = saastamoinen_m(loc.lat_rad, loc.alt_m, loc.el_rad) if cfg.tropo != "off" else None
     return iono, tropo
 
@@ -860,7 +867,7 @@ def _fixed_iterations(
         w = None
         if meaningful:
             loc = loc0 if loc0 is not None and it == 1 else _local(x, geo.sat_ecef_m)
-            iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg)
+            iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg, rows.eph.carrier_hz)
             dz = dz - _total(iono_m, tropo_m, len(dz))
             if cfg.weighted:
                 w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
@@ -996,16 +1003,22 @@ def solve(
 
 
 def fractionalize(
-    epoch: MeasurementEpoch, period_s: float = 1e-3, keep_full: Sequence[str] | None = None
+    epoch: MeasurementEpoch, period_s: float | None = None, keep_full: Sequence[str] | None = None
 ) -> MeasurementEpoch:
-    """Reduce pseudoranges modulo c*T except for ``keep_full`` PRNs (default: the GEOs).
+    """Reduce pseudoranges modulo c*T except for ``keep_full`` PRNs (default: the GEOs); T is
+    ``period_s``, or each satellite's system's code period when None
+    (:attr:`service.core.systems.SystemConstants.code_period_s`, 1 ms for B1I).
 
     ``numpy.mod`` keeps z + N c T equal to the original to floating-point precision.
     """
     keep = set(keep_full) if keep_full is not None else {p for p in epoch.prn if is_geo(p)}
     mask = np.array([p not in keep for p in epoch.prn], dtype=bool)
-    ct = C_M_S * period_s
+    if period_s is None:
+        period = np.array([constants_of(p).code_period_s for p in epoch.prn], dtype=float)
+    else:
+        period = np.full(len(epoch.prn), period_s)
+    ct = C_M_S * period
     pr = np.where(mask, np.nan, epoch.pr_m)
     frac = np.where(mask, np.mod(epoch.pr_m, ct), epoch.frac_pr_m)
-    per = np.where(mask, period_s, epoch.period_s)
+    per = np.where(mask, period, epoch.period_s)
     return replace(epoch, pr_m=pr, frac_pr_m=frac, period_s=per)

@@ -26,8 +26,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, SubframeHeader, subframe_start_sow_s
-from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S, is_geo
+from service.core.bds import nav_type, subframe_period_s
+from service.core.bds_nav import SubframeHeader, subframe_start_sow_s
+from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import MeasurementEpoch, NavSubframe
@@ -52,11 +53,6 @@ class TrackEvent:
     nav_type: str
     sow_s: float | None = None
     full_since_s: float | None = None  # data time since start at which it became full
-
-
-def nav_type_of(prn: str) -> str:
-    """D2 for GEOs (C01-C05, C59-C63), D1 otherwise (ICD 5.1)."""
-    return "D2" if is_geo(prn) else "D1"
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,8 +100,8 @@ class SubframeEmulator:
 
     def full_at_tow_s(self, prn: str, pr_m: float) -> tuple[int, float]:
         """GPST (week, tow) at which ``prn``'s time is first known after the restart."""
-        period = D2_SUBFRAME_S if is_geo(prn) else D1_SUBFRAME_S
-        known_s = time_known_after_s(nav_type_of(prn), self.rule)
+        period = subframe_period_s(prn)
+        known_s = time_known_after_s(nav_type(prn), self.rule)
         flight_s = pr_m / C_M_S if math.isfinite(pr_m) else NOMINAL_FLIGHT_TIME_S
         delay = self.sync_delay_s.get(prn, self.default_sync_delay_s)
         _, bdt_sow = gpst_to_bdt(self.restart_gpst_week, self.restart_gpst_tow_s)
@@ -191,7 +187,7 @@ class FrameSyncTracker:
                         gpst_week=week,
                         gpst_tow_s=tow,
                         since_start_s=since,
-                        nav_type=nav_type_of(prn),
+                        nav_type=nav_type(prn),
                         full_since_s=since,
                     )
                 )

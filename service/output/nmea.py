@@ -1,9 +1,14 @@
 """NMEA 0183 sentences for a fix (output sentences, as pynmeagps builds them in msgmode GET).
 
-Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
+Sentences, in order: RMC, VTG, GGA, GSA, GSV, GST, ZDA (the u-blox order). gpsd (3.22)
+reports a fix at the end of each sentence that it has learnt ends a cycle, and fills a
+missing speed with the distance from the previous fix over the time step: with GGA first
+it reported a second fix per epoch after GGA, with a speed of tens of m/s from a static
+receiver's position noise. With RMC and VTG first every report carries our speed
+(tests/system/test_service_io.py).
 
 - Serialisation: the field values are chosen here (the pynmeagps keyword names and types of
-  NMEA 0183 / NMEA 4.11 GGA, RMC, GSA, GSV, GST and ZDA) and written by
+  NMEA 0183 / NMEA 4.11 GGA, RMC, VTG, GSA, GSV, GST and ZDA) and written by
   :func:`plain_sentence`, a hand-written formatter: comma-joined fields, ``*`` and the XOR
   checksum of NMEA 0183. It exists for its cost: pynmeagps' ``NMEAMessage`` took ~0.1 ms
   per sentence, ~8 sentences per 10 Hz epoch, 41 % of ``bdsfix replay --max-speed``'s
@@ -14,12 +19,17 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
   generated fixes (tests/output/test_nmea_plain.py), and each of its sentences parses back
   with pynmeagps' ``NMEAReader``.
 
-- Talker: GGA/RMC/GSA/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD``
-  or ``GP``). GSV describes one constellation, so it always uses BeiDou's ``GB`` (``BD``
-  when ``BD`` was asked for). ``gsa_talker`` overrides GSA's talker: gpsd (3.22 and later)
-  takes the constellation of GSA satellite IDs from the talker, not from the system-ID
-  field, so it reads the PRNs of a ``GNGSA`` (u-blox 9 style, the default) as GPS/SBAS and
-  those of a ``GBGSA`` as BeiDou; gpsd 3.22 also maps any ID 33-64 to SBAS.
+- Talker: GGA/RMC/GST/ZDA use the configured talker (``GN`` by default, ``GB``, ``BD`` or
+  ``GP``). GSA and GSV list BeiDou satellites only, so they use BeiDou's ``GB`` (``BD`` when
+  ``BD`` was asked for) unless ``gsa_talker`` names GSA's: gpsd 3.22 (Debian 12) takes the
+  constellation of GSA satellite IDs from the talker alone (``processGSA`` in
+  driver_nmea0183.c reads the system-ID field but does not use it), so it read the PRNs of
+  a ``GNGSA`` as GPS and matched none of the BeiDou satellites of the ``GBGSV``: its SKY had
+  ``uSat`` 0 and every satellite ``used: false`` (issue 23). ``GBGSA`` maps IDs to BeiDou
+  in gpsd 3.22 and later, and later gpsd also reads the system ID of a ``GNGSA``. One
+  limit remains in gpsd 3.22: it takes the constellation of a GSV from the talker only in
+  the first sentence of a group, so a BeiDou ID 33-63 in the second or later GSV is filed
+  as SBAS there and not marked used.
 - NMEA 4.11 fields: GSA ends with the GNSS system ID, 4 = BeiDou; GSV ends with the signal
   ID, 1 = B1I (D1 and D2 alike, as u-blox NMEA 4.11 output and gpsd's tables have it).
   Satellite IDs are BDS PRNs 1-63.
@@ -38,10 +48,17 @@ Sentences, in order: GGA, RMC, GSA, GSV, GST, ZDA.
 - Altitude: GGA carries the ellipsoidal height as altitude with geoid separation 0.0, so
   altitude + separation is the height above the CGCS2000 ellipsoid as gpsd computes it.
 - Fix quality: fast and SPP fixes are both GGA quality 1 (autonomous) with GSA mode 3, so
-  gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only GGA with quality 0 and an
-  empty position and RMC with status V (gpsd: no fix); pynmeagps fills the hemisphere
+  gpsd reports a 3D fix. A fix with ``mode == "none"`` gives only RMC with status V and GGA
+  with quality 0 and an empty position (gpsd: no fix); pynmeagps fills the hemisphere
   fields with N/E even then. Its time is the receiver's unsolved tag, so no ZDA follows;
   while no GPS week is known (``no_time``) the time and date fields are empty.
+- Speed and course (:mod:`service.engine.velocity`): RMC's speed over ground in knots
+  (1 kn = 1852 m / 3600 s) and course over ground in degrees from true north; VTG follows
+  RMC with the same course (true; the magnetic course is left empty), speed in knots and
+  km/h and mode A. Both only for a fix with a velocity (else RMC's fields are empty and
+  there is no VTG); the course only while its 1-sigma is at most
+  :data:`COURSE_MAX_STD_DEG` (a static receiver's course is noise). Speed carries
+  0.001 kn / 0.001 km/h, course 0.01 deg.
 - ZDA only with ``time_known`` (the caller knows UTC, e.g. after a first fix); day and month
   are two digits (``$GNZDA,hhmmss.ss,dd,mm,yyyy,00,00``, NMEA 0183 field format ``xx``).
 """
@@ -54,8 +71,9 @@ from collections.abc import Sequence
 
 from pynmeagps import GET, NMEAMessage
 
-from service.core.constants import C_M_S, prn_number
-from service.core.timebase import utc_from_gpst
+from service.core.constants import C_M_S
+from service.core.systems import prn_number
+from service.core.timebase import gpst_in_leap_second, utc_from_gpst
 from service.core.types import UNKNOWN_WEEK, Fix, SatView
 
 TALKERS = ("GN", "GB", "BD", "GP")
@@ -64,6 +82,10 @@ B1I_SIGNAL_ID = "1"
 NMEA_MAX_LEN = 82
 GSA_MAX_SV = 12
 GSV_SATS_PER_SENTENCE = 4
+KNOTS_PER_M_S = 3600.0 / 1852.0
+KMH_PER_M_S = 3.6
+COURSE_MAX_STD_DEG = 10.0
+"""Course over ground is reported only while its 1-sigma [deg] is at most this."""
 
 
 _LAT, _LON, _NS, _EW, _TIME, _DATE, _HEX, _DEC, _INT, _CHAR = (
@@ -90,6 +112,11 @@ _FIELDS: dict[str, tuple[tuple[str, str], ...]] = {
         ("time", _TIME), ("status", _CHAR), ("lat", _LAT), ("NS", _NS), ("lon", _LON),
         ("EW", _EW), ("spd", _DEC), ("cog", _DEC), ("date", _DATE), ("mv", _DEC),
         ("mvEW", _CHAR), ("posMode", _CHAR), ("navStatus", _CHAR),
+    ),
+    "VTG": (
+        ("cogt", _DEC), ("cogtUnit", _CHAR), ("cogm", _DEC), ("cogmUnit", _CHAR),
+        ("sogn", _DEC), ("sognUnit", _CHAR), ("sogk", _DEC), ("sogkUnit", _CHAR),
+        ("posMode", _CHAR),
     ),
     "GSA": (
         ("opMode", _CHAR), ("navMode", _INT),
@@ -198,14 +225,39 @@ def _msg(talker: str, msg_id: str, **fields: object) -> bytes:
     return _serialize(talker, msg_id, fields)
 
 
-def fix_utc(fix: Fix) -> dt.datetime | None:
-    """The time NMEA gives a fix (naive UTC): the receiver's time tag minus the solved clock
-    bias for a published fix; a declined fix has no trusted clock, so its tag as is; None
-    when the tag has no GPS week (``no_time``), so no date either."""
+def _fix_gpst(fix: Fix) -> tuple[int, float] | None:
+    """GPST (week, tow) of a fix: the receiver's time tag minus the solved clock bias for a
+    published fix; a declined fix has no trusted clock, so its tag as is; None when the tag
+    has no GPS week (``no_time``)."""
     if fix.gpst_week == UNKNOWN_WEEK:
         return None
     bias_s = (fix.clock_bias_m or 0.0) / C_M_S if fix.ok else 0.0
-    return utc_from_gpst(fix.gpst_week, fix.gpst_tow_s - bias_s)
+    return fix.gpst_week, fix.gpst_tow_s - bias_s
+
+
+def fix_utc(fix: Fix) -> dt.datetime | None:
+    """The time NMEA gives a fix (naive UTC) from its GPST (:func:`_fix_gpst`); None when
+    the tag has no GPS week, so no date either."""
+    g = _fix_gpst(fix)
+    return None if g is None else utc_from_gpst(*g)
+
+
+def _clock(fix: Fix, utc: dt.datetime) -> tuple[dt.datetime, dt.time | str]:
+    """The date and the hhmmss.ss field NMEA gives ``fix`` at ``utc``, to the hundredth.
+
+    In an inserted leap second (UTC 23:59:60.xx, which a ``datetime`` cannot hold and
+    :func:`utc_from_gpst` gives as a repeated 23:59:59.xx) the field reads ``235960.xx``, as
+    NMEA 0183 allows seconds up to 60 (time field format hhmmss.ss)."""
+    when = nmea_time(utc)
+    g = _fix_gpst(fix)
+    if g is not None:
+        week, tow_s = g
+        tow_cs = round(tow_s * 100.0) / 100.0
+        if gpst_in_leap_second(week, tow_cs):
+            u = utc_from_gpst(week, tow_cs)
+            cs = min(round(u.microsecond / 10_000), 99)
+            return u.replace(microsecond=0), f"{u.hour:02d}:{u.minute:02d}:60.{cs:02d}"
+    return when, when.time()
 
 
 def nmea_time(utc: dt.datetime) -> dt.datetime:
@@ -256,6 +308,21 @@ def _error_ellipse(fix: Fix) -> tuple[float, float, float]:
     major = math.sqrt(max(mean + half, 0.0))
     minor = math.sqrt(max(mean - half, 0.0))
     return major, minor, round(orient, 1) % 180.0
+
+
+def _speed_course(fix: Fix) -> tuple[object, object, object]:
+    """Speed over ground [kn], [km/h] and course [deg] for RMC/VTG ("" when unknown)."""
+    vel = fix.velocity
+    if vel is None or not math.isfinite(vel.speed_m_s):
+        return "", "", ""
+    course: object = ""
+    if math.isfinite(vel.course_deg) and vel.std_course_deg <= COURSE_MAX_STD_DEG:
+        course = round(vel.course_deg, 2) % 360.0
+    return (
+        round(vel.speed_m_s * KNOTS_PER_M_S, 3),
+        round(vel.speed_m_s * KMH_PER_M_S, 3),
+        course,
+    )
 
 
 def _int_or_empty(value: float) -> object:
@@ -337,16 +404,15 @@ def sentences_for_fix(
     time_known: bool = True,
     gsa_talker: str | None = None,
 ) -> list[bytes]:
-    """Sentences for one epoch's fix, in the order GGA, RMC, GSA, GSV, GST, ZDA.
+    """Sentences for one epoch's fix, in the order RMC, VTG, GGA, GSA, GSV, GST, ZDA.
 
     ``utc`` is the fix's own time (naive UTC; None: unknown, for a declined fix only, gives
     empty time fields); ``time_known`` allows ZDA; ``gsa_talker``
-    (default: ``talker``) is GSA's talker. A publisher may send :func:`gga_sentence` first
-    and :func:`sentences_after_gga` later: together they are this list.
+    (default: BeiDou's, as GSV's) is GSA's talker. A publisher may send :func:`lead_sentences`
+    first and :func:`sentences_after_gga` later: together they are this list.
     """
-    gga = gga_sentence(fix, utc=utc, talker=talker, gsa_talker=gsa_talker)
     return [
-        gga,
+        *lead_sentences(fix, utc=utc, talker=talker, gsa_talker=gsa_talker),
         *sentences_after_gga(
             fix, utc=utc, talker=talker, time_known=time_known, gsa_talker=gsa_talker
         ),
@@ -398,14 +464,57 @@ def _checked(fix: Fix, utc: dt.datetime | None, talker: str, gsa_talker: str | N
     return has_fix
 
 
-def gga_sentence(
+def lead_sentences(
     fix: Fix, *, utc: dt.datetime | None, talker: str = "GN", gsa_talker: str | None = None
-) -> bytes:
-    """The GGA of :func:`sentences_for_fix` (quality 0 and no position without a fix)."""
+) -> list[bytes]:
+    """The first sentences of :func:`sentences_for_fix`: RMC, VTG (with a velocity) and GGA
+    (quality 0 and no position without a fix), what a live sink gets first."""
     has_fix = _checked(fix, utc, talker, gsa_talker)
     if utc is None:
-        return _gga(talker, "", fix, False)
-    return _gga(talker, nmea_time(utc).time(), fix, has_fix)
+        return [_rmc_void(talker), _gga(talker, "", fix, False)]
+    when, t = _clock(fix, utc)
+    pos: dict[str, object] = {"lat": "", "lon": ""}
+    if has_fix:
+        # signed degrees: pynmeagps derives N/S and E/W from the sign
+        pos = {
+            "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
+            "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
+        }
+    knots, kmh, course = _speed_course(fix) if has_fix else ("", "", "")
+    out = [
+        _msg(
+            talker,
+            "RMC",
+            time=t,
+            status="A" if has_fix else "V",
+            **pos,
+            spd=knots,
+            cog=course,
+            date=when.date(),
+            mv="",
+            mvEW="",
+            posMode="A" if has_fix else "N",
+            navStatus="V",
+        )
+    ]
+    if knots != "":
+        out.append(
+            _msg(
+                talker,
+                "VTG",
+                cogt=course,
+                cogtUnit="T",
+                cogm="",
+                cogmUnit="M",
+                sogn=knots,
+                sognUnit="N",
+                sogk=kmh,
+                sogkUnit="K",
+                posMode="A",
+            )
+        )
+    out.append(_gga(talker, t, fix, has_fix))
+    return out
 
 
 def sentences_after_gga(
@@ -416,37 +525,13 @@ def sentences_after_gga(
     time_known: bool = True,
     gsa_talker: str | None = None,
 ) -> list[bytes]:
-    """The sentences of :func:`sentences_for_fix` that follow its GGA."""
+    """The sentences of :func:`sentences_for_fix` that follow its GGA (none without a
+    position)."""
     has_fix = _checked(fix, utc, talker, gsa_talker)
-    if utc is None:
-        return [_rmc_void(talker)]
-    when = nmea_time(utc)
-    t = when.time()
-    pos: dict[str, object] = {"lat": "", "lon": ""}
-    if has_fix:
-        # signed degrees: pynmeagps derives N/S and E/W from the sign
-        pos = {
-            "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
-            "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
-        }
-    out = [
-        _msg(
-            talker,
-            "RMC",
-            time=t,
-            status="A" if has_fix else "V",
-            **pos,
-            spd="",
-            cog="",
-            date=when.date(),
-            mv="",
-            mvEW="",
-            posMode="A" if has_fix else "N",
-            navStatus="V",
-        )
-    ]
-    if not has_fix:
-        return out
+    if utc is None or not has_fix:
+        return []
+    when, t = _clock(fix, utc)
+    out = []
     gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
     used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]
     for j in range(GSA_MAX_SV):
@@ -457,9 +542,10 @@ def sentences_after_gga(
         "VDOP": _dop(fix.vdop),
         "systemId": BDS_SYSTEM_ID,
     }
-    out.append(_msg(gsa_talker or talker, "GSA", **gsa))
+    bds_talker = "BD" if talker == "BD" else "GB"
+    out.append(_msg(gsa_talker or bds_talker, "GSA", **gsa))
     if fix.sky:
-        out.extend(gsv_sentences(fix.sky, "BD" if talker == "BD" else "GB"))
+        out.extend(gsv_sentences(fix.sky, bds_talker))
     if fix.std_enu_m is not None:
         se, sn, su = fix.std_enu_m
         major, minor, orient = _error_ellipse(fix)

@@ -1,8 +1,8 @@
 """Publishers: the fan-out the receiver loop talks to, over a list of sinks
 (:mod:`service.output.sinks`). None of it blocks.
 
-Each sink gets what it declares it takes, in this order per epoch: GGA to the live NMEA
-sinks (as soon as it is built), the FIX record, the epoch's other sentences to the live
+Each sink gets what it declares it takes, in this order per epoch: RMC, VTG and GGA to the
+live NMEA sinks (as soon as they are built), the FIX record, the epoch's other sentences to the live
 NMEA sinks, then all of the epoch's sentences to the epoch-wise NMEA sinks (files).
 """
 
@@ -16,7 +16,7 @@ from typing import Any
 
 from service.core.counters import Counters
 from service.core.types import Fix, SatView
-from service.output.nmea import fix_utc, gga_sentence, sentences_after_gga
+from service.output.nmea import fix_utc, lead_sentences, sentences_after_gga
 from service.output.records import fix_record, sky_record, status_record, track_record_of
 from service.output.sinks.base import RECORD_CLASSES, Sink
 
@@ -44,8 +44,9 @@ class Publishers:
         self.counters = Counters()
         self._time_known = False
         self.gga_out_s = 0.0
-        """:func:`time.perf_counter` when the last GGA was handed to the live NMEA sinks:
-        where the latency path ends in the daemon (``bench/bench_latency.py``)."""
+        """:func:`time.perf_counter` when the last epoch's lead sentences (RMC, VTG, GGA)
+        were handed to the live NMEA sinks: where the latency path ends in the daemon
+        (``bench/bench_latency.py``)."""
         self._nmea_live = [s for s in self.sinks if s.nmea == "live"]
         self._nmea_epoch = [s for s in self.sinks if s.nmea == "epoch"]
         self._takes = {c: [s for s in self.sinks if c in s.records] for c in RECORD_CLASSES}
@@ -58,9 +59,10 @@ class Publishers:
     ) -> Fix:
         """Publish one solver's result for one epoch (FIX record and NMEA).
 
-        The latency path goes first: GGA to the live NMEA sinks (TCP, serial) as soon as it
-        is built, then the FIX record (ZeroMQ, then JSONL), then the other sentences. NMEA
-        files and stdout get the epoch's sentences as one block after its JSONL line.
+        The latency path goes first: RMC, VTG and GGA to the live NMEA sinks (TCP, serial)
+        as soon as they are built, then the FIX record (ZeroMQ, then JSONL), then the other
+        sentences. NMEA files and stdout get the epoch's sentences as one block after its
+        JSONL line.
         ``sky``, when given, computes the satellites in view (for GSV) once GGA is out; the
         fix is returned with them."""
         self.counters[f"published_{fix.mode}"] += 1
@@ -69,9 +71,11 @@ class Publishers:
         nmea = bool(self._nmea_live or self._nmea_epoch)
         if nmea:
             utc = fix_utc(fix)
-            gga = gga_sentence(fix, utc=utc, talker=self.talker, gsa_talker=self.gsa_talker)
+            lead = b"".join(
+                lead_sentences(fix, utc=utc, talker=self.talker, gsa_talker=self.gsa_talker)
+            )
             for sink in self._nmea_live:
-                sink.write_nmea(gga)
+                sink.write_nmea(lead)
             self.gga_out_s = time.perf_counter()
         if self._takes["FIX"]:
             rec = fix_record(fix, since_start_s)
@@ -92,7 +96,7 @@ class Publishers:
             for sink in self._nmea_live:
                 sink.write_nmea(rest)
             for sink in self._nmea_epoch:
-                sink.write_nmea(gga + rest)
+                sink.write_nmea(lead + rest)
         return fix
 
     def sky(self, gpst_week: int, gpst_tow_s: float, sats: Sequence[SatView]) -> None:

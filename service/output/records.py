@@ -32,6 +32,12 @@ Field rules, common to all classes:
   protection levels ``hpl_m``/``vpl_m`` when finite, ``std_enu_m`` (1-sigma east, north,
   up from the solution covariance); ``excluded`` {PRN: why} when fault exclusion (or an
   impossible range) removed satellites; they are not in the fix.
+  Velocity (:mod:`service.engine.velocity`, from the epoch's Doppler), on a fix whose
+  Doppler rows passed their residual test, all together: ``v_enu_m_s`` (east, north, up),
+  ``speed_m_s`` (horizontal, over ground), ``course_deg`` (clockwise from true north, in
+  [0, 360)), ``clock_drift_m_s`` (c times the receiver clock rate), each with its 1-sigma
+  ``std_v_enu_m_s``, ``std_speed_m_s``, ``std_course_deg`` (at most 180),
+  ``std_clock_drift_m_s``; precision 0.1 mm/s and 0.01 deg.
 ``SKY``: ``class gpst_week gpst_tow_s satellites``; each satellite ``prn el_deg az_deg
   used full signal`` plus ``cn0_dbhz`` when measured.
 ``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
@@ -52,7 +58,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from service.core.types import UNKNOWN_WEEK, Fix, SatView
+from service.core.types import UNKNOWN_WEEK, Fix, SatView, Velocity
 
 CSV_COLUMNS = (
     "solver",
@@ -75,6 +81,12 @@ CSV_COLUMNS = (
     "redundancy",
     "hpl_m",
     "vpl_m",
+    "v_east_m_s",
+    "v_north_m_s",
+    "v_up_m_s",
+    "speed_m_s",
+    "course_deg",
+    "clock_drift_m_s",
 )
 
 TRACK_EVENTS = ("sow", "full")
@@ -128,6 +140,8 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
         _put(rec, "vpl_m", fix.vpl_m, 3)
         if fix.std_enu_m is not None and all(_finite(v) for v in fix.std_enu_m):
             rec["std_enu_m"] = [round(float(v), 4) for v in fix.std_enu_m]
+        if fix.velocity is not None:
+            _put_velocity(rec, fix.velocity)
     if fix.excluded:
         rec["excluded"] = dict(sorted(fix.excluded.items()))
     if not fix.ok:
@@ -135,6 +149,30 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
         if fix.reason_code:
             rec["reason_code"] = fix.reason_code
     return rec
+
+
+def _put_velocity(rec: dict[str, Any], vel: Velocity) -> None:
+    """The velocity fields of a ``FIX`` record (all or none: every value must be finite)."""
+    values = (
+        *vel.v_enu_m_s,
+        *vel.std_v_enu_m_s,
+        vel.speed_m_s,
+        vel.std_speed_m_s,
+        vel.course_deg,
+        vel.std_course_deg,
+        vel.clock_drift_m_s,
+        vel.std_clock_drift_m_s,
+    )
+    if not all(_finite(v) for v in values):
+        return
+    rec["v_enu_m_s"] = [round(float(v), 4) for v in vel.v_enu_m_s]
+    rec["std_v_enu_m_s"] = [round(float(v), 4) for v in vel.std_v_enu_m_s]
+    rec["speed_m_s"] = round(float(vel.speed_m_s), 4)
+    rec["std_speed_m_s"] = round(float(vel.std_speed_m_s), 4)
+    rec["course_deg"] = round(float(vel.course_deg), 2) % 360.0
+    rec["std_course_deg"] = round(float(vel.std_course_deg), 2)
+    rec["clock_drift_m_s"] = round(float(vel.clock_drift_m_s), 4)
+    rec["std_clock_drift_m_s"] = round(float(vel.std_clock_drift_m_s), 4)
 
 
 RAIM_STATES = ("pass", "unprotected", "untested")
@@ -171,7 +209,9 @@ def fix_csv_row(fix: Fix) -> str:
     """One CSV row (no newline); cells that do not apply are empty; RFC 4180 quoting."""
     rec = fix_record(fix)
     x, y, z = rec.pop("x_ecef_m", ("", "", ""))
+    ve, vn, vu = rec.pop("v_enu_m_s", ("", "", ""))
     rec |= {"x_ecef_m": x, "y_ecef_m": y, "z_ecef_m": z}
+    rec |= {"v_east_m_s": ve, "v_north_m_s": vn, "v_up_m_s": vu}
     buf = io.StringIO()
     csv.writer(buf, lineterminator="").writerow([rec.get(col, "") for col in CSV_COLUMNS])
     return buf.getvalue()
@@ -262,6 +302,16 @@ _PRN = {"type": "string", "pattern": "^C[0-9]{2}$"}
 _WEEK = {"type": "integer", "minimum": 0}
 _TOW = {"type": "number", "minimum": 0, "exclusiveMaximum": 604800}
 _POSITION = ("x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m")
+_VELOCITY = (
+    "v_enu_m_s",
+    "std_v_enu_m_s",
+    "speed_m_s",
+    "std_speed_m_s",
+    "course_deg",
+    "std_course_deg",
+    "clock_drift_m_s",
+    "std_clock_drift_m_s",
+)
 
 SCHEMAS: dict[str, dict[str, Any]] = {
     "FIX": {
@@ -303,6 +353,14 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "hpl_m": _NONNEG,
             "vpl_m": _NONNEG,
             "std_enu_m": {"type": "array", "items": _NONNEG, "minItems": 3, "maxItems": 3},
+            "v_enu_m_s": {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3},
+            "std_v_enu_m_s": {"type": "array", "items": _NONNEG, "minItems": 3, "maxItems": 3},
+            "speed_m_s": _NONNEG,
+            "std_speed_m_s": _NONNEG,
+            "course_deg": {"type": "number", "minimum": 0, "exclusiveMaximum": 360},
+            "std_course_deg": {"type": "number", "minimum": 0, "maximum": 180},
+            "clock_drift_m_s": _NUM,
+            "std_clock_drift_m_s": _NONNEG,
             "excluded": {
                 "type": "object",
                 "minProperties": 1,
@@ -317,13 +375,18 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "then": {
             "required": ["reason"],
             "not": {
-                "anyOf": [{"required": [k]} for k in (*_POSITION, "pdop", "raim", "hpl_m", "vpl_m")]
+                "anyOf": [
+                    {"required": [k]}
+                    for k in (*_POSITION, *_VELOCITY, "pdop", "raim", "hpl_m", "vpl_m")
+                ]
             },
         },
         "else": {
             "required": [*_POSITION, "raim"],
             "not": {"anyOf": [{"required": ["reason"]}, {"required": ["reason_code"]}]},
         },
+        # the velocity fields come all together or not at all
+        "dependentRequired": {k: list(_VELOCITY) for k in _VELOCITY},
     },
     "SKY": {
         "$schema": _DIALECT,

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 from pyubx2 import ERR_IGNORE, SETPOLL, UBX_PROTOCOL, UBXReader
 
-from service.core.constants import is_geo
+from service.core.bds import is_geo
 from service.sim.cfg import CfgResponder
 from service.sim.simulator import SimEpoch, SimSubframe, Simulator, epoch_subset
 

@@ -25,7 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.constants import A_CGCS2000_M, GM_M3_S2, is_geo
+from service.core.bds import is_geo
+from service.core.constants import A_CGCS2000_M
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem
 from service.core.timebase import gmst_rad
 from service.sim.keplerian import TABLE1, TABLE1_EPOCH_UTC, mean_from_true_anomaly
 
@@ -106,7 +108,7 @@ def positions_eci(const: Constellation, dt_s: np.ndarray | float, j2: bool = Fal
     inc = np.array([s.inc_rad for s in const.sats])
     raan = np.broadcast_to(np.array([s.raan_eci_rad for s in const.sats]), shape)
     argp = np.broadcast_to(np.array([s.argp_rad for s in const.sats]), shape)
-    n = np.sqrt(GM_M3_S2 / a**3)
+    n = np.sqrt(SYSTEM_CONSTANTS[GnssSystem.BDS].gm_m3_s2 / a**3)
     m_rate = n
     if j2:
         p = a * (1.0 - e**2)

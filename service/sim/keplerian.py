@@ -16,8 +16,12 @@ import math
 
 import numpy as np
 
-from service.core.constants import GEO_TILT_RAD, GM_M3_S2, OMEGA_E_RAD_S, is_geo
+from service.core.bds import GEO_TILT_RAD, is_geo
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem
 from service.core.types import Ephemeris
+
+_BDS = SYSTEM_CONSTANTS[GnssSystem.BDS]
+"""The simulated constellation is BeiDou's: CGCS2000 GM and Earth rate (ICD 3.2)."""
 
 
 def mean_from_true_anomaly(nu_rad: float, e: float) -> float:
@@ -72,7 +76,7 @@ def ephemeris_from_kepler(
         c, s = math.cos(-GEO_TILT_RAD), math.sin(-GEO_TILT_RAD)
         rx = np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
         raan_ecef, inc_rad, argp_rad = _elements_from_axes(rx @ p, rx @ w)
-    omega0 = math.remainder(raan_ecef + OMEGA_E_RAD_S * toe_sow_s, 2 * math.pi)
+    omega0 = math.remainder(raan_ecef + _BDS.omega_e_rad_s * toe_sow_s, 2 * math.pi)
     return Ephemeris(
         prn=prn,
         week=bdt_week,
@@ -102,7 +106,7 @@ def ephemeris_from_kepler(
 
 def mean_motion_rad_s(a_m: float) -> float:
     """Two-body mean motion sqrt(GM / a^3) [rad/s] with the CGCS2000 GM."""
-    return math.sqrt(GM_M3_S2 / a_m**3)
+    return math.sqrt(_BDS.gm_m3_s2 / a_m**3)
 
 
 # The paper's Table 1 (Zhao, Cui & Lu): BDS elements at UTC 2015-05-19 04:00:00.

@@ -16,8 +16,9 @@ from pyrtcm.rtcmhelpers import calc_crc24q
 from pyrtcm.rtcmtypes_core import RTCM_DATA_FIELDS
 from pyrtcm.rtcmtypes_get import RTCM_PAYLOADS_GET
 
-from service.core.constants import URA_M, prn_number
+from service.core.constants import URA_M
 from service.core.rtcm1042 import EPH_1042_FIELDS, EPH_1042_INT_FIELDS
+from service.core.systems import prn_number
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import Ephemeris
 

@@ -28,11 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from service.core.bds import is_geo, nav_type, subframe_period_s
 from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, encode_d1_subframes, encode_d2_frame
-from service.core.constants import C_M_S, WEEK_S, is_geo, prn_number
+from service.core.constants import C_M_S, WEEK_S
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, prn_number
 from service.core.timebase import BDT_GPST_OFFSET_S, diff_s, gpst_to_bdt, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rangegen import true_ranges
@@ -42,6 +44,7 @@ log = logging.getLogger(__name__)
 
 CODE_PHASE_LSB_MS = 2.0**-21
 PR_LSB_M = C_M_S * 1e-3 * CODE_PHASE_LSB_MS
+B1I_WAVELENGTH_M = C_M_S / SYSTEM_CONSTANTS[GnssSystem.BDS].carrier_hz
 LEAP_S = 18
 UBX_OUTPUTS = ("RXM-SFRBX", "RXM-MEASX", "RXM-RAWX")
 """The UBX messages of an epoch, in the order the virtual receiver sends them."""
@@ -60,6 +63,7 @@ class SimConfig:
     rate_hz: float = 10.0
     clock_offset_s: float = 0.0123
     noise_m: float = 1.3
+    doppler_noise_hz: float = 0.05  # carrier-loop noise of a static receiver, 1 cm/s on B1I
     seed: int = 0
     elmask_deg: float = 5.0
     acq_delay_s: tuple[float, float] = (0.02, 0.10)  # warm start: Doppler and code known
@@ -100,12 +104,9 @@ class SimEpoch:
     pr_m: np.ndarray  # full pseudoranges (quantised), whatever the receiver knows
     full: np.ndarray  # bool: prMes valid
     cn0_dbhz: np.ndarray
+    doppler_hz: np.ndarray  # B1I Doppler, positive for an approaching satellite
     subframes: tuple[SimSubframe, ...] = ()
     truth_x_ecef_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-def _subframe_period_s(prn: str) -> float:
-    return D2_SUBFRAME_S if is_geo(prn) else D1_SUBFRAME_S
 
 
 class Simulator:
@@ -124,6 +125,9 @@ class Simulator:
         )
         rng = np.random.default_rng(self.cfg.seed)
         self._rng = rng
+        # the Doppler noise draws from its own stream, so the pseudoranges' stream (and every
+        # simulated position) does not depend on whether Doppler is generated
+        self._doppler_rng = np.random.default_rng([self.cfg.seed, 1])
         bw, bs = gpst_to_bdt(self.cfg.start_gpst_week, self.cfg.start_gpst_tow_s)
         chosen: dict[str, Ephemeris] = {}
         for e in ephemerides:
@@ -190,6 +194,9 @@ class Simulator:
             prev_t = t
             idx = np.asarray(tracked, dtype=int)
             cn0 = 45.0 - 10.0 * (1.0 - np.sin(np.clip(tr.el_rad[idx], 0, None)))
+            doppler = -tr.carrier_rate_m_s[idx] / B1I_WAVELENGTH_M
+            if cfg.doppler_noise_hz > 0:
+                doppler = doppler + self._doppler_rng.normal(0.0, cfg.doppler_noise_hz, len(idx))
             yield SimEpoch(
                 t_s=t,
                 tag_gpst_week=tr.tag_gpst_week,
@@ -198,6 +205,7 @@ class Simulator:
                 pr_m=pr_q[idx],
                 full=np.asarray(full, dtype=bool),
                 cn0_dbhz=np.round(cn0),
+                doppler_hz=doppler,
                 subframes=tuple(sorted(subframes, key=lambda s: s.received_s)),
                 truth_x_ecef_m=self.x_ecef_m,
             )
@@ -227,7 +235,7 @@ class Simulator:
         self, st: _SatState, t0: float, t1: float, bdt_sow_rx: float, flight_s: float
     ) -> list[SimSubframe]:
         """Subframes of ``st`` whose last bit arrived in (t0, t1] after bit sync."""
-        period = _subframe_period_s(st.prn)
+        period = subframe_period_s(st.prn)
         # receiver time since start <-> BDT transmit time: tx = bdt_sow_rx - (t1 - t) - flight
         tx_of = lambda t: bdt_sow_rx - (t1 - t) - flight_s  # noqa: E731
         if st.next_subframe_k is None:
@@ -236,7 +244,7 @@ class Simulator:
             # the first preamble after bit sync; the time is known once the rule says so
             k0 = math.ceil(round(tx_of(st.sync_s) / period, 9))
             st.next_subframe_k = k0
-            known_s = time_known_after_s("D2" if is_geo(st.prn) else "D1", self.cfg.full_rule)
+            known_s = time_known_after_s(nav_type(st.prn), self.cfg.full_rule)
             st.full_s = t1 + (k0 * period + known_s - tx_of(t1))
         out = []
         while True:
@@ -246,7 +254,7 @@ class Simulator:
             if end_rx > t1 + 1e-9:
                 break
             if end_rx > t0 - 1e-9:
-                nav = "D2" if is_geo(st.prn) else "D1"
+                nav = nav_type(st.prn)
                 out.append(SimSubframe(st.prn, nav, k, k * period, end_rx))
             st.next_subframe_k = k + 1
         return out
@@ -272,6 +280,7 @@ def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
             sig_id=1 if geo[i] else 0,
             locktime_ms=1000,
             cn0_dbhz=int(ep.cn0_dbhz[i]),
+            doppler_hz=float(ep.doppler_hz[i]),
             pr_std_index=5,
             pr_valid=bool(ep.full[i]),
         )
@@ -293,6 +302,8 @@ def _measx(ep: SimEpoch) -> bytes:
                 cn0_dbhz=int(ep.cn0_dbhz[i]),
                 whole_chips=(units * 2046) >> 21,
                 code_phase_units=units,
+                doppler_hz=float(ep.doppler_hz[i]),
+                wavelength_m=B1I_WAVELENGTH_M,
             )
         )
     return measx_frame(
@@ -327,6 +338,7 @@ def epoch_subset(
         pr_m=ep.pr_m[mask],
         full=ep.full[mask],
         cn0_dbhz=ep.cn0_dbhz[mask],
+        doppler_hz=ep.doppler_hz[mask],
         subframes=tuple(
             sf for sf in (ep.subframes if subframes is None else subframes) if keep(sf.prn)
         ),

@@ -20,6 +20,11 @@ _MEASX_HEAD = struct.Struct("<B3xIII4xIHHH2xHBB8x")  # version gpsTOW .. numSv f
 _MEASX_SV = struct.Struct("<BBBBiiHHIBB2x")  # gnssId svId cNo mpathIndic .. pseuRangeRMSErr
 
 
+MEASX_DOPPLER_MS_LSB = 0.04
+MEASX_DOPPLER_HZ_LSB = 0.2
+"""Scale of MEASX dopplerMS [m/s] and dopplerHz [Hz] (F9 HPG Interface Description)."""
+
+
 def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
     """A complete UBX frame: sync chars, class, id, length, payload, Fletcher checksum."""
     body = bytes((msg_class, msg_id)) + struct.pack("<H", len(payload)) + payload
@@ -38,6 +43,7 @@ class RawxMeas:
     cn0_dbhz: int
     pr_std_index: int
     pr_valid: bool
+    doppler_hz: float = 0.0  # doMes: positive for an approaching satellite
 
 
 def rawx_frame(rcv_tow_s: float, week: int, leap_s: int, meas: list[RawxMeas]) -> bytes:
@@ -48,7 +54,7 @@ def rawx_frame(rcv_tow_s: float, week: int, leap_s: int, meas: list[RawxMeas]) -
             _RAWX_MEAS.pack(
                 m.pr_m if m.pr_valid else 0.0,
                 0.0,
-                0.0,
+                m.doppler_hz,
                 m.gnss_id,
                 m.sv_id,
                 m.sig_id,
@@ -74,6 +80,8 @@ class MeasxSv:
     whole_chips: int
     code_phase_units: int
     int_code_phase_ms: int = 0
+    doppler_hz: float = 0.0  # the same sign as RAWX doMes; written in m/s and in Hz
+    wavelength_m: float = 0.0  # of the carrier, for dopplerMS
 
 
 def measx_frame(gps_tow_ms: int, bds_tow_ms: int, svs: list[MeasxSv]) -> bytes:
@@ -86,8 +94,8 @@ def measx_frame(gps_tow_ms: int, bds_tow_ms: int, svs: list[MeasxSv]) -> bytes:
                 sv.sv_id,
                 sv.cn0_dbhz,
                 0,
-                0,
-                0,
+                round(sv.doppler_hz * sv.wavelength_m / MEASX_DOPPLER_MS_LSB),
+                round(sv.doppler_hz / MEASX_DOPPLER_HZ_LSB),
                 sv.whole_chips,
                 0,
                 sv.code_phase_units,

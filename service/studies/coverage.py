@@ -52,8 +52,10 @@ from typing import Any
 
 import numpy as np
 
-from service.core.constants import WEEK_S, is_geo
-from service.core.errors import BdsfixError, ConfigError
+from service.core.bds import is_geo
+from service.core.constants import WEEK_S
+from service.core.errors import ConfigError
+from service.core.files import PLOT_HINT
 from service.core.geometry import geodetic_to_ecef
 from service.core.types import Ephemeris
 
@@ -594,7 +596,7 @@ def plot_coverage(res: CoverageResult, path: str, beta: float) -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as exc:
-        raise BdsfixError("--plot needs matplotlib: pip install 'bdsfix[plot]'") from exc
+        raise ConfigError(PLOT_HINT) from exc
     lats, lons = res.lats_deg, res.lons_deg
     fig, ax = plt.subplots(figsize=(10, 5.5))
     r0 = res.altitudes[0]

@@ -38,15 +38,19 @@ from typing import Literal
 
 import numpy as np
 
-from service.core.constants import C_M_S, is_geo
+from service.core.bds import is_geo
+from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem
 from service.core.timebase import bdt_to_gpst
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
 from service.engine.solver import IonoSet, SolverConfig, solve
 from service.sim.simulator import SimConfig, Simulator
 
-CT_M = C_M_S * 1e-3
+PERIOD_S = SYSTEM_CONSTANTS[GnssSystem.BDS].code_period_s
+"""B1I code period: the simulated fractional ranges are known modulo c times this [s]."""
+CT_M = C_M_S * PERIOD_S
 FAULT_M = (10.0, 150e3)
 BDT_WEEK = 805  # of hksc1610.nav (2021-06-10)
 SOW_SPAN_S = (349200.0, 363600.0)  # toes common to the GEOs in hksc1610.nav
@@ -113,7 +117,7 @@ def _view(prn: list[str], pr_m: np.ndarray, full: np.ndarray, week: int, tow: fl
         ["2I"] * len(prn),
         np.where(full, pr_m, np.nan),
         frac_pr_m=np.where(full, np.nan, np.mod(pr_m, CT_M)),
-        period_s=0.001,
+        period_s=PERIOD_S,
     )
 
 

@@ -24,9 +24,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from service.core.constants import is_geo
+from service.core.bds import is_geo
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
+from service.core.files import PLOT_HINT
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s
 from service.core.types import Fix, MeasurementEpoch
@@ -63,7 +64,7 @@ def run_trial(
     and time, from there, the first fix of the pipeline (fast), the first conventional SPP of
     the same view (>= 4 full measurements) and the first GEO-only SPP."""
     t0 = epochs[r]
-    pipeline = Pipeline(store, iono, cfg, full_rule=full_rule)
+    pipeline = Pipeline(store, iono, cfg, full_rule=full_rule, velocity=False)
     pipeline.restart(t0, rng)
     fast = conv = geo = geo_err = diff = None
     for ep in epochs[r:]:
@@ -156,7 +157,7 @@ def plot_trials(trials: Sequence[TrialTimes], path: str) -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as exc:
-        raise ConfigError("--plot needs matplotlib: pip install 'bdsfix[plot]'") from exc
+        raise ConfigError(PLOT_HINT) from exc
     fig, ax = plt.subplots(figsize=(7, 4))
     data = {
         "fast fix": [t.fast_s for t in trials],

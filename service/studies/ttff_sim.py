@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from service.core.constants import is_geo
+from service.core.bds import is_geo
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import BdsfixError
 from service.core.settings import flags_of

@@ -19,6 +19,13 @@ GPS_NAV = str(DATA / "hk-polyu-f9p-ubx-2024" / "hksc269h.24n")  # RINEX 3, GPS o
 HKSC_OBS = str(DATA / "hksc-2021" / "hksc1610.obs")
 HKSC_NAV = str(DATA / "hksc-2021" / "hksc1610.nav")
 MISSING = "/nonexistent-dir/out"
+TWTF_OBS = str(DATA / "twtf-septentrio-2023" / "TWTF00TWN_R_20232490000_01D_30S_MO.rnx")
+POLYU_UBX = str(DATA / "hk-polyu-f9p-ubx-2024" / "COM18___9600_240925_072456.ubx")
+# the HKSC nav holds BDS sets of 2021-06-09/10; TWTF observed 2023-09-06 (day 249, from its
+# name), the PolyU F9P 2024-09-25 from 07:25 UTC (the data's README)
+NAV_2021_OBS_2023 = "of 2021-06-09 to 2021-06-10 (GPST), but the observations start 2023-09-06"
+NAV_2021_UBX_2024 = "of 2021-06-09 to 2021-06-10 (GPST), but the observations start 2024-09-25"
+RUN_QUIET = ("--state-dir", "/dev/null/state", "--nmea-tcp", "", "--zmq", "")
 
 
 def _bdsfix(*args: str) -> subprocess.CompletedProcess[str]:
@@ -35,6 +42,12 @@ def _bdsfix(*args: str) -> subprocess.CompletedProcess[str]:
     ("args", "code", "says"),
     [
         (("solve", HKSC_OBS, GPS_NAV), 3, "no usable BDS ephemeris"),
+        (("replay", HKSC_OBS, "--nav", GPS_NAV, "--max-speed"), 3, "no usable BDS ephemeris"),
+        (("run", "--source", HKSC_OBS, "--nav", GPS_NAV, *RUN_QUIET), 3, "no usable BDS"),
+        (("solve", TWTF_OBS, HKSC_NAV), 3, NAV_2021_OBS_2023),
+        (("replay", TWTF_OBS, "--nav", HKSC_NAV, "--max-speed"), 3, NAV_2021_OBS_2023),
+        (("run", "--source", TWTF_OBS, "--nav", HKSC_NAV, *RUN_QUIET), 3, NAV_2021_OBS_2023),
+        (("run", "--source", POLYU_UBX, "--nav", HKSC_NAV, *RUN_QUIET), 3, NAV_2021_UBX_2024),
         (("ttff", HKSC_OBS, GPS_NAV), 3, "no usable BDS ephemeris"),
         (("simulate", "--nav", GPS_NAV, "--out", "/dev/null"), 3, "no healthy BDS ephemeris"),
         (("coverage", "--nav", GPS_NAV, "--no-progress"), 3, "no GEO ephemerides"),
@@ -110,3 +123,52 @@ def test_a_file_with_nothing_to_read_is_an_input_error(tmp_path, command, kind):
     assert len(lines) == 1, out.stderr
     expected = "decompress it first" if kind == "gzip" else "expected a capture of UBX"
     assert expected in lines[0]
+
+
+# matplotlib made unimportable (a None entry in sys.modules makes `import matplotlib` raise
+# ImportError), then the command run as `python -m service` runs it
+WITHOUT_MATPLOTLIB = (
+    "import runpy, sys; sys.modules['matplotlib'] = None; "
+    "sys.argv = ['bdsfix', *sys.argv[1:]]; runpy.run_module('service', run_name='__main__')"
+)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("ttff", HKSC_OBS, HKSC_NAV, "--trials", "2", "--plot", "PNG"),
+        (
+            "coverage",
+            "--days",
+            "1",
+            "--step-s",
+            "3600",
+            "--grid-deg",
+            "30",
+            "--json",
+            "JSON",
+            "--plot",
+            "PNG",
+            "--no-progress",
+        ),
+    ],
+    ids=["ttff", "coverage"],
+)
+def test_plot_without_matplotlib_refuses_before_computing(args, tmp_path):
+    """``--plot`` without matplotlib is exit 2 with the install hint, before any work: no
+    result on stdout, no JSON written, no PNG."""
+    png, js = tmp_path / "out.png", tmp_path / "out.json"
+    argv = [str(png) if a == "PNG" else str(js) if a == "JSON" else a for a in args]
+    out = subprocess.run(
+        [sys.executable, "-c", WITHOUT_MATPLOTLIB, *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 2, out.stderr[-500:]
+    assert out.stderr.splitlines() == [
+        f"bdsfix {args[0]}: error: --plot needs matplotlib: pip install '.[plot]' in the "
+        "bdsfix checkout"
+    ]
+    assert out.stdout == "" and not js.exists() and not png.exists()

@@ -129,3 +129,47 @@ def test_urban_moving_no_crash_fast_equals_spp_where_gated(tmp_path):
     assert n_decline > 0
     assert n_other_subset <= 0.05 * n_fast
     print(f"hk-tst-urban: {n_fast} fast fixes, {n_decline} declines, {n_other_subset} other subset")
+
+
+def _with_flag_7(tmp_path, index):
+    """hksc1610.obs with the epoch line of epoch ``index`` given flag 7 (not in RINEX 3)."""
+    lines = (DATA / "hksc-2021" / "hksc1610.obs").read_text().splitlines(keepends=True)
+    at = [k for k, line in enumerate(lines) if line.startswith(">")][index]
+    assert lines[at][31] == "0"
+    lines[at] = lines[at][:31] + "7" + lines[at][32:]
+    path = tmp_path / "hksc1610.obs"
+    path.write_text("".join(lines))
+    return path, at + 1
+
+
+def test_solve_and_replay_skip_an_epoch_with_an_unknown_flag_alike(tmp_path, capsys, caplog):
+    # 205 epochs; the 51st (after 50 good ones) gets flag 7: both commands skip that epoch
+    # with a warning naming file:line and solve the other 204
+    obs, lineno = _with_flag_7(tmp_path, 50)
+    nav = DATA / "hksc-2021" / "hksc1610.nav"
+    _, by_epoch = _solve(tmp_path, obs, [nav], "--mode", "both")
+    assert len(by_epoch) == 204
+    assert f"hksc1610.obs:{lineno}: epoch flag 7" in caplog.text
+    assert "skipped input: epochs_skipped 1" in capsys.readouterr().err
+    caplog.clear()
+    out = tmp_path / "replay.jsonl"
+    rc = main(["replay", str(obs), "--nav", str(nav), "--max-speed", "--jsonl-out", str(out)])
+    assert rc == 0
+    replayed = {
+        (r["gpst_week"], r["gpst_tow_s"])
+        for r in map(json.loads, out.read_text().splitlines())
+        if r.get("class") == "FIX"
+    }
+    assert replayed == set(by_epoch)
+    assert f"hksc1610.obs:{lineno}: epoch flag 7" in caplog.text
+
+
+def test_default_pdop_mask_is_u_blox_25_on_the_f9p_rover(tmp_path):
+    # the F9P rover (no GEOs) has SPP epochs with PDOP between 10 and 25: the default mask
+    # (u-blox's 25) publishes them and still declines none at or below it
+    d = DATA / "hksc-2021"
+    recs, _ = _solve(tmp_path, d / "20210610.klt1.ublox.f9p.obs", [d / "hksc1610.nav"])
+    spp = [r for r in recs if r["solver"] == "spp" and r["mode"] == "spp"]
+    pdops = [r["pdop"] for r in spp]
+    assert any(10.0 < p <= 25.0 for p in pdops)
+    assert max(pdops) <= 25.0

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from service.core.constants import is_geo
+from service.core.bds import is_geo
 from service.core.geometry import ecef_to_geodetic
-from service.core.orbit import EphemerisArrays, sat_pos_clock
+from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
 from tests.support.independent import eph_from_georinex as _eph
 from tests.support.independent import georinex_bds_ephemerides, icd_position
 from tests.support.paths import DATA
@@ -107,3 +107,44 @@ def test_clock_includes_relativity_and_tgd1(records):
     rel = clk[0] - (poly - e.tgd1_s)
     assert abs(rel) < 4.45e-10 * e.e * e.sqrt_a_sqrt_m + 1e-15
     assert abs(rel) > 0.0
+
+
+def test_velocities_match_the_derivative_of_the_scalar_icd_transcription(records):
+    """sat_pos_vel_clock's velocity == the scalar ICD position (tests/support/independent.py)
+    differenced over +-0.5 s, to 1 mm/s, for every record at toe and +-30 min; its position
+    is sat_pos_clock's to 1 mm; the clock drift is a1 + 2 a2 (t - toc) up to the rate of
+    the relativistic term F e sqrt(A) sin E (ICD 5.2.4.10), at most |F| e sqrt(A) n / (1 - e)."""
+    worst_v = worst_p = worst_d = 0.0
+    for rec in records:
+        eph = _eph(rec)
+        arr = EphemerisArrays.from_ephemerides([eph])
+        for dt_s in (-1800.0, 0.0, 1800.0):
+            t = rec["Toe"] + dt_s
+            week = int(rec["BDTWeek"])
+            pos, vel, _, drift = sat_pos_vel_clock(arr, week, np.array([t]))
+            geo = is_geo(rec["prn"])
+            ref_v = np.subtract(icd_position(rec, t + 0.5, geo), icd_position(rec, t - 0.5, geo))
+            worst_v = max(worst_v, float(np.linalg.norm(vel[0] - ref_v)))
+            p0, _ = sat_pos_clock(arr, week, np.array([t]))
+            worst_p = max(worst_p, float(np.linalg.norm(pos[0] - p0[0])))
+            want = eph.af1_s_s + 2 * eph.af2_s_s2 * (t - eph.toc_sow_s)
+            n = math.sqrt(3.986004418e14 / eph.sqrt_a_sqrt_m**6) + eph.delta_n_rad_s
+            rel = 4.442807309e-10 * eph.e * eph.sqrt_a_sqrt_m * n / (1 - eph.e)
+            worst_d = max(worst_d, abs(float(drift[0]) - want) - rel)
+    assert worst_v < 1e-3, worst_v
+    assert worst_p < 1e-3, worst_p
+    assert worst_d < 1e-14, worst_d
+
+
+def test_inertial_speeds_obey_vis_viva(records):
+    """|v_ECEF + omega x r|^2 = GM (2/r - 1/a) (Kepler energy; the harmonic corrections
+    move it by < 0.1 %): a velocity in the wrong frame (for a GEO: 3 km/s instead of a few
+    m/s in ECEF) fails by far."""
+    gm, we = 3.986004418e14, 7.2921150e-5  # BDS-SIS-ICD-B1I-3.0 3.2
+    for rec in records:
+        arr = EphemerisArrays.from_ephemerides([_eph(rec)])
+        pos, vel, _, _ = sat_pos_vel_clock(arr, int(rec["BDTWeek"]), np.array([rec["Toe"]]))
+        r = pos[0]
+        v_inertial = vel[0] + np.cross([0.0, 0.0, we], r)
+        want = math.sqrt(gm * (2 / np.linalg.norm(r) - 1 / rec["sqrtA"] ** 2))
+        assert abs(np.linalg.norm(v_inertial) / want - 1) < 1e-3, rec["prn"]

@@ -153,7 +153,7 @@ def test_config_nav_holds_rinex_files_and_ntrip_sources(tmp_path):
     toml = tmp_path / "bdsfix.toml"
     toml.write_text(
         'nav = ["hksc1610.nav", "ntrip://alice:pw-1@caster.example:2102/EPH"]\n'
-        "ntrip_max_age_s = 3600.0\nntrip_reconnect_max_s = 2.5\n"
+        "ntrip_max_age_s = 3600.0\nntrip_reconnect_max_s = 2.5\nntrip_header_timeout_s = 3.0\n"
     )
     cfg = load_config(toml)
     assert nav_files(cfg) == ["hksc1610.nav"]
@@ -166,6 +166,7 @@ def test_config_nav_holds_rinex_files_and_ntrip_sources(tmp_path):
         "pw-1",
     )
     assert (cfg.ntrip_max_age_s, cfg.ntrip_reconnect_max_s) == (3600.0, 2.5)
+    assert cfg.ntrip_header_timeout_s == 3.0
 
 
 @pytest.mark.parametrize(
@@ -175,6 +176,7 @@ def test_config_nav_holds_rinex_files_and_ntrip_sources(tmp_path):
         ({"ntrip_reconnect_max_s": 0.0}, "--ntrip-reconnect-max-s"),
         ({"ntrip_reconnect_max_s": 301.0}, "--ntrip-reconnect-max-s"),
         ({"ntrip_max_age_s": 0.0}, "--ntrip-max-age-s"),
+        ({"ntrip_header_timeout_s": 0.0}, "--ntrip-header-timeout-s"),
     ],
 )
 def test_config_refuses_bad_ntrip_settings(overrides, words):

@@ -86,6 +86,44 @@ def test_redact_hides_everything_before_the_last_at():
     assert redact("ntrip://h:1/M") == "ntrip://h:1/M"
 
 
+@given(
+    st.sampled_from(["ntrip://", "NTRIP://", "ntrips://", "http://", "https://", "ntrip:", ""]),
+    st.text(min_size=0, max_size=20),
+    st.text(min_size=0, max_size=20),
+    st.sampled_from(["h", "caster.example:2101", "[::1]:2102"]),
+)
+def test_redact_hides_any_credentials_whatever_the_scheme(scheme, user, password, hostport):
+    """Issue 23: any scheme (not only exactly ntrip://), and a user or password holding
+    ``@ : /`` or a newline: nothing of them is left, the host and mountpoint are."""
+    user, password = "USR" + user, "PWD" + password
+    text = f"{scheme}{user}:{password}@{hostport}/MOUNT"
+    shown = redact(text)
+    assert shown.endswith(f"***@{hostport}/MOUNT")
+    assert "USR" not in shown and "PWD" not in shown
+    assert shown.startswith(scheme if scheme.endswith("//") else "***@")
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "ntrips://alice:hunter2@h/M",
+        "http://alice:hunter2@h:2101/M",
+        "ntrip:alice:hunter2@h/M",
+        "alice:hunter2@h/M",
+        "ntrip://alice:hun\nter2@h:99999/M",
+        "ntrip://alice:hun\nter2@h h/M",
+    ],
+)
+def test_urls_of_other_schemes_are_refused_without_the_credentials(text):
+    """Issue 23: these printed the password (as a file name that cannot be read, or, with a
+    newline, the line after it); now a URL-like nav entry is refused as a URL, redacted."""
+    with pytest.raises(ConfigError) as err:
+        parse_ntrip_url(text)
+    msg = str(err.value)
+    assert "hunter2" not in msg and "alice" not in msg and "hun" not in msg
+    assert "\n" not in msg
+
+
 def test_authorization_is_rfc7617_basic():
     url = NtripUrl("h", 2101, "M", user="Aladdin", password="open sesame")  # noqa: S106
     assert url.authorization() == "Basic QWxhZGRpbjpvcGVuIHNlc2FtZQ=="  # RFC 7617 section 2
@@ -136,6 +174,15 @@ def test_chunk_decoder_refuses_a_bad_size_line():
         ChunkDecoder().feed(b"zz\r\nabc\r\n")
     with pytest.raises(ValueError, match="no CRLF"):
         ChunkDecoder().feed(b"3\r\nabcXY")
+
+
+@pytest.mark.parametrize("size", [b"-5", b"-0", b"+5", b"0x5", b"5_0", b" -1", b""])
+def test_chunk_decoder_refuses_a_size_that_is_not_hex_digits(size):
+    """Issue 23: a negative size was taken (int(x, 16) reads a sign, a 0x prefix and
+    underscores) and the framing passed on as data; RFC 9112 7.1: chunk-size = 1*HEXDIG."""
+    dec = ChunkDecoder()
+    with pytest.raises(ValueError, match="bad chunk size"):
+        dec.feed(size + b"\r\n" + b"\xd3\x00\x13" * 4 + b"\r\n0\r\n\r\n")
 
 
 # --- against pygnssutils' caster --------------------------------------------------------
@@ -309,3 +356,176 @@ def _independent_1042_frames(frames: bytes) -> Iterator[bytes]:
     for raw, msg in RTCMReader(BytesIO(frames)):
         if msg.identity == "1042":
             yield raw
+
+
+# --- casters that misbehave (issue 23) ------------------------------------------------------
+
+
+class _Misbehaving:
+    """A real TCP server on loopback: connection ``i`` (from 0) gets ``answer(i)`` after
+    the request, ``per_byte_s`` between bytes (0: at once), then is closed; until stop()."""
+
+    def __init__(self, answer, per_byte_s: float = 0.0) -> None:
+        self.answer = answer
+        self.per_byte_s = per_byte_s
+        self.accepted = 0
+        self.stopped = threading.Event()
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        while not self.stopped.is_set():
+            try:
+                conn, _ = self.sock.accept()
+            except TimeoutError:
+                continue
+            i, self.accepted = self.accepted, self.accepted + 1
+            with conn:
+                req = b""
+                while b"\r\n\r\n" not in req:
+                    data = conn.recv(4096)
+                    if not data:
+                        break
+                    req += data
+                answer = self.answer(i)
+                try:
+                    if not self.per_byte_s:
+                        conn.sendall(answer)
+                    for k in range(len(answer)) if self.per_byte_s else ():
+                        if self.stopped.wait(self.per_byte_s):
+                            break
+                        conn.sendall(answer[k : k + 1])
+                except OSError:
+                    pass
+        self.sock.close()
+
+    def stop(self) -> None:
+        self.stopped.set()
+
+
+def _pump(transport, until, what: str) -> None:
+    """Read ``transport`` until ``until()``; only a hang (HANG_S) fails."""
+    deadline = time.monotonic() + HANG_S
+    while not until():
+        assert time.monotonic() < deadline, f"hung: no {what} within {HANG_S:.0f} s"
+        transport.read(4096)
+
+
+def _frozen(logger_name: str):
+    """A rate-limited log whose clock never moves: what it lets through does not depend on
+    how long the test takes (the rate limit is tested in tests/core/test_ratelog.py)."""
+    from service.core.ratelog import RateLimitedLog
+
+    return RateLimitedLog(logging.getLogger(logger_name), clock=lambda: 0.0)
+
+
+OK_200 = b"HTTP/1.1 200 OK\r\nNtrip-Version: Ntrip/2.0\r\nContent-Type: gnss/data\r\n\r\n"
+
+
+@pytest.mark.parametrize(
+    "answer",
+    [
+        OK_200,  # and close
+        OK_200.replace(b"\r\n\r\n", b"\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n"),
+    ],
+    ids=["200-and-close", "bad-chunk-size"],
+)
+def test_a_caster_that_answers_200_and_closes_gets_no_retry_storm(answer, caplog):
+    """Issue 23: the backoff was reset at every answered connection, so such a caster got
+    about 4 connections a second, each with two WARNINGs ("reconnected", "disconnected").
+    Now: the backoff grows to its maximum and stays there, no "reconnected" is logged nor
+    counted, and the drops are one rate-limited WARNING; then a caster that sends a whole
+    RTCM 3 frame resets the backoff (one INFO "connected")."""
+    caplog.set_level(logging.DEBUG)
+    frames = _hk_frames()
+    good_from = 8
+    server = _Misbehaving(lambda i: answer if i < good_from else OK_200 + frames)
+    url = parse_ntrip_url(f"ntrip://{USER}:{PASSWORD}@127.0.0.1:{server.port}/EPH")
+    src = open_ntrip(url, reconnect_max_s=0.2)
+    t = src.transport
+    t.backoff_initial_s = t._backoff_s = 0.01
+    t._drop_log = _frozen("drivers.transport")
+    try:
+        _pump(t, lambda: t.counters["drops_before_data"] >= good_from - 1, "dropped connections")
+        assert t._backoff_s == t.backoff_max_s == 0.2  # grown, never reset by an answer
+        assert t.counters.get("reconnects", 0) == 0
+        warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert len(warnings) == 1, warnings
+        assert "connection lost before any data" in warnings[0]
+        assert not any("reconnected" in r.getMessage() for r in caplog.records)
+        _pump(t, lambda: t.counters.get("transport_bytes", 0) >= len(frames), "the frames")
+        assert t._backoff_s == t.backoff_initial_s  # real data: the backoff is reset
+        infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+        assert sum(m.endswith(": connected") for m in infos) == 1, infos
+    finally:
+        src.close()
+        server.stop()
+
+
+def test_a_caster_trickling_its_header_is_dropped_counted_and_logged(caplog):
+    """Issue 23, slow loris: a caster sending its header a byte at a time (never ending it)
+    held the connection for as long as it liked (16 KiB at 1 B/s: 4.5 h) with no log line
+    and no counter. Now the header must be whole within header_timeout_s."""
+    caplog.set_level(logging.DEBUG)
+    header = b"HTTP/1.1 200 OK\r\nX-Pad: " + b"a" * 16000
+    server = _Misbehaving(lambda i: header, per_byte_s=0.02)
+    url = parse_ntrip_url(f"ntrip://127.0.0.1:{server.port}/EPH")
+    src = open_ntrip(url, reconnect_max_s=0.2, header_timeout_s=0.5)
+    t = src.transport
+    box: list = []
+    reader = threading.Thread(target=lambda: box.append(t.read(4096)), daemon=True)
+    try:
+        reader.start()
+        reader.join(HANG_S)
+        assert not reader.is_alive(), f"hung: the header read did not end in {HANG_S:.0f} s"
+        assert box == [b""]
+        assert t.counters["header_timeouts"] == 1 and t.counters["open_failures"] == 1
+        assert t.counters.get("connects", 0) == 0
+        lines = [
+            r for r in caplog.records if "no whole answer header within 0.5 s" in r.getMessage()
+        ]
+        assert len(lines) == 1 and lines[0].levelno == logging.WARNING
+    finally:
+        src.close()
+        server.stop()
+
+
+def test_a_garbage_stream_after_200_is_counted_and_logged_once_at_info(caplog):
+    """Issue 23: a caster answering 200 then sending bytes that hold no RTCM 3 frame raised
+    nothing at INFO and a DEBUG line per false sync byte (145k lines in 20 s). Now each such
+    stream is counted (no_rtcm_streams), the first logged once at INFO, the framer's
+    checksum lines are rate-limited, and the backoff is not reset."""
+    import random
+
+    caplog.set_level(logging.DEBUG)
+    rng = random.Random(23)
+    garbage = [bytes(rng.getrandbits(8) for _ in range(70_000)) for _ in range(3)]
+    server = _Misbehaving(lambda i: OK_200 + garbage[i % 3])
+    url = parse_ntrip_url(f"ntrip://127.0.0.1:{server.port}/EPH")
+    src = open_ntrip(url, reconnect_max_s=0.2)
+    src.decoder.framer._log = _frozen("drivers.framing")
+    t = src.transport
+    t.backoff_initial_s = t._backoff_s = 0.01
+    try:
+        events = []
+        deadline = time.monotonic() + HANG_S
+        while t.counters.get("no_rtcm_streams", 0) < 3:
+            assert time.monotonic() < deadline, "hung: three garbage streams not judged"
+            events += src.decoder.feed(t.read(4096))
+    finally:
+        src.close()
+        server.stop()
+    assert events == []
+    assert src.counters["bad_checksum_rtcm"] + src.counters["bad_length_rtcm"] >= 100
+    msgs = [r.getMessage() for r in caplog.records]
+    info = [m for m in msgs if "sends no RTCM 3" in m]
+    assert len(info) == 1 and "'EPH'" in info[0], info
+    assert next(r for r in caplog.records if "sends no RTCM 3" in r.getMessage()).levelno == (
+        logging.INFO
+    )
+    assert sum("checksum failure" in m for m in msgs) <= 2  # one per protocol key
+    drops = t.counters["drops_before_data"]
+    assert drops >= 2 and t.counters.get("reconnects", 0) == 0
+    assert t._backoff_s == min(0.01 * 2**drops, t.backoff_max_s)  # never reset

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from drivers.rinex import NavData, ObsHeader, RinexObsReader, iter_obs, merge_nav, read_nav
-from service.core.constants import GEO_PRNS
+from service.core.bds import GEO_PRNS
 from service.core.errors import FramingError
 from service.core.types import Ephemeris, MeasurementEpoch
 from tests.support.paths import DATA

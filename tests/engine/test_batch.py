@@ -20,7 +20,8 @@ import pytest
 
 from drivers.rinex import RinexObsReader
 from service.commands.solve import load_navigation
-from service.core.constants import C_M_S, is_geo
+from service.core.bds import is_geo
+from service.core.constants import C_M_S
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.batch import CHUNK_EPOCHS, solve_many
 from service.engine.solver import SolverConfig, fractionalize, solve
@@ -64,12 +65,14 @@ def _same(ref: Fix, got: Fix) -> None:
         assert got.recovered_pr_m[prn] == pytest.approx(pr, abs=1e-6)
 
 
-def _check(epochs: list[MeasurementEpoch], nav: str, solver: str) -> list[Fix]:
+def _check(
+    epochs: list[MeasurementEpoch], nav: str, solver: str, cfg: SolverConfig | None = None
+) -> list[Fix]:
     store, iono = load_navigation([nav])
     if solver == "fast":
         epochs = [fractionalize(e) for e in epochs]
-    ref = [solve(e, store, iono, solver=solver) for e in epochs]  # type: ignore[arg-type]
-    got = solve_many(epochs, store, iono, solver=solver)  # type: ignore[arg-type]
+    ref = [solve(e, store, iono, cfg, solver=solver) for e in epochs]  # type: ignore[arg-type]
+    got = solve_many(epochs, store, iono, cfg, solver=solver)  # type: ignore[arg-type]
     assert len(got) == len(ref)
     for r, g in zip(ref, got, strict=True):
         _same(r, g)
@@ -94,7 +97,8 @@ def test_urban_drive_batch_equals_per_epoch(solver):
     d = DATA / "hk-tst-urban-2019"
     epochs = list(RinexObsReader(d / "COM3_190428_124409.obs"))[200:900]
     assert len(epochs) > 2 * CHUNK_EPOCHS
-    got = _check(epochs, str(d / "hksc1180.19b"), solver)
+    # PDOP mask 10 (the default is 25) so that the drive also meets the PDOP gate
+    got = _check(epochs, str(d / "hksc1180.19b"), solver, SolverConfig(pdop_max=10.0))
     codes = {f.reason_code for f in got}
     assert "chi2" in codes  # no exclusion passes: the failed solution's decline
     if solver == "spp":  # the paths that leave the batch and come back are all exercised

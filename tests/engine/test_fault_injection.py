@@ -25,7 +25,8 @@ import pytest
 
 from drivers.rinex import RinexObsReader
 from service.commands.solve import load_navigation
-from service.core.constants import C_M_S, is_geo
+from service.core.bds import is_geo
+from service.core.constants import C_M_S
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.solver import fractionalize, solve

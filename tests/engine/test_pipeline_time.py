@@ -50,7 +50,7 @@ def test_epochs_without_a_week_are_declined_no_time_and_change_nothing():
         rec = fix_record(r.fix, r.since_start_s)
         VALIDATOR.validate(rec)
         assert "gpst_week" not in rec and rec["gpst_tow_s"] == e.gpst_tow_s
-        gga, rmc = sentences_for_fix(r.fix, utc=fix_utc(r.fix))
+        rmc, gga = sentences_for_fix(r.fix, utc=fix_utc(r.fix))
         assert gga.startswith(b"$GNGGA,,,") and b",0,0," in gga  # no time, quality 0
         assert rmc.startswith(b"$GNRMC,,V,")
     for r, c in zip(results[5:], clean, strict=True):

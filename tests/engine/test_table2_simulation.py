@@ -14,7 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from service.core.constants import C_M_S, is_geo
+from service.core.bds import is_geo
+from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays

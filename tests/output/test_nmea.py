@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from pynmeagps import NMEAReader
 
-from service.core.types import SatView
-from service.output.nmea import sentences_for_fix
+from service.core.types import SatView, Velocity
+from service.output.nmea import fix_utc, sentences_for_fix
 from tests.support.fixes import SKY, declined_fix, ecef_m, hksc_fix
 from tests.support.nmea import C_M_S, dm_deg, hand_parse, horiz_err_m, sec_of_day, utc_of_gpst
 
@@ -35,7 +35,7 @@ def test_hksc_fix_sentences_parse_back_to_the_fix():
     utc = fix_time(fix)
     sentences = sentences_for_fix(fix, utc=utc, time_known=True)
     addresses = [hand_parse(s)[0] for s in sentences]
-    assert addresses == ["GNGGA", "GNRMC", "GNGSA", "GBGSV", "GBGSV", "GBGSV", "GNGST", "GNZDA"]
+    assert addresses == ["GNRMC", "GNGGA", "GBGSA", "GBGSV", "GBGSV", "GBGSV", "GNGST", "GNZDA"]
     for s in sentences:
         assert len(s) <= 82, s
         msg = NMEAReader.parse(s)
@@ -51,7 +51,7 @@ def test_hksc_fix_sentences_parse_back_to_the_fix():
     assert gga[5] == "1" and int(gga[6]) == len(fix.used) == 8
     assert float(gga[7]) == pytest.approx(fix.hdop, abs=0.005)
     assert abs(float(gga[8]) + float(gga[10]) - fix.alt_m) < 0.01 and gga[9] == gga[11] == "M"
-    parsed = NMEAReader.parse(sentences[0])
+    parsed = NMEAReader.parse(sentences[1])
     assert horiz_err_m(parsed.lat, parsed.lon, fix.lat_deg, fix.lon_deg) < 0.01
     assert abs(parsed.alt - fix.alt_m) < 0.01
 
@@ -59,7 +59,7 @@ def test_hksc_fix_sentences_parse_back_to_the_fix():
     assert rmc[0] == gga[0] and rmc[1] == "A" and rmc[2:6] == gga[1:5]
     assert rmc[8] == utc.strftime("%d%m%y") and rmc[11] == "A"
 
-    gsa = f["GNGSA"][0]
+    gsa = f["GBGSA"][0]
     assert gsa[:2] == ["A", "3"]
     assert [int(v) for v in gsa[2:14] if v] == sorted(int(p[1:]) for p in fix.used)
     assert [float(v) for v in gsa[14:17]] == pytest.approx([1.46, 0.84, 1.19], abs=0.006)
@@ -120,7 +120,7 @@ def test_every_hemisphere_within_a_centimetre(lat_deg, lon_deg, alt_m, hemis):
 
 def test_minutes_that_round_to_sixty_carry_into_the_degrees():
     fix = replace(hksc_fix(), lat_deg=22.99999999999, lon_deg=-113.99999999999)
-    _, gga = hand_parse(sentences_for_fix(fix, utc=fix_time(fix))[0])
+    _, gga = hand_parse(sentences_for_fix(fix, utc=fix_time(fix))[1])
     assert gga[1:5] == ["2300.0000000", "N", "11400.0000000", "W"]
     assert horiz_err_m(dm_deg(gga[1], "N"), dm_deg(gga[3], "W"), 23.0, -114.0) < 1e-6
 
@@ -154,26 +154,48 @@ def test_rounding_to_the_hundredth_carries_into_the_date():
     assert [int(v) for v in f["GNZDA"][0][1:4]] == [1, 1, 2025]
 
 
+@pytest.mark.parametrize(
+    ("tow_s", "hhmmss", "ddmmyy"),
+    [
+        (259215.50, "235959.50", "300615"),
+        (259216.00, "235960.00", "300615"),  # the inserted second, 2015-06-30 23:59:60 UTC
+        (259216.50, "235960.50", "300615"),
+        (259216.999, "000000.00", "010715"),  # rounds to the hundredth past the leap
+        (259217.25, "000000.25", "010715"),
+    ],
+)
+def test_the_inserted_leap_second_reads_60(tow_s, hhmmss, ddmmyy):
+    """IERS Bulletin C 49: UTC 2015-06-30 23:59:60 was inserted, GPST - UTC 16 s before and
+    17 s after; GPS week 1851 began 2015-06-28, so 2015-07-01 00:00:00 UTC is tow
+    3 * 86400 + 17 = 259217 s. The time comes as the publisher takes it (fix_utc)."""
+    fix = hksc_fix(gpst_week=1851, gpst_tow_s=tow_s, clock_bias_m=0.0)
+    f = by_address(sentences_for_fix(fix, utc=fix_utc(fix), time_known=True))
+    assert f["GNGGA"][0][0] == f["GNRMC"][0][0] == f["GNZDA"][0][0] == hhmmss
+    assert f["GNRMC"][0][8] == ddmmyy
+
+
 def test_declined_fix_gives_gga_quality_0_and_rmc_void_only():
     sentences = sentences_for_fix(declined_fix(), utc=dt.datetime(2021, 6, 10, 3, 35, 36, 500_000))
-    (a_gga, gga), (a_rmc, rmc) = (hand_parse(s) for s in sentences)
-    assert (a_gga, a_rmc) == ("GNGGA", "GNRMC") and len(sentences) == 2
+    (a_rmc, rmc), (a_gga, gga) = (hand_parse(s) for s in sentences)
+    assert (a_rmc, a_gga) == ("GNRMC", "GNGGA") and len(sentences) == 2
     assert gga[0] == "033536.50" and gga[1] == gga[3] == "" and gga[5] == "0"
     assert gga[7] == gga[8] == ""  # no HDOP, no altitude
     assert rmc[1] == "V" and rmc[2] == rmc[4] == "" and rmc[11] == "N"
     for s in sentences:
         assert NMEAReader.parse(s) is not None
-    assert NMEAReader.parse(sentences[0]).quality == 0
+    assert NMEAReader.parse(sentences[1]).quality == 0
 
 
 @pytest.mark.parametrize(
-    ("talker", "gsv_talker"), [("GN", "GB"), ("GB", "GB"), ("BD", "BD"), ("GP", "GB")]
+    ("talker", "bds_talker"), [("GN", "GB"), ("GB", "GB"), ("BD", "BD"), ("GP", "GB")]
 )
-def test_talkers(talker, gsv_talker):
+def test_talkers(talker, bds_talker):
+    """GGA, RMC, GST, ZDA: the talker asked for; GSA and GSV (BeiDou satellites): BeiDou's."""
     fix = hksc_fix()
     addresses = [hand_parse(s)[0] for s in sentences_for_fix(fix, utc=fix_time(fix), talker=talker)]
-    assert [a[:2] for a in addresses if not a.endswith("GSV")] == [talker] * 5
-    assert {a for a in addresses if a.endswith("GSV")} == {gsv_talker + "GSV"}
+    bds = ("GSA", "GSV")
+    assert [a[:2] for a in addresses if not a.endswith(bds)] == [talker] * 4
+    assert {a for a in addresses if a.endswith(bds)} == {bds_talker + "GSA", bds_talker + "GSV"}
 
 
 def test_unknown_talker_is_refused():
@@ -229,7 +251,7 @@ def test_sentences_stay_within_82_characters_keeping_precision(lat_deg, lon_deg,
     lat, lon = dm_deg(gga[1], gga[2]), dm_deg(gga[3], gga[4])
     assert horiz_err_m(lat, lon, lat_deg, lon_deg) < 0.01
     assert abs(float(gga[8]) - alt_m) < 0.01 and abs(float(gga[7]) - hdop) < 0.051
-    gsa = f["GNGSA"][0]
+    gsa = f["GBGSA"][0]
     assert [int(v) for v in gsa[2:14]] == [6, 9, 11, 12, 14, 16, 19, 20, 21, 22, 23, 24]
     gst = [float(v) for v in f["GNGST"][0][1:8]]
     # documented resolution: 0.1 m from 100 m, 1 m from 10 km
@@ -244,12 +266,21 @@ def test_gsv_leaves_unknown_angles_empty():
     assert f["GBGSV"] == [["1", "1", "1", "3", "", "", "33", "1"]]
 
 
-def test_gsa_talker_can_name_the_constellation():
+def test_gsa_names_beidou_by_its_talker_unless_told_otherwise():
+    """GSA lists BeiDou satellites only: BeiDou's talker by default (gpsd 3.22 takes the
+    constellation from it), BD with the BD talker, or the one asked for; the NMEA 4.11
+    system ID is 4 in each."""
     fix = hksc_fix()
-    sentences = sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GB")
-    addresses = [hand_parse(s)[0] for s in sentences]
-    assert addresses[:3] == ["GNGGA", "GNRMC", "GBGSA"]
-    assert hand_parse(sentences[2])[1][-1] == "4"
+    for talker, gsa_talker, want in [
+        ("GN", None, "GBGSA"),
+        ("GP", None, "GBGSA"),
+        ("BD", None, "BDGSA"),
+        ("GN", "GN", "GNGSA"),
+    ]:
+        sentences = sentences_for_fix(fix, utc=fix_time(fix), talker=talker, gsa_talker=gsa_talker)
+        addresses = [hand_parse(s)[0] for s in sentences]
+        assert addresses[:3] == [f"{talker}RMC", f"{talker}GGA", want]
+        assert hand_parse(sentences[2])[1][-1] == "4"
     with pytest.raises(ValueError, match="talker"):
         sentences_for_fix(fix, utc=fix_time(fix), gsa_talker="GA")
 
@@ -270,3 +301,25 @@ def test_gst_error_ellipse_comes_from_the_covariance():
     assert (s_lat, s_lon, s_alt) == pytest.approx(
         (math.sqrt(en[1, 1]), math.sqrt(en[0, 0]), 3.0), abs=5e-4
     )
+
+
+def test_speed_and_course_in_rmc_and_vtg():
+    """A fix moving at 5 m/s toward 036.87 deg (east 3, north 4): RMC and VTG carry
+    5 * 3600 / 1852 = 9.719 kn, VTG 18.0 km/h, both the course; pynmeagps reads them back.
+    A course whose sigma exceeds 10 deg is left out (static receivers), the speed is not."""
+    vel = Velocity((3.0, 4.0, 0.0), (0.02, 0.02, 0.05), 5.0, 0.02, 36.8699, 0.23, 12.0, 0.05)
+    fix = replace(hksc_fix(), velocity=vel)
+    sentences = sentences_for_fix(fix, utc=fix_time(fix))
+    assert [hand_parse(s)[0] for s in sentences[:3]] == ["GNRMC", "GNVTG", "GNGGA"]
+    rmc, vtg = NMEAReader.parse(sentences[0]), NMEAReader.parse(sentences[1])
+    assert rmc.spd == pytest.approx(9.719, abs=5e-4) and rmc.cog == pytest.approx(36.87)
+    assert vtg.sogn == pytest.approx(9.719, abs=5e-4) and vtg.sogk == pytest.approx(18.0)
+    assert vtg.cogt == pytest.approx(36.87) and vtg.cogtUnit == "T" and vtg.posMode == "A"
+    vague = replace(fix, velocity=replace(vel, std_course_deg=10.5))
+    _, rmc_fields = hand_parse(sentences_for_fix(vague, utc=fix_time(fix))[0])
+    assert rmc_fields[6] == "9.719" and rmc_fields[7] == ""
+    # no velocity: no VTG and RMC's speed and course fields are empty
+    plain = sentences_for_fix(hksc_fix(), utc=fix_time(fix))
+    assert not any(b"VTG" in s for s in plain)
+    _, rmc_fields = hand_parse(plain[0])
+    assert rmc_fields[6] == rmc_fields[7] == ""

@@ -22,7 +22,7 @@ from pynmeagps import VALCKSUM, NMEAReader
 
 import service.output.nmea as nmea
 from service.commands.cli import main
-from service.core.types import SatView
+from service.core.types import SatView, Velocity
 from tests.support.fixes import declined_fix, ecef_m, hksc_fix
 from tests.system.test_replay_golden import CASES, NOTHING_MAPPED, SUBFRAMES_ONLY, _args
 
@@ -85,7 +85,7 @@ def test_golden_replays_cover_every_sentence_type(tmp_path: Path):
         for name in ("polyu-f9p-ubx", "hksc-rinex"):
             out = tmp_path / f"{name}.nmea"
             main(["replay", *_args(CASES[name].args), "--max-speed", "--nmea-out", str(out)])
-    assert set(compared.counts) == {"GGA", "RMC", "GSA", "GSV", "GST", "ZDA"}
+    assert set(compared.counts) == {"GGA", "RMC", "VTG", "GSA", "GSV", "GST", "ZDA"}
     assert not compared.mismatches
 
 
@@ -101,6 +101,18 @@ sky_sat = st.builds(
 )
 maybe_dop = st.one_of(st.none(), st.floats(0, 1e4), st.just(math.inf), st.just(math.nan))
 sigma = st.one_of(st.floats(0, 1e6), st.just(math.inf))
+speed = st.one_of(st.floats(0, 1e4), st.sampled_from([0.0, 0.0005, 1e-9]))
+velocity = st.builds(
+    Velocity,
+    st.tuples(finite, finite, finite),
+    st.tuples(sigma, sigma, sigma),
+    speed,
+    sigma,
+    st.one_of(st.floats(0, 360, exclude_max=True), st.sampled_from([359.999, 0.004])),
+    st.one_of(st.floats(0, 180), st.sampled_from([10.0, 10.0001])),
+    finite,
+    sigma,
+)
 
 
 @st.composite
@@ -133,6 +145,7 @@ def fixes(draw: st.DrawFn):
         resid_rms_m=draw(st.one_of(st.none(), st.floats(0, 1e5))),
         sky=tuple(draw(st.lists(sky_sat, max_size=20))),
         clock_bias_m=draw(st.floats(-3e5, 3e5)),
+        velocity=draw(st.one_of(st.none(), velocity)),
     )
     if draw(st.booleans()):
         return declined_fix(gpst_tow_s=fix.gpst_tow_s, used=fix.used[:3])
@@ -175,7 +188,7 @@ field_value = st.one_of(
 
 
 @given(
-    msg_id=st.sampled_from(["GGA", "RMC", "GSA", "GSV", "GST", "ZDA"]),
+    msg_id=st.sampled_from(["GGA", "RMC", "VTG", "GSA", "GSV", "GST", "ZDA"]),
     values=st.dictionaries(
         st.sampled_from(
             [
@@ -215,6 +228,12 @@ field_value = st.one_of(
                 "elv_01",
                 "az_02",
                 "cno_03",
+                "cogt",
+                "cogtUnit",
+                "cogm",
+                "sogn",
+                "sogk",
+                "sogkUnit",
             ]
         ),
         field_value,

@@ -441,11 +441,11 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
 
         addresses = [hand_parse(s + b"\r\n")[0] for s in text.split(b"\r\n")[:-1]]
         # declined before any fix: no ZDA; the fix: the full set; declined later: no ZDA
-        assert addresses[:2] == ["GNGGA", "GNRMC"] and addresses[-2:] == ["GNGGA", "GNRMC"]
+        assert addresses[:2] == ["GNRMC", "GNGGA"] and addresses[-2:] == ["GNRMC", "GNGGA"]
         assert addresses[2:-2] == [
-            "GNGGA",
             "GNRMC",
-            "GNGSA",
+            "GNGGA",
+            "GBGSA",
             "GBGSV",
             "GBGSV",
             "GBGSV",
@@ -453,7 +453,7 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
             "GNZDA",
         ]
         # NMEA time is the fix's own time: time tag minus the solved clock bias
-        gga = hand_parse(text.split(b"\r\n")[2] + b"\r\n")[1]
+        gga = hand_parse(text.split(b"\r\n")[3] + b"\r\n")[1]
         utc = utc_of_gpst(fast.gpst_week, fast.gpst_tow_s - fast.clock_bias_m / C_M_S)
         want = (utc - utc.replace(hour=0, minute=0, second=0, microsecond=0)).total_seconds()
         assert abs(sec_of_day(gga[0]) - want) <= 0.005 + 1e-9
@@ -477,12 +477,14 @@ def test_fan_out_sends_the_same_epochs_everywhere(tmp_path):
 
 
 @pytest.mark.needs("gpsd")
-@pytest.mark.parametrize("gsa_talker", [None, "GB"])
+@pytest.mark.parametrize("gsa_talker", [None, "GN"])
 def test_gpsd_reads_a_southern_western_fix_at_10_hz(gsa_talker):
     """gpsd (an independent NMEA parser) connected to our TCP server reports our fixes:
-    mode 3, position within 1 cm, time within 0.01 s; with a GB talker on GSA it also
-    marks exactly our used satellites. Epochs are sent once gpsd is our client, so none is
-    lost to its start-up; up to 600 epochs (60 s of data) for 10 timed TPV reports."""
+    mode 3, position within 1 cm, time within 0.01 s; with the default GSA (BeiDou's
+    talker, GBGSA) its SKY also marks exactly our used satellites and counts them in
+    ``uSat`` (issue 23: with GNGSA, gpsd 3.22 showed uSat 0). Epochs are sent once gpsd is
+    our client, so none is lost to its start-up; up to 600 epochs (60 s of data) for 10
+    timed TPV reports."""
     lat0, lon0, alt0 = -22.951916789, -43.210487654, 702.456  # Rio de Janeiro
     server = NmeaTcpServer("127.0.0.1", 0)
     out = Publishers([server], gsa_talker=gsa_talker)
@@ -521,12 +523,15 @@ def test_gpsd_reads_a_southern_western_fix_at_10_hz(gsa_talker):
     used_by_gpsd = {(s["gnssid"], s["svid"]) for s in sky[-1]["satellites"] if s["used"]}
     ours = {int(p[1:]) for p in hksc_fix().used}
     bds_used = {svid for gnssid, svid in used_by_gpsd if gnssid == 3}
-    if gsa_talker == "GB":
-        # gpsd 3.22 files IDs 33-64 under SBAS whatever the talker; newer gpsd under BeiDou
+    if gsa_talker is None:
+        # gpsd 3.22 files IDs 33-64 of the second and later GSV under SBAS (C37, C38 here:
+        # see service/output/nmea.py); newer gpsd under BeiDou
         assert bds_used == {p for p in ours if p <= 32} or bds_used == ours
+        assert sky[-1]["uSat"] == len(used_by_gpsd) >= len({p for p in ours if p <= 32})
     else:
-        # a GNGSA's IDs are read as GPS/SBAS PRNs: gpsd marks none of the BeiDou ones used
-        assert not bds_used
+        # gpsd 3.22 reads a GNGSA's IDs as GPS PRNs: it marks none of the BeiDou ones used
+        # (newer gpsd reads the GSA's system ID, 4: BeiDou)
+        assert not bds_used or bds_used == ours
 
 
 # ---- the registry and the order of the fan-out -------------------------------------------
@@ -550,7 +555,7 @@ class Recorder(Sink):
         self.closed = True
 
 
-def test_fan_out_order_puts_gga_first_and_file_blocks_last():
+def test_fan_out_order_puts_rmc_and_gga_first_and_file_blocks_last():
     calls: list = []
     every = frozenset({"FIX", "SKY", "TRACK", "STATUS"})
     sinks = [
@@ -564,13 +569,13 @@ def test_fan_out_order_puts_gga_first_and_file_blocks_last():
     out.epoch(SimpleNamespace(fix=hksc_fix(), since_start_s=4.0))
     n_rest = calls[4][2]
     assert calls == [
-        ("tcp", "GGA", 1),
-        ("serial", "GGA", 1),
+        ("tcp", "RMC", 2),
+        ("serial", "RMC", 2),
         ("zmq", "FIX"),
         ("jsonl", "FIX"),
-        ("tcp", "RMC", n_rest),
-        ("serial", "RMC", n_rest),
-        ("file", "GGA", n_rest + 1),
+        ("tcp", "GSA", n_rest),
+        ("serial", "GSA", n_rest),
+        ("file", "RMC", n_rest + 2),
         ("zmq", "SKY"),
     ]
     calls.clear()

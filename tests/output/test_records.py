@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 
-from service.core.types import SatView
+from service.core.types import SatView, Velocity
 from service.output.records import (
     CSV_COLUMNS,
     SCHEMAS,
@@ -60,6 +60,17 @@ CONTRACT_FIX_FIELDS = {
 }
 CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code"}
 """Fields present only when satellites were excluded / on a declined fix."""
+VELOCITY_FIX_FIELDS = {
+    "v_enu_m_s",
+    "std_v_enu_m_s",
+    "speed_m_s",
+    "std_speed_m_s",
+    "course_deg",
+    "std_course_deg",
+    "clock_drift_m_s",
+    "std_clock_drift_m_s",
+}
+"""Fields of a fix with a velocity from Doppler (all or none)."""
 
 
 def strict_loads(line: str) -> object:
@@ -200,7 +211,10 @@ def test_sky_track_status_records_validate():
 
 def test_schema_fields_are_the_contract():
     assert set(SCHEMAS) == {"FIX", "SKY", "TRACK", "STATUS"}
-    assert set(SCHEMAS["FIX"]["properties"]) == CONTRACT_FIX_FIELDS | CONDITIONAL_FIX_FIELDS
+    assert (
+        set(SCHEMAS["FIX"]["properties"])
+        == CONTRACT_FIX_FIELDS | CONDITIONAL_FIX_FIELDS | VELOCITY_FIX_FIELDS
+    )
     for cls, schema in SCHEMAS.items():
         assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
         Draft202012Validator.check_schema(schema)  # a valid schema by the metaschema
@@ -336,3 +350,37 @@ def test_every_golden_replay_record_validates():
             classes.add(rec["class"])
             n += 1
     assert n > 1000 and classes == {"FIX", "TRACK", "STATUS"}
+
+
+def test_velocity_fields_come_together_and_validate():
+    vel = Velocity(
+        v_enu_m_s=(3.0, -4.0, 0.12345),
+        std_v_enu_m_s=(0.02, 0.03, 0.05),
+        speed_m_s=5.0,
+        std_speed_m_s=0.0264,
+        course_deg=359.999,
+        std_course_deg=0.3,
+        clock_drift_m_s=-123.45678,
+        std_clock_drift_m_s=0.04,
+    )
+    rec = fix_record(replace(hksc_fix(), velocity=vel))
+    assert set(rec) >= VELOCITY_FIX_FIELDS and validate(rec) == []
+    assert rec["v_enu_m_s"] == [3.0, -4.0, 0.1235] and rec["speed_m_s"] == 5.0
+    assert rec["course_deg"] == 0.0  # 359.999 to 0.01 deg is 360, which is 0
+    assert rec["clock_drift_m_s"] == -123.4568
+    row = dict(
+        zip(
+            csv_header().split(","),
+            next(csv.reader([fix_csv_row(replace(hksc_fix(), velocity=vel))])),
+            strict=True,
+        )
+    )
+    assert (row["v_east_m_s"], row["v_north_m_s"], row["speed_m_s"]) == ("3.0", "-4.0", "5.0")
+    # a velocity with a non-finite value gives none of the fields
+    bad = replace(vel, std_course_deg=math.nan)
+    assert not VELOCITY_FIX_FIELDS & set(fix_record(replace(hksc_fix(), velocity=bad)))
+    # the schema refuses a record with only some of them, and any on a declined fix
+    partial = {k: v for k, v in rec.items() if k != "std_speed_m_s"}
+    assert validate(partial)
+    declined = fix_record(declined_fix())
+    assert validate(declined | {k: rec[k] for k in VELOCITY_FIX_FIELDS})

@@ -6,9 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from service.core.constants import GM_M3_S2, OMEGA_E_RAD_S
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.sim.keplerian import ephemeris_from_kepler, mean_from_true_anomaly
+
+GM_M3_S2 = 3.986004418e14  # CGCS2000, BDS-SIS-ICD-B1I-3.0 3.2 (written here, not imported)
+OMEGA_E_RAD_S = 7.2921150e-5  # CGCS2000, ICD 3.2
 
 
 def _direct_ecef(a, e, inc, raan, argp, m0, gmst0, dt):

@@ -14,8 +14,8 @@ import math
 
 import pytest
 
+from service.core.bds import is_geo
 from service.core.bds_nav import parse_header, subframe_start_sow_s
-from service.core.constants import is_geo
 from service.sim.keplerian import table1_ephemerides
 from service.sim.scenario import scenario_config
 from service.sim.simulator import Simulator, subframe_words

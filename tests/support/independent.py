@@ -16,11 +16,17 @@ HKSC_TRUTH_ECEF_M = np.array([-2414266.9197, 5386768.9868, 2407460.0314])
 
 def georinex_bds_ephemerides(path: Path) -> list[dict[str, float]]:
     """Every BDS record of a RINEX 3 nav file as a dict of floats, parsed by georinex."""
+    return georinex_ephemerides(path, "C")
+
+
+def georinex_ephemerides(path: Path, system: str) -> list[dict[str, float]]:
+    """Every record of one system (RINEX 3 letter) of a nav file as a dict of floats, parsed
+    by georinex (repeated records come as ``"G05_1"`` ...: callers keep what they need)."""
     import georinex
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        nav = georinex.load(path, use="C")
+        nav = georinex.load(path, use=system)
     out = []
     for sv in nav.sv.values:
         ds = nav.sel(sv=sv)
@@ -35,9 +41,18 @@ def georinex_bds_ephemerides(path: Path) -> list[dict[str, float]]:
     return out
 
 
-def icd_position(rec: dict, t_bdt_sow: float, geo: bool) -> tuple[float, float, float]:
-    """ECEF position from one georinex record, per ICD B1I Table 5-11, in plain scalars."""
-    gm, we = 3.986004418e14, 7.2921150e-5
+def icd_position(
+    rec: dict,
+    t_bdt_sow: float,
+    geo: bool,
+    gm: float = 3.986004418e14,
+    we: float = 7.2921150e-5,
+) -> tuple[float, float, float]:
+    """ECEF position from one georinex record, per ICD B1I Table 5-11, in plain scalars.
+
+    With ``geo`` False this is also IS-GPS-200 Table 20-IV and the Galileo OS SIS ICD 5.1.1
+    algorithm, given that system's ``gm`` and ``we`` (the defaults are CGCS2000's) and a
+    time in the record's own time scale."""
     a = rec["sqrtA"] ** 2
     tk = t_bdt_sow - rec["Toe"]
     if tk > 302400:
@@ -105,4 +120,41 @@ def eph_from_georinex(rec: dict) -> Ephemeris:
         cis_rad=rec["Cis"],
         tgd1_s=rec["TGD1"],
         health=int(rec["SatH1"]),
+    )
+
+
+def eph_from_georinex_gps_like(rec: dict) -> Ephemeris:
+    """Map a georinex GPS or Galileo record to our type (field mapping only): the week is
+    GPSWeek or GALWeek (RINEX 3 continues the GPS week count for both), t_oc the record's
+    epoch, health the system's health field and the group delay TGD (GPS) or BGD E1/E5b
+    (Galileo)."""
+    week = rec.get("GPSWeek", rec.get("GALWeek"))
+    sod = (rec["epoch"] - rec["epoch"].astype("datetime64[D]")).astype(int)
+    dow = (rec["epoch"].astype("datetime64[D]").astype(int) - 3) % 7  # 1970-01-01 was Thu
+    return Ephemeris(
+        prn=rec["prn"],
+        week=int(week),
+        toe_sow_s=rec["Toe"],
+        toc_sow_s=float(dow * 86400 + sod),
+        af0_s=rec["SVclockBias"],
+        af1_s_s=rec["SVclockDrift"],
+        af2_s_s2=rec["SVclockDriftRate"],
+        sqrt_a_sqrt_m=rec["sqrtA"],
+        e=rec["Eccentricity"],
+        i0_rad=rec["Io"],
+        omega0_rad=rec["Omega0"],
+        omega_rad=rec["omega"],
+        m0_rad=rec["M0"],
+        delta_n_rad_s=rec["DeltaN"],
+        omega_dot_rad_s=rec["OmegaDot"],
+        idot_rad_s=rec["IDOT"],
+        cuc_rad=rec["Cuc"],
+        cus_rad=rec["Cus"],
+        crc_m=rec["Crc"],
+        crs_m=rec["Crs"],
+        cic_rad=rec["Cic"],
+        cis_rad=rec["Cis"],
+        tgd1_s=rec.get("TGD", rec.get("BGDe5b", 0.0)),
+        health=int(rec["health"]),
+        source="georinex",
     )

@@ -13,6 +13,7 @@ import shutil
 
 PEERS: dict[str, str] = {
     "gpsd": "gpsd",
+    "gpspipe": "gpsd-clients",
     "socat": "socat",
     "systemd-analyze": "systemd",
     "rnx2rtkp": "rtklib",

@@ -274,6 +274,36 @@ def test_malformed_ntrip_url_is_one_line_exit_2_without_the_password(tmp_path):
 
 
 @pytest.mark.parametrize(
+    "url",
+    [
+        f"ntrips://{USER}:{PASSWORD}@caster.example:2101/EPH",
+        f"http://{USER}:{PASSWORD}@caster.example:2101/EPH",
+        f"ntrip:{USER}:{PASSWORD}@caster.example:2101/EPH",
+        f"ntrip://{USER}:{PASSWORD}\nline2@caster.example:99999/EPH",
+    ],
+    ids=["ntrips", "http", "no-slashes", "newline"],
+)
+@pytest.mark.parametrize("command", ["run", "solve"])
+def test_a_url_of_any_scheme_is_refused_in_one_line_without_the_password(url, command):
+    """Issue 23: with a scheme other than exactly ``ntrip://`` the error printed the password
+    (the entry was opened as a nav file); a password with a newline was printed whole."""
+    obs = str(HK_NAV.with_suffix(".obs"))
+    argv = ["run", "--source", obs, "--nav", url] if command == "run" else ["solve", obs, url]
+    proc = subprocess.run(
+        [sys.executable, "-m", "service", *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=HANG_S,
+    )
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    for secret in [*_secrets(), "line2"]:
+        assert secret not in proc.stderr + proc.stdout
+
+
+@pytest.mark.parametrize(
     "argv",
     [
         ["replay", str(HK_NAV.with_suffix(".obs")), "--nav", "NAV"],

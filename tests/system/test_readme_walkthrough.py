@@ -117,6 +117,7 @@ def test_readme_parses_into_the_two_setup_commands_first():
 
 
 @pytest.mark.slow
+@pytest.mark.needs("gpsd", "gpspipe")  # the recipe of the daemon with gpsd
 def test_readme_walkthrough(tmp_path):
     steps, _ = readme_steps((ROOT / "README.md").read_text())
     _copy_tree(tmp_path)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import pyubx2
 
 from service.commands.cli import main
@@ -77,3 +78,30 @@ def test_hksc_restart_first_fast_fix_after_geos_then_spp_after_d1(tmp_path):
     # a D1 SOW needs 1.2 s after a preamble that came after bit sync (>= 0.1 s)
     assert ttff < 3.0 and conventional >= 1.3 and conventional > ttff
     print(f"HKSC restart: first fast fix {ttff:.0f} s, first SPP {conventional:.0f} s")
+
+
+def test_restart_timeline_agrees_with_the_jsonl(tmp_path, capsys):
+    """The timeline printed after ``--restart-at 30`` counts from the restart: each first
+    event is the first of its kind in the JSONL at or after the restart (the fixes and SOW
+    decodes of the receiver before it do not count)."""
+    d = DATA / "hksc-2021"
+    recs = _replay(tmp_path, d / "hksc1610.obs", "--nav", d / "hksc1610.nav", "--restart-at", "30")
+    timeline = {}
+    for line in capsys.readouterr().err.splitlines():
+        if line.startswith("  first ") and "t =" in line:
+            key, _, value = line.strip().partition(" t = ")
+            timeline[key.strip()] = float(value.removesuffix(" s"))
+    t_restart = next(r for r in recs if r["class"] == "FIX")["gpst_tow_s"] + 30
+    after = [r for r in recs if r.get("gpst_tow_s", -1.0) >= t_restart]
+    fixes = [r for r in after if r["class"] == "FIX"]
+    track = [r for r in after if r["class"] == "TRACK" and r["event"] == "full"]
+    want = {
+        "first fast fix": next(f for f in fixes if f["mode"] == "fast")["since_start_s"],
+        "first conventional fix": next(f for f in fixes if f["mode"] == "spp")["since_start_s"],
+        "first GEO SOW decoded": min(t["since_start_s"] for t in track if t["nav_type"] == "D2"),
+        "first non-GEO SOW decoded": min(
+            t["since_start_s"] for t in track if t["nav_type"] == "D1"
+        ),
+    }
+    assert timeline == pytest.approx(want, abs=0.005)
+    assert want["first conventional fix"] > 0.0  # SPP waits for the D1 SOWs after a restart

@@ -26,7 +26,7 @@ from service.output.records import fix_record
 from service.output.sinks.zmq_pub import ZmqPublisher
 from service.sim.keplerian import table1_ephemerides
 from tests.support.fixes import hksc_fix
-from tests.support.paths import ROOT
+from tests.support.paths import DATA, ROOT
 
 BDSFIX = [sys.executable, "-m", "service"]
 HANG_S = 60.0  # waits end here only for a hung run
@@ -116,6 +116,75 @@ def test_curve_bad_secret_file_is_a_config_error(tmp_path):
             assert "CURVE" in str(exc)
         else:
             raise AssertionError(f"{bad} accepted")
+
+
+def test_curve_clients_without_a_server_key_is_refused_not_published_in_the_clear(tmp_path):
+    """Issue 23: ``--zmq-curve-clients DIR`` without ``--zmq-curve-secret-key`` published in
+    the clear (a plain subscriber got 108 messages): now exit 2, one line, nothing bound."""
+    c = _certs(tmp_path)
+    port = _free_port()
+    proc = subprocess.run(
+        [
+            *BDSFIX,
+            "run",
+            "--source",
+            str(DATA / "hiroshima-oem729-rtcm-2022" / "20221213-010900.rtcm"),
+            "--state-dir",
+            str(tmp_path / "state"),
+            "--nmea-tcp",
+            "",
+            "--zmq",
+            f"tcp://127.0.0.1:{port}",
+            "--zmq-curve-clients",
+            str(c["clients"]),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=HANG_S,
+    )
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "without a server secret key" in lines[0], lines
+    with pytest.raises(ConfigError, match="publish in the clear"):
+        ZmqPublisher("tcp://127.0.0.1:*", curve_clients_dir=str(c["clients"]))
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        b"garbage, not a certificate\n",  # no public-key line: pyzmq raises
+        b"public-key\n",  # no '=': pyzmq raises IndexError
+        b'public-key = "too-short"\n',  # read, but no CURVE key
+        b"\x00\xff" * 100,
+    ],
+    ids=["no-key", "no-equals", "short-key", "binary"],
+)
+def test_one_malformed_client_certificate_is_refused_by_name(tmp_path, bad, caplog):
+    """Issue 23: one malformed ``*.key`` in the clients directory made pyzmq's loader fail
+    and allow no client at all, silently. Now the configuration is refused naming the
+    file; a good directory says how many clients it allows."""
+    import logging
+
+    c = _certs(tmp_path)
+    (c["clients"] / "zz-broken.key").write_bytes(bad)
+    with pytest.raises(ConfigError, match=r"zz-broken\.key") as err:
+        ZmqPublisher(
+            "tcp://127.0.0.1:*",
+            curve_secret_key_file=str(c["server_secret"]),
+            curve_clients_dir=str(c["clients"]),
+        )
+    assert len(str(err.value).splitlines()) == 1
+    (c["clients"] / "zz-broken.key").unlink()
+    (c["clients"] / "stranger.key").write_bytes(c["stranger"].read_bytes())
+    caplog.set_level(logging.INFO)
+    pub = ZmqPublisher(
+        "tcp://127.0.0.1:*",
+        curve_secret_key_file=str(c["server_secret"]),
+        curve_clients_dir=str(c["clients"]),
+    )
+    pub.close()
+    assert any("2 clients allowed" in r.getMessage() for r in caplog.records)
 
 
 def test_daemon_and_bdsfix_sub_with_curve_and_a_warned_public_bind(tmp_path):

@@ -59,6 +59,15 @@ SCHEMA = {
             "vpl_m": float,
             "std_enu_m": list,
             "excluded": dict,
+            # velocity from Doppler (issue 18)
+            "v_enu_m_s": list,
+            "std_v_enu_m_s": list,
+            "speed_m_s": float,
+            "std_speed_m_s": float,
+            "course_deg": float,
+            "std_course_deg": float,
+            "clock_drift_m_s": float,
+            "std_clock_drift_m_s": float,
         },
     },
     "TRACK": {
@@ -190,6 +199,39 @@ def test_gpsd_reports_our_fixes_as_tpv_mode_3(tmp_path):
         assert np.sqrt(dn * dn + de * de + dh * dh) < 1.0, (t, r)
         matched += 1
     assert matched >= 20
+
+
+@pytest.mark.needs("gpsd")
+def test_gpsd_reports_the_static_scenarios_speed_as_near_zero():
+    """`bdsfix replay` of the built-in (static) scenario at 4x real time with NMEA on TCP and
+    gpsd as its client: every mode-3 TPV that gpsd reports carries a speed (from our RMC and
+    VTG) of at most 0.2 m/s; at least 20 of them are collected."""
+    tpv: list[dict] = []
+    for _attempt in range(3):  # the free port may be taken before the replay binds it
+        nmea_port = _free_port()
+        args = ["replay", "--speed", "4", "--nmea-tcp", f"127.0.0.1:{nmea_port}"]
+        with LiveReplay(args) as replay:
+            try:
+                replay.wait_status(lambda rec: True, "the replay's first STATUS")
+            except AssertionError:
+                if "in use" in replay.stderr():
+                    continue
+                raise
+            with gpsd_watching(f"tcp://127.0.0.1:{nmea_port}") as gpsd:
+                deadline = time.monotonic() + HANG_S
+                while True:
+                    assert time.monotonic() < deadline, f"hung: {len(tpv)} TPV, {gpsd.output()}"
+                    ended = replay.proc.poll() is not None
+                    got = gpsd.messages(1.0)
+                    tpv += [m for m in got if m.get("class") == "TPV" and m.get("mode") == 3]
+                    if ended and not got:  # the stream is over and gpsd has said it all
+                        break
+            run = replay.finish()
+        assert run.rc == 0, run.stderr[-2000:]
+        break
+    with_speed = [m for m in tpv if "speed" in m]
+    assert len(with_speed) >= 20, (len(tpv), tpv[-3:])
+    assert max(m["speed"] for m in with_speed) <= 0.2, [m["speed"] for m in with_speed]
 
 
 def _write_store(state: Path) -> None:

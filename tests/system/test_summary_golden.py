@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import pytest
 
 from service.commands.cli import main
+from service.commands.summary import HINTS, hint_for
 from tests.support.paths import DATA, GOLDEN
 from tests.system.test_replay_golden import CASES as REPLAY_CASES
 
@@ -54,13 +55,17 @@ SOLVES = {
         "hk-urban-3geo-2020/navigation_message.nav",
         "3 GEOs: SPP only",
     ),
+}
+"""RINEX obs files solved with ``--mode both`` (paths relative to ``../shared/data``)."""
+
+REFUSED_SOLVES = {
     "twtf-wrong-nav": Solve(
         "twtf-septentrio-2023/TWTF00TWN_R_20232490000_01D_30S_MO.rnx",
         "hksc-2021/hksc1610.nav",
-        "no nav of its day in the data: every epoch declined no_ephemeris, with the hint",
+        "no nav of its day in the data: refused naming both dates",
     ),
 }
-"""RINEX obs files solved with ``--mode both`` (paths relative to ``../shared/data``)."""
+"""RINEX obs files ``solve`` refuses with one line and exit 3 (with the nav file given)."""
 
 REFUSED = {
     "android-beijing": "android-beijing-mi8-2022/gnss_log_2022_09_28_22_01_27.txt",
@@ -90,7 +95,8 @@ RUNS = ["hiroshima-rtcm", "polyu-f9p-ubx", "tiny-rawx"]
 def _files_used() -> set[str]:
     used = {c.args[0] for c in REPLAY_CASES.values()}
     used |= {a for c in REPLAY_CASES.values() for a in c.args[1:] if "/" in a}
-    used |= {s.obs for s in SOLVES.values()} | {s.nav for s in SOLVES.values()}
+    solves = [*SOLVES.values(), *REFUSED_SOLVES.values()]
+    used |= {s.obs for s in solves} | {s.nav for s in solves}
     return used | set(REFUSED.values()) | set(AUXILIARY)
 
 
@@ -140,10 +146,21 @@ def test_unreadable_recording_is_one_line_and_exit_3(name, request, capsys):
     _check(request, GOLDEN / f"refused-{name}.summary", err.replace(str(DATA), "DATA"))
 
 
+@pytest.mark.parametrize("name", sorted(REFUSED_SOLVES))
+def test_refused_solve_is_one_line_and_exit_3(name, request, capsys, tmp_path):
+    case = REFUSED_SOLVES[name]
+    args = ["solve", str(DATA / case.obs), str(DATA / case.nav), "--mode", "both"]
+    assert main([*args, "--out", str(tmp_path / "out.jsonl")]) == 3
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith("bdsfix solve: error: "), err
+    _check(request, GOLDEN / f"refused-solve-{name}.summary", err.replace(str(DATA), "DATA"))
+
+
 @pytest.mark.parametrize("name", RUNS)
 def test_run_on_a_capture_ends_with_the_replay_summary(name, request, capsys, tmp_path):
     """``bdsfix run --source FILE`` reads the capture to its end and prints the summary
-    ``replay`` prints (without the timeline), from the same counters."""
+    ``replay`` prints, timeline included, from the same counters; a hint that names a flag
+    of replay's names run's way instead (run has no ``--gps-week``)."""
     case = REPLAY_CASES[name]
     capture, *rest = [str(DATA / a) if "/" in a else a for a in case.args]
     args = ["run", "--source", capture, "--state-dir", str(tmp_path / "state")]
@@ -152,7 +169,7 @@ def test_run_on_a_capture_ends_with_the_replay_summary(name, request, capsys, tm
     summary = _block(capsys.readouterr().err, "run")
     _check(request, GOLDEN / f"run-{name}.summary", summary)
     replayed = (GOLDEN / f"{name}.summary").read_text().splitlines()
-    before_timeline = [x for x in replayed if not x.startswith("  timeline")]
-    cut = next((i for i, x in enumerate(before_timeline) if x.startswith("  first ")), None)
-    want = before_timeline[:cut]
-    assert summary.splitlines() == [want[0].replace("replay", "run", 1), *want[1:]]
+    own = {f"  hint: {HINTS[c]}": f"  hint: {hint_for(c, 'run')}" for c in HINTS}
+    want = [replayed[0].replace("replay", "run", 1), *(own.get(x, x) for x in replayed[1:])]
+    assert summary.splitlines() == want
+    assert "give --gps-week" not in summary

@@ -28,6 +28,7 @@ from typing import Any
 import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils import z85
 
 from service.core.counters import Counters
 from service.core.errors import BindError, ConfigError
@@ -48,14 +49,57 @@ def open_sink(spec: str, options: SinkOptions) -> ZmqPublisher:
     )
 
 
+CURVE_KEY_Z85_CHARS = 40
+"""A CURVE public key in Z85 (32 bytes, ZeroMQ RFC 26 and RFC 32)."""
+
+
+def client_keys(clients_dir: str) -> dict[bytes, bool]:
+    """The public keys of the client certificates (``*.key``) in ``clients_dir``, each
+    checked: ConfigError naming the first file pyzmq cannot read or whose key is no CURVE
+    key (pyzmq's loader would fail on it and allow no client at all)."""
+    if not Path(clients_dir).is_dir():
+        raise ConfigError(f"ZeroMQ CURVE clients {clients_dir}: not a directory")
+    keys: dict[bytes, bool] = {}
+    for path in sorted(Path(clients_dir).glob("*.key")):  # as zmq.auth.load_certificates
+        why = ""
+        try:
+            public, _ = zmq.auth.load_certificate(path)
+        except (OSError, ValueError, IndexError) as exc:
+            why = str(exc) or type(exc).__name__
+        else:
+            if len(public) != CURVE_KEY_Z85_CHARS or not _is_z85(public):
+                why = f"public-key is not a {CURVE_KEY_Z85_CHARS}-character Z85 CURVE key"
+        if why:
+            raise ConfigError(
+                f"ZeroMQ CURVE client certificate {path}: {why[:200]} (a bad file in "
+                "zmq_curve_clients would lock every client out: fix or remove it)"
+            )
+        keys[public] = True
+    return keys
+
+
+def _is_z85(text: bytes) -> bool:
+    try:
+        z85.decode(text)
+    except (ValueError, KeyError):
+        return False
+    return True
+
+
 class ZmqPublisher(Sink):
     """ZeroMQ PUB socket sending ``[topic, JSON]`` messages without ever waiting.
 
     CURVE (optional): ``curve_secret_key_file`` is the server's secret certificate
     (``zmq.auth.create_certificates`` format); subscribers must then know the server's
     public key. ``curve_clients_dir`` holds the public certificates of the subscribers
-    allowed in; without it any client that knows the server key may connect. Clients
-    refused by the handshake or the ZAP authenticator receive nothing.
+    allowed in (``*.key``, the czmq convention pyzmq follows); without it any client that
+    knows the server key may connect. Clients refused by the handshake or the ZAP
+    authenticator receive nothing.
+
+    Fail closed: a clients directory without a server secret key is a ConfigError (it would
+    publish in the clear), and so is a certificate in it that pyzmq cannot read or whose
+    public key is not a Z85 CURVE key (pyzmq would drop the whole directory, and with it
+    every client); the number of clients allowed is logged (INFO; a WARNING for none).
     """
 
     records = frozenset(RECORD_CLASSES)
@@ -68,6 +112,11 @@ class ZmqPublisher(Sink):
         curve_secret_key_file: str = "",
         curve_clients_dir: str = "",
     ) -> None:
+        if curve_clients_dir and not curve_secret_key_file:
+            raise ConfigError(
+                f"ZeroMQ CURVE clients {curve_clients_dir} without a server secret key "
+                "(zmq_curve_secret_key): that would publish in the clear; give both"
+            )
         self._counters = Counters()
         self._log = RateLimitedLog(log)  # a failing send fails every record
         host = endpoint.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]")
@@ -103,13 +152,15 @@ class ZmqPublisher(Sink):
             raise ConfigError(f"ZeroMQ CURVE secret key {secret_file}: {exc}") from exc
         if not secret:
             raise ConfigError(f"ZeroMQ CURVE secret key {secret_file}: no secret-key in file")
-        if clients_dir and not Path(clients_dir).is_dir():
-            raise ConfigError(f"ZeroMQ CURVE clients {clients_dir}: not a directory")
+        clients = client_keys(clients_dir) if clients_dir else {}
         self._auth = ThreadAuthenticator(self._ctx, log=log)
         self._auth.start()
         if clients_dir:
             self._auth.configure_curve(domain="*", location=clients_dir)
-            log.info("ZeroMQ CURVE: clients allowed from %s", clients_dir)
+            if clients:
+                log.info("ZeroMQ CURVE: %d clients allowed (%s)", len(clients), clients_dir)
+            else:
+                log.warning("ZeroMQ CURVE: no client certificate (*.key) in %s", clients_dir)
         else:
             self._auth.configure_curve(domain="*", location=zmq.auth.CURVE_ALLOW_ANY)
             log.info("ZeroMQ CURVE: any client that knows the server key")

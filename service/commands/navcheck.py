@@ -1,0 +1,80 @@
+"""The RINEX nav files a command is given, checked before any epoch is solved.
+
+One rule for ``solve``, ``replay`` and ``run``: a nav file set without a single BDS
+ephemeris, or whose BDS ephemerides are all more than a day from the observations' first
+epoch (a nav file of another day), is refused with one line naming what is wrong (both
+dates for the second) and exit 3; otherwise every epoch would be declined ``no_ephemeris``
+and the command would still look successful.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from service.core.errors import InputError
+from service.core.timebase import bdt_to_gpst, datetime_from_gpst, diff_s
+from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
+
+if TYPE_CHECKING:
+    from drivers.rinex import NavData
+
+NAV_DAY_S = 86_400.0
+"""The largest gap [s] between the observations' first epoch and the nearest BDS ephemeris
+(its t_oe) for a nav file to count as the observations' day."""
+FIRST_EPOCH_EVENTS = 100_000
+"""How many events of a non-RINEX capture are read to find its first dated epoch."""
+NAV_HINT = (
+    "give a RINEX 3 nav file with BDS ('C') records of the observations' day "
+    "(e.g. a daily mixed '_MN' or BDS '_CN' file)"
+)
+
+
+def check_navigation(
+    paths: Sequence[str | Path], navs: Sequence[NavData], first: tuple[int, float] | None
+) -> None:
+    """Refuse (:class:`InputError`, exit 3) nav files with no BDS ephemeris, or whose BDS
+    ephemerides are all more than :data:`NAV_DAY_S` from ``first`` (GPST week, tow of the
+    observations' first dated epoch; None: unknown, not checked)."""
+    names = ", ".join(str(p) for p in paths)
+    toes = [
+        bdt_to_gpst(e.week, e.toe_sow_s)
+        for nav in navs
+        for ephs in nav.ephemerides.values()
+        for e in ephs
+    ]
+    if not toes:
+        raise InputError(f"no usable BDS ephemeris in {names}: {NAV_HINT}")
+    if first is None or first[0] == UNKNOWN_WEEK:
+        return
+    if min(abs(diff_s(*first, *toe)) for toe in toes) <= NAV_DAY_S:
+        return
+    days = sorted({datetime_from_gpst(*toe).date() for toe in toes})
+    span = str(days[0]) if len(days) == 1 else f"{days[0]} to {days[-1]}"
+    start = datetime_from_gpst(*first).replace(microsecond=0)
+    raise InputError(
+        f"{names}: BDS ephemerides of {span} (GPST), but the observations start "
+        f"{start:%Y-%m-%d %H:%M:%S} GPST: {NAV_HINT}"
+    )
+
+
+def read_navigation(paths: Sequence[str | Path]) -> list[NavData]:
+    """The nav files read (:func:`drivers.rinex.read_nav`; a malformed one raises)."""
+    from drivers.rinex import read_nav
+
+    return [read_nav(p) for p in paths]
+
+
+def first_epoch_time(path: str | Path, gps_week: int | None = None) -> tuple[int, float] | None:
+    """GPST (week, tow) of the first measurement epoch with a known week in a capture file
+    (RINEX obs, UBX, RTCM, ...), or None if none comes within the first
+    :data:`FIRST_EPOCH_EVENTS` events (an RTCM file without ephemerides, for instance)."""
+    from drivers.source import open_source
+
+    with open_source(str(path), gps_week=gps_week) as src:
+        for ev in itertools.islice(src, FIRST_EPOCH_EVENTS):
+            if isinstance(ev, MeasurementEpoch) and ev.gpst_week != UNKNOWN_WEEK:
+                return ev.gpst_week, ev.gpst_tow_s
+    return None

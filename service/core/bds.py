@@ -1,0 +1,49 @@
+"""What is BeiDou's alone, named and kept in one place.
+
+Everything else in :mod:`service.core` is keyed by the satellite ID's system
+(:mod:`service.core.systems`); what only BeiDou has lives here, so that adding a system is
+driver, orbit and configuration work that never touches it:
+
+- the GEO satellites, C01-C05 (BDS-2) and C59-C63 (BDS-3) (BDS-SIS-ICD-B1I-3.0 3.1);
+- their broadcast orbit algorithm (ICD 5.2.4.12, Table 5-11): the node without the Earth's
+  rotation over t_k, then R_z(Omega_e t_k) R_x(-5 deg) (:data:`GEO_TILT_RAD`, applied in
+  :func:`service.core.orbit.sat_pos_clock` to the rows whose satellite :func:`is_geo`);
+- the navigation message types: D2 (500 bps, 0.6 s subframes) from the GEOs, D1 (50 bps,
+  6 s subframes) from the IGSOs and MEOs (ICD 5.2, 5.3; :func:`nav_type`);
+- BDT, GPST - 14 s with the week 1356 behind (ICD 4.2; the conversions are in
+  :mod:`service.core.timebase`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S
+from service.core.systems import GnssSystem, prn_number
+
+GEO_TILT_RAD = math.radians(-5.0)
+"""GEO orbit frame rotation about X before the Earth-rotation step (ICD 5.2.4.12, Table 5-11)."""
+
+GEO_PRNS = frozenset([1, 2, 3, 4, 5, 59, 60, 61, 62, 63])
+"""BDS PRN numbers of the GEO satellites, which broadcast D2 (BDS-2 C01-C05, BDS-3 C59-C63)."""
+
+
+def is_geo(sat: str) -> bool:
+    """True for the BeiDou GEO satellites C01-C05 and C59-C63 only; False for any other
+    satellite ID, whatever its system (``is_geo("G01")`` is False). Sources that carry bare
+    BeiDou numbers (u-blox svId, RTCM DF488) build the ID first:
+    ``is_geo(sat_id(GnssSystem.BDS, n))``."""
+    return sat[:1] == GnssSystem.BDS.value and prn_number(sat) in GEO_PRNS
+
+
+def nav_type(sat: str) -> Literal["D1", "D2"]:
+    """The navigation message a BeiDou satellite broadcasts on B1I: D2 from the GEOs, D1
+    from the IGSOs and MEOs (ICD 5.2, 5.3)."""
+    return "D2" if is_geo(sat) else "D1"
+
+
+def subframe_period_s(sat: str) -> float:
+    """Subframe period of the navigation message a BeiDou satellite broadcasts [s]: 0.6 s
+    (D2) from the GEOs, 6 s (D1) from the others (ICD 5.2.2, 5.3.2)."""
+    return D2_SUBFRAME_S if is_geo(sat) else D1_SUBFRAME_S
