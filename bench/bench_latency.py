@@ -231,7 +231,7 @@ def _report(label: str, runs: list[dict[str, np.ndarray]], fast: list, spp: list
             print(f"  {name}:")
             for part in ("latency", "solve", "nonsolve", "d-nonsolve"):
                 ms = np.concatenate([x[part] for x in sel])
-                if np.isfinite(ms).all():
+                if len(ms) and np.isfinite(ms).all():  # a short run has no SPP epochs
                     print("    " + _line(f"{part:<10}", ms))
     lat = np.concatenate([r["latency"] for r in runs])
     print(
