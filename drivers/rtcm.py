@@ -30,7 +30,8 @@ Counter keys: ``rtcm:<number>`` per message, ``rtcm_ignored``, ``msm_bds``,
 ``msm_cells_b1i``, ``msm_cells_other_signal``, ``msm_cells_fractional``,
 ``msm_cells_invalid``, ``msm_duplicate_cells``, ``msm_no_week``, ``msm_bad_time``, ``epochs_rtcm``,
 ``ephemerides_rtcm``, ``eph_bad_prn``, ``eph_week_<number>`` (a week taken from a non-BDS
-ephemeris), ``eph_bad_toe``.
+ephemeris), ``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that
+message, and a 1042 is passed on for the ephemeris store to refuse).
 """
 
 from __future__ import annotations
@@ -335,8 +336,14 @@ class RtcmMapper:
             self.counters["eph_bad_prn"] += 1
             return []
         eph = ephemeris_from_1042(msg)
-        gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
-        self.week.set_approx(gps_week, gps_tow, "RTCM 1042 (BDS ephemeris)")
+        if 0.0 <= eph.toe_sow_s < WEEK_S and 0.0 <= eph.toc_sow_s < WEEK_S:
+            gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
+            self.week.set_approx(gps_week, gps_tow, "RTCM 1042 (BDS ephemeris)")
+        else:
+            # DF505/DF493 (17 bits, 8 s) can hold up to 1,048,568 s; beyond a week the set
+            # breaks the ICD (5.2.4.9): no week from it, and the store refuses it
+            # (service.core.ephemeris.ephemeris_problem, check time_of_week)
+            self.counters["eph_bad_toe"] += 1
         self.counters["ephemerides_rtcm"] += 1
         return [eph]
 

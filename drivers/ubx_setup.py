@@ -16,14 +16,22 @@ X20 Interface Descriptions, "Configuration interface"):
 
 Every message is built with pyubx2's generators (``UBXMessage(..., SET, ...)``,
 ``UBXMessage.config_set``) and sent alone; the receiver answers each with UBX-ACK-ACK or
-UBX-ACK-NAK naming its class and id (read back with pyubx2's ``UBXReader``). A message not
-answered within ``timeout_s`` is sent once more; still no answer stops the set-up
+UBX-ACK-NAK naming its class and id. A message not answered within ``timeout_s`` is sent
+once more; still no answer stops the set-up
 (:class:`~service.core.errors.ReceiverSilentError`, exit 3). A NAK does not stop it: the
 other messages are still sent, so that one run reports everything refused, and then
 :class:`~service.core.errors.ReceiverRefusedError` (exit 5) names what was refused and what
 is in effect. Only when every message was acknowledged is the configuration saved (``save``:
 CFG-CFG on an M8, a CFG-VALSET of the same keys to the BBR and flash layers on F9/X20); the
 set-up is never written to non-volatile memory half done.
+
+The wait for an answer is a deadline whatever the device sends: it reads the bytes the port
+has (at most ``_READ_TIMEOUT_S`` per read) and feeds them to the stream framer
+(:class:`drivers.framing.Framer`, UBX only, payloads of at most an ACK's 2 bytes), checking
+the deadline after every read. pyubx2's ``UBXReader.read`` is not used here: it returns only
+on a whole message or a read that times out (50 ms of silence), so a device streaming NMEA
+or garbage, or a UBX header claiming 65,535 bytes followed by a trickle, held the set-up for
+as long as it talked.
 """
 
 from __future__ import annotations
@@ -36,8 +44,10 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import serial
-from pyubx2 import ERR_IGNORE, SET, UBX_PROTOCOL, UBXMessage, UBXReader
+from pyubx2 import SET, UBXMessage
 
+from drivers.framing import Framer
+from drivers.protocols import PROTOCOLS
 from service.core.errors import ConfigError, InputError, ReceiverRefusedError, ReceiverSilentError
 from service.core.receiver_setup import ReceiverSetup
 
@@ -46,8 +56,10 @@ log = logging.getLogger(__name__)
 LAYER_RAM, LAYER_BBR, LAYER_FLASH = 1, 2, 4
 """CFG-VALSET layers (F9 Interface Description, UBX-CFG-VALSET)."""
 
-_ACK_ID, _NAK_ID = 0x0501, 0x0500
-_READ_TIMEOUT_S = 0.05  # one serial read; the ACK wait loops over these until timeout_s
+_ACK_CLASS, _ACK_ID, _NAK_ID = 0x05, 0x01, 0x00
+_ACK_PAYLOAD = 2  # UBX-ACK-ACK / ACK-NAK: the class and id of the message answered
+_READ_TIMEOUT_S = 0.05  # one serial read; the ACK wait loops over these until its deadline
+_READ_MAX = 4096  # bytes taken per read at most
 
 _VALSET_PORT = {"uart1": "UART1", "uart2": "UART2", "usb": "USB", "spi": "SPI", "i2c": "I2C"}
 _CFG_MSG_PORT = {
@@ -177,6 +189,9 @@ def save_step(setup: ReceiverSetup, steps: Sequence[CfgStep]) -> CfgStep:
 class Link(Protocol):
     """A byte link to the receiver (a pyserial ``Serial`` with a short read timeout)."""
 
+    @property
+    def in_waiting(self) -> int: ...
+
     def write(self, data: bytes) -> int | None: ...
 
     def read(self, size: int = 1) -> bytes: ...
@@ -195,32 +210,60 @@ class SetupResult:
     saved: bool = False
 
 
-def _answer(reader: UBXReader, step: CfgStep, timeout_s: float) -> str | None:
-    """``"ack"``, ``"nak"`` or None (nothing about ``step`` within ``timeout_s``)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        _, msg = reader.read()
-        if msg is None or not isinstance(msg, UBXMessage):
-            continue
-        if (msg.clsID, msg.msgID) != step.ids:
-            continue
-        return "ack" if msg.identity == "ACK-ACK" else "nak"
-    return None
+class _AckReader:
+    """UBX-ACK-ACK / ACK-NAK frames from whatever the device sends, within a deadline."""
+
+    def __init__(self, link: Link) -> None:
+        self.link = link
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget what was heard (at each message sent anew, after the input buffer was
+        emptied)."""
+        self.bytes_heard = 0
+        # UBX frames only (NMEA, RTCM, garbage are skipped), payloads bounded by an ACK's: a
+        # header claiming more is skipped at once (the framer resynchronises a byte
+        # further), so it cannot hold an answer back
+        self._framer = Framer(
+            [p for p in PROTOCOLS if p.name == "ubx"], max_payload={"ubx": _ACK_PAYLOAD}
+        )
+
+    def answer(self, step: CfgStep, timeout_s: float) -> str | None:
+        """``"ack"``, ``"nak"`` or None (nothing about ``step`` within ``timeout_s``): each
+        read returns what the port holds or after ``_READ_TIMEOUT_S``, and the deadline is
+        checked after each, so it holds (to a read) whatever the device sends."""
+        deadline = time.monotonic() + timeout_s
+        link = self.link
+        while time.monotonic() < deadline:
+            data = link.read(min(max(1, link.in_waiting), _READ_MAX))
+            self.bytes_heard += len(data)
+            for frame in self._framer.feed(data):
+                raw = frame.raw
+                if raw[2] != _ACK_CLASS or raw[3] not in (_ACK_ID, _NAK_ID):
+                    continue
+                if (raw[6], raw[7]) == step.ids:
+                    return "ack" if raw[3] == _ACK_ID else "nak"
+        return None
 
 
-def _exchange(link: Link, reader: UBXReader, step: CfgStep, timeout_s: float) -> str | None:
+def _exchange(link: Link, reader: _AckReader, step: CfgStep, timeout_s: float) -> str | None:
     # what came before (the stream, a late answer to an earlier message of the same class
     # and id) is not the answer to this one
     link.reset_input_buffer()
+    reader.reset()
     for attempt in (1, 2):
         link.write(step.raw)
         link.flush()
-        got = _answer(reader, step, timeout_s)
+        got = reader.answer(step, timeout_s)
         if got is not None:
             log.info("%s: %s", "ACK" if got == "ack" else "NAK", step.what)
             return got
         log.info("no answer to %s (attempt %d)", step.what, attempt)
     return None
+
+
+def _heard(n_bytes: int) -> str:
+    return "the device sent nothing" if n_bytes == 0 else f"{n_bytes} bytes heard, none an answer"
 
 
 def _in_effect(acked: Sequence[CfgStep]) -> str:
@@ -244,16 +287,15 @@ def run_setup(
     """Send ``steps`` one at a time, each awaiting its ACK/NAK (see the module docstring);
     then ``save`` if every step was acknowledged. Raises ReceiverSilentError (no answer,
     twice) or ReceiverRefusedError (any NAK), each one line naming what is in effect."""
-    reader = UBXReader(
-        link, protfilter=UBX_PROTOCOL, quitonerror=ERR_IGNORE, msgfilter=(_ACK_ID, _NAK_ID)
-    )
+    reader = _AckReader(link)
     result = SetupResult()
     for step in steps:
         got = _exchange(link, reader, step, timeout_s)
         if got is None:
             raise ReceiverSilentError(
                 f"{name}: no answer (ACK/NAK) to {step.what} within {timeout_s:g} s, sent "
-                "twice: not a u-blox receiver, a wrong baud rate, or its UBX input off; "
+                f"twice ({_heard(reader.bytes_heard)}): not a u-blox receiver, a wrong baud "
+                "rate, or its UBX input off; "
                 + _in_effect(result.acked)
                 + ("" if save is None else ", nothing saved")
             )

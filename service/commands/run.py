@@ -156,6 +156,12 @@ def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
         try:
             store = EphemerisStore.load(path, max_age_s=max_age_s)
             log.info("warm start: %d ephemerides from %s", len(store), path)
+            if store.refused:  # logged by the store; not kept on disk either
+                try:
+                    store.save(path)
+                    log.info("%s rewritten without the %d sets refused", path, store.refused)
+                except OSError as exc:
+                    log.warning("%s: cannot rewrite it (%s); kept as it is", path, exc.strerror)
             return store
         except BdsfixError as exc:
             EphemerisStore.set_aside(path, exc)  # one WARNING line; the daemon starts empty

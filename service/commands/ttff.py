@@ -15,6 +15,7 @@ import numpy as np
 from drivers.rinex import RinexObsReader
 from service.commands.options import check_plot, full_rule, parse_start, solver_config
 from service.commands.solve import load_navigation
+from service.core.bds_nav import quantise_ephemeris
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
 from service.core.sow_rule import FULL_RULES
@@ -132,7 +133,10 @@ def _navigation(
 
     ephs = table1_ephemerides(0.0)
     store = EphemerisStore()
-    store.add_all(ephs)
+    # held as a receiver holds them, decoded (every field on its ICD LSB): the daemon's own
+    # decoded sets then replace them unchanged, and its fixes and the SPP references here
+    # use the same sets
+    store.add_all(quantise_ephemeris(e) for e in ephs)
     return ephs, store, IonoSet(), None
 
 

@@ -11,6 +11,14 @@ The store is bounded by design, so that months of unattended running cost what a
 does: at most MAX_SETS_PER_PRN sets per satellite (the oldest t_oe goes first), and
 :meth:`EphemerisStore.prune` keeps only the sets of the last KEEP_S (see there).
 Selection is a binary search in each satellite's sets sorted by t_oe.
+
+The receiver's own sets (decoded from its subframes, ``source == "subframes"``) are the
+reference for the others (RINEX, RTCM 1042 from a caster, the persisted store): a set of one
+kind that puts the satellite more than CONSISTENCY_MAX_M from where a set of the other kind
+held for it does (positions and clocks compared at the midpoint of their t_oe, sets at most
+CONSISTENCY_WINDOW_S apart) loses: an outside set is refused, an outside set held is dropped
+when the receiver's own arrives. The loser is never selected nor saved; each conflict is
+counted and logged (rate-limited).
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.core.constants import WEEK_S
+from service.core.constants import C_M_S, WEEK_S
 from service.core.counters import Counters
 from service.core.errors import BdsfixError, EphemerisError
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -83,6 +91,18 @@ harmonics."""
 URA_MAX_M = 6144.0
 """URAI 14 is URA <= 6144 m, URAI 15 is URA > 6144 m (ICD B1I 5.2.4.5): no bound at all,
 so such a set is refused. 0.0 means "not stated" (RINEX writers, Table 1) and passes."""
+OWN_SOURCES = frozenset({"subframes"})
+"""Sources of the receiver's own sets: decoded from its subframes (D1/D2, UBX RXM-SFRBX)."""
+CONSISTENCY_WINDOW_S = 4 * 3600.0
+CONSISTENCY_MAX_M = 1000.0
+"""Two sets of one satellite whose t_oe are at most CONSISTENCY_WINDOW_S apart agree when,
+at the midpoint of their t_oe, their positions and their clocks (times c) differ by at most
+CONSISTENCY_MAX_M. Measured on the five real nav files (tests/core/test_ephemeris_poison.py):
+sets up to 4 h apart differ by at most 17.3 m in position and 6.3 m in clock, while further
+apart a GEO's extrapolation reaches hundreds of km (C05, 2019-04-28: 367 km at 10 h); a
+t_oe written a week off moves a MEO 4,555 km (Omega_e t_oe). 1 km is 58 times the largest
+agreement measured; a smaller error is a range error that RAIM tests (chi-square,
+exclusion)."""
 LOG_INTERVAL_S = 60.0
 """A refusal log line per (PRN, check) at most this often (wall clock); the next says how
 many refusals it stood for."""
@@ -121,6 +141,14 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
     - ``unhealthy``: the health field (BDS SatH1, ICD B1I 5.2.4.6; GPS SV health,
       IS-GPS-200 20.3.3.3.1.4) is not 0;
     - ``not_finite``: a numeric field is not a finite number;
+    - ``time_of_week``: t_oe or t_oc is not a time of the set's week, 0 <= t < 604800 s
+      (ICD B1I 5.2.4.9 and 5.2.4.10: seconds of the BDT week; the 17-bit fields, 8 s LSB,
+      could carry up to 1,048,568 s). A set written as week - 1 with t_oe + 604800 s is the
+      same instant, but the user algorithm's Omega_e t_oe term (5.2.4.12, Table 5-11) then
+      turns the orbit by Omega_e 604800 s (0.16 rad mod 2 pi): 4,555 km off for a MEO. It is
+      refused, not normalised: its writer does not follow the ICD, so its other fields
+      deserve no more trust, and the receiver's own sets (or a conforming source) cover the
+      satellite;
     - ``ura``: URA is the unusable class URAI 15, > 6144 m, or not a number (5.2.4.5);
     - ``sqrt_a``, ``eccentricity``, ``inclination``: sqrt(A), e and i0 (ephemeris
       parameters, 5.2.4.12) within the windows of this module's constants;
@@ -147,6 +175,12 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
         value = getattr(eph, name)
         if not _finite(value):
             return EphemerisProblem("not_finite", f"{name} is {value!r}, not a finite number")
+    for name in ("toe_sow_s", "toc_sow_s"):
+        if not 0.0 <= getattr(eph, name) < WEEK_S:
+            return EphemerisProblem(
+                "time_of_week",
+                f"{name} {getattr(eph, name):g} s is not a time of week [0, {WEEK_S:g}) s",
+            )
     ura_m = eph.ura_m
     if not (isinstance(ura_m, Real) and 0.0 <= ura_m <= URA_MAX_M):
         return EphemerisProblem(
@@ -179,6 +213,28 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
     return None
 
 
+def _disagreements(
+    eph: Ephemeris, others: Sequence[Ephemeris]
+) -> list[tuple[float, float, int, float]]:
+    """Per set of ``others``: how far it and ``eph`` put the satellite [m] and its clock
+    (times c) [m] at the midpoint of their t_oe, and that time (BDT week, sow); by the user
+    algorithm (ICD B1I 5.2.4.10, 5.2.4.12) in one vectorised call."""
+    t_e = eph.week * WEEK_S + eph.toe_sow_s
+    mid_s = np.array([0.5 * (t_e + o.week * WEEK_S + o.toe_sow_s) for o in others])
+    weeks = np.floor(mid_s / WEEK_S)
+    sows = mid_s - weeks * WEEK_S
+    arrays = EphemerisArrays.from_ephemerides([eph] * len(others) + list(others))
+    with np.errstate(all="ignore"):
+        pos_m, clk_s = sat_pos_clock(arrays, np.tile(weeks, 2), np.tile(sows, 2))
+    n = len(others)
+    d_pos = np.linalg.norm(pos_m[:n] - pos_m[n:], axis=1)
+    d_clk = np.abs(clk_s[:n] - clk_s[n:]) * C_M_S
+    return [
+        (float(p), float(c), int(w), float(t))
+        for p, c, w, t in zip(d_pos, d_clk, weeks, sows, strict=True)
+    ]
+
+
 _Key = tuple[int, float]  # (BDT week, t_oe [s of week])
 
 
@@ -200,6 +256,18 @@ class _Sets:
             t_s = eph.week * WEEK_S + eph.toe_sow_s
             self.order.insert(bisect_left(self.order, (t_s, self.seq)), (t_s, self.seq, key))
         self.by_key[key] = eph
+
+    def remove(self, key: _Key) -> None:
+        """Drop the set of ``key``."""
+        del self.by_key[key]
+        self.order = [o for o in self.order if o[2] != key]
+
+    def near(self, t_s: float, span_s: float) -> list[Ephemeris]:
+        """The sets whose t_oe [s since BDT 0] is within ``span_s`` of ``t_s``."""
+        order = self.order
+        lo = bisect_left(order, (t_s - span_s,))
+        hi = bisect_left(order, (t_s + span_s, math.inf))
+        return [self.by_key[key] for _, _, key in order[lo:hi]]
 
     def drop_oldest(self, n: int) -> int:
         """Drop the ``n`` sets with the oldest t_oe; returns ``n``."""
@@ -259,6 +327,8 @@ class EphemerisStore:
         """Why the latest refused set was refused."""
         self.evicted = 0
         """Sets dropped to keep MAX_SETS_PER_PRN (not counting :meth:`prune`)."""
+        self.dropped_inconsistent = 0
+        """Outside sets dropped because the receiver's own set contradicted them."""
         self._refusal_log = RateLimitedLog(log, LOG_INTERVAL_S, clock)  # per (PRN, check)
         # column form of recently used ephemeris sets (the same set serves many epochs);
         # keyed by object identity, the entry holds the objects so identities stay unique
@@ -276,18 +346,26 @@ class EphemerisStore:
         return sorted(self._by_prn)
 
     def add(self, eph: Ephemeris) -> bool:
-        """Hold ``eph`` unless :func:`ephemeris_problem` refuses it; returns whether it was
-        kept. A refused set is counted (``refused``, ``refused_by_reason``) and logged, and
-        never replaces a set already held. A set with the (week, t_oe) of one held replaces
-        it; beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``)."""
+        """Hold ``eph`` unless :func:`ephemeris_problem` refuses it or a held set of the
+        receiver's own contradicts it (check ``inconsistent``, see :meth:`_settle`); returns
+        whether it was kept. A refused set is counted (``refused``, ``refused_by_reason``)
+        and logged, and never replaces a set already held. A set with the (week, t_oe) of
+        one held replaces it, except an outside copy of an own set (kept as it is, True);
+        beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``)."""
         problem = ephemeris_problem(eph)
+        sets = self._by_prn.get(eph.prn)
+        if problem is None and sets is not None:
+            problem = self._settle(sets, eph)
+            if problem is None and eph.source not in OWN_SOURCES:
+                held = sets.by_key.get((eph.week, eph.toe_sow_s))
+                if held is not None and held.source in OWN_SOURCES:
+                    return True  # the same set, and the receiver's own copy stays
         if problem is not None:
             self.refused += 1
             self.refused_by_reason[problem.check] += 1
             self.last_refusal = problem
             self._log_refusal(eph, problem)
             return False
-        sets = self._by_prn.get(eph.prn)
         if sets is None:
             sets = self._by_prn[eph.prn] = _Sets()
         sets.put(eph)
@@ -296,6 +374,57 @@ class EphemerisStore:
         if excess > 0:
             self.evicted += sets.drop_oldest(excess)
         return True
+
+    def _settle(self, sets: _Sets, eph: Ephemeris) -> EphemerisProblem | None:
+        """Compare ``eph`` with the held sets of the other kind (own / outside, see the
+        module docstring) within CONSISTENCY_WINDOW_S. An outside ``eph`` that a held own set
+        contradicts is refused (the problem, check ``inconsistent``); an own ``eph`` drops
+        the outside sets it contradicts (counted ``dropped_inconsistent``, logged)."""
+        own = eph.source in OWN_SOURCES
+        t_s = eph.week * WEEK_S + eph.toe_sow_s
+        others = [
+            h for h in sets.near(t_s, CONSISTENCY_WINDOW_S) if (h.source in OWN_SOURCES) != own
+        ]
+        if not others:
+            return None
+        worst = None
+        for held, (pos_m, clk_m, week, sow) in zip(
+            others, _disagreements(eph, others), strict=True
+        ):
+            if not (pos_m > CONSISTENCY_MAX_M or clk_m > CONSISTENCY_MAX_M):
+                continue  # they agree (NaN, which entry-checked sets do not give, is no proof)
+            what = (
+                f"{pos_m / 1e3:.1f} km in position, {clk_m / 1e3:.1f} km in clock at BDT "
+                f"week {week} sow {sow:.0f}"
+            )
+            if not own:
+                size_m = max(pos_m, clk_m)
+                if worst is None or size_m > worst[0]:
+                    worst = (size_m, held, what)
+                continue
+            sets.remove((held.week, held.toe_sow_s))
+            self._spans.pop(eph.prn, None)
+            self.dropped_inconsistent += 1
+            self._refusal_log.warning(
+                (str(eph.prn), "inconsistent"),
+                "dropped ephemeris %s week %s toe %s from %s: the receiver's own set (week %s "
+                "toe %s) puts the satellite elsewhere: %s",
+                held.prn,
+                held.week,
+                held.toe_sow_s,
+                held.source,
+                eph.week,
+                eph.toe_sow_s,
+                what,
+            )
+        if worst is None:
+            return None
+        held = worst[1]
+        return EphemerisProblem(
+            "inconsistent",
+            f"the receiver's own set (week {held.week} toe {held.toe_sow_s}) puts the "
+            f"satellite elsewhere: {worst[2]}",
+        )
 
     def _log_refusal(self, eph: Ephemeris, problem: EphemerisProblem) -> None:
         """One line per (PRN, check) per LOG_INTERVAL_S: WARNING, or INFO for SatH1 != 0

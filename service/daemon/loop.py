@@ -335,9 +335,11 @@ class Runner:
                 self.on_result(result)
             return 1
         if isinstance(ev, NavSubframe):
-            before = len(self.pipeline.store)
+            store = self.pipeline.store
+            before = (len(store), store.dropped_inconsistent)
             self.pipeline.on_subframe(ev)
-            self._store_dirty |= len(self.pipeline.store) != before
+            # a decoded set that dropped the outside set it contradicts keeps the count
+            self._store_dirty |= (len(store), store.dropped_inconsistent) != before
         elif isinstance(ev, Ephemeris):
             self.pipeline.add_ephemeris(ev)
             self._store_dirty = True

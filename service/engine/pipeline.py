@@ -133,13 +133,20 @@ class Pipeline:
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
         """Offer ``eph`` to the store; counts ``ephemeris_<source>`` when kept, else
-        ``ephemeris_refused`` and ``ephemeris_refused_<check>`` (see ephemeris_problem);
-        ``ephemeris_evicted`` counts the sets the store's count bound let go."""
-        evicted = self.store.evicted
+        ``ephemeris_refused`` and ``ephemeris_refused_<check>`` (see ephemeris_problem;
+        ``inconsistent``: an outside set that the receiver's own contradicts);
+        ``ephemeris_evicted`` counts the sets the store's count bound let go,
+        ``ephemeris_dropped_inconsistent`` the outside sets held that the receiver's own set
+        contradicted (service.core.ephemeris)."""
+        evicted, dropped = self.store.evicted, self.store.dropped_inconsistent
         if self.store.add(eph):
             self.counters[f"ephemeris_{eph.source}"] += 1
             if self.store.evicted != evicted:
                 self.counters["ephemeris_evicted"] += self.store.evicted - evicted
+            if self.store.dropped_inconsistent != dropped:
+                self.counters["ephemeris_dropped_inconsistent"] += (
+                    self.store.dropped_inconsistent - dropped
+                )
         else:
             self.counters["ephemeris_refused"] += 1
             if self.store.last_refusal is not None:

@@ -132,14 +132,28 @@ TABLE1: dict[str, tuple[float, float, float, float, float, float]] = {
 }
 
 
+TOE_LSB_S = 8.0
+"""t_oe is broadcast in units of 8 s (ICD B1I 5.2.4.12, Table 5-11; RTCM DF505)."""
+
+
 def table1_ephemerides(offset_s: float = 0.0) -> list[Ephemeris]:
-    """Table 1 propagated two-body by ``offset_s`` from its epoch, as ephemerides (t_oe then)."""
+    """Table 1 propagated two-body by ``offset_s`` from its epoch, then on to the next t_oe a
+    broadcast can carry (a multiple of TOE_LSB_S), as ephemerides with that t_oe: the same
+    orbits, and the set the virtual receiver broadcasts (D1/D2, RTCM 1042) is the one its
+    ranges were made with. (With the t_oe of the epoch itself, 2 s past a multiple of 8 s,
+    the broadcast set, its t_oe rounded, put the satellites up to 8 km off: the receiver's
+    own sets disagreed with the held ones.)"""
     import datetime as dt
 
     from service.core.timebase import gmst_rad, gpst_from_utc, gpst_to_bdt
 
     utc = dt.datetime(*TABLE1_EPOCH_UTC) + dt.timedelta(seconds=offset_s)
     bdt_week, bdt_sow = gpst_to_bdt(*gpst_from_utc(utc))
+    late_s = (-bdt_sow) % TOE_LSB_S
+    if late_s:
+        offset_s += late_s
+        utc += dt.timedelta(seconds=late_s)
+        bdt_week, bdt_sow = gpst_to_bdt(*gpst_from_utc(utc))
     gmst = float(gmst_rad(utc))
     out = []
     for prn, (a_km, e, inc, raan, argp, nu) in TABLE1.items():

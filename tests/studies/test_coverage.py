@@ -160,15 +160,19 @@ def test_two_body_invariants():
 def test_direct_propagation_matches_the_broadcast_form():
     """service.sim.keplerian's ICD-form ephemerides (GEO frame re-expressed) give the same orbits;
     they rotate the Earth at the CGCS2000 rate, GMST at 7.2921158553e-5 rad/s."""
-    from service.core.orbit import EphemerisArrays, sat_pos_clock
-    from service.sim.keplerian import table1_ephemerides
+    import datetime as dt
 
-    ephs = table1_ephemerides(0.0)
+    from service.core.orbit import EphemerisArrays, sat_pos_clock
+    from service.core.timebase import gpst_from_utc, gpst_to_bdt
+    from service.sim.keplerian import TABLE1_EPOCH_UTC, table1_ephemerides
+
+    ephs = table1_ephemerides(0.0)  # t_oe a multiple of 8 s at or after the epoch
+    week, epoch_sow = gpst_to_bdt(*gpst_from_utc(dt.datetime(*TABLE1_EPOCH_UTC)))
     arr = EphemerisArrays.from_ephemerides(ephs)
     const = table1()
     assert const.prns == tuple(e.prn for e in ephs)
     for dt_s in (0.0, 600.0, 3600.0, 86400.0):
-        pos, _ = sat_pos_clock(arr, ephs[0].week, np.full(len(ephs), ephs[0].toe_sow_s + dt_s))
+        pos, _ = sat_pos_clock(arr, week, np.full(len(ephs), epoch_sow + dt_s))
         ref = positions_ecef(const, [dt_s])[0]
         rate_gap_m = 8.6e-12 * dt_s * 42.2e6
         assert np.linalg.norm(pos - ref, axis=1).max() < 0.01 + rate_gap_m, dt_s
