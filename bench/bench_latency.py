@@ -8,7 +8,30 @@ end through pyserial; a TCP client timestamps each GGA. Every epoch gives exactl
 counts differ is reported as such, not measured.
 Latency = GGA arrival - return of the write() that put the epoch's last byte in the pty.
 
-Run: python bench/bench_latency.py [--seconds 60] [--runs 3]
+Each epoch's solve time (the pipeline's ``on_epoch``) comes from the daemon itself
+(``BDSFIX_EPOCH_TIMES``, :data:`service.daemon.loop.EPOCH_TIMES_ENV`, on the same monotonic
+clock as this script's), so every epoch's latency splits into its parts [ms]:
+
+- ``solve``: the pipeline's ``on_epoch``; ``nonsolve`` = ``latency`` - ``solve``;
+- ``daemon``: write -> the daemon handed the GGA to its NMEA TCP sink (the kernel has it);
+  ``d-nonsolve`` = ``daemon`` - ``solve``, the part of the non-solve time the daemon spends;
+- ``wake+read``: write -> the daemon's read returned (its wake-up; only for a live source
+  read in the loop's thread), ``decode+``: that read -> solve start (decoding, subframes),
+  ``to GGA``: solve end -> GGA handed over, ``client``: GGA handed over -> this script's
+  client has it (the client's wake-up: on a loaded machine, a scheduling delay of the
+  client, not of bdsfix).
+
+``--root DIR`` (repeatable) runs the daemon from another source tree (e.g. an export of
+main plus this instrumentation): the runs alternate between the trees, A B A B..., so a
+machine shared with other work loads them alike; the load average is printed per run.
+
+``--line-rate BAUD`` writes each epoch as a receiver's serial line delivers it, in small
+writes over its transmission time (the daemon decodes the epoch's first messages while the
+rest is on the line), instead of in one write: the latency is still timed from the last
+byte.
+
+Run: python bench/bench_latency.py [--seconds 60] [--runs 3] [--root DIR ...] [--rt PRIO]
+[--nice N] [--line-rate BAUD] [--tcp]
 (prints per-run and pooled p50/p99/max, fast-fix and SPP epochs apart; no assertions)
 """
 
@@ -35,6 +58,8 @@ from service.sim.scenario import scenario_config  # noqa: E402
 from service.sim.simulator import Simulator  # noqa: E402
 
 GOAL_P99_MS = 5.0
+GOAL_NONSOLVE_P50_MS, GOAL_NONSOLVE_P99_MS = 0.5, 2.0
+LINE_CHUNK_BYTES = 32  # --line-rate: bytes a write, as a UART's FIFO hands them on
 
 
 def _free_port() -> int:
@@ -43,22 +68,34 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def one_run(epochs: list[bytes]) -> tuple[np.ndarray, list[bytes]] | None:
-    """Latencies [ms] of one daemon run and the GGA sentences, or None if GGAs went missing."""
+def one_run(
+    epochs: list[bytes],
+    root: Path,
+    rt_priority: int = 0,
+    line_rate: int = 0,
+    tcp: bool = False,
+) -> tuple[dict[str, np.ndarray], list[bytes]] | None:
+    """Per-epoch times [ms] of one daemon run (``latency``, ``solve``, ``nonsolve``,
+    ``before``, ``after``) and the GGA sentences, or None if GGAs or epochs went missing."""
     port, zmq_port = _free_port(), _free_port()
     tmp = Path(tempfile.mkdtemp())
+    times_path = tmp / "epoch-times.txt"
     store = EphemerisStore()
     store.add_all(table1_ephemerides(0.0))
     store.save(tmp / "ephemeris.json")
     master, slave = os.openpty()
+    server = socket.create_server(("127.0.0.1", 0)) if tcp else None
+    source = f"tcp:127.0.0.1:{server.getsockname()[1]}" if server else os.ttyname(slave)
+    chrt = ["chrt", "--fifo", str(rt_priority)] if rt_priority else []
     proc = subprocess.Popen(
         [
+            *chrt,
             sys.executable,
             "-m",
             "service",
             "run",
             "--source",
-            os.ttyname(slave),
+            source,
             "--state-dir",
             str(tmp),
             "--zmq",
@@ -68,7 +105,8 @@ def one_run(epochs: list[bytes]) -> tuple[np.ndarray, list[bytes]] | None:
             "--log-level",
             "warning",
         ],
-        cwd=ROOT,
+        cwd=root,
+        env={**os.environ, "BDSFIX_EPOCH_TIMES": str(times_path)},
     )
     client = None
     for _ in range(100):  # the daemon binds after start-up
@@ -80,6 +118,18 @@ def one_run(epochs: list[bytes]) -> tuple[np.ndarray, list[bytes]] | None:
     if client is None:
         proc.kill()
         raise SystemExit("bdsfix run did not open its NMEA port")
+    conn = None
+    if server is not None:
+        server.settimeout(10.0)
+        conn = server.accept()[0]  # the daemon's connection
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def write(data: bytes) -> None:
+        if conn is not None:
+            conn.sendall(data)
+        else:
+            os.write(master, data)
+
     time.sleep(0.5)
     arrivals: list[float] = []
     ggas: list[bytes] = []
@@ -104,20 +154,49 @@ def one_run(epochs: list[bytes]) -> tuple[np.ndarray, list[bytes]] | None:
     t = threading.Thread(target=read, daemon=True)
     t.start()
     sent: list[float] = []
+    chunk = LINE_CHUNK_BYTES if line_rate else 1 << 30
+    chunk_s = chunk * 10 / line_rate if line_rate else 0.0  # 8N1: 10 bits a byte
     for data in epochs:
-        os.write(master, data)
+        start = time.perf_counter()
+        for k in range(0, len(data), chunk):
+            if k:
+                time.sleep(max(0.0, start + (k // chunk) * chunk_s - time.perf_counter()))
+            write(data[k : k + chunk])
         sent.append(time.perf_counter())
-        time.sleep(0.1)
+        time.sleep(max(0.0, start + 0.1 - time.perf_counter()))
     time.sleep(1.0)
     proc.terminate()
     proc.wait(10)
     client.close()
     os.close(master)
     os.close(slave)
-    print(f"  epochs written {len(sent)}, GGA received {len(arrivals)}")
-    if len(sent) != len(arrivals):
+    if server is not None and conn is not None:
+        conn.close()
+        server.close()
+    times = np.loadtxt(times_path, ndmin=2) if times_path.exists() else np.zeros((0, 5))
+    print(
+        f"  epochs written {len(sent)}, GGA received {len(arrivals)}, "
+        f"epochs timed by the daemon {len(times)}"
+    )
+    if not (len(sent) == len(arrivals) == len(times)):
         return None
-    return (np.array(arrivals) - np.array(sent)) * 1e3, ggas
+    if times.shape[1] == 3:  # the first form of BDSFIX_EPOCH_TIMES: solve start/end, end
+        nan = np.full(len(times), np.nan)
+        times = np.column_stack([nan, times[:, 0], times[:, 1], nan, times[:, 2]])
+    t_sent, t_arrived = np.array(sent), np.array(arrivals)
+    t_read, t_solve, t_solved, t_gga = (times[:, k] for k in range(4))
+    ms = {
+        "latency": (t_arrived - t_sent) * 1e3,
+        "solve": (t_solved - t_solve) * 1e3,
+        "daemon": (t_gga - t_sent) * 1e3,
+        "wake+read": (t_read - t_sent) * 1e3,
+        "decode+": (t_solve - t_read) * 1e3,
+        "to GGA": (t_gga - t_solved) * 1e3,
+        "client": (t_arrived - t_gga) * 1e3,
+    }
+    ms["nonsolve"] = ms["latency"] - ms["solve"]
+    ms["d-nonsolve"] = ms["daemon"] - ms["solve"]
+    return ms, ggas
 
 
 def _line(name: str, ms: np.ndarray) -> str:
@@ -127,45 +206,133 @@ def _line(name: str, ms: np.ndarray) -> str:
     )
 
 
+PARTS = (
+    "latency",
+    "solve",
+    "nonsolve",
+    "daemon",
+    "d-nonsolve",
+    "wake+read",
+    "decode+",
+    "to GGA",
+    "client",
+)
+
+
+def _report(label: str, runs: list[dict[str, np.ndarray]], fast: list, spp: list) -> None:
+    """Pooled figures of one source tree's runs."""
+    print(f"== {label}: pooled over {len(runs)} runs")
+    for part in PARTS:
+        ms = np.concatenate([r[part] for r in runs])
+        if np.isfinite(ms).all():
+            print("  " + _line(f"{part:<10}", ms))
+    for name, sel in (("fast-fix epochs (first 8 s of fixes)", fast), ("SPP epochs", spp)):
+        if sel:
+            print(f"  {name}:")
+            for part in ("latency", "solve", "nonsolve", "d-nonsolve"):
+                ms = np.concatenate([x[part] for x in sel])
+                if len(ms) and np.isfinite(ms).all():  # a short run has no SPP epochs
+                    print("    " + _line(f"{part:<10}", ms))
+    lat = np.concatenate([r["latency"] for r in runs])
+    print(
+        f"  latency last byte -> NMEA GGA on the client: p50 {np.median(lat):.2f} ms, "
+        f"p99 {np.percentile(lat, 99):.2f} ms (goal p99 <= {GOAL_P99_MS:g} ms)"
+    )
+    for part in ("nonsolve", "d-nonsolve"):
+        rest = np.concatenate([r[part] for r in runs])
+        if not np.isfinite(rest).all():
+            continue
+        print(
+            f"  {part}: p50 {np.median(rest):.2f} ms, p99 {np.percentile(rest, 99):.2f} ms "
+            f"(goal <= {GOAL_NONSOLVE_P50_MS:g} / {GOAL_NONSOLVE_P99_MS:g} ms); per run "
+            + ", ".join(f"{np.median(r[part]):.2f}/{np.percentile(r[part], 99):.2f}" for r in runs)
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=60.0, help="scenario length (10 Hz)")
-    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--runs", type=int, default=3, help="runs per source tree")
+    ap.add_argument(
+        "--root",
+        type=Path,
+        action="append",
+        help="source tree to run the daemon from (repeatable; runs alternate); default: this one",
+    )
+    ap.add_argument(
+        "--rt",
+        type=int,
+        default=0,
+        metavar="PRIO",
+        help="run the daemon (chrt --fifo) and this script's writer and client at this "
+        "SCHED_FIFO priority, as a unit with CPUSchedulingPolicy=fifo would (needs root or "
+        "CAP_SYS_NICE); 0: normal scheduling",
+    )
+    ap.add_argument(
+        "--tcp",
+        action="store_true",
+        help="serve the UBX on a TCP socket the daemon connects to (tcp:HOST:PORT), not a pty",
+    )
+    ap.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="run the daemon at this niceness, as a unit with Nice= would, and this script "
+        "too (below 0 needs root or CAP_SYS_NICE): a writer at a lower priority than the "
+        "daemon's would be preempted between its write() and its time stamp",
+    )
+    ap.add_argument(
+        "--line-rate",
+        type=int,
+        default=0,
+        metavar="BAUD",
+        help="write each epoch as a serial line at BAUD carries it (8N1, "
+        f"{LINE_CHUNK_BYTES}-byte writes), the latency still timed from its last byte; "
+        "0: each epoch in one write",
+    )
     args = ap.parse_args()
+    if args.nice:
+        os.nice(args.nice)  # the daemon, started later, inherits it
+    if args.rt:
+        # this thread (the writer) and the client thread it starts later inherit it
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt))
+    roots: list[Path] = [r.resolve() for r in args.root or [ROOT]]
     sim = Simulator(table1_ephemerides(0.0), scenario_config(duration_s=args.seconds))
     epochs = [data for _ep, data in sim.ubx_epochs()]
-    pooled, fast, spp = [], [], []
+    if args.line_rate and max(map(len, epochs)) * 10 / args.line_rate > 0.1:
+        raise SystemExit(f"--line-rate {args.line_rate}: an epoch does not fit in 0.1 s")
+    runs: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
+    fast: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
+    spp: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
     for k in range(args.runs):
-        print(f"run {k + 1}/{args.runs}")
-        got = one_run(epochs)
-        if got is None:
-            print("  GGA count differs from the epoch count: run not measured")
+        for root in roots:
+            load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+            print(f"run {k + 1}/{args.runs} of {root} (load average {load})")
+            got = one_run(epochs, root, args.rt, args.line_rate, args.tcp)
+            if got is None:
+                print("  a count differs from the epoch count: run not measured")
+                continue
+            ms, ggas = got
+            # GGA quality: 0 no fix, 1 a fix (fast or SPP); the scenario's fixes before its
+            # first non-GEO SOW are fast fixes, SPP after the first fix of all-full epochs
+            quality = np.array([int(g.split(b",")[6] or 0) for g in ggas])
+            for part in ("latency", "solve", "nonsolve", "d-nonsolve"):
+                if np.isfinite(ms[part]).all():
+                    print("  " + _line(f"{part:<10}", ms[part]))
+            runs[root].append(ms)
+            fixed = np.flatnonzero(quality > 0)
+            if len(fixed):
+                first = fixed[0]
+                # 8 s of fast fixes after the first one; SPP from 12 s after it on
+                fast[root].append({p: v[first : first + 80] for p, v in ms.items()})
+                spp[root].append({p: v[first + 120 :] for p, v in ms.items()})
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    print(f"load average at the end: {load}")
+    for root in roots:
+        if not runs[root]:
+            print(f"== {root}: no run could be measured")
             continue
-        lat, ggas = got
-        # GGA quality: 0 no fix, 1 a fix (fast or SPP); the scenario's fixes before its
-        # first non-GEO SOW are fast fixes, SPP after the first fix of all-full epochs
-        quality = np.array([int(g.split(b",")[6] or 0) for g in ggas])
-        print("  " + _line("all epochs", lat))
-        pooled.append(lat)
-        fixed = np.flatnonzero(quality > 0)
-        if len(fixed):
-            first = fixed[0]
-            fast.append(lat[first : first + 80])  # 8 s of fast fixes after the first one
-            spp.append(lat[first + 120 :])  # from 12 s after the first fix: SPP
-    if not pooled:
-        raise SystemExit("no run could be measured")
-    allms = np.concatenate(pooled)
-    print(_line(f"pooled over {len(pooled)} runs", allms))
-    if fast:
-        print(_line("  fast-fix epochs (first 8 s of fixes)", np.concatenate(fast)))
-        print(_line("  SPP epochs (12 s after the first fix on)", np.concatenate(spp)))
-    p99s = [float(np.percentile(x, 99)) for x in pooled]
-    print(
-        f"latency last byte -> NMEA GGA on socket: pooled p50 {np.median(allms):.2f} ms, "
-        f"p99 {np.percentile(allms, 99):.2f} ms; per-run p99 "
-        + ", ".join(f"{v:.2f}" for v in p99s)
-        + f" ms (goal p99 <= {GOAL_P99_MS:g} ms)"
-    )
+        _report(str(root), runs[root], fast[root], spp[root])
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ from drivers.transport import (
     SerialTransport,
     TcpClientTransport,
     Transport,
+    _Reconnecting,
     pace,
 )
 from service.core.counters import Counters
@@ -181,15 +182,35 @@ class BinarySource(EventSource):
         self._prefix = list(prefix)
         self.idle_flush_s = idle_flush_s
         self.read_size = read_size
+        self.read_at_s = 0.0
+        """:func:`time.perf_counter` when the last read that gave bytes returned (the
+        latency figures of ``bench/bench_latency.py``)."""
+
+    @property
+    def live(self) -> bool:
+        """True for a serial source and a TCP source given by address: a read returns
+        within the transport's timeout (:data:`drivers.transport.READ_TIMEOUT_S`) even while
+        nothing comes or the line is down, so :meth:`ticks` can be read in a loop that keeps
+        timers of its own (a TCP host name is resolved at each connect attempt, which a
+        silent resolver can hold for tens of seconds: not live)."""
+        return isinstance(self.transport, _Reconnecting) and self.transport.waits_bounded
 
     def __iter__(self) -> Iterator[Event]:
+        return (ev for ev in self.ticks() if ev is not None)
+
+    def ticks(self) -> Iterator[Event | None]:
+        """The events, and ``None`` after each read once its events are out: the bytes read
+        so far are all handled (for a live source also after a read that timed out or found
+        the line down), a gap where the caller's periodic work delays no event."""
         yield from self._prefix
         idle_since: float | None = None
         while True:
             data = self.transport.read(self.read_size)
             if data:
+                self.read_at_s = time.perf_counter()
                 idle_since = None
                 yield from self.decoder.feed(data)
+                yield None
                 continue
             if self.transport.finished:
                 yield from self.decoder.flush()
@@ -203,6 +224,7 @@ class BinarySource(EventSource):
                     self.counters["idle_flushes"] += 1
                     yield from pending
                 idle_since = now
+            yield None
 
     def close(self) -> None:
         self.transport.close()

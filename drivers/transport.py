@@ -17,6 +17,7 @@ Counter keys: ``transport_bytes``, ``disconnects``, ``reconnects``, ``connects``
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import math
 import os
@@ -40,6 +41,11 @@ T = TypeVar("T")
 
 RECONNECT_MAX_S = 0.5
 """Longest wait between two attempts to reopen a lost device or connection [s]."""
+READ_TIMEOUT_S = 0.1
+"""Longest a serial or TCP ``read`` waits, for bytes or (while the line is down) between
+two attempts to reopen it [s]: the daemon's loop, which reads in its own thread, keeps its
+timers and notices a stop request at least this often (a TCP connect attempt may take up
+to its ``connect_timeout_s``)."""
 
 
 class Transport(Protocol):
@@ -135,6 +141,12 @@ class _Reconnecting:
     @property
     def finished(self) -> bool:
         return self._closed
+
+    @property
+    def waits_bounded(self) -> bool:
+        """Whether every ``read`` returns within about ``timeout_s`` (plus, for TCP, a
+        connect attempt's ``connect_timeout_s``), so a loop may read in its own thread."""
+        return True
 
     @property
     def connected(self) -> bool:
@@ -269,7 +281,7 @@ class SerialTransport(_Reconnecting):
         device: str,
         baud: int = 38400,
         *,
-        timeout_s: float = 0.1,
+        timeout_s: float = READ_TIMEOUT_S,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = RECONNECT_MAX_S,
     ) -> None:
@@ -316,7 +328,7 @@ class TcpClientTransport(_Reconnecting):
         host: str,
         port: int,
         *,
-        timeout_s: float = 0.1,
+        timeout_s: float = READ_TIMEOUT_S,
         connect_timeout_s: float = 2.0,
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = RECONNECT_MAX_S,
@@ -334,6 +346,18 @@ class TcpClientTransport(_Reconnecting):
 
     def _handle(self) -> Any:
         return self._sock
+
+    @property
+    def waits_bounded(self) -> bool:
+        """Only for an address (or ``localhost``): a host name is resolved at each connect
+        attempt, and a resolver that does not answer can hold it for tens of seconds."""
+        if self.host == "localhost":
+            return True
+        try:
+            ipaddress.ip_address(self.host.strip("[]"))
+        except ValueError:
+            return False
+        return True
 
     def _connect(self) -> None:
         sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)

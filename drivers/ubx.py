@@ -45,6 +45,7 @@ Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 from __future__ import annotations
 
 import datetime as dt
+import itertools
 import logging
 import math
 import statistics
@@ -53,7 +54,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 from pyubx2 import UBX_MSGIDS, UBXReader
 
 from drivers.framing import BinaryFraming, Event, WeekContext
@@ -81,12 +81,12 @@ DEFAULT_MAX_PAYLOAD = 8192
 
 
 def fletcher8(data: bytes | bytearray | memoryview) -> bytes:
-    """UBX 8-bit Fletcher checksum ``(ck_a, ck_b)`` of class..payload."""
-    arr = np.frombuffer(bytes(data), dtype=np.uint8).astype(np.int64)
-    n = arr.size
-    ck_a = int(arr.sum()) & 0xFF
-    ck_b = int(np.dot(arr, np.arange(n, 0, -1, dtype=np.int64))) & 0xFF
-    return bytes((ck_a, ck_b))
+    """UBX 8-bit Fletcher checksum ``(ck_a, ck_b)`` of class..payload: ``ck_a`` the byte
+    sum, ``ck_b`` the sum of the running ``ck_a`` values, both modulo 256. Plain ``sum`` and
+    ``accumulate`` (C loops): a frame is checked before its epoch is solved, and numpy's
+    per-call cost, several times the sums' for a few hundred bytes, was on that path."""
+    b = bytes(data)
+    return bytes((sum(b) & 0xFF, sum(itertools.accumulate(b)) & 0xFF))
 
 
 def payload_len(header: bytes) -> int:
@@ -534,49 +534,58 @@ class UbxMapper:
         return [epoch]
 
     def _build(self, p: _Pending) -> MeasurementEpoch | None:
+        """The epoch of ``p``, its satellites in PRN order, MEASX calibrated against RAWX.
+
+        Plain Python over the epoch's few tens of satellites: numpy's per-call cost on
+        arrays this small was half the decoding of an epoch, on the path from its last byte
+        to its fix. Python's float ``%`` is numpy.mod's floor-mod (fmod, then the divisor's
+        sign) and ``max - min`` is ``np.ptp``: the same numbers, bit for bit."""
         sats = sorted(p.sats.values(), key=lambda s: s.prn)
-        pr = np.array([s.pr_m for s in sats], dtype=float)
-        raw = np.array([s.raw_frac_m for s in sats], dtype=float)
-        both = np.isfinite(pr) & np.isfinite(raw)
-        if both.any():
-            d = np.mod(pr[both], B1I_RANGE_M) - raw[both]
-            d = np.mod(d + B1I_RANGE_M / 2, B1I_RANGE_M) - B1I_RANGE_M / 2
-            if np.ptp(d) < 30.0:
-                # statistics.median: numpy's first median call imports a module on the
-                # spot, a stall in the receiver loop
-                self.measx_offset_m = float(statistics.median(d.tolist()))
+        finite = math.isfinite
+        half = B1I_RANGE_M / 2
+        d = [
+            ((s.pr_m % B1I_RANGE_M - s.raw_frac_m) + half) % B1I_RANGE_M - half
+            for s in sats
+            if finite(s.pr_m) and finite(s.raw_frac_m)
+        ]
+        if d:
+            spread_m = max(d) - min(d)
+            if spread_m < 30.0:
+                self.measx_offset_m = float(statistics.median(d))
             else:
                 self.counters["measx_offset_rejected"] += 1
                 self._log.warning(
                     "measx_offset_rejected",
                     "MEASX/RAWX offsets disagree by %.1f m at GPST %d %.3f; kept %s",
-                    float(np.ptp(d)),
+                    spread_m,
                     p.week,
                     p.tow_s,
                     self.measx_offset_m,
                 )
-        only = ~np.isfinite(pr) & np.isfinite(raw)
-        if only.any():
-            self.counters["measx_only_sats"] += int(only.sum())
+        only = sum(1 for s in sats if not finite(s.pr_m) and finite(s.raw_frac_m))
+        if only:
+            self.counters["measx_only_sats"] += only
             if self.measx_offset_m is None:
-                self.counters["measx_uncalibrated"] += int(only.sum())
+                self.counters["measx_uncalibrated"] += only
         offset = self.measx_offset_m or 0.0
-        frac = np.where(np.isfinite(pr), np.mod(pr, B1I_RANGE_M), np.mod(raw + offset, B1I_RANGE_M))
-        keep = np.isfinite(frac)
-        if not keep.any():
+        kept: list[tuple[_Sat, float]] = []
+        for s in sats:
+            frac = s.pr_m % B1I_RANGE_M if finite(s.pr_m) else (s.raw_frac_m + offset) % B1I_RANGE_M
+            if finite(frac):
+                kept.append((s, frac))
+        if not kept:
             return None
-        idx = np.flatnonzero(keep)
         return MeasurementEpoch.from_columns(
             p.week,
             p.tow_s,
-            [sats[i].prn for i in idx],
-            ["2I"] * len(idx),
-            pr[idx],
-            frac_pr_m=frac[idx],
+            [s.prn for s, _f in kept],
+            ["2I"] * len(kept),
+            [s.pr_m for s, _f in kept],
+            frac_pr_m=[f for _s, f in kept],
             period_s=B1I_PERIOD_S,
-            cn0_dbhz=[sats[i].cn0_dbhz for i in idx],
-            doppler_hz=[sats[i].doppler_hz for i in idx],
-            lock_s=[sats[i].lock_s for i in idx],
+            cn0_dbhz=[s.cn0_dbhz for s, _f in kept],
+            doppler_hz=[s.doppler_hz for s, _f in kept],
+            lock_s=[s.lock_s for s, _f in kept],
             source=self.source,
         )
 

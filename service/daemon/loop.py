@@ -1,16 +1,30 @@
 """The stream loop of ``bdsfix replay`` and ``bdsfix run``.
 
-A reader thread pulls events from a driver source (paced for replay) into a bounded queue;
-the main thread feeds them to the :class:`~service.engine.pipeline.Pipeline` and hands results to
-the outputs, none of which may block. Between events the main thread keeps time for STATUS
-messages, the systemd watchdog and periodic saves of the ephemeris store (it prunes the
-store and takes a snapshot; a :class:`~service.daemon.store_writer.StoreWriter` thread
-encodes and writes it), and it stops cleanly on request (SIGTERM) after saving the store.
+The main thread feeds events to the :class:`~service.engine.pipeline.Pipeline` and hands
+results to the outputs, none of which may block. Where the events come from depends on the
+source:
+
+- a live receiver (serial device or pty, TCP; :attr:`drivers.source.BinarySource.live`) and
+  a capture file replayed at full speed are read in the main thread itself
+  (:attr:`Runner.live_inline`, :attr:`Runner.inline`): the bytes of an epoch are read,
+  decoded, solved and published by one thread, with no hand-over between threads on the
+  way (each costs a wake-up and an interpreter-lock transfer, up to the switch interval). A
+  live read returns within :data:`drivers.transport.READ_TIMEOUT_S`, with or without bytes,
+  so the loop's timers run between reads;
+- any other source (a paced replay, standard input, the built-in scenario) has a reader
+  thread that puts its events into a bounded queue, which the main thread takes from.
+
+Between events the main thread keeps time for STATUS messages, the systemd watchdog and
+periodic saves of the ephemeris store (it prunes the store and takes a snapshot; a
+:class:`~service.daemon.store_writer.StoreWriter` thread encodes and writes it), and it
+stops cleanly on request (SIGTERM) after saving the store.
 
 Network nav sources (NTRIP, :mod:`service.daemon.netnav`) each have a reader thread of their
-own feeding the same queue; their events are marked :class:`~service.daemon.netnav.Networked`
-and only their ephemerides are used. Such a source ending or failing (a caster that refuses
-the credentials) is logged in one line and the daemon reads on: the receiver is the stream.
+own feeding the queue (their events are rare: ephemerides every few minutes; the loop takes
+them when it has caught up with the receiver); their events are marked
+:class:`~service.daemon.netnav.Networked` and only their ephemerides are used. Such a source
+ending or failing (a caster that refuses the credentials) is logged in one line and the
+daemon reads on: the receiver is the stream.
 """
 
 from __future__ import annotations
@@ -18,6 +32,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import os
 import queue
 import sys
 import threading
@@ -40,6 +55,13 @@ log = logging.getLogger(__name__)
 _END = object()
 SWITCH_INTERVAL_S = 0.0005
 TIMER_SLACK_S = 1.0
+EPOCH_TIMES_ENV = "BDSFIX_EPOCH_TIMES"
+"""When this environment variable names a file, the loop keeps five times of each epoch
+(:func:`time.perf_counter`, ``CLOCK_MONOTONIC`` on Linux, the clock of every process) and
+writes them there, one epoch a line, when it ends: the source's last read with bytes
+(``read_at_s`` of a live source read inline, else NaN), solve start, solve end, GGA handed
+to the live NMEA sinks (the outputs' ``gga_out_s``, NaN without them) and publish end. For
+``bench/bench_latency.py``, which pairs them with its own write and arrival times."""
 SKIP_KEYS = frozenset({"resyncs"})
 SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
 """Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
@@ -80,8 +102,13 @@ class Runner:
     """Read the source in the loop's own thread, without the reader thread: for a regular
     file replayed as fast as possible, where the thread would only add hand-overs of the
     interpreter lock (several per epoch, ~10 % of the replay's time) and nothing waits on
-    I/O. A live or paced source keeps its reader thread (the loop's timers run while the
-    source waits)."""
+    I/O. A paced source keeps its reader thread (the loop's timers run while it sleeps)."""
+    live_inline: bool = True
+    """Read a live source (``events`` with a true ``live`` and a ``ticks()`` iterator, as
+    :class:`drivers.source.BinarySource` on a serial device or TCP) in the loop's own
+    thread: an epoch then reaches the solver without a hand-over between threads. Its
+    ``None`` ticks (a read done and its events out, or a read that timed out) are where
+    the periodic work runs. False keeps the reader thread (for tests comparing the two)."""
     nav_sources: Sequence[tuple[str, Iterable[Any], Mapping[str, int]]] = ()
     """Network nav sources: (redacted name, events, counters) each."""
     nav_max_age_s: float = 7200.0
@@ -93,6 +120,8 @@ class Runner:
     _store_dirty: bool = False
     _store_writer: StoreWriter | None = None
     _latency: LatencyStats = field(default_factory=lambda: LatencyStats())
+    _epoch_times: list[tuple[float, ...]] | None = None
+    _live: bool = False  # reading a live source inline (run)
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -144,10 +173,11 @@ class Runner:
 
         return take
 
-    def _inline_taker(self) -> Callable[[], Any]:
-        """The next event straight from the source (:attr:`inline`); ``_END`` at its end or
-        failure (kept for :meth:`run` to raise, as the reader thread does)."""
-        source = iter(self.events)
+    def _inline_taker(self, events: Iterable[Any]) -> Callable[[], Any]:
+        """The next event straight from the source (:attr:`inline`, :attr:`live_inline`;
+        ``None`` for a live source's tick); ``_END`` at its end or failure (kept for
+        :meth:`run` to raise, as the reader thread does)."""
+        source = iter(events)
 
         def take() -> Any:
             try:
@@ -182,17 +212,26 @@ class Runner:
     def run(self) -> int:
         """Process until the source ends or a stop is requested; returns the epoch count."""
         self.pipeline.on_track = self.outputs.track
-        # The reader, the loop and the publishers' I/O threads hand each epoch on: with the
-        # interpreter's default 5 ms switch interval every hand-off may wait that long.
+        # A live receiver's epoch stays in this thread from its read to its GGA; with a
+        # reader thread (other sources), and whenever a network nav or an output's I/O
+        # thread holds the interpreter lock as an epoch arrives, the interpreter's default
+        # 5 ms switch interval is what a hand-over may wait.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         # What exists now (modules, tables, the ephemeris store) lives as long as the loop:
         # keep it out of the collector's full passes, which would otherwise walk it all and
         # stall an epoch by milliseconds (~4 ms for a daemon's start-up heap).
         gc.collect()
         gc.freeze()
+        times_path = os.environ.get(EPOCH_TIMES_ENV)
+        self._epoch_times = [] if times_path else None
         q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
-        take = self._inline_taker() if self.inline else self._queue_taker(q)
-        if not self.inline:
+        live = self._live = self.live_inline and bool(getattr(self.events, "live", False))
+        if live:
+            take = self._inline_taker(self.events.ticks())  # type: ignore[attr-defined]
+        elif self.inline:
+            take = self._inline_taker(self.events)
+        else:
+            take = self._queue_taker(q)
             reader = threading.Thread(
                 target=self._reader, args=(q,), name="bdsfix-reader", daemon=True
             )
@@ -225,19 +264,24 @@ class Runner:
                     self._reopen.clear()
                     log.info("reopening outputs")
                     self.outputs.reopen()
+                # Caught up: nothing read waits to be handled (a live source's tick; the
+                # queue empty). Periodic work waits for that gap between events (the
+                # subframes that open an epoch's burst would otherwise delay its fix by a
+                # store save), unless a backlog has kept it waiting for TIMER_SLACK_S
+                # already. A save interval of 0 asks for a save after every change: no
+                # waiting then.
+                caught_up = (ev is None) if live else (self.inline or q.empty())
+                if caught_up and (live or self.inline):
+                    self._take_networked(q)
                 now = time.monotonic()
-                # Periodic work waits for a gap between events (the subframes that open an
-                # epoch's burst would otherwise delay its fix by a store save), unless a
-                # backlog has kept it waiting for TIMER_SLACK_S already. A save interval of
-                # 0 asks for a save after every change: no waiting then.
-                slack = 0.0 if q.empty() else TIMER_SLACK_S
+                slack = 0.0 if caught_up else TIMER_SLACK_S
                 if now >= next_status + slack:
                     self.outputs.status(self.counters())
                     next_status = now + self.status_interval_s
                 if now >= next_save + (slack if self.store_save_interval_s > 0 else 0.0):
                     self.save_store()
                     next_save = now + self.store_save_interval_s
-                if self.silence_warn_s > 0:
+                if self.silence_warn_s > 0 and caught_up:  # seconds matter, not events
                     self._watch_silence(now)
                 if self.watchdog is not None and now >= next_dog:
                     self.watchdog()
@@ -247,9 +291,20 @@ class Runner:
             self._stop.set()
             self.save_store(final=True)
             self.outputs.status(self.counters())
+            if times_path and self._epoch_times is not None:
+                self._write_epoch_times(Path(times_path))
         if self._error is not None:
             raise self._error
         return n
+
+    def _take_networked(self, q: queue.Queue[Any]) -> None:
+        """Handle what the network nav threads queued (inline reading: nothing else is
+        queued)."""
+        while not q.empty():
+            try:
+                self._handle(q.get_nowait())
+            except queue.Empty:
+                return
 
     def _handle(self, ev: Any) -> int:
         if isinstance(ev, Networked):
@@ -264,7 +319,18 @@ class Runner:
             result = self.pipeline.on_epoch(ev)
             t1 = time.perf_counter()
             self.outputs.epoch(result)
-            self._latency.add(t0, t1, time.perf_counter())
+            t2 = time.perf_counter()
+            self._latency.add(t0, t1, t2)
+            if self._epoch_times is not None:
+                self._epoch_times.append(
+                    (
+                        getattr(self.events, "read_at_s", math.nan) if self._live else math.nan,
+                        t0,
+                        t1,
+                        getattr(self.outputs, "gga_out_s", math.nan),
+                        t2,
+                    )
+                )
             if self.on_result is not None:
                 self.on_result(result)
             return 1
@@ -280,6 +346,15 @@ class Runner:
         elif isinstance(ev, KlobucharParams):
             self.pipeline.set_iono(ev)
         return 0
+
+    def _write_epoch_times(self, path: Path) -> None:
+        """The epochs' times (:data:`EPOCH_TIMES_ENV`) [s], one epoch a line."""
+        try:
+            with open(path, "w", encoding="ascii") as fh:
+                for t in self._epoch_times or ():
+                    fh.write(" ".join(f"{x:.9f}" for x in t) + "\n")
+        except OSError as exc:
+            log.warning("%s: epoch times not written: %s", path, exc.strerror)
 
     def _handle_networked(self, ev: Networked) -> None:
         """Ephemerides of a network source through the age gate; nothing else is used."""

@@ -9,6 +9,7 @@ NMEA sinks, then all of the epoch's sentences to the epoch-wise NMEA sinks (file
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -42,6 +43,10 @@ class Publishers:
         self.gsa_talker = gsa_talker
         self.counters = Counters()
         self._time_known = False
+        self.gga_out_s = 0.0
+        """:func:`time.perf_counter` when the last epoch's lead sentences (RMC, VTG, GGA)
+        were handed to the live NMEA sinks: where the latency path ends in the daemon
+        (``bench/bench_latency.py``)."""
         self._nmea_live = [s for s in self.sinks if s.nmea == "live"]
         self._nmea_epoch = [s for s in self.sinks if s.nmea == "epoch"]
         self._takes = {c: [s for s in self.sinks if c in s.records] for c in RECORD_CLASSES}
@@ -71,6 +76,7 @@ class Publishers:
             )
             for sink in self._nmea_live:
                 sink.write_nmea(lead)
+            self.gga_out_s = time.perf_counter()
         if self._takes["FIX"]:
             rec = fix_record(fix, since_start_s)
             for sink in self._takes["FIX"]:
