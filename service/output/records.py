@@ -26,12 +26,12 @@ Field rules, common to all classes:
   fast fix declined by the chi-square test, for diagnosis); ``reason`` (and a
   ``reason_code``, one of :class:`service.engine.declines.Decline`) exactly when ``mode`` is
   ``none`` (a declined fix has no position fields).
-  Integrity (:mod:`service.engine.raim`): ``redundancy`` (rows - unknowns of the layout: used satellites - 4 for a
-  BeiDou-only fix) once a solution
-  was judged, with ``chi2`` and its threshold ``chi2_max`` when it is >= 1; on a fix,
-  ``raim`` (``pass``, ``unprotected`` or ``untested``, see :func:`raim_state`), the
-  protection levels ``hpl_m``/``vpl_m`` when finite, ``std_enu_m`` (1-sigma east, north,
-  up from the solution covariance); ``excluded`` {PRN: why} when fault exclusion (or an
+  Integrity (:mod:`service.engine.raim`): ``redundancy`` (rows - unknowns of the layout:
+  used satellites - 4 for a BeiDou-only fix) once a solution was judged, with ``chi2``
+  and its threshold ``chi2_max`` when it is >= 1; on a fix, ``raim`` (``pass``,
+  ``unprotected`` or ``untested``, see :func:`raim_state`), the protection levels
+  ``hpl_m``/``vpl_m`` when finite, ``std_enu_m`` (1-sigma east, north, up from the
+  solution covariance); ``excluded`` {PRN: why} when fault exclusion (or an
   impossible range) removed satellites; they are not in the fix.
   Velocity (:mod:`service.engine.velocity`, from the epoch's Doppler), on a fix whose
   Doppler rows passed their residual test, all together: ``v_enu_m_s`` (east, north, up),
