@@ -312,8 +312,10 @@ class SbfMapper:
         if number not in _PARSED:
             self.counters["sbf_ignored"] += 1
             return []
+        if len(raw) < HEADER_LEN + 6:
+            raise DecodeError(f"{block_name(number)} of {len(raw)} bytes: no time stamp")
         msg = SBFReader.parse(raw)
-        tow, wnc = int(raw[8] | raw[9] << 8 | raw[10] << 16 | raw[11] << 24), raw[12] | raw[13] << 8
+        tow, wnc = int.from_bytes(raw[8:12], "little"), int.from_bytes(raw[12:14], "little")
         if number == BDS_NAV:
             return self._on_bds_nav(msg)
         if number == BDS_ION:
