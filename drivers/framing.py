@@ -205,7 +205,14 @@ class Framer:
             b = buf[pos]
             cands = by_first.get(b)
             if cands is not None:
-                name, size = self._measure(cands, buf, pos)
+                if len(cands) == 1:  # the common case, inline
+                    name, framing, limit = cands[0]
+                    size = framing.measure(buf, pos, limit)
+                    if size < 0 and size != NEED_MORE:
+                        self._count_bad(name, framing, size, pos)
+                        size = NOT_A_FRAME
+                else:
+                    name, size = self._measure(cands, buf, pos)
             elif b == 0x23 and (buf[pos - 1] if pos else self._prev) == 0x0A:  # '#' at BOL
                 size = self._try_comment(pos)
                 if size > 0:
@@ -233,17 +240,10 @@ class Framer:
     def _measure(
         self, cands: tuple[tuple[str, Framing, int], ...], buf: bytearray, pos: int
     ) -> tuple[str, int]:
-        """The first candidate (longest sync first) with a frame at ``pos``: its name and
-        size; else NEED_MORE if any candidate waits for bytes, else NOT_A_FRAME. A bad
+        """Of several candidates, the first (longest sync first) with a frame at ``pos``: its
+        name and size; else NEED_MORE if any candidate waits for bytes, else NOT_A_FRAME. A bad
         length or checksum is counted for the candidate that found it, once the bytes are
         decided (not while another candidate waits for more)."""
-        if len(cands) == 1:
-            name, framing, limit = cands[0]
-            size = framing.measure(buf, pos, limit)
-            if size > 0 or size == NEED_MORE:
-                return name, size
-            self._count_bad(name, framing, size, pos)
-            return name, NOT_A_FRAME
         results = []
         for name, framing, limit in cands:
             size = framing.measure(buf, pos, limit)
