@@ -5,8 +5,9 @@ Reference: Septentrio "mosaic-X5 Reference Guide" (firmware 4.x), section "SBF O
 "Satellite ID" (SVID) tables, and the block definitions of MeasEpoch (4027), BDSNav (4081),
 BDSIon (4120), BDSRaw (4047) and PVTGeodetic (4007). Nav, iono, raw and PVT blocks are
 parsed by pysbf2 (which applies the scale factors); MeasEpoch, which arrives every epoch and
-whose type-2 offsets pysbf2 reads unsigned, is unpacked here with :mod:`struct` (the tests
-compare the two on every type-1 value of the real captures).
+whose signed type-2 offsets (CodeOffsetMSB, DopplerOffsetMSB) pysbf2 1.0.7 reads unsigned,
+is unpacked here with :mod:`struct` (the tests compare the two on every row of the real
+capture, pysbf2's code offset sign-corrected).
 
 - Frame: ``$@``, CRC u16, ID u16 (bits 0-12 block number, 13-15 revision), Length u16 (the
   whole block, a multiple of 4), body. The CRC is CRC-16-CCITT (polynomial 0x1021, initial

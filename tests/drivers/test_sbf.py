@@ -383,3 +383,20 @@ def test_sbf_mapper_raises_at_most_decode_error_on_blocks_pysbf2_parses(frames):
             assert all(isinstance(e, EVENT_TYPES) for e in events)
     with hang_guard():
         mapper.flush()
+
+
+def test_the_first_epoch_waits_for_the_nav_blocks_of_its_second():
+    """The capture opens with a MeasEpoch; its 20 BDSNav follow in the same second. The first
+    epoch is emitted after them (with the second MeasEpoch), a lone one at flush."""
+    blocks = [raw for raw, _ in pysbf2_blocks(LOG)]
+    kinds = [m.identity for _, m in pysbf2_blocks(LOG)]
+    assert kinds.index("MeasEpoch") < kinds.index("BDSNav")
+    events, _ = events_of(LOG)
+    first = next(i for i, e in enumerate(events) if isinstance(e, MeasurementEpoch))
+    assert sum(isinstance(e, Ephemeris) for e in events[:first]) == 20
+    dec = StreamDecoder()
+    upto_second = kinds.index("MeasEpoch", kinds.index("MeasEpoch") + 1)
+    events = dec.feed(b"".join(blocks[:upto_second]))
+    assert not any(isinstance(e, MeasurementEpoch) for e in events)
+    assert [type(e) for e in dec.flush()] == [MeasurementEpoch]
+    assert dec.flush() == []
