@@ -1,10 +1,12 @@
 """Incremental framer for byte streams that mix the registered protocols, plus shared driver
 state (counters, the GPS week context).
 
-The framer knows no protocol: it dispatches on the first byte of each candidate to the
-:class:`Framing` of the protocol registered for it (:data:`drivers.protocols.PROTOCOLS`),
-which measures the frame there. :class:`BinaryFraming` describes the usual binary layout
-(sync bytes, header with a length field, payload, check trailer) as data. Besides frames the
+The framer knows no protocol: it matches each candidate by sync pattern against the
+:class:`Framing` of the protocols registered (:data:`drivers.protocols.PROTOCOLS`), which
+measure the frame there. Protocols may share a first byte (SBF ``$@`` and NMEA ``$``): the
+longest sync is tried first, and only two protocols with the same sync are refused.
+:class:`BinaryFraming` describes the usual binary layout (sync bytes, header with a length
+field, payload, check trailer) as data. Besides frames the
 framer takes gpsd regression-log comments: a ``#`` at the start of a line, printable text up
 to the newline; a valid frame that ends such a line ends the comment where it starts.
 
@@ -64,7 +66,8 @@ class Framing(Protocol):
 
     @property
     def sync(self) -> bytes:
-        """The bytes every frame starts with; the first one selects this framing."""
+        """The bytes every frame starts with; a longer sync is tried before a shorter one
+        that starts with the same byte."""
         ...
 
     @property
@@ -148,13 +151,20 @@ class Framer:
             if name not in self.max_payload:
                 raise ValueError(f"max_payload: no protocol {name!r}")
             self.max_payload[name] = limit
-        self._by_first: dict[int, tuple[str, Framing, int]] = {}
+        # Candidates by first byte, longest sync first: protocols may share a first byte
+        # (SBF ``$@`` and NMEA ``$``) as long as their sync patterns differ.
+        self._by_first: dict[int, tuple[tuple[str, Framing, int], ...]] = {}
+        syncs: dict[bytes, str] = {}
         for p in protocols:
-            first = p.framing.sync[0]
-            if first in self._by_first:
-                other = self._by_first[first][0]
-                raise ValueError(f"protocols {other} and {p.name} start with the same byte")
-            self._by_first[first] = (p.name, p.framing, self.max_payload[p.name])
+            sync = bytes(p.framing.sync)
+            if sync in syncs:
+                raise ValueError(
+                    f"protocols {syncs[sync]} and {p.name} have the same sync {sync!r}"
+                )
+            syncs[sync] = p.name
+            entry = (p.name, p.framing, self.max_payload[p.name])
+            cands = (*self._by_first.get(sync[0], ()), entry)
+            self._by_first[sync[0]] = tuple(sorted(cands, key=lambda c: -len(c[1].sync)))
         firsts = b"".join(re.escape(bytes([b])) for b in self._by_first)
         self._first_re = re.compile(b"[" + firsts + b"]") if firsts else None
         self._buf = bytearray()
@@ -193,19 +203,16 @@ class Framer:
         n = len(buf)
         while pos < n:
             b = buf[pos]
-            entry = by_first.get(b)
-            if entry is not None:
-                name, framing, limit = entry
-                size = framing.measure(buf, pos, limit)
-                if size == BAD_LENGTH:
-                    self.counters[f"bad_length_{name}"] += 1
-                    size = NOT_A_FRAME
-                elif size == BAD_CHECKSUM:
-                    self.counters[f"bad_checksum_{name}"] += 1
-                    if isinstance(framing, BinaryFraming):  # not for text: noisy lines are common
-                        at = self._offset + pos
-                        self._log.debug(name, "%s checksum failure at stream offset %d", name, at)
-                    size = NOT_A_FRAME
+            cands = by_first.get(b)
+            if cands is not None:
+                if len(cands) == 1:  # the common case, inline
+                    name, framing, limit = cands[0]
+                    size = framing.measure(buf, pos, limit)
+                    if size < 0 and size != NEED_MORE:
+                        self._count_bad(name, framing, size, pos)
+                        size = NOT_A_FRAME
+                else:
+                    name, size = self._measure(cands, buf, pos)
             elif b == 0x23 and (buf[pos - 1] if pos else self._prev) == 0x0A:  # '#' at BOL
                 size = self._try_comment(pos)
                 if size > 0:
@@ -229,6 +236,34 @@ class Framer:
             pos += 1
         self._consume(pos)
         return frames
+
+    def _measure(
+        self, cands: tuple[tuple[str, Framing, int], ...], buf: bytearray, pos: int
+    ) -> tuple[str, int]:
+        """Of several candidates, the first (longest sync first) with a frame at ``pos``: its
+        name and size; else NEED_MORE if any candidate waits for bytes, else NOT_A_FRAME. A bad
+        length or checksum is counted for the candidate that found it, once the bytes are
+        decided (not while another candidate waits for more)."""
+        results = []
+        for name, framing, limit in cands:
+            size = framing.measure(buf, pos, limit)
+            if size > 0:
+                return name, size
+            results.append((name, framing, size))
+        if any(size == NEED_MORE for _, _, size in results):
+            return results[0][0], NEED_MORE
+        for name, framing, size in results:
+            self._count_bad(name, framing, size, pos)
+        return results[0][0], NOT_A_FRAME
+
+    def _count_bad(self, name: str, framing: Framing, size: int, pos: int) -> None:
+        if size == BAD_LENGTH:
+            self.counters[f"bad_length_{name}"] += 1
+        elif size == BAD_CHECKSUM:
+            self.counters[f"bad_checksum_{name}"] += 1
+            if isinstance(framing, BinaryFraming):  # not for text: noisy lines are common
+                at = self._offset + pos
+                self._log.debug(name, "%s checksum failure at stream offset %d", name, at)
 
     def _skip(self, count: int) -> None:
         if not self._skipping:
@@ -257,9 +292,9 @@ class Framer:
         if self._first_re is not None:
             for first in self._first_re.finditer(line, 1):
                 start = first.start()
-                _, framing, limit = self._by_first[line[start]]
-                if framing.measure(line, start, limit) == len(line) - start:
-                    return start
+                for _, framing, limit in self._by_first[line[start]]:
+                    if framing.measure(line, start, limit) == len(line) - start:
+                        return start
         return m.end()
 
 

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from drivers import nmea, rtcm, ubx
+from drivers import nmea, rtcm, sbf, ubx
 from drivers.framing import Event, Framing
 
 
@@ -47,5 +47,6 @@ class ProtocolSpec:
 PROTOCOLS: tuple[ProtocolSpec, ...] = (
     ProtocolSpec("ubx", ubx.FRAMING, ubx.UbxMapper),
     ProtocolSpec("rtcm", rtcm.FRAMING, rtcm.RtcmMapper),
+    ProtocolSpec("sbf", sbf.FRAMING, sbf.SbfMapper),
     ProtocolSpec("nmea", nmea.FRAMING, None),
 )

@@ -4,7 +4,7 @@
 ``-`` (standard input), ``serial:/dev/ttyX[:baud]`` or a bare ``/dev/...`` path, and
 ``tcp:host:port``. RINEX is recognised by ``RINEX VERSION / TYPE`` in its first line;
 everything else goes through :class:`StreamDecoder`: the framer and the mappers of the
-protocols registered in :data:`drivers.protocols.PROTOCOLS` (UBX, RTCM3 and NMEA, mixed in
+protocols registered in :data:`drivers.protocols.PROTOCOLS` (UBX, RTCM3, SBF and NMEA, mixed in
 one stream) behind a ``feed(bytes) -> events`` interface, for an asyncio daemon or any other
 byte pump.
 

@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = command(
         "replay",
         "replay a capture (or the built-in scenario) as a receiver",
-        "Feed a capture through the same stream path as the daemon: a UBX/RTCM3/NMEA "
+        "Feed a capture through the same stream path as the daemon: a UBX/RTCM3/SBF/NMEA "
         "capture or a RINEX 3 obs file, paced in real time (--max-speed: as fast as "
         "possible); with no FILE, the built-in virtual receiver near Beijing at full speed. "
         "NMEA goes to stdout unless another output is asked for; a summary to stderr.",
@@ -180,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "files",
         nargs="*",
-        help="UBX/RTCM/NMEA capture or RINEX 3 obs; none: the "
+        help="UBX/RTCM/SBF/NMEA capture or RINEX 3 obs; none: the "
         "built-in virtual receiver near Beijing",
     )
     r.add_argument("--nav", action="append", help="RINEX 3 nav file(s): held ephemerides")

@@ -2,10 +2,11 @@
 
 The driver boundary and what may cross it:
 
-- :class:`drivers.source.StreamDecoder` ``feed``/``flush`` (framer, UBX, RTCM3, NMEA and
+- :class:`drivers.source.StreamDecoder` ``feed``/``flush`` (framer, UBX, RTCM3, SBF, NMEA and
   gpsd-comment skipping): nothing, ever.
 - :class:`drivers.framing.Framer`: nothing; every frame it returns is checksum-valid by the
-  libraries' own helpers (pyubx2 Fletcher, pyrtcm CRC-24Q).
+  libraries' own helpers (pyubx2 Fletcher, pyrtcm CRC-24Q, pysbf2 CRC-16). SBF blocks are
+  fuzzed in ``tests/drivers/test_sbf.py``.
 - The mappers (:class:`drivers.ubx.UbxMapper`, :class:`drivers.rtcm.RtcmMapper`) given a
   message the library *did* parse: at most :class:`~service.core.errors.DecodeError`.
 - RINEX (:class:`drivers.rinex.RinexObsReader`, :func:`drivers.rinex.read_nav`): at most
@@ -39,6 +40,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pyrtcm import RTCMReader
 from pyrtcm.rtcmhelpers import calc_crc24q
+from pysbf2.sbfhelpers import calc_crc as calc_sbf_crc
 from pyubx2 import UBXReader
 from pyubx2.ubxhelpers import calc_checksum
 
@@ -199,6 +201,8 @@ def test_framer_never_raises_and_frames_pass_library_checksums(data, cuts):
             assert calc_checksum(raw[2:-2]) == raw[-2:]
         elif frame.protocol == "rtcm":
             assert calc_crc24q(raw[:-3]) == int.from_bytes(raw[-3:], "big")
+        elif frame.protocol == "sbf":
+            assert calc_sbf_crc(raw[4:]) == int.from_bytes(raw[2:4], "little")
         else:
             assert raw.startswith(b"$") and raw.endswith(b"\n")
     assert framer.buffered == 0

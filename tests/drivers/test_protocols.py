@@ -70,9 +70,9 @@ def _decode(dec: StreamDecoder, data: bytes) -> list:
     return events + dec.flush()
 
 
-def test_registry_names_and_first_bytes_are_unique():
+def test_registry_names_and_syncs_are_unique():
     assert len({p.name for p in PROTOCOLS}) == len(PROTOCOLS)
-    assert len({p.framing.sync[0] for p in PROTOCOLS}) == len(PROTOCOLS)
+    assert len({bytes(p.framing.sync) for p in PROTOCOLS}) == len(PROTOCOLS)
 
 
 def test_a_protocol_added_to_the_table_is_framed_mapped_and_counted():
@@ -113,10 +113,26 @@ def test_payload_bound_by_protocol_name():
 
 
 def test_conflicts_and_unknown_names_are_refused():
-    clash = ProtocolSpec("clash", BinaryFraming(b"\xb5\x00", 3, 1, len, bool, 8), None)
-    with pytest.raises(ValueError, match="same byte"):
+    clash = ProtocolSpec("clash", BinaryFraming(b"\xb5\x62", 3, 1, len, bool, 8), None)
+    with pytest.raises(ValueError, match="same sync"):
         Framer((*PROTOCOLS, clash))
     with pytest.raises(ValueError, match="max_payload"):
         Framer(PROTOCOLS, max_payload={"toy": 4})
     with pytest.raises(ValueError, match="mapper_options"):
         StreamDecoder(mapper_options={"nmea": {}})
+
+
+def test_a_protocol_sharing_a_first_byte_is_matched_by_its_sync():
+    """A toy whose sync starts with UBX's first byte: both are framed, by sync pattern
+    (as SBF ``$@`` and NMEA ``$``), and a bad toy frame is counted as the toy's."""
+    framing = BinaryFraming(b"\xb5\x44", 3, 1, TOY.framing.payload_len, TOY.framing.check, 64)
+    shared = ProtocolSpec("toy", framing, ToyMapper)
+    good = b"\xb5" + GOOD[1:]
+    bad = b"\xb5" + BAD_CHECK[1:]
+    dec = StreamDecoder(protocols=(*PROTOCOLS, shared))
+    events = _decode(dec, UBX + bad + good + NMEA + UBX)
+    assert events == [KlobucharParams(alpha=(1.0, 2.0, 3.0, 4.0), beta=(0.0,) * 4)]
+    c = dec.counters
+    assert (c["frames_toy"], c["frames_ubx"], c["frames_nmea"]) == (1, 2, 1)
+    assert (c["bad_checksum_toy"], c["bad_checksum_ubx"]) == (1, 0)
+    assert c["bytes_skipped"] == len(bad)

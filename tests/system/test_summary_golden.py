@@ -71,12 +71,9 @@ REFUSED = {
     "android-beijing": "android-beijing-mi8-2022/gnss_log_2022_09_28_22_01_27.txt",
     "android-perth": "android-perth-s8-2017/SensorLog20171005.txt",
     "perth-nav-as-capture": "android-perth-s8-2017/PERT00AUS_R_20172780000_01D_MN.rnx",
-    "leuven-sbf": "leuven-septentrio-sbf-2025/log_0000.sbf",
-    "leuven-sbf-all-blocks": "leuven-septentrio-sbf-2025/all_blocks_0000.sbf",
 }
-"""Files ``replay`` refuses with one line and exit 3 (Android GnssLogger text logs and
-Septentrio SBF are not receiver protocols the service reads yet; a nav file is not an
-observation file)."""
+"""Files ``replay`` refuses with one line and exit 3 (Android GnssLogger text logs are not
+a receiver protocol the service reads yet; a nav file is not an observation file)."""
 
 AUXILIARY = {
     "README.md": "the data's description",
