@@ -205,7 +205,8 @@ def test_one_epoch_alone_is_the_same_epoch_inside_a_chunk(hksc, urban, data):
     epochs gives the same decision and, where the chunk's epochs have as many rows as it
     (no padding slots: HKSC), the same bits; with padding (the urban drive, 4 to 20
     satellites) the sums over satellites may group their terms differently (numpy's SIMD
-    reductions), so the numbers agree to 1e-9 relative."""
+    reductions), so the numbers agree to 1e-9 relative, or 1e-6 m for figures in metres
+    (as the position)."""
     solver = data.draw(st.sampled_from(["spp", "fast"]))
     clean = data.draw(st.booleans())
     if clean:
@@ -228,4 +229,7 @@ def test_one_epoch_alone_is_the_same_epoch_inside_a_chunk(hksc, urban, data):
         assert np.allclose(alone.x_ecef_m, together[k].x_ecef_m, rtol=1e-12, atol=1e-6)
         for name in FIGURES:
             a, b = getattr(alone, name), getattr(together[k], name)
-            assert a == b or b == pytest.approx(a, rel=1e-9, abs=1e-9), name
+            # metres as the position (1e-6 m: 2.8e-9 m in alt_m was seen with another
+            # hypothesis version's draws), the rest to 1e-9 relative
+            tol = 1e-6 if name.endswith("_m") else 1e-9
+            assert a == b or b == pytest.approx(a, rel=1e-9, abs=tol), name

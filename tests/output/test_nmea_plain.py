@@ -24,7 +24,7 @@ import service.output.nmea as nmea
 from service.commands.cli import main
 from service.core.types import SatView, Velocity
 from tests.support.fixes import declined_fix, ecef_m, hksc_fix
-from tests.system.test_replay_golden import CASES, NOTHING_MAPPED, SUBFRAMES_ONLY, _args
+from tests.system.test_replay_golden import CASES, NO_RECORDS, _args
 
 Serializer = Callable[[str, str, dict[str, object]], bytes]
 
@@ -62,7 +62,7 @@ class Compared:
         return got
 
 
-GOLDEN_WITH_FIXES = [n for n, c in CASES.items() if c.fixes not in (NOTHING_MAPPED, SUBFRAMES_ONLY)]
+GOLDEN_WITH_FIXES = [n for n, c in CASES.items() if c.fixes not in NO_RECORDS]
 
 
 @pytest.mark.parametrize("name", GOLDEN_WITH_FIXES)
