@@ -58,14 +58,14 @@ from pysbf2.sbftypes_core import SBF_MSGIDS
 
 from drivers.framing import BinaryFraming, Event, WeekContext
 from service.core.bds import nav_type as bds_nav_type
-from service.core.bds_nav import parse_header
+from service.core.bds_nav import b1i_subframe
 from service.core.constants import ICD_PI, URA_M, WEEK_S
 from service.core.counters import Counters
 from service.core.errors import DecodeError
 from service.core.geometry import geodetic_to_ecef
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
 from service.core.timebase import bdt_to_gpst
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
@@ -420,25 +420,13 @@ class SbfMapper:
         words = navbits_words(bytes(msg.NavBits))
         nav_type = bds_nav_type(prn)
         try:
-            head = parse_header(words, nav_type)
+            subframe = b1i_subframe(prn, nav_type, words, wnc, tow_s)
         except DecodeError as exc:
             log.debug("%s BDSRaw rejected: %s", prn, exc)
             self.counters["bdsraw_unmapped"] += 1
             return []
         self.counters["subframes"] += 1
-        return [
-            NavSubframe(
-                prn=prn,
-                nav_type=nav_type,
-                fra_id=head.fra_id,
-                sow_s=head.sow_s,
-                words=words,
-                gpst_week=wnc,
-                gpst_tow_s=tow_s,
-                page=head.page,
-                signal="2I",
-            )
-        ]
+        return [subframe]
 
     def _on_pvt(self, msg: Any, wnc: int, tow_s: float) -> None:
         self.counters["sbf_pvt"] += 1

@@ -19,7 +19,7 @@ import logging
 from typing import Any, Literal
 
 from service.core.bds import nav_type as bds_nav_type
-from service.core.bds_nav import parse_header
+from service.core.bds_nav import b1i_subframe
 from service.core.errors import DecodeError
 from service.core.systems import GnssSystem, sat_id
 from service.core.types import NavSubframe
@@ -70,18 +70,7 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
     else:  # pyubx2: dwrd_01 .. dwrd_10
         words = tuple(int(getattr(msg, f"dwrd_{i:02d}")) & WORD_MASK for i in range(1, 11))
     try:
-        head = parse_header(words, nav_type)
+        return b1i_subframe(prn, nav_type, words, gpst_week, gpst_tow_s)
     except DecodeError as exc:
         log.debug("%s SFRBX rejected: %s", prn, exc)
         return None
-    return NavSubframe(
-        prn=prn,
-        nav_type=nav_type,
-        fra_id=head.fra_id,
-        sow_s=head.sow_s,
-        words=words,
-        gpst_week=gpst_week,
-        gpst_tow_s=gpst_tow_s,
-        page=head.page,
-        signal="2I",
-    )

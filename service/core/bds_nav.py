@@ -49,7 +49,7 @@ from typing import Any, Literal
 
 from service.core.constants import ICD_PI, URA_M, WEEK_S
 from service.core.errors import DecodeError, EphemerisError
-from service.core.types import Ephemeris, KlobucharParams
+from service.core.types import Ephemeris, KlobucharParams, NavSubframe
 
 log = logging.getLogger(__name__)
 
@@ -487,6 +487,30 @@ def parse_header(words: Sequence[int], nav_type: str) -> SubframeHeader:
     """
     data, _ = subframe_data(words)
     return _header(data, nav_type)
+
+
+def b1i_subframe(
+    prn: str,
+    nav_type: Literal["D1", "D2"],
+    words: tuple[int, ...],
+    gpst_week: int,
+    gpst_tow_s: float,
+) -> NavSubframe:
+    """A received B1I subframe (ten 30-bit words, parity included) as the tracker takes it,
+    with its header read (:func:`parse_header`; DecodeError if it is not one), time-tagged
+    by the receiver at GPST (week, tow)."""
+    head = parse_header(words, nav_type)
+    return NavSubframe(
+        prn=prn,
+        nav_type=nav_type,
+        fra_id=head.fra_id,
+        sow_s=head.sow_s,
+        words=words,
+        gpst_week=gpst_week,
+        gpst_tow_s=gpst_tow_s,
+        page=head.page,
+        signal="2I",
+    )
 
 
 def _header(data: int, nav_type: str) -> SubframeHeader:
