@@ -19,7 +19,6 @@ Run: python bench/bench_pdop_mask.py   (prints a table; no assertions)
 
 from __future__ import annotations
 
-import csv
 import math
 import sys
 from dataclasses import replace
@@ -32,26 +31,15 @@ sys.path.insert(0, str(ROOT))
 
 from drivers.rinex import RinexObsReader  # noqa: E402
 from service.commands.solve import BatchOptions, load_navigation, solve_epochs  # noqa: E402
-from service.core.geometry import geodetic_to_ecef  # noqa: E402
 from service.engine.solver import SolverConfig  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_urban import ground_truth  # noqa: E402  (the TST truth reader, one place)
 
 DATA = ROOT.parent / "shared" / "data"
 MASKS = (6.0, 10.0, 15.0, 20.0, 25.0, 30.0)
 OLD_DEFAULT = 10.0
 HKSC_TRUTH_ECEF_M = np.array([-2414266.9197, 5386768.9868, 2407460.0314])  # header, surveyed
-
-
-def tst_truth() -> dict[tuple[int, int], np.ndarray]:
-    """(GPS week, whole TOW) -> ECEF truth, from groundTruth_TST.csv (week, TOW, lat, lon, h)."""
-    out = {}
-    with open(DATA / "hk-tst-urban-2019" / "groundTruth_TST.csv", encoding="ascii") as f:
-        for row in csv.reader(f):
-            try:
-                week, tow, lat, lon, h = (float(v) for v in row[:5])
-            except ValueError:
-                continue
-            out[(int(week), round(tow))] = geodetic_to_ecef(math.radians(lat), math.radians(lon), h)
-    return out
 
 
 def fixes(obs: Path, nav: Path, pdop_max: float, mode: str) -> dict[tuple[int, int], np.ndarray]:
@@ -67,7 +55,7 @@ def fixes(obs: Path, nav: Path, pdop_max: float, mode: str) -> dict[tuple[int, i
 
 def main() -> None:
     hksc, tst = DATA / "hksc-2021", DATA / "hk-tst-urban-2019"
-    truth_tst = tst_truth()
+    truth_tst = ground_truth()
 
     def truth_hksc(_: tuple[int, int]) -> np.ndarray | None:
         return HKSC_TRUTH_ECEF_M

@@ -24,6 +24,7 @@ import pytest
 
 from service.commands.cli import main
 from tests.support.fixes import ecef_m
+from tests.support.independent import enu_rows
 from tests.support.paths import DATA
 from tests.system.test_replay_golden import CASES, _args
 
@@ -53,18 +54,6 @@ def test_hksc_static_station_has_near_zero_speed(tmp_path):
     assert 0.1 <= np.median(speed) / np.median(std) <= 10
 
 
-def _enu_rows(lat_deg: float, lon_deg: float) -> np.ndarray:
-    """East, north, up unit vectors in ECEF (rows), written here for the test."""
-    la, lo = math.radians(lat_deg), math.radians(lon_deg)
-    return np.array(
-        [
-            [-math.sin(lo), math.cos(lo), 0.0],
-            [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
-            [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)],
-        ]
-    )
-
-
 def _truth_velocity():
     """Mid-step times [GPS s of week], ENU velocities [m/s] and whether each step is one
     second (a gap in the truth is not differenced across)."""
@@ -74,7 +63,7 @@ def _truth_velocity():
     dt = np.diff(t)
     mid = (t[1:] + t[:-1]) / 2
     v = np.array(
-        [_enu_rows(rows[k][2], rows[k][3]) @ ((x[k + 1] - x[k]) / dt[k]) for k in range(len(dt))]
+        [enu_rows(rows[k][2], rows[k][3]) @ ((x[k + 1] - x[k]) / dt[k]) for k in range(len(dt))]
     )
     return mid, v, np.abs(dt - 1.0) < 1e-6
 

@@ -17,25 +17,15 @@ import pytest
 from service.core.constants import C_M_S
 from service.engine.velocity import DopplerRows, solve_velocity
 from tests.support.fixes import HKSC_ECEF_M, geodetic_deg_m
+from tests.support.independent import enu_rows
 
 SKY_DEG = [(80, 10), (45, 70), (40, 160), (35, 250), (30, 320), (20, 110), (60, 200), (15, 20)]
-
-
-def _enu_rows(lat_deg: float, lon_deg: float) -> np.ndarray:
-    la, lo = math.radians(lat_deg), math.radians(lon_deg)
-    return np.array(
-        [
-            [-math.sin(lo), math.cos(lo), 0.0],
-            [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
-            [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)],
-        ]
-    )
 
 
 def _rows(v_enu, drift_m_s, n=8, seed=1, fault_m_s=0.0):
     rng = np.random.default_rng(seed)
     lat, lon, _ = geodetic_deg_m(*HKSC_ECEF_M)
-    rot = _enu_rows(lat, lon)
+    rot = enu_rows(lat, lon)
     x = np.array(HKSC_ECEF_M)
     prn, sat, e_list = [], [], []
     for k, (el, az) in enumerate(SKY_DEG[:n]):

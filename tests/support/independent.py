@@ -91,33 +91,41 @@ def icd_position(
     return float(out[0]), float(out[1]), float(out[2])
 
 
-def eph_from_georinex(rec: dict) -> Ephemeris:
-    """Map a georinex record to our type (field mapping only, no computation)."""
+def _kepler_fields(rec: dict) -> dict[str, float]:
+    """The clock and Keplerian fields every georinex record maps the same way (field mapping
+    only): t_oc is the record's epoch as seconds of its week."""
     sod = (rec["epoch"] - rec["epoch"].astype("datetime64[D]")).astype(int)
     dow = (rec["epoch"].astype("datetime64[D]").astype(int) - 3) % 7  # 1970-01-01 was Thu
+    return {
+        "toe_sow_s": rec["Toe"],
+        "toc_sow_s": float(dow * 86400 + sod),
+        "af0_s": rec["SVclockBias"],
+        "af1_s_s": rec["SVclockDrift"],
+        "af2_s_s2": rec["SVclockDriftRate"],
+        "sqrt_a_sqrt_m": rec["sqrtA"],
+        "e": rec["Eccentricity"],
+        "i0_rad": rec["Io"],
+        "omega0_rad": rec["Omega0"],
+        "omega_rad": rec["omega"],
+        "m0_rad": rec["M0"],
+        "delta_n_rad_s": rec["DeltaN"],
+        "omega_dot_rad_s": rec["OmegaDot"],
+        "idot_rad_s": rec["IDOT"],
+        "cuc_rad": rec["Cuc"],
+        "cus_rad": rec["Cus"],
+        "crc_m": rec["Crc"],
+        "crs_m": rec["Crs"],
+        "cic_rad": rec["Cic"],
+        "cis_rad": rec["Cis"],
+    }
+
+
+def eph_from_georinex(rec: dict) -> Ephemeris:
+    """Map a georinex record to our type (field mapping only, no computation)."""
     return Ephemeris(
         prn=rec["prn"],
         week=int(rec["BDTWeek"]),
-        toe_sow_s=rec["Toe"],
-        toc_sow_s=float(dow * 86400 + sod),
-        af0_s=rec["SVclockBias"],
-        af1_s_s=rec["SVclockDrift"],
-        af2_s_s2=rec["SVclockDriftRate"],
-        sqrt_a_sqrt_m=rec["sqrtA"],
-        e=rec["Eccentricity"],
-        i0_rad=rec["Io"],
-        omega0_rad=rec["Omega0"],
-        omega_rad=rec["omega"],
-        m0_rad=rec["M0"],
-        delta_n_rad_s=rec["DeltaN"],
-        omega_dot_rad_s=rec["OmegaDot"],
-        idot_rad_s=rec["IDOT"],
-        cuc_rad=rec["Cuc"],
-        cus_rad=rec["Cus"],
-        crc_m=rec["Crc"],
-        crs_m=rec["Crs"],
-        cic_rad=rec["Cic"],
-        cis_rad=rec["Cis"],
+        **_kepler_fields(rec),
         tgd1_s=rec["TGD1"],
         health=int(rec["SatH1"]),
     )
@@ -129,32 +137,23 @@ def eph_from_georinex_gps_like(rec: dict) -> Ephemeris:
     epoch, health the system's health field and the group delay TGD (GPS) or BGD E1/E5b
     (Galileo)."""
     week = rec.get("GPSWeek", rec.get("GALWeek"))
-    sod = (rec["epoch"] - rec["epoch"].astype("datetime64[D]")).astype(int)
-    dow = (rec["epoch"].astype("datetime64[D]").astype(int) - 3) % 7  # 1970-01-01 was Thu
     return Ephemeris(
         prn=rec["prn"],
         week=int(week),
-        toe_sow_s=rec["Toe"],
-        toc_sow_s=float(dow * 86400 + sod),
-        af0_s=rec["SVclockBias"],
-        af1_s_s=rec["SVclockDrift"],
-        af2_s_s2=rec["SVclockDriftRate"],
-        sqrt_a_sqrt_m=rec["sqrtA"],
-        e=rec["Eccentricity"],
-        i0_rad=rec["Io"],
-        omega0_rad=rec["Omega0"],
-        omega_rad=rec["omega"],
-        m0_rad=rec["M0"],
-        delta_n_rad_s=rec["DeltaN"],
-        omega_dot_rad_s=rec["OmegaDot"],
-        idot_rad_s=rec["IDOT"],
-        cuc_rad=rec["Cuc"],
-        cus_rad=rec["Cus"],
-        crc_m=rec["Crc"],
-        crs_m=rec["Crs"],
-        cic_rad=rec["Cic"],
-        cis_rad=rec["Cis"],
+        **_kepler_fields(rec),
         tgd1_s=rec.get("TGD", rec.get("BGDe5b", 0.0)),
         health=int(rec["health"]),
         source="georinex",
+    )
+
+
+def enu_rows(lat_deg: float, lon_deg: float) -> np.ndarray:
+    """East, north, up unit vectors in ECEF (rows), written here for the tests."""
+    la, lo = math.radians(lat_deg), math.radians(lon_deg)
+    return np.array(
+        [
+            [-math.sin(lo), math.cos(lo), 0.0],
+            [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
+            [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)],
+        ]
     )
