@@ -24,7 +24,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.framing import Event, Frame, Framer, WeekContext
 from drivers.protocols import PROTOCOLS, Mapper, ProtocolSpec
@@ -40,6 +40,9 @@ from service.core.counters import Counters
 from service.core.errors import ConfigError, DecodeError, FramingError, InputError
 from service.core.ratelog import RateLimitedLog
 from service.core.timebase import MIN_SANE_GPS_WEEK, gpst_from_utc
+
+if TYPE_CHECKING:
+    from drivers.rinex import NavData
 
 log = logging.getLogger(__name__)
 
@@ -315,15 +318,17 @@ def is_rinex(path: str | Path) -> bool:
         return False
 
 
-def _nav_events(nav: str | Path | Iterable[str | Path] | None, counters: Counters) -> list[Event]:
+def _nav_events(
+    nav: str | Path | NavData | Iterable[str | Path | NavData] | None, counters: Counters
+) -> list[Event]:
     if nav is None:
         return []
     from drivers.rinex import read_nav
 
-    paths = [nav] if isinstance(nav, str | Path) else list(nav)
+    items = [nav] if isinstance(nav, str | Path) or not isinstance(nav, Iterable) else list(nav)
     events: list[Event] = []
-    for path in paths:
-        data = read_nav(path)
+    for item in items:
+        data = read_nav(item) if isinstance(item, str | Path) else item
         for ephs in data.ephemerides.values():
             events.extend(ephs)
             counters["nav_ephemerides"] += len(ephs)
@@ -355,7 +360,7 @@ def serial_device(spec: str, baud: int) -> tuple[str, int]:
 def open_source(
     spec: str,
     *,
-    nav: str | Path | Iterable[str | Path] | None = None,
+    nav: str | Path | NavData | Iterable[str | Path | NavData] | None = None,
     gps_week: int | None = None,
     baud: int = DEFAULT_BAUD,
     max_payload: Mapping[str, int] | None = None,
@@ -365,8 +370,9 @@ def open_source(
 ) -> EventSource:
     """Open ``spec`` and return an iterable of events with ``.counters``.
 
-    ``nav`` (RINEX nav file or files) puts its ephemerides and ionosphere parameters at the
-    head of the stream, as held ephemerides. Pace a replay with :func:`pace`.
+    ``nav`` (RINEX nav file or files, as paths or as already read) puts its ephemerides and
+    ionosphere parameters at the head of the stream, as held ephemerides. Pace a replay
+    with :func:`pace`.
     ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`.
 
     The GPS week for RTCM MSM times of week comes from the stream (UBX RAWX / NAV-TIMEGPS /

@@ -17,7 +17,7 @@ import signal
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service.commands.options import full_rule, solver_config
 from service.commands.summary import stream_lines
@@ -39,6 +39,9 @@ from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.solver import IonoSet
 from service.output.publish import Publishers
 from service.output.sinks import OutputSpec, SinkOptions, open_sinks
+
+if TYPE_CHECKING:
+    from drivers.rinex import NavData
 
 log = logging.getLogger(__name__)
 
@@ -93,12 +96,13 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
-def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> None:
+def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> list[NavData]:
     """RINEX nav files without a BDS ephemeris, or (for a capture file source) of another
     day than its first epoch, refuse the start: one line, exit 3
-    (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows)."""
+    (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows). The
+    files as read, for the source to put at the head of its stream."""
     if not nav:
-        return
+        return []
     from service.commands.navcheck import check_navigation, first_epoch_time, read_navigation
 
     navs = read_navigation(nav)
@@ -106,6 +110,7 @@ def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> None:
     if _is_regular_file(spec):
         first = first_epoch_time(spec.removeprefix("file:"), gps_week)
     check_navigation(nav, navs, first)
+    return navs
 
 
 def _is_regular_file(spec: str) -> bool:
@@ -217,7 +222,7 @@ def main_run(args: argparse.Namespace) -> int:
     specs = output_specs(cfg)
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
-    _check_nav(cfg.source, nav_files(cfg))
+    navs = _check_nav(cfg.source, nav_files(cfg))
     _check_state_dir(cfg.resolved_state_dir())
     lock_state_dir(cfg.resolved_state_dir())  # a second daemon on it: exit 3, one line
     if cfg.configure:  # before the source opens: the set-up has the port to itself
@@ -225,7 +230,7 @@ def main_run(args: argparse.Namespace) -> int:
 
         log.info("receiver set-up: %s", setup_receiver(cfg.source, cfg.baud, cfg.setup))
     source = open_source(
-        cfg.source, nav=nav_files(cfg) or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
+        cfg.source, nav=navs or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
     )
     nav_sources = _open_ntrip(cfg)
     transport = getattr(source, "transport", None)
@@ -388,8 +393,8 @@ def main_replay(args: argparse.Namespace) -> int:
         store = EphemerisStore()
         iono = IonoSet()
         _check_source(args.files[0])
-        _check_nav(args.files[0], args.nav or [], args.gps_week)
-        src = open_source(args.files[0], nav=args.nav or None, gps_week=args.gps_week)
+        navs = _check_nav(args.files[0], args.nav or [], args.gps_week)
+        src = open_source(args.files[0], nav=navs or None, gps_week=args.gps_week)
         events = src
         counters = src.counters
         speed = None if args.max_speed else (args.speed or 1.0)
