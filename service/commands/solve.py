@@ -123,9 +123,8 @@ def main_solve(args: argparse.Namespace) -> int:
         with_sky=args.format == "nmea",
     )
     reader = RinexObsReader(args.obs)
-    first = next(
-        ((e.gpst_week, e.gpst_tow_s) for e in RinexObsReader(args.obs, lenient=True)), None
-    )
+    with contextlib.closing(RinexObsReader(args.obs, lenient=True)) as head:  # the first epoch only
+        first = next(((e.gpst_week, e.gpst_tow_s) for e in head), None)
     store, iono = load_navigation(list(args.nav), first=first)
     counts, excluded = Counters(), Counters()
     declined = {"fast": Counters(), "spp": Counters()}
