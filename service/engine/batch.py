@@ -38,7 +38,6 @@ arrives.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -53,6 +52,7 @@ from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine import linalg
 from service.engine.declines import Decline, excluded_why, reason
+from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
 from service.engine.layout import BDS_ONLY, dop, layout_of
 from service.engine.raim import Integrity, assess_many
 from service.engine.solver import (
@@ -60,9 +60,7 @@ from service.engine.solver import (
     IonoSet,
     SolverConfig,
     delays,
-    implausible_reason,
     measurement_sigma_m,
-    no_exclusion,
     ranges,
     sky_view,
     solve,
@@ -446,174 +444,90 @@ def _solve_chunk(
         "cov": [i.cov_enu_m2.tolist() for i in integ],
         "resid": resid_rms.tolist(),
         "iters": iters[sel].tolist(),
-        "redundancy": [i.redundancy for i in integ],
-        "chi2": [i.chi2 for i in integ],
-        "chi2_max": [i.chi2_max for i in integ],
-        "hpl": [i.hpl_m for i in integ],
-        "vpl": [i.vpl_m for i in integ],
     }
     for k, e in enumerate(sel.tolist()):
-        chi2, chi2_max = integ[k].chi2, integ[k].chi2_max
-        if chi2 is not None and chi2_max is not None and not chi2 <= chi2_max:
-            out[e] = _failed(ch, e, solver, n_int, kp[k], integ, numbers, k)
-            continue
-        a_m, bb = numbers["alt"][k], numbers["b"][k]
-        if not (cfg.alt_min_m <= a_m <= cfg.alt_max_m) or abs(bb) > cfg.clock_max_s * C_M_S:
-            why = implausible_reason(a_m, bb, cfg)
-            out[e] = _judged_decline(ch, e, solver, numbers, k, why, Decline.IMPLAUSIBLE)
-            continue
-        if not numbers["pdop"][k] <= cfg.pdop_max:
-            why = reason(Decline.PDOP_GATE, pdop=numbers["pdop"][k], pdop_max=cfg.pdop_max)
-            out[e] = _judged_decline(ch, e, solver, numbers, k, why, Decline.PDOP_GATE)
-            continue
-        out[e] = _fix(ch, e, solver, n_int, kp[k], numbers, k)
+        out[e] = _judged(ch, e, solver, n_int, kp[k], integ[k], numbers, k, cfg)
     return out
 
 
-def _fix(
+def _judged(
     ch: _Chunk,
     e: int,
     solver: Literal["fast", "spp"],
     n_int: np.ndarray,
     kept: np.ndarray,
+    integ: Integrity,
     numbers: dict[str, list],
     k: int,
-) -> Fix:
-    """The fix of epoch ``e`` (``k``: its index among the judged epochs, in ``numbers``)."""
+    cfg: SolverConfig,
+) -> _Outcome:
+    """Epoch ``e``'s solution judged (:func:`service.engine.judge.verdict`): its fix, its
+    decline, or its failed test (``k``: its index among the judged epochs, in ``numbers``)."""
     ep = ch.epochs[e]
     prn = ch.prn[e]
+    frac = ch.frac[e, : len(prn)].tolist()
     kk = np.flatnonzero(kept[: len(prn)]).tolist()
-    frac = ch.frac[e].tolist()
     used = tuple(prn[i] for i in kk)
-    full = tuple(prn[i] for i in kk if not frac[i])
-    fractional = tuple(prn[i] for i in kk if frac[i])
+    w = integ.w[kk]
     ambiguity = {prn[i]: int(n_int[e, i]) for i in kk if frac[i]}
-    recovered = {prn[i]: float(ch.z[e, i] + n_int[e, i] * ch.ct[e, i]) for i in kk if frac[i]}
-    cov = numbers["cov"][k]
-    return Fix(
+    gdop_full = numbers["gdop"][k] if solver == "fast" else None
+    alt, clock, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
+    declined = verdict(integ, used, w, alt, clock, pdop, cfg)
+    if declined is not None:
+        code, why = declined
+        fix = decline_fix(
+            solver,
+            ep.gpst_week,
+            ep.gpst_tow_s,
+            prn,
+            frac,
+            code,
+            why,
+            gdop_full=gdop_full,
+            iterations=numbers["iters"][k],
+            resid_rms_m=numbers["resid"][k],
+            redundancy=integ.redundancy,
+            chi2=integ.chi2,
+            chi2_max=integ.chi2_max,
+            **({"ambiguity": ambiguity} if code is Decline.CHI2 else {}),
+        )
+        if code is not Decline.CHI2 or integ.chi2 is None or integ.chi2_max is None:
+            return fix
+        return _Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, tuple(w.tolist()), fix)
+    return solution_fix(
         solver=solver,
-        mode="fast" if fractional else "spp",
         gpst_week=ep.gpst_week,
         gpst_tow_s=ep.gpst_tow_s,
-        x_ecef_m=tuple(numbers["x"][k]),
+        x=numbers["x"][k],
+        clocks=(clock,),
+        systems=_LAYOUT.systems,
         lat_deg=numbers["lat_deg"][k],
         lon_deg=numbers["lon_deg"][k],
-        alt_m=numbers["alt"][k],
-        clock_bias_m=numbers["b"][k],
-        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
-        pdop=numbers["pdop"][k],
+        alt_m=alt,
+        gdop_full=gdop_full,
+        pdop=pdop,
         hdop=numbers["hdop"][k],
         vdop=numbers["vdop"][k],
-        std_enu_m=tuple(math.sqrt(max(cov[i][i], 0.0)) for i in range(3)),  # type: ignore[arg-type]
-        cov_enu_m2=tuple(tuple(r) for r in cov),
-        used=used,
-        full=full,
-        fractional=fractional,
-        ambiguity=ambiguity,
-        recovered_pr_m=recovered,
+        cov=numbers["cov"][k],
+        integ=integ,
         resid_rms_m=numbers["resid"][k],
         iterations=numbers["iters"][k],
-        redundancy=numbers["redundancy"][k],
-        chi2=numbers["chi2"][k],
-        chi2_max=numbers["chi2_max"][k],
-        hpl_m=numbers["hpl"][k],
-        vpl_m=numbers["vpl"][k],
-    )
-
-
-def _base(ch: _Chunk, e: int, solver: Literal["fast", "spp"], **fields: object) -> Fix:
-    """A declined fix of epoch ``e`` over all its rows (``full``/``fractional`` as the
-    per-epoch solver's ``_attempt`` gives them) with ``fields``."""
-    ep = ch.epochs[e]
-    prn = ch.prn[e]
-    frac = ch.frac[e].tolist()
-    return Fix(
-        solver=solver,
-        mode="none",
-        gpst_week=ep.gpst_week,
-        gpst_tow_s=ep.gpst_tow_s,
-        full=tuple(p for p, f in zip(prn, frac, strict=False) if not f),
-        fractional=tuple(p for p, f in zip(prn, frac, strict=False) if f),
-        **fields,  # type: ignore[arg-type]
+        used=used,
+        frac=[frac[i] for i in kk],
+        ambiguity=ambiguity,
+        recovered_pr_m={
+            prn[i]: float(ch.z[e, i] + n_int[e, i] * ch.ct[e, i]) for i in kk if frac[i]
+        },
     )
 
 
 def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
+    ep, prn = ch.epochs[e], ch.prn[e]
     n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
     code = Decline.TOO_FEW_FULL
     why = reason(code, n_full=n_full, n_frac=n_frac, need=_LAYOUT.n_params)
-    return _base(ch, e, solver, reason=why, reason_code=code.value)
-
-
-def _judged_decline(
-    ch: _Chunk,
-    e: int,
-    solver: Literal["fast", "spp"],
-    numbers: dict[str, list],
-    k: int,
-    why: str,
-    code: Decline,
-) -> Fix:
-    """The per-epoch solver's decline of a solution that passed the test but not the
-    plausible shell or the PDOP gate (its figures, no position)."""
-    return _base(
-        ch,
-        e,
-        solver,
-        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
-        iterations=numbers["iters"][k],
-        resid_rms_m=numbers["resid"][k],
-        redundancy=numbers["redundancy"][k],
-        chi2=numbers["chi2"][k],
-        chi2_max=numbers["chi2_max"][k],
-        reason=why,
-        reason_code=code.value,
-    )
-
-
-def _failed(
-    ch: _Chunk,
-    e: int,
-    solver: Literal["fast", "spp"],
-    n_int: np.ndarray,
-    kept: np.ndarray,
-    integ: list[Integrity],
-    numbers: dict[str, list],
-    k: int,
-) -> _Failed:
-    """Epoch ``e``'s failed chi-square test, with the decline the per-epoch solver gives
-    it (:func:`service.engine.solver._attempt`: the figures of the failed solution and the
-    largest w-test in the reason)."""
-    ep = ch.epochs[e]
-    prn = ch.prn[e]
-    frac = ch.frac[e].tolist()
-    kk = np.flatnonzero(kept[: len(prn)]).tolist()
-    used = tuple(prn[i] for i in kk)
-    w = [float(integ[k].w[i]) for i in kk]
-    chi2, chi2_max, r = numbers["chi2"][k], numbers["chi2_max"][k], numbers["redundancy"][k]
-    finite = [abs(v) if math.isfinite(v) else -math.inf for v in w]
-    worst = finite.index(max(finite)) if any(math.isfinite(v) for v in w) else 0
-    why = reason(
-        Decline.CHI2, chi2=chi2, chi2_max=chi2_max, redundancy=r, prn=used[worst], w=w[worst]
-    )
-    fix = Fix(
-        solver=solver,
-        mode="none",
-        gpst_week=ep.gpst_week,
-        gpst_tow_s=ep.gpst_tow_s,
-        full=tuple(p for p, f in zip(prn, frac, strict=False) if not f),
-        fractional=tuple(p for p, f in zip(prn, frac, strict=False) if f),
-        gdop_full=numbers["gdop"][k] if solver == "fast" else None,
-        iterations=numbers["iters"][k],
-        resid_rms_m=numbers["resid"][k],
-        redundancy=r,
-        chi2=chi2,
-        chi2_max=chi2_max,
-        reason=why,
-        reason_code=Decline.CHI2.value,
-        ambiguity={prn[i]: int(n_int[e, i]) for i in kk if frac[i]},
-    )
-    return _Failed(chi2, chi2_max, r, used, tuple(w), fix)
+    frac = ch.frac[e, : len(prn)].tolist()
+    return decline_fix(solver, ep.gpst_week, ep.gpst_tow_s, prn, frac, code, why)
 
 
 def _outcomes(
@@ -691,13 +605,11 @@ def _exclude(
             if res is None:
                 unsure.add(e)
             elif isinstance(res, Fix) and res.ok:
-                ratio = (
-                    res.chi2 / res.chi2_max if res.chi2 is not None and res.chi2_max else math.inf
-                )
+                ratio = fit_ratio(res.chi2, res.chi2_max)
                 if e not in passed or ratio < passed[e][0]:
                     passed[e] = (ratio, res, k)
             elif isinstance(res, _Failed):
-                ratio = res.chi2 / res.chi2_max if res.chi2_max else math.inf
+                ratio = fit_ratio(res.chi2, res.chi2_max)
                 if e not in failing or ratio < failing[e][0]:
                     failing[e] = (ratio, res, k, cand)
         nxt: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {}

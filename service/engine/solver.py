@@ -45,6 +45,7 @@ from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 from service.engine import linalg
 from service.engine.declines import Decline, excluded_why, reason
+from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
 from service.engine.layout import Layout, dop, layout_of
 from service.engine.raim import Integrity, assess
 
@@ -513,22 +514,15 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     frac = rows.frac
     n_full, n_frac = int((~frac).sum()), int(frac.sum())
 
-    def base(**fields: object) -> Fix:
-        """The declined fix of these rows with ``fields`` (built only for a decline)."""
-        return Fix(
-            solver=ctx.solver,
-            mode="none",
-            gpst_week=ctx.gpst_week,
-            gpst_tow_s=ctx.gpst_tow_s,
-            full=tuple(p for p, f in zip(rows.prn, frac, strict=True) if not f),
-            fractional=tuple(p for p, f in zip(rows.prn, frac, strict=True) if f),
-            **fields,  # type: ignore[arg-type]
-        )
-
     def declined(d: _Decline) -> _Attempt:
-        fix = base(
-            reason=d.reason,
-            reason_code=d.code.value,
+        fix = decline_fix(
+            ctx.solver,
+            ctx.gpst_week,
+            ctx.gpst_tow_s,
+            rows.prn,
+            frac.tolist(),
+            d.code,
+            d.reason,
             gdop_full=d.gdop_full,
             iterations=d.iterations,
         )
@@ -607,94 +601,56 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     ambiguity = {kept.prn[i]: int(state.n_int[i]) for i in frac_idx}
     gdop_full = gd_final if ctx.solver == "fast" else None
 
-    def judged(**fields: object) -> Fix:
-        """The declined fix of a judged solution with ``fields``."""
-        return base(
+    lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
+    b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
+    q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
+    pdop = float(np.sqrt(np.trace(q_enu)))
+    declined_why = verdict(integ, kept.prn, integ.w, loc.alt_m, b_max, pdop, cfg)
+    if declined_why is not None:
+        code, why = declined_why
+        fix = decline_fix(
+            ctx.solver,
+            ctx.gpst_week,
+            ctx.gpst_tow_s,
+            rows.prn,
+            frac.tolist(),
+            code,
+            why,
             gdop_full=gdop_full,
             iterations=it,
             resid_rms_m=resid_rms,
             redundancy=integ.redundancy,
             chi2=integ.chi2,
             chi2_max=integ.chi2_max,
-            **fields,
+            **({"ambiguity": ambiguity} if code is Decline.CHI2 else {}),
         )
-
-    if integ.chi2 is not None and not integ.passed:
-        worst = int(np.nanargmax(np.abs(integ.w))) if np.any(np.isfinite(integ.w)) else 0
-        why = reason(
-            Decline.CHI2,
-            chi2=integ.chi2,
-            chi2_max=integ.chi2_max,
-            redundancy=integ.redundancy,
-            prn=kept.prn[worst],
-            w=integ.w[worst],
-        )
-        fix = judged(reason=why, reason_code=Decline.CHI2.value, ambiguity=ambiguity)
         return _Attempt(fix, rows, keep, integ, x)
-    lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
-    b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
-    if not (cfg.alt_min_m <= loc.alt_m <= cfg.alt_max_m) or abs(b_max) > cfg.clock_max_s * C_M_S:
-        why = implausible_reason(loc.alt_m, b_max, cfg)
-        fix = judged(reason=why, reason_code=Decline.IMPLAUSIBLE.value)
-        return _Attempt(fix, rows, keep, integ, x)
-    q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
-    pdop = float(np.sqrt(np.trace(q_enu)))
-    if not pdop <= cfg.pdop_max:
-        why = reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
-        fix = judged(pdop=None, reason=why, reason_code=Decline.PDOP_GATE.value)
-        return _Attempt(fix, rows, keep, integ, x)
-    cov = integ.cov_enu_m2
-    cov_rows = cov.tolist()  # the same floats as element by element
-    mode: Literal["fast", "spp"] = "fast" if n_full_k < len(kept.prn) else "spp"
-    fix = Fix(  # judged's fields and the solution's (no replace: a third of the cost)
+    fix = solution_fix(
         solver=ctx.solver,
-        mode=mode,
         gpst_week=ctx.gpst_week,
         gpst_tow_s=ctx.gpst_tow_s,
-        gdop_full=gdop_full,
-        iterations=it,
-        resid_rms_m=resid_rms,
-        redundancy=integ.redundancy,
-        chi2=integ.chi2,
-        chi2_max=integ.chi2_max,
-        x_ecef_m=(float(x[0]), float(x[1]), float(x[2])),
+        x=x,
+        clocks=b,
+        systems=kept.layout.systems,
         lat_deg=lat_deg,
         lon_deg=lon_deg,
         alt_m=loc.alt_m,
-        clock_bias_m=float(b[0]),
-        clocks_m=(
-            {s.value: float(c) for s, c in zip(kept.layout.systems, b, strict=True)}
-            if kept.layout.n_clocks > 1
-            else {}
-        ),
+        gdop_full=gdop_full,
         pdop=pdop,
         hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
         vdop=float(np.sqrt(q_enu[2, 2])),
-        std_enu_m=(_std(cov_rows, 0), _std(cov_rows, 1), _std(cov_rows, 2)),
-        cov_enu_m2=_rows3(cov_rows),
-        hpl_m=integ.hpl_m,
-        vpl_m=integ.vpl_m,
+        cov=integ.cov_enu_m2.tolist(),  # the same floats as element by element
+        integ=integ,
+        resid_rms_m=resid_rms,
+        iterations=it,
         used=kept.prn,
-        full=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if not f),
-        fractional=tuple(p for p, f in zip(kept.prn, kfrac, strict=True) if f),
+        frac=kfrac.tolist(),
         ambiguity=ambiguity,
         recovered_pr_m={
             kept.prn[i]: float(kept.z_m[i] + state.n_int[i] * kept.ct_m[i]) for i in frac_idx
         },
     )
     return _Attempt(fix, rows, keep, integ, x)
-
-
-def implausible_reason(alt_m: float, clock_m: float, cfg: SolverConfig) -> str:
-    """The reason of a solution outside the plausible shell (altitude, receiver clock)."""
-    return reason(
-        Decline.IMPLAUSIBLE,
-        alt_m=alt_m,
-        alt_min_m=cfg.alt_min_m,
-        alt_max_m=cfg.alt_max_m,
-        clock_s=clock_m / C_M_S,
-        clock_max_s=cfg.clock_max_s,
-    )
 
 
 def _clocks_for(b: np.ndarray, rows: _Rows, kept: _Rows) -> np.ndarray:
@@ -704,14 +660,6 @@ def _clocks_for(b: np.ndarray, rows: _Rows, kept: _Rows) -> np.ndarray:
         return b
     where = {s: k for k, s in enumerate(rows.layout.systems)}
     return np.array([b[where[s]] for s in kept.layout.systems])
-
-
-def _std(cov: list[list[float]], k: int) -> float:
-    return math.sqrt(max(cov[k][k], 0.0))  # correctly rounded, as numpy's
-
-
-def _rows3(m: list[list[float]]) -> tuple[tuple[float, float, float], ...]:
-    return tuple((r[0], r[1], r[2]) for r in m)
 
 
 def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
@@ -764,11 +712,7 @@ def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]
             why = excluded_why("chi2", chi2=integ.chi2, chi2_max=integ.chi2_max, w=integ.w[k])
             cand = _attempt(current.rows.take(np.delete(every, int(i))), ctx, start)
             ci = cand.integrity
-            ratio = (
-                ci.chi2 / ci.chi2_max
-                if ci is not None and ci.chi2 is not None and ci.chi2_max
-                else math.inf
-            )
+            ratio = math.inf if ci is None else fit_ratio(ci.chi2, ci.chi2_max)
             if cand.fix.ok:
                 if passed is None or ratio < passed[0]:
                     passed = (ratio, cand, prn, why)
@@ -1048,12 +992,6 @@ def declined(
         reason=why,
         reason_code=code.value,
     )
-
-
-def no_exclusion(fix: Fix, max_exclusions: int) -> str:
-    """The reason of a failed test that no exclusion of up to ``max_exclusions`` satellites
-    resolves (``fix``: the failed solution's decline)."""
-    return reason(Decline.CHI2, "no_exclusion", reason=fix.reason, max_exclusions=max_exclusions)
 
 
 def solve(
