@@ -53,7 +53,7 @@ from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine import linalg
 from service.engine.declines import Decline, excluded_why, reason
 from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
-from service.engine.layout import BDS_ONLY, dop, layout_of
+from service.engine.layout import BDS_ONLY, Layout, dop, layout_of
 from service.engine.raim import Integrity, assess_many
 from service.engine.solver import (
     GROSS_SPREAD_M,
@@ -69,10 +69,6 @@ from service.engine.solver import (
 
 log = logging.getLogger(__name__)
 
-_LAYOUT = BDS_ONLY
-"""The unknowns of the batch: position and one clock (epochs with rows of other systems,
-which have clocks of their own, go to the per-epoch solver)."""
-_NP = _LAYOUT.n_params
 
 CHUNK_EPOCHS = 256
 """Epochs solved together: large enough that numpy's per-call cost is spread thin, small
@@ -148,8 +144,17 @@ class _Chunk:
         cols = EphemerisArrays.from_ephemerides(unique)
         self.eph = _gather(cols, idx)
         self.frac = self.valid & (self.ct > 0)
-        self.other_system = np.array([layout_of(ps) is not _LAYOUT for ps in self.prn], bool)
         self.full = self.valid & ~self.frac
+        # the unknowns: one layout for the chunk (None: its epochs' rows differ in their
+        # systems, and :func:`_outcomes` solves each layout's epochs as a chunk of their own)
+        layouts = {layout_of(ps) for ps in self.prn if ps}
+        self.layout: Layout | None = layouts.pop() if len(layouts) == 1 else None
+        if not layouts and self.layout is None:
+            self.layout = BDS_ONLY
+        self.cix = np.zeros((n_e, n_s), dtype=np.intp)  # each row's clock (padding: 0)
+        if self.layout is not None and self.layout.n_clocks > 1:
+            for k, ps in enumerate(self.prn):
+                self.cix[k, : len(ps)] = self.layout.clock_index(ps)
 
 
 def _placeholder() -> Ephemeris:
@@ -178,8 +183,10 @@ def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
     return EphemerisArrays(prn=(), **kw)
 
 
-def _design(los: np.ndarray) -> np.ndarray:
-    return _LAYOUT.design(los)
+def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
+    """Each row's receiver clock [m]: ``b`` (e, clocks) at the rows' clock indices ``cix``
+    (e, s); with one clock, ``b`` itself (it broadcasts over the rows)."""
+    return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
 
 
 def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -230,9 +237,14 @@ def _fail(
 
 
 def _solve_chunk(
-    ch: _Chunk, iono: IonoSet, cfg: SolverConfig, solver: Literal["fast", "spp"]
+    ch: _Chunk,
+    layout: Layout,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
 ) -> list[_Outcome]:
-    """The outcome of each epoch of the chunk (:data:`_Outcome`)."""
+    """The outcome of each epoch of the chunk (:data:`_Outcome`), whose rows have the
+    unknowns ``layout`` (a clock per system among them)."""
     n_e, n_s = ch.z.shape
     ok = np.ones(n_e, dtype=bool)
     unsure = np.zeros(n_e, dtype=bool)
@@ -247,14 +259,17 @@ def _solve_chunk(
         gross = ch.full & ~(np.abs(ch.z - median) <= GROSS_SPREAD_M)
     n_rows = ch.valid.sum(axis=1)
     unsure |= gross.any(axis=1) | (n_rows == 0)  # (no rows: no ephemeris or no measurement)
-    # an epoch with rows of more than one system (a clock each): the per-epoch solver
-    unsure |= ch.other_system
-    too_few = ~unsure & (n_full < _LAYOUT.n_params)
+    n_par, n_clk, cix = layout.n_params, layout.n_clocks, ch.cix
+
+    def design(los_: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        return layout.design(los_, cix if sel is None else cix[sel])
+
+    too_few = ~unsure & (n_full < n_par)
     ok &= ~unsure & ~too_few
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
     x = np.zeros((n_e, 3))
-    b = np.zeros(n_e)
+    b = np.zeros((n_e, n_clk))
     n_int = np.zeros((n_e, n_s))
     iters = np.zeros(n_e, dtype=int)
     every = np.arange(n_e)
@@ -264,7 +279,7 @@ def _solve_chunk(
     fullw = ch.full.astype(float)
 
     def cost_of(sel: np.ndarray, pred_: np.ndarray, b_: np.ndarray) -> np.ndarray:
-        r = np.where(ch.full[sel], ch.z[sel] - pred_ - b_[:, None], 0.0)
+        r = np.where(ch.full[sel], ch.z[sel] - pred_ - _row_clocks(b_, cix[sel]), 0.0)
         return np.einsum("es,es->e", r, r)
 
     cost = cost_of(every, pred, b)
@@ -275,8 +290,8 @@ def _solve_chunk(
         if not sel.size:
             break
         iters[sel] += 1
-        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
-        h = _design(los[sel])
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
+        h = design(los[sel], sel)
         try:
             step = _lsq(h, dz, fullw[sel])  # eq. (10) over the full rows
         except np.linalg.LinAlgError:
@@ -300,7 +315,7 @@ def _solve_chunk(
             p = sel[pending]
             lp = lam[pending]
             xp = x[p] + lp[:, None] * step[pending, :3]
-            bp = b[p] + lp * step[pending, 3]
+            bp = b[p] + lp[:, None] * step[pending, 3:n_par]
             dnp = np.where(frac[pending], np.rint(lp[:, None] * dn_m[pending] / ct[pending]), 0.0)
             np_int = n_int[p] + dnp  # eq. (13)
             # the orbits depend on the integers only (eqs. 4-5): computed again only for
@@ -325,7 +340,7 @@ def _solve_chunk(
         los[sel], pred[sel], sat[sel], sat0[sel], clk[sel] = los_n, pred_n, sat_n, sat0_n, clk_n
         cost[sel] = cost_n
         finite = np.isfinite(x_new).all(axis=1)
-        settled = (np.linalg.norm(lam[:, None] * step[:, :_NP], axis=1) < cfg.theta_m) & ~np.any(
+        settled = (np.linalg.norm(lam[:, None] * step[:, :n_par], axis=1) < cfg.theta_m) & ~np.any(
             dn != 0, axis=1
         )  # eq. (14)
         converged[sel] = finite & settled
@@ -337,7 +352,7 @@ def _solve_chunk(
     gd = np.full(n_e, np.nan)
     if solver == "fast":
         with np.errstate(all="ignore"):
-            gd = dop(_design(los), fullw)
+            gd = dop(design(los), fullw)
         beta = np.full(n_e, float(cfg.beta))
         if not cfg.beta:
             t_min = np.min(np.where(ch.frac, ch.ct, np.inf), axis=1) / C_M_S
@@ -351,15 +366,15 @@ def _solve_chunk(
         if not sel.size:
             break
         iters[sel] += 1
-        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
         try:
-            step = _lsq(_design(los[sel]), dz, validw[sel])
+            step = _lsq(design(los[sel], sel), dz, validw[sel])
         except np.linalg.LinAlgError:
             _fail(ok, sel, np.ones(sel.size, dtype=bool), unsure)
             break
         x[sel] += step[:, :3]
-        b[sel] += step[:, 3]
-        finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
+        b[sel] += step[:, 3:n_par]
+        finite = np.isfinite(np.concatenate([x[sel], b[sel]], axis=1)).all(axis=1)
         _fail(ok, sel, ~finite, unsure)
         los[sel], pred[sel], sat[sel] = ranges(sat0[sel], clk[sel], x[sel], omega[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
@@ -371,14 +386,14 @@ def _solve_chunk(
     ok &= ~far
     out: list[_Outcome] = [None if u else _DECLINED for u in unsure.tolist()]
     for e in np.flatnonzero(too_few).tolist():
-        out[e] = _too_few(ch, e, solver)
+        out[e] = _too_few(ch, e, solver, layout)
     sel = np.flatnonzero(ok)
     if not sel.size:
         return out
     _, _, _, el, _ = _local(x[sel], sat[sel])
     keep = ch.valid.copy()
     keep[sel] &= el >= np.radians(cfg.elmask_deg)
-    ok &= (keep & ch.full).sum(axis=1) >= _LAYOUT.n_params
+    ok &= (keep & ch.full).sum(axis=1) >= n_par
     keepw = keep.astype(float)
     model = iono.model(cfg.iono)
     sel = np.flatnonzero(ok)
@@ -386,7 +401,7 @@ def _solve_chunk(
         if not sel.size:
             break
         iters[sel] += 1
-        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None]
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
         lat, lon, alt, el, az = _local(x[sel], sat[sel])
         io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
         dz = dz - total_delay(io, tr)
@@ -394,13 +409,13 @@ def _solve_chunk(
         if cfg.weighted:
             w = w / measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2
         try:
-            step = _lsq(_design(los[sel]), dz, w)
+            step = _lsq(design(los[sel], sel), dz, w)
         except np.linalg.LinAlgError:
             _fail(ok, sel, np.ones(sel.size, dtype=bool), unsure)
             break
         x[sel] += step[:, :3]
-        b[sel] += step[:, 3]
-        finite = np.isfinite(x[sel]).all(axis=1) & np.isfinite(b[sel])
+        b[sel] += step[:, 3:n_par]
+        finite = np.isfinite(np.concatenate([x[sel], b[sel]], axis=1)).all(axis=1)
         _fail(ok, sel, ~finite, unsure)
         los[sel], pred[sel], sat[sel] = ranges(sat0[sel], clk[sel], x[sel], omega[sel])
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
@@ -414,19 +429,20 @@ def _solve_chunk(
     lat, lon, alt, el, az = _local(x[sel], sat[sel])
     io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
     kp = keep[sel]
-    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - b[sel, None] - total_delay(io, tr)
+    bc = _row_clocks(b[sel], cix[sel])
+    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - bc - total_delay(io, tr)
     v = np.where(kp, v, 0.0)
     if cfg.weighted:
         sigma = np.where(kp, measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg), 1.0)
     else:
         sigma = np.full(kp.shape, cfg.sigma_uniform_m)
-    g = _design(los[sel])
+    g = design(los[sel], sel)
     rot = enu_rotation(lat, lon)
-    integ = assess_many(g, v, sigma, kp, rot, cfg.p_fa, cfg.p_md, _LAYOUT)
+    integ = assess_many(g, v, sigma, kp, rot, cfg.p_fa, cfg.p_md, layout)
     n_k = kp.sum(axis=1)
     resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
     kfull = kp & ch.full[sel]
-    gd_final = dop(_design(los[sel]), kfull.astype(float))
+    gd_final = dop(g, kfull.astype(float))
     gu = g * kp[..., None]
     q = linalg.inv(np.swapaxes(gu, -1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ np.swapaxes(rot, -1, -2)
@@ -446,7 +462,7 @@ def _solve_chunk(
         "iters": iters[sel].tolist(),
     }
     for k, e in enumerate(sel.tolist()):
-        out[e] = _judged(ch, e, solver, n_int, kp[k], integ[k], numbers, k, cfg)
+        out[e] = _judged(ch, e, solver, layout, n_int, kp[k], integ[k], numbers, k, cfg)
     return out
 
 
@@ -454,6 +470,7 @@ def _judged(
     ch: _Chunk,
     e: int,
     solver: Literal["fast", "spp"],
+    layout: Layout,
     n_int: np.ndarray,
     kept: np.ndarray,
     integ: Integrity,
@@ -471,7 +488,8 @@ def _judged(
     w = integ.w[kk]
     ambiguity = {prn[i]: int(n_int[e, i]) for i in kk if frac[i]}
     gdop_full = numbers["gdop"][k] if solver == "fast" else None
-    alt, clock, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
+    alt, clocks, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
+    clock = max(clocks, key=abs)  # the clock furthest from zero
     declined = verdict(integ, used, w, alt, clock, pdop, cfg)
     if declined is not None:
         code, why = declined
@@ -499,8 +517,8 @@ def _judged(
         gpst_week=ep.gpst_week,
         gpst_tow_s=ep.gpst_tow_s,
         x=numbers["x"][k],
-        clocks=(clock,),
-        systems=_LAYOUT.systems,
+        clocks=clocks,
+        systems=layout.systems,
         lat_deg=numbers["lat_deg"][k],
         lon_deg=numbers["lon_deg"][k],
         alt_m=alt,
@@ -521,11 +539,11 @@ def _judged(
     )
 
 
-def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"]) -> Fix:
+def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"], layout: Layout) -> Fix:
     ep, prn = ch.epochs[e], ch.prn[e]
     n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
     code = Decline.TOO_FEW_FULL
-    why = reason(code, n_full=n_full, n_frac=n_frac, need=_LAYOUT.n_params)
+    why = reason(code, n_full=n_full, n_frac=n_frac, need=layout.n_params)
     frac = ch.frac[e, : len(prn)].tolist()
     return decline_fix(solver, ep.gpst_week, ep.gpst_tow_s, prn, frac, code, why)
 
@@ -543,10 +561,34 @@ def _outcomes(
         part = epochs[start : start + CHUNK_EPOCHS]
         try:
             with np.errstate(all="ignore"):
-                out += _solve_chunk(_Chunk(part, store, solver), iono, cfg, solver)
+                out += _solve_layouts(_Chunk(part, store, solver), store, iono, cfg, solver)
         except (np.linalg.LinAlgError, ArithmeticError, ValueError):
             log.debug("batch solve failed on a chunk; its epochs go one by one", exc_info=True)
             out += [None] * len(part)
+    return out
+
+
+def _solve_layouts(
+    ch: _Chunk,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> list[_Outcome]:
+    """:func:`_solve_chunk` of ``ch``; when its epochs' rows differ in their satellite
+    systems (so in their clocks, :class:`~service.engine.layout.Layout`), each layout's
+    epochs are solved as a chunk of their own."""
+    if ch.layout is not None:
+        return _solve_chunk(ch, ch.layout, iono, cfg, solver)
+    groups: dict[Layout, list[int]] = {}
+    for e, ps in enumerate(ch.prn):
+        groups.setdefault(layout_of(ps) if ps else BDS_ONLY, []).append(e)
+    out: list[_Outcome] = [None] * len(ch.prn)
+    for idx in groups.values():
+        sub = _Chunk([ch.epochs[e] for e in idx], store, solver)
+        layout = sub.layout if sub.layout is not None else BDS_ONLY
+        for e, res in zip(idx, _solve_chunk(sub, layout, iono, cfg, solver), strict=True):
+            out[e] = res
     return out
 
 

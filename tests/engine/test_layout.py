@@ -112,12 +112,27 @@ def test_one_clock_for_every_system_would_fail_the_test(hksc):
     assert mixed.ok and not mixed.excluded
 
 
-def test_batch_gives_the_mixed_epochs_the_same_clocks(hksc):
-    from service.engine.batch import solve_many
+@pytest.mark.parametrize("take", [0, 4])
+def test_batch_solves_the_mixed_epochs_itself_with_a_clock_per_system(hksc, monkeypatch, take):
+    """The batch gives rows of another system their own clock column (the layout of its
+    rows), without handing the epoch to the per-epoch solver; a chunk that mixes epochs of
+    one and of two systems solves each layout's epochs together. Its fixes are the
+    per-epoch solver's to rounding (the same decisions, clocks and positions within 1e-6 m)."""
+    from service.engine import batch
 
     epochs, store, iono = hksc
-    mixed = [_relabel(ep, 4) for ep in epochs]
+    mixed = [_relabel(ep, take) if k % 2 else ep for k, ep in enumerate(epochs)]
     one = [solve(ep, _Relabelled(store), iono, solver="spp") for ep in mixed]  # type: ignore[arg-type]
-    many = solve_many(mixed, _Relabelled(store), iono, solver="spp")  # type: ignore[arg-type]
+
+    def no_fallback(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the batch handed an epoch to the per-epoch solver")
+
+    monkeypatch.setattr(batch, "solve", no_fallback)
+    many = batch.solve_many(mixed, _Relabelled(store), iono, solver="spp")  # type: ignore[arg-type]
     for a, b in zip(one, many, strict=True):
-        assert a.clocks_m == b.clocks_m and a.x_ecef_m == b.x_ecef_m
+        assert (a.mode, a.used, a.redundancy) == (b.mode, b.used, b.redundancy)
+        assert set(a.clocks_m) == set(b.clocks_m)
+        for s, c in a.clocks_m.items():
+            assert abs(b.clocks_m[s] - c) <= 1e-6
+        assert np.linalg.norm(np.subtract(a.x_ecef_m, b.x_ecef_m)) <= 1e-6
+    assert sum(len(f.clocks_m) == 2 for f in many) == (len(epochs) // 2 if take else 0)
