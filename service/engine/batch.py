@@ -19,17 +19,22 @@ cost per epoch is paid once per chunk:
   :func:`~service.engine.solver.measurement_sigma_m`, over (epoch, satellite) arrays);
 - the judgement: the chi-square test and protection levels
   (:func:`service.engine.raim.assess_many`, which the per-epoch solver calls with one
-  epoch), the plausible shell and the PDOP gate; the declines of too few full ranges, a
-  failed test, an implausible solution and the PDOP gate are built here, in the words of
-  the one table (:mod:`service.engine.declines`);
+  epoch), the plausible shell and the PDOP gate, in the one judgement both paths call
+  (:func:`service.engine.judge.verdict`); the declines of no rows, too few full ranges (also
+  above the mask), the GEO-GDOP gate, a failed test, an implausible solution and the PDOP
+  gate are built here by the builders both paths call (:mod:`service.engine.judge`), in the
+  words of the one table (:mod:`service.engine.declines`);
+- the unknowns are the chunk's rows' :class:`~service.engine.layout.Layout`: a receiver
+  clock per satellite system (a chunk whose epochs differ in their systems is solved one
+  layout at a time);
 - fault exclusion: every candidate of every failed epoch of a stage in one batch.
 
-An epoch the batch cannot decide (no week, an impossible range, no convergence, the GDOP
-gate, too few full rows above the mask, a singular system, a position far from the Earth,
-rows of more than one satellite system) is solved by :func:`~service.engine.solver.solve`.
-A fix from the batch equals the per-epoch solver's to floating-point rounding
-(tests/engine/test_batch.py holds them to 1e-6 m on real files), and an epoch solved alone
-equals the same epoch inside a chunk (the same bits where the chunk has no padding slots).
+An epoch the batch cannot decide (no week, an impossible range, no convergence in phase 1,
+a singular system, a position far from the Earth or not finite) is solved by
+:func:`~service.engine.solver.solve`. A fix from the batch equals the per-epoch solver's to
+floating-point rounding (tests/engine/test_batch.py holds them to 1e-6 m on real files),
+and an epoch solved alone equals the same epoch inside a chunk (the same bits where the
+chunk has no padding slots).
 
 The stream path (daemon, replay) keeps the per-epoch solver: an epoch is solved as it
 arrives.
@@ -107,10 +112,13 @@ class _Chunk:
         unique: list[Ephemeris] = []
         picked: list[int] = []  # flat index of each row
         eph_idx: list[int] = []
+        # per epoch, its usable measurements without an ephemeris (select_rows' "missing")
+        self.missing: list[list[str]] = [[] for _ in range(n_e)]
         for f in np.flatnonzero(use).tolist():
             k = int(owner[f])
             e = store.select(prns[f], *bdt[k])
             if e is None:
+                self.missing[k].append(prns[f])
                 continue
             u = table.get(id(e))
             if u is None:
@@ -216,14 +224,10 @@ class _Failed:
     fix: Fix  # the per-epoch solver's decline of this solution (reason_code chi2)
 
 
-_DECLINED = "declined"
-"""An epoch the per-epoch solver certainly declines (too few full ranges, no convergence,
-the GDOP gate, the mask, an implausible solution, the PDOP gate): no fix, and for fault
-exclusion no candidate."""
-
-_Outcome = Fix | _Failed | str | None
-"""A fix, a failed chi-square test, :data:`_DECLINED`, or None: the per-epoch solver must
-decide (a singular system, an impossible range, a position far from the Earth)."""
+_Outcome = Fix | _Failed | None
+"""A fix or a decline, a failed chi-square test, or None: the per-epoch solver must decide
+(a singular system, an impossible range, a position far from the Earth, a solution that
+diverged)."""
 
 
 def _fail(
@@ -258,14 +262,27 @@ def _solve_chunk(
     with np.errstate(invalid="ignore"):
         gross = ch.full & ~(np.abs(ch.z - median) <= GROSS_SPREAD_M)
     n_rows = ch.valid.sum(axis=1)
-    unsure |= gross.any(axis=1) | (n_rows == 0)  # (no rows: no ephemeris or no measurement)
+    no_rows = n_rows == 0  # no ephemeris or no measurement
+    unsure |= gross.any(axis=1)
     n_par, n_clk, cix = layout.n_params, layout.n_clocks, ch.cix
 
     def design(los_: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
         return layout.design(los_, cix if sel is None else cix[sel])
 
-    too_few = ~unsure & (n_full < n_par)
-    ok &= ~unsure & ~too_few
+    too_few = ~unsure & ~no_rows & (n_full < n_par)
+    ok &= ~unsure & ~too_few & ~no_rows
+    # the declines decided here: (epoch, code, reason, fields of the declined fix)
+    declines: list[tuple[int, Decline, str, dict[str, object]]] = []
+    for e in np.flatnonzero(no_rows & ~unsure).tolist():
+        if ch.missing[e]:
+            code = Decline.NO_EPHEMERIS
+            declines.append((e, code, reason(code, prns=", ".join(ch.missing[e])), {}))
+        else:
+            declines.append((e, Decline.NO_MEASUREMENTS, reason(Decline.NO_MEASUREMENTS), {}))
+    for e in np.flatnonzero(too_few).tolist():
+        n_f, n_q = int(n_full[e]), int(ch.frac[e].sum())
+        why = reason(Decline.TOO_FEW_FULL, n_full=n_f, n_frac=n_q, need=n_par)
+        declines.append((e, Decline.TOO_FEW_FULL, why, {}))
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
     x = np.zeros((n_e, 3))
@@ -345,11 +362,17 @@ def _solve_chunk(
         )  # eq. (14)
         converged[sel] = finite & settled
         active[sel] = finite & ~settled
-    ok &= converged  # no convergence (or diverged): the per-epoch solver says which
+
+    # no convergence (or a position no longer finite): the per-epoch solver decides. Its
+    # phase 1 steps on the augmented system of eq. (10) itself, this one on the full rows
+    # with each ambiguity step as the row's residual: the same step in exact arithmetic, but
+    # with a gross fault they can settle differently (HKSC, a 1 ms error on a GEO: the
+    # per-epoch iteration converges in 11 steps, this one not in 30), so a decline of this
+    # kind is not the batch's to give
+    _fail(ok, np.flatnonzero(ok), ~converged[ok], unsure)
 
     # eqs. (12), (20)-(21): the GEO-GDOP gate over the full rows at the converged position
     n_frac = ch.frac.sum(axis=1)
-    gd = np.full(n_e, np.nan)
     if solver == "fast":
         with np.errstate(all="ignore"):
             gd = dop(design(los), fullw)
@@ -357,7 +380,14 @@ def _solve_chunk(
         if not cfg.beta:
             t_min = np.min(np.where(ch.frac, ch.ct, np.inf), axis=1) / C_M_S
             beta = np.where(n_frac > 0, C_M_S * t_min / 2.0 / cfg.range_error_m, 0.0)  # eq. 21
-        ok &= (n_frac == 0) | (gd < beta)
+        gate = ok & (n_frac > 0) & ~(gd < beta)
+        gd_l, beta_l, it_l = gd.tolist(), beta.tolist(), iters.tolist()
+        for e in np.flatnonzero(gate).tolist():
+            it = it_l[e]
+            why = reason(Decline.GDOP_GATE, gdop=gd_l[e], beta=beta_l[e], iterations=it)
+            fields = {"gdop_full": gd_l[e], "iterations": it}
+            declines.append((e, Decline.GDOP_GATE, why, fields))
+        ok &= ~gate
 
     # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
     sel = np.flatnonzero(ok)
@@ -384,16 +414,27 @@ def _solve_chunk(
     far = ok & ~((r > 6.0e6) & (r < 8.5e6))  # not meaningful: the per-epoch solver's business
     unsure |= far
     ok &= ~far
-    out: list[_Outcome] = [None if u else _DECLINED for u in unsure.tolist()]
-    for e in np.flatnonzero(too_few).tolist():
-        out[e] = _too_few(ch, e, solver, layout)
+    out: list[_Outcome] = [None] * n_e
     sel = np.flatnonzero(ok)
-    if not sel.size:
-        return out
-    _, _, _, el, _ = _local(x[sel], sat[sel])
+    if sel.size:
+        _, _, _, el, _ = _local(x[sel], sat[sel])
     keep = ch.valid.copy()
-    keep[sel] &= el >= np.radians(cfg.elmask_deg)
-    ok &= (keep & ch.full).sum(axis=1) >= n_par
+    if sel.size:
+        keep[sel] &= el >= np.radians(cfg.elmask_deg)
+    n_full_k = (keep & ch.full).sum(axis=1)
+    masked = ok & (n_full_k < n_par)
+    if masked.any():
+        with np.errstate(all="ignore"):
+            gd = dop(design(los), fullw)  # at the position of the fixed iterations
+        for e in np.flatnonzero(masked).tolist():
+            why = reason(
+                Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=int(n_full_k[e])
+            )
+            fields = {"gdop_full": float(gd[e]) if n_frac[e] else None, "iterations": int(iters[e])}
+            declines.append((e, Decline.TOO_FEW_FULL, why, fields))
+    ok &= ~masked
+    for e, code, why, fields in declines:
+        out[e] = _decline(ch, e, solver, code, why, fields)
     keepw = keep.astype(float)
     model = iono.model(cfg.iono)
     sel = np.flatnonzero(ok)
@@ -423,7 +464,7 @@ def _solve_chunk(
     # ---- judge the solution ------------------------------------------------------------------
     for e in np.flatnonzero(unsure).tolist():
         out[e] = None
-    sel = np.flatnonzero(ok)
+    sel = np.flatnonzero(ok & ~unsure)
     if not sel.size:
         return out
     lat, lon, alt, el, az = _local(x[sel], sat[sel])
@@ -539,13 +580,19 @@ def _judged(
     )
 
 
-def _too_few(ch: _Chunk, e: int, solver: Literal["fast", "spp"], layout: Layout) -> Fix:
+def _decline(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    code: Decline,
+    why: str,
+    fields: dict[str, object],
+) -> Fix:
+    """Epoch ``e``'s decline decided before its solution is judged (the per-epoch solver's:
+    over its rows, with ``fields``; an epoch without rows has none)."""
     ep, prn = ch.epochs[e], ch.prn[e]
-    n_full, n_frac = int(ch.full[e].sum()), int(ch.frac[e].sum())
-    code = Decline.TOO_FEW_FULL
-    why = reason(code, n_full=n_full, n_frac=n_frac, need=layout.n_params)
     frac = ch.frac[e, : len(prn)].tolist()
-    return decline_fix(solver, ep.gpst_week, ep.gpst_tow_s, prn, frac, code, why)
+    return decline_fix(solver, ep.gpst_week, ep.gpst_tow_s, prn, frac, code, why, **fields)
 
 
 def _outcomes(

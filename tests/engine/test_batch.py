@@ -186,6 +186,44 @@ def test_settings_batch_equals_per_epoch(hksc, solver, cfg):
         _same(r, g)
 
 
+@pytest.mark.parametrize(
+    ("cfg", "code"),
+    [
+        (SolverConfig(beta=3.0), "gdop_gate"),
+        (SolverConfig(elmask_deg=60.0), "too_few_full"),
+    ],
+    ids=["gdop-gate", "mask"],
+)
+@pytest.mark.parametrize("solver", ["spp", "fast"])
+def test_the_batch_decides_its_declines_itself(hksc, monkeypatch, solver, cfg, code):
+    """The GEO-GDOP gate (fast only: SPP has no fractional rows to gate) and too few full
+    rows above the mask are declined by the batch itself (the per-epoch solver, patched to
+    fail, is never asked), with the per-epoch solver's words and figures: the same reason,
+    iterations, and GDOP to rounding."""
+    from service.engine import batch
+
+    nav = str(DATA / "hksc-2021" / "hksc1610.nav")
+    store, iono = load_navigation([nav])
+    epochs = hksc[::10]
+    if solver == "fast":
+        epochs = [fractionalize(e) for e in epochs]
+    ref = [solve(e, store, iono, cfg, solver) for e in epochs]  # type: ignore[arg-type]
+
+    def no_fallback(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the batch handed an epoch to the per-epoch solver")
+
+    monkeypatch.setattr(batch, "solve", no_fallback)
+    got = batch.solve_many(epochs, store, iono, cfg, solver)  # type: ignore[arg-type]
+    for r, g in zip(ref, got, strict=True):
+        _same(r, g)
+        assert g.iterations == r.iterations
+        assert (g.gdop_full is None) == (r.gdop_full is None)
+        if r.gdop_full is not None:
+            assert g.gdop_full == pytest.approx(r.gdop_full, rel=1e-9)
+    if solver == "fast":  # (SPP has no gate, and keeps 4 full rows above 60 deg)
+        assert sum(f.reason_code == code for f in got) >= len(got) // 4
+
+
 def _bits(fix: Fix) -> tuple:
     """Every field of ``fix`` but the sky, as exact values (floats by their repr)."""
     return tuple(repr(getattr(fix, f)) for f in Fix.__slots__ if f != "sky")  # type: ignore[attr-defined]
