@@ -7,12 +7,12 @@ and checks; docs/method.md), but each step of the iteration is one set of numpy 
 cost per epoch is paid once per chunk:
 
 - phase 1 (paper eqs. 3-16) from the Earth's centre with the backtracking step, all epochs
-  of the chunk in lockstep; an epoch that has converged keeps its state. The x/b step is
-  the least-squares step over the full rows: each fractional row has its own ambiguity
-  column in eq. (11), so its residual is absorbed by dN_j = h_j . [dx, db] - dz_j (in
-  metres, rounded in units of c*T by eq. 13), which is the solution of the augmented
-  system of eq. (10) without forming it. The satellites' orbits (eqs. 4-5) depend on the
-  integers only: an epoch's are computed again only when a step moves its integers;
+  of the chunk in lockstep; an epoch that has converged keeps its state. The step is the
+  least-squares step of eq. (10) on the augmented system of eq. (11) (a -1 ambiguity
+  column in metres per fractional row, rounded in units of c*T by eq. 13), formed as the
+  per-epoch solver forms it (:func:`_phase1_step`). The satellites' orbits (eqs. 4-5)
+  depend on the integers only: an epoch's are computed again only when a step moves its
+  integers;
 - phase 2: the elevation mask, Klobuchar, Saastamoinen and the error model's weights,
   iterated to convergence (the ranges, delays and weights are the per-epoch solver's own
   functions, :func:`~service.engine.solver.ranges`, :func:`~service.engine.solver.delays`,
@@ -204,6 +204,28 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
     return linalg.solve(ht @ h, (ht @ dz[..., None]))[..., 0]
 
 
+def _phase1_step(
+    h: np.ndarray, dz: np.ndarray, frac: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares step of eq. (10) on the augmented system of eq. (11), per epoch:
+    the layout's columns ``h`` (e, s, p) and one ambiguity column per fractional row (-1, in
+    metres), as the per-epoch solver forms it. Returns the step of the layout's unknowns
+    (e, p) and each row's ambiguity step [m] (e, s; 0 for full rows). A slot that is not a
+    fractional row has an empty ambiguity column: its unknown is held at 0 by a unit
+    diagonal (it is decoupled from the rest, whose normal equations are the augmented
+    system's own)."""
+    n_e, n_s, n_p = h.shape
+    amb = np.zeros((n_e, n_s, n_s))
+    ii = np.arange(n_s)
+    amb[:, ii, ii] = np.where(frac, -1.0, 0.0)
+    ha = np.concatenate([h * valid[..., None], amb], axis=2)
+    normal = np.swapaxes(ha, -1, -2) @ ha
+    normal[:, n_p + ii, n_p + ii] += np.where(frac, 0.0, 1.0)
+    rhs = np.swapaxes(ha, -1, -2) @ np.where(valid, dz, 0.0)[..., None]
+    step = linalg.solve(normal, rhs)[..., 0]
+    return step[:, :n_p], step[:, n_p:]
+
+
 def _local(
     x: np.ndarray, sat: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -310,13 +332,11 @@ def _solve_chunk(
         dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
         h = design(los[sel], sel)
         try:
-            step = _lsq(h, dz, fullw[sel])  # eq. (10) over the full rows
+            step, dn_m = _phase1_step(h, dz, ch.frac[sel], ch.valid[sel])  # eq. (10)
         except np.linalg.LinAlgError:
             _fail(ok, sel, np.ones(sel.size, dtype=bool), unsure)
             active[sel] = False
             continue
-        # each fractional row's ambiguity step [m]: its residual after the x/b step
-        dn_m = np.einsum("esk,ek->es", h, step) - dz
         frac = ch.frac[sel]
         ct = np.where(frac, ch.ct[sel], 1.0)
         lam = np.ones(sel.size)
@@ -363,12 +383,11 @@ def _solve_chunk(
         converged[sel] = finite & settled
         active[sel] = finite & ~settled
 
-    # no convergence (or a position no longer finite): the per-epoch solver decides. Its
-    # phase 1 steps on the augmented system of eq. (10) itself, this one on the full rows
-    # with each ambiguity step as the row's residual: the same step in exact arithmetic, but
-    # with a gross fault they can settle differently (HKSC, a 1 ms error on a GEO: the
-    # per-epoch iteration converges in 11 steps, this one not in 30), so a decline of this
-    # kind is not the batch's to give
+    # no convergence (or a position no longer finite): the per-epoch solver decides. Both
+    # step on the augmented system of eq. (10), but with a gross fault the iteration is
+    # sensitive to rounding, and the two orders of operations can settle differently
+    # (HKSC, a 1 ms error on GEO C01 at epoch 60, fast: the per-epoch iteration converges
+    # in 11 steps, this one not in 30), so a decline of this kind is not the batch's to give
     _fail(ok, np.flatnonzero(ok), ~converged[ok], unsure)
 
     # eqs. (12), (20)-(21): the GEO-GDOP gate over the full rows at the converged position
