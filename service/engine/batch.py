@@ -29,8 +29,10 @@ cost per epoch is paid once per chunk:
   layout at a time);
 - fault exclusion: every candidate of every failed epoch of a stage in one batch.
 
-An epoch the batch cannot decide (no week, an impossible range, no convergence in phase 1,
-a singular system, a position far from the Earth or not finite) is solved by
+A position far from the Earth (a gross fault can put phase 1 there) is judged as the
+per-epoch solver judges it: no mask, no corrections, one weight for every row. An epoch the
+batch cannot decide (no week, an impossible range, no convergence in phase 1, a singular
+system, a position not finite) is solved by
 :func:`~service.engine.solver.solve`. A fix from the batch equals the per-epoch solver's to
 floating-point rounding (tests/engine/test_batch.py holds them to 1e-6 m on real files),
 and an epoch solved alone equals the same epoch inside a chunk (the same bits where the
@@ -204,6 +206,16 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
     return linalg.solve(ht @ h, (ht @ dz[..., None]))[..., 0]
 
 
+def _where(
+    near: np.ndarray, value: np.ndarray | float, far: np.ndarray | float
+) -> np.ndarray | float:
+    """``value`` for the epochs ``near`` the Earth (e, 1), ``far`` for the others; ``value``
+    itself (the same object, no copy) when every epoch is near."""
+    if near.all():
+        return value
+    return np.where(near, value, far)
+
+
 def _phase1_step(
     h: np.ndarray, dz: np.ndarray, frac: np.ndarray, valid: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -248,8 +260,7 @@ class _Failed:
 
 _Outcome = Fix | _Failed | None
 """A fix or a decline, a failed chi-square test, or None: the per-epoch solver must decide
-(a singular system, an impossible range, a position far from the Earth, a solution that
-diverged)."""
+(a singular system, an impossible range, no convergence, a solution not finite)."""
 
 
 def _fail(
@@ -429,17 +440,21 @@ def _solve_chunk(
         sel = sel[finite & (np.linalg.norm(step, axis=1) >= cfg.conv_m)]
 
     # ---- phase 2: mask, corrections, weights -------------------------------------------------
-    r = np.linalg.norm(x, axis=1)
-    far = ok & ~((r > 6.0e6) & (r < 8.5e6))  # not meaningful: the per-epoch solver's business
-    unsure |= far
-    ok &= ~far
+    # a position far from the Earth (a gross fault can put phase 1 there): no mask, no
+    # corrections and the same weight for every row, as the per-epoch solver does (its
+    # ``_meaningful``); a position not finite: the per-epoch solver decides
+    r = np.sqrt(np.einsum("ek,ek->e", x, x))
+    lost = ok & ~np.isfinite(r)
+    unsure |= lost
+    ok &= ~lost
+    meaningful = (r > 6.0e6) & (r < 8.5e6)
     out: list[_Outcome] = [None] * n_e
     sel = np.flatnonzero(ok)
     if sel.size:
         _, _, _, el, _ = _local(x[sel], sat[sel])
     keep = ch.valid.copy()
     if sel.size:
-        keep[sel] &= el >= np.radians(cfg.elmask_deg)
+        keep[sel] &= (el >= np.radians(cfg.elmask_deg)) | ~meaningful[sel, None]
     n_full_k = (keep & ch.full).sum(axis=1)
     masked = ok & (n_full_k < n_par)
     if masked.any():
@@ -464,10 +479,13 @@ def _solve_chunk(
         dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
         lat, lon, alt, el, az = _local(x[sel], sat[sel])
         io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
-        dz = dz - total_delay(io, tr)
+        near = meaningful[sel, None]
+        dz = dz - _where(near, total_delay(io, tr), 0.0)
         w = keepw[sel]
         if cfg.weighted:
-            w = w / measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2
+            w = np.asarray(
+                _where(near, w / measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg) ** 2, w)
+            )
         try:
             step = _lsq(design(los[sel], sel), dz, w)
         except np.linalg.LinAlgError:
@@ -489,11 +507,14 @@ def _solve_chunk(
     lat, lon, alt, el, az = _local(x[sel], sat[sel])
     io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
     kp = keep[sel]
+    near = meaningful[sel, None]
     bc = _row_clocks(b[sel], cix[sel])
-    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - bc - total_delay(io, tr)
+    corr = _where(near, total_delay(io, tr), 0.0)
+    v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - bc - corr
     v = np.where(kp, v, 0.0)
     if cfg.weighted:
-        sigma = np.where(kp, measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg), 1.0)
+        sigma = _where(near, measurement_sigma_m(el, ch.cn0[sel], io, tr, cfg), cfg.sigma_uniform_m)
+        sigma = np.where(kp, sigma, 1.0)
     else:
         sigma = np.full(kp.shape, cfg.sigma_uniform_m)
     g = design(los[sel], sel)

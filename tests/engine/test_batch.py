@@ -224,6 +224,33 @@ def test_the_batch_decides_its_declines_itself(hksc, monkeypatch, solver, cfg, c
         assert sum(f.reason_code == code for f in got) >= len(got) // 4
 
 
+def test_a_position_far_from_the_earth_is_judged_in_the_batch(hksc, monkeypatch):
+    """A 150 km error on a GEO puts the fast fix's phase 1 far from the Earth on some epochs
+    (5 of these 26): the batch then judges it as the per-epoch solver does (no mask, no
+    corrections, one weight for every row) instead of handing it over; every epoch gets the
+    per-epoch solver's decline, in the same words (the test's statistic and w-test)."""
+    from service.engine import batch
+
+    store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
+    cfg = SolverConfig(max_exclusions=0)
+    epochs = []
+    for k, ep in enumerate(hksc[::8]):
+        geos = [i for i, p in enumerate(ep.prn) if is_geo(p)]
+        pr = ep.pr_m.copy()
+        pr[geos[k % len(geos)]] += 150e3
+        epochs.append(fractionalize(replace(ep, pr_m=pr, frac_pr_m=np.mod(pr, C_M_S * 1e-3))))
+    ref = [solve(e, store, iono, cfg, "fast") for e in epochs]
+
+    def no_fallback(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the batch handed an epoch to the per-epoch solver")
+
+    monkeypatch.setattr(batch, "solve", no_fallback)
+    got = batch.solve_many(epochs, store, iono, cfg, "fast")
+    for r, g in zip(ref, got, strict=True):
+        _same(r, g)
+    assert {f.reason_code for f in got} == {"chi2"}
+
+
 def _bits(fix: Fix) -> tuple:
     """Every field of ``fix`` but the sky, as exact values (floats by their repr)."""
     return tuple(repr(getattr(fix, f)) for f in Fix.__slots__ if f != "sky")  # type: ignore[attr-defined]
