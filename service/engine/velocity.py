@@ -39,7 +39,7 @@ import numpy as np
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import sagnac_rotate
 from service.core.ephemeris import EphemerisStore
-from service.core.geometry import ecef_to_geodetic, enu_rotation
+from service.core.geometry import enu_rotations_at
 from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
 from service.core.systems import wavelength_m
 from service.core.timebase import gpst_to_bdt
@@ -122,8 +122,7 @@ def solve_velocities(
     x_ep = np.array([np.asarray(x, dtype=float) for _, x in problems])
     d = sat - x_ep[ep_of]
     e = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
-    # one point at a time: the scalar path of ecef_to_geodetic costs a tenth of the array one
-    rots = np.array([enu_rotation(*(float(v) for v in ecef_to_geodetic(x)[:2])) for x in x_ep])
+    rots = enu_rotations_at(x_ep)
     sin_el = np.einsum("ij,ij->i", e, rots[ep_of, 2])
     y_row = (
         cat([rows.range_rate_m_s for rows, _ in problems])
@@ -171,7 +170,9 @@ def solve_velocities(
         resid = np.where(kk, yk - (hk @ sol[:, :, None])[:, :, 0], 0.0)
         chi2 = (resid * wk * resid).sum(axis=1)
         dof = np.asarray(layout.redundancy(kk.sum(axis=1)))
-        chi2_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r > 0 else np.inf for r in dof])
+        chi2_max = np.array(
+            [chi2_threshold(r, cfg.p_fa) if r > 0 else math.inf for r in dof.tolist()]
+        )
         passed = (dof == 0) | (chi2 <= chi2_max)
         rot_p = rots[todo[passed]]
         v_enu = (rot_p @ sol[passed, :3, None])[:, :, 0]
@@ -222,7 +223,7 @@ def _velocity(
 ) -> Velocity | None:
     """The :class:`Velocity` of one epoch's solution: ENU velocity and covariance, speed and
     course with their sigmas by first-order propagation."""
-    if not np.all(np.isfinite(sol)):
+    if not all(map(math.isfinite, sol.tolist())):
         return None
     ve, vn = float(v_enu[0]), float(v_enu[1])
     speed = math.hypot(ve, vn)
@@ -278,6 +279,9 @@ def doppler_rows_many(
     range rate by < 1 mm/s."""
     sets, weeks, times, taus, metas = [], [], [], [], []
     out: list[DopplerRows | None] = [None] * len(requests)
+    # the sets selected for an epoch, by satellite: the requests of several solvers for one
+    # epoch (bdsfix solve --mode both) select them once
+    selected: dict[int, dict[str, Ephemeris | None]] = {}
     for k, req in enumerate(requests):
         epoch = req.epoch
         bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
@@ -286,11 +290,15 @@ def doppler_rows_many(
         wanted = None if req.prns is None else set(req.prns)
         idx: list[int] = []
         ephs: list[Ephemeris] = []
+        known = selected.setdefault(id(epoch), {})
         for i in np.flatnonzero(np.isfinite(epoch.doppler_hz)).tolist():
             sat = epoch.prn[i]
             if wanted is not None and sat not in wanted:
                 continue
-            eph = store.select(sat, bdt_week, bdt_sow)
+            if sat in known:
+                eph = known[sat]
+            else:
+                eph = known[sat] = store.select(sat, bdt_week, bdt_sow)
             if eph is not None:
                 idx.append(i)
                 ephs.append(eph)
