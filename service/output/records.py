@@ -196,9 +196,13 @@ def raim_state(fix: Fix) -> str:
     return "pass"
 
 
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+"""What ``json.dumps(rec, separators=(",", ":"), allow_nan=False)`` builds at each call."""
+
+
 def dumps(rec: Mapping[str, Any]) -> str:
     """Compact one-line strict JSON (raises ValueError on NaN/inf)."""
-    return json.dumps(rec, separators=(",", ":"), allow_nan=False)
+    return _ENCODER.encode(rec)
 
 
 def fix_json_line(fix: Fix, since_start_s: float | None = None) -> str:
