@@ -138,7 +138,12 @@ def _sat_id(text: str) -> str:
 
 
 def _float(text: str) -> float:
-    """A Fortran F/E/D field; blank is NaN."""
+    """A Fortran F/E/D field; blank is NaN. ``float`` first (it skips the blanks around a
+    number itself): only a blank or a D exponent takes the second look."""
+    try:
+        return float(text)
+    except ValueError:
+        pass
     t = text.strip()
     if not t:
         return math.nan

@@ -50,7 +50,7 @@ import logging
 import math
 import statistics
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -332,6 +332,28 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
     return RxmMessage(layout.identity, fields, blocks)
 
 
+_RawxRow = tuple[int, int, int, float, float, int, int, int]
+"""What the mapper reads of a RAWX measurement block: gnssId, svId, sigId, prMes, doMes,
+locktime [ms], cno and prValid (trkStat bit 0)."""
+
+
+def _rawx_rows(raw: bytes) -> tuple[int, float, list[_RawxRow]] | None:
+    """Week, rcvTow and the measurement rows of a whole RXM-RAWX frame of consistent length
+    (None otherwise): the fields :func:`parse_rxm` gives, straight from the struct tuples
+    (the last message of a u-blox epoch: on the path from its last byte to its fix)."""
+    payload = memoryview(raw)[6:-2]
+    if len(payload) < _RAWX_HEAD.size:
+        return None
+    tow, week, _leap, n, _stat, _version = _RAWX_HEAD.unpack_from(payload)
+    if len(payload) != _RAWX_HEAD.size + n * _RAWX_MEAS.size:
+        return None
+    rows = [
+        (v[3], v[4], v[5], v[0], v[2], v[7], v[8], v[12] & 1)
+        for v in _RAWX_MEAS.iter_unpack(payload[_RAWX_HEAD.size :])
+    ]
+    return week, tow, rows
+
+
 class UbxMapper:
     """Stateful mapper: UBX frames (:meth:`on_frame`) or parsed messages (:meth:`on_message`,
     from :func:`parse_rxm` or pyubx2) in stream order -> events.
@@ -369,6 +391,11 @@ class UbxMapper:
         """Map one checksum-valid UBX frame (library errors propagate to the caller).
 
         Messages outside :data:`USED_MESSAGES` are counted by name and not parsed."""
+        if raw[2] == _UBX_CLASS_RXM and raw[3] == _ID_RAWX:
+            rawx = _rawx_rows(raw)
+            if rawx is not None:  # else (a poll, a bad length) as any other message
+                self.counters[f"ubx:{RAWX}"] += 1
+                return self._rawx(*rawx)
         name = UBX_MSGIDS.get(raw[2:4])
         if name in USED_MESSAGES:
             return self.on_message(parse_rxm(raw) or UBXReader.parse(raw))
@@ -409,7 +436,23 @@ class UbxMapper:
 
     # --- measurements -----------------------------------------------------------------------
     def _on_rawx(self, msg: Any) -> list[Event]:
-        week, tow = int(msg.week), float(msg.rcvTow)
+        rows = (
+            (
+                m["gnssId"],
+                m["svId"],
+                m["sigId"],
+                m["prMes"],
+                m["doMes"],
+                m["locktime"],
+                m["cno"],
+                m["prValid"],
+            )
+            for m in _blocks(msg, "numMeas")
+        )
+        return self._rawx(int(msg.week), float(msg.rcvTow), rows)
+
+    def _rawx(self, week: int, tow: float, rows: Iterable[_RawxRow]) -> list[Event]:
+        """A RAWX epoch: its time and its measurement rows (:data:`_RawxRow`)."""
         if not 0.0 <= tow < WEEK_S:
             self.counters["ubx_bad_time"] += 1
             return []
@@ -418,26 +461,26 @@ class UbxMapper:
         pending = self._pending
         if pending is None:
             return out
-        for m in _blocks(msg, "numMeas"):
-            system = UBX_GNSS.get(m["gnssId"])
+        for gnss_id, sv_id, sig_id, pr_m, do_hz, lock_ms, cno, pr_valid in rows:
+            system = UBX_GNSS.get(gnss_id)
             if system is not GnssSystem.BDS:
                 self.counters["rawx_meas_other_gnss"] += 1
                 continue
-            sig = BDS_SIGNALS.get(int(m["sigId"]))
+            sig = BDS_SIGNALS.get(int(sig_id))
             if sig is None:
                 self.counters["rawx_bds_other_signal"] += 1
                 continue
-            sat = self._sat(pending, sat_id(system, int(m["svId"])))
-            pr_m = float(m["prMes"])
-            if not m["prValid"]:
+            sat = self._sat(pending, sat_id(system, int(sv_id)))
+            pr_m = float(pr_m)
+            if not pr_valid:
                 self.counters["rawx_pr_invalid"] += 1
             elif not 0.0 < pr_m < PR_MAX_M:  # NaN/inf/negative reached the solver before
                 self.counters["rawx_pr_implausible"] += 1
             else:
                 sat.pr_m = pr_m
-            sat.cn0_dbhz = float(m["cno"])
-            sat.doppler_hz = float(m["doMes"])
-            sat.lock_s = float(m["locktime"]) * 1e-3
+            sat.cn0_dbhz = float(cno)
+            sat.doppler_hz = float(do_hz)
+            sat.lock_s = float(lock_ms) * 1e-3
         return out + self._maybe_complete()
 
     def _on_measx(self, msg: Any) -> list[Event]:

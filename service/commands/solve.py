@@ -89,9 +89,11 @@ def solve_epochs(
             per_solver.append(solve_many(fast_in, store, iono, opts.cfg, "fast", opts.with_sky))
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(chunk, store, iono, opts.cfg, "spp", opts.with_sky))
-        per_solver = [
-            with_velocities(list(zip(fixes, chunk, strict=True)), store) for fixes in per_solver
-        ]
+        # the velocities of every solver's fixes in one computation (each fix's the same as
+        # alone: with_velocities)
+        pairs = [pair for fixes in per_solver for pair in zip(fixes, chunk, strict=True)]
+        moving = with_velocities(pairs, store)
+        per_solver = [moving[k : k + len(chunk)] for k in range(0, len(moving), len(chunk))]
         for k, epoch in enumerate(chunk):
             yield epoch, [fixes[k] for fixes in per_solver]
 

@@ -74,14 +74,32 @@ def _ecef_to_geodetic_point(x: float, y: float, z: float) -> tuple[float, float,
     return lat, lon, h
 
 
+def _enu_rows(lat_rad: float, lon_rad: float) -> list[list[float]]:
+    """:func:`enu_rotation` of one point as nested lists of floats."""
+    sl, cl = math.sin(lat_rad), math.cos(lat_rad)
+    so, co = math.sin(lon_rad), math.cos(lon_rad)
+    return [[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]]
+
+
+def enu_rotations_at(x_ecef_m: np.ndarray) -> np.ndarray:
+    """The :func:`enu_rotation` (n, 3, 3) at each of the ECEF points ``x_ecef_m`` (n, 3),
+    from their geodetic latitude and longitude (:func:`ecef_to_geodetic`): each point by the
+    scalar path, whose numbers these are bit for bit, in plain floats (a few points per
+    call in the receiver, a chunk of fixes in ``bdsfix solve``: numpy's per-call cost, not
+    the arithmetic, was the time)."""
+    rows = []
+    for x, y, z in np.asarray(x_ecef_m, dtype=float).reshape(-1, 3).tolist():
+        lat, lon, _h = _ecef_to_geodetic_point(x, y, z)
+        rows.append(_enu_rows(lat, lon))
+    return np.array(rows, dtype=float).reshape(-1, 3, 3)
+
+
 def enu_rotation(lat_rad: np.ndarray | float, lon_rad: np.ndarray | float) -> np.ndarray:
     """Rotation (..., 3, 3) whose rows are the local east, north and up unit vectors in ECEF."""
     lat = np.asarray(lat_rad, dtype=float)
     lon = np.asarray(lon_rad, dtype=float)
     if lat.ndim == 0 and lon.ndim == 0:  # one point: no per-call numpy cost per element
-        sl, cl = math.sin(float(lat)), math.cos(float(lat))
-        so, co = math.sin(float(lon)), math.cos(float(lon))
-        return np.array([[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]])
+        return np.array(_enu_rows(float(lat), float(lon)))
     sl, cl = np.sin(lat), np.cos(lat)
     so, co = np.sin(lon), np.cos(lon)
     zero = np.zeros_like(sl * so)

@@ -9,7 +9,6 @@ A field's name is its TOML key; its flag is the name with dashes (``elmask_deg``
 from __future__ import annotations
 
 import argparse
-import difflib
 import math
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import Field, dataclass, field, fields
@@ -86,6 +85,8 @@ def shown(value: Any) -> str:
 def unknown_key_message(where: str, key: str, known: Iterable[str]) -> str:
     """``where: unknown key 'KEY'``, with the nearest known key when one is close
     (:func:`difflib.get_close_matches`): a misspelt key says what was meant."""
+    import difflib  # here: only a misspelt key needs it, not every start of every command
+
     near = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.6)
     hint = f" (did you mean '{near[0]}'?)" if near else ""
     name = key if len(key) <= 60 else f"{key[:60]}..."

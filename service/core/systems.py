@@ -103,10 +103,15 @@ def system_of(sat: str) -> GnssSystem:
     """The system of a satellite ID such as ``"C06"``, ``"C 6"`` or ``"G12"``.
 
     Raises :class:`BdsfixError` for an ID whose first letter names no system."""
-    try:
-        return GnssSystem(sat[:1])
-    except ValueError:
-        raise BdsfixError(f"satellite ID {sat!r} names no satellite system") from None
+    system = _BY_LETTER.get(sat[:1])
+    if system is None:
+        raise BdsfixError(f"satellite ID {sat!r} names no satellite system")
+    return system
+
+
+_BY_LETTER: dict[str, GnssSystem] = {s.value: s for s in GnssSystem}
+"""GnssSystem by letter: the lookup GnssSystem(letter) makes, without the enum call's cost
+(asked for every satellite of every epoch)."""
 
 
 def prn_number(sat: str) -> int:

@@ -41,6 +41,12 @@ _LEAP_TABLE: tuple[tuple[dt.datetime, int], ...] = (
     (dt.datetime(2015, 7, 1), 17),
     (dt.datetime(2017, 1, 1), 18),
 )
+_LEAP_GPST: tuple[tuple[dt.datetime, dt.datetime, int], ...] = tuple(
+    (start + dt.timedelta(seconds=leap - 1), start + dt.timedelta(seconds=leap), leap)
+    for start, leap in _LEAP_TABLE
+)
+"""Per leap second, on the GPST scale: the start and end of the inserted second and GPST -
+UTC from its end (worked out once: NMEA asks for them twice an epoch)."""
 
 
 def normalize(week: int, sow_s: float) -> tuple[int, float]:
@@ -101,8 +107,8 @@ def utc_from_gpst(week: int, tow_s: float) -> dt.datetime:
     """
     t = datetime_from_gpst(week, tow_s)
     offset = 0
-    for start, leap in _LEAP_TABLE:
-        if t >= start + dt.timedelta(seconds=leap - 1):
+    for inserted, _end, leap in _LEAP_GPST:
+        if t >= inserted:
             offset = leap
     return t - dt.timedelta(seconds=offset)
 
@@ -111,10 +117,7 @@ def gpst_in_leap_second(week: int, tow_s: float) -> bool:
     """Whether GPST (week, tow) falls in an inserted UTC second (23:59:60.x), which
     :func:`utc_from_gpst` gives as a repeated 23:59:59.x."""
     t = datetime_from_gpst(week, tow_s)
-    return any(
-        start + dt.timedelta(seconds=leap - 1) <= t < start + dt.timedelta(seconds=leap)
-        for start, leap in _LEAP_TABLE
-    )
+    return any(inserted <= t < end for inserted, end, _leap in _LEAP_GPST)
 
 
 J2000_UTC = dt.datetime(2000, 1, 1, 12)

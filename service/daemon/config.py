@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -232,6 +231,8 @@ def _read_toml(p: Path) -> dict[str, Any]:
     problem = toml_shape_problem(text)
     if problem is not None:
         raise ConfigError(f"{p}: not read: {problem}")
+    import tomllib  # here: only a configuration file needs it, not every start of every command
+
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

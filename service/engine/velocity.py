@@ -39,8 +39,8 @@ import numpy as np
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import sagnac_rotate
 from service.core.ephemeris import EphemerisStore
-from service.core.geometry import ecef_to_geodetic, enu_rotation
-from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
+from service.core.geometry import enu_rotations_at
+from service.core.orbit import sat_pos_clock, sat_pos_vel_clock
 from service.core.systems import wavelength_m
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch, Velocity
@@ -122,8 +122,7 @@ def solve_velocities(
     x_ep = np.array([np.asarray(x, dtype=float) for _, x in problems])
     d = sat - x_ep[ep_of]
     e = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
-    # one point at a time: the scalar path of ecef_to_geodetic costs a tenth of the array one
-    rots = np.array([enu_rotation(*(float(v) for v in ecef_to_geodetic(x)[:2])) for x in x_ep])
+    rots = enu_rotations_at(x_ep)
     sin_el = np.einsum("ij,ij->i", e, rots[ep_of, 2])
     y_row = (
         cat([rows.range_rate_m_s for rows, _ in problems])
@@ -171,7 +170,9 @@ def solve_velocities(
         resid = np.where(kk, yk - (hk @ sol[:, :, None])[:, :, 0], 0.0)
         chi2 = (resid * wk * resid).sum(axis=1)
         dof = np.asarray(layout.redundancy(kk.sum(axis=1)))
-        chi2_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r > 0 else np.inf for r in dof])
+        chi2_max = np.array(
+            [chi2_threshold(r, cfg.p_fa) if r > 0 else math.inf for r in dof.tolist()]
+        )
         passed = (dof == 0) | (chi2 <= chi2_max)
         rot_p = rots[todo[passed]]
         v_enu = (rot_p @ sol[passed, :3, None])[:, :, 0]
@@ -222,7 +223,7 @@ def _velocity(
 ) -> Velocity | None:
     """The :class:`Velocity` of one epoch's solution: ENU velocity and covariance, speed and
     course with their sigmas by first-order propagation."""
-    if not np.all(np.isfinite(sol)):
+    if not all(map(math.isfinite, sol.tolist())):
         return None
     ve, vn = float(v_enu[0]), float(v_enu[1])
     speed = math.hypot(ve, vn)
@@ -276,58 +277,97 @@ def doppler_rows_many(
     clock, over c; a satellite without one is first placed :data:`NOMINAL_FLIGHT_TIME_S`
     back and its flight time taken from that position. A flight time wrong by 1 ms moves a
     range rate by < 1 mm/s."""
-    sets, weeks, times, taus, metas = [], [], [], [], []
+    row_sets: list[Ephemeris] = []  # each row's set; their arrays are built once at the end
+    metas: list[tuple[int, tuple[str, ...]]] = []
+    # per row, in plain floats (the same IEEE arithmetic as numpy's, without its per-call
+    # cost on a dozen values): week, transmit time, flight time, Doppler, C/N0, wavelength
+    weeks: list[int] = []
+    times: list[float] = []
+    taus: list[float] = []
+    dops: list[float] = []
+    cn0s: list[float] = []
+    lams: list[float] = []
     out: list[DopplerRows | None] = [None] * len(requests)
+    # an epoch's columns as floats and its sets by satellite, once for the requests of
+    # several solvers (bdsfix solve --mode both)
+    seen: dict[int, tuple[list[float], list[float], list[float], dict[str, Ephemeris | None]]]
+    seen = {}
+    finite = math.isfinite
     for k, req in enumerate(requests):
         epoch = req.epoch
         bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-        bias_m = req.clock_bias_m if math.isfinite(req.clock_bias_m) else 0.0
+        bias_m = req.clock_bias_m if finite(req.clock_bias_m) else 0.0
         t_rx = bdt_sow - bias_m / C_M_S
         wanted = None if req.prns is None else set(req.prns)
+        cols = seen.get(id(epoch))
+        if cols is None:
+            cols = seen[id(epoch)] = (
+                epoch.pr_m.tolist(),
+                epoch.doppler_hz.tolist(),
+                epoch.cn0_dbhz.tolist(),
+                {},
+            )
+        pr_all, dop_all, cn0_all, known = cols
         idx: list[int] = []
         ephs: list[Ephemeris] = []
-        for i in np.flatnonzero(np.isfinite(epoch.doppler_hz)).tolist():
+        for i, dop in enumerate(dop_all):
+            if not finite(dop):
+                continue
             sat = epoch.prn[i]
             if wanted is not None and sat not in wanted:
                 continue
-            eph = store.select(sat, bdt_week, bdt_sow)
+            if sat in known:
+                eph = known[sat]
+            else:
+                eph = known[sat] = store.select(sat, bdt_week, bdt_sow)
             if eph is not None:
                 idx.append(i)
                 ephs.append(eph)
         if not idx:
             continue
-        arr = store.arrays(ephs)
-        ii = np.asarray(idx)
         prn = tuple(epoch.prn[i] for i in idx)
-        pr = epoch.pr_m[ii]
-        if not np.isfinite(pr).all():
+        pr = [pr_all[i] for i in idx]
+        if not all(map(finite, pr)):
             recovered = req.pr_m or {}
-            pr = np.array([recovered.get(p, v) for p, v in zip(prn, pr.tolist(), strict=True)])
-        tau = (pr - bias_m) / C_M_S
-        lost = ~np.isfinite(tau)
-        if lost.any():
-            first, _ = sat_pos_clock(arr, bdt_week, np.full(len(idx), t_rx - NOMINAL_FLIGHT_TIME_S))
-            tau = np.where(lost, np.linalg.norm(first - req.x_ecef_m, axis=1) / C_M_S, tau)
-        sets.append(arr)
-        weeks.append(np.full(len(idx), bdt_week))
-        times.append(t_rx - tau)
-        taus.append(tau)
-        metas.append((k, prn, ii))
-    if not sets:
+            pr = [float(recovered.get(p, v)) for p, v in zip(prn, pr, strict=True)]
+        tau = [(v - bias_m) / C_M_S for v in pr]
+        if not all(map(finite, tau)):
+            first, _ = sat_pos_clock(
+                store.arrays(ephs), bdt_week, np.full(len(idx), t_rx - NOMINAL_FLIGHT_TIME_S)
+            )
+            dist_s = (np.linalg.norm(first - req.x_ecef_m, axis=1) / C_M_S).tolist()
+            tau = [t if finite(t) else d for t, d in zip(tau, dist_s, strict=True)]
+        row_sets += ephs
+        weeks += [bdt_week] * len(idx)
+        times += [t_rx - t for t in tau]
+        taus += tau
+        dops += [dop_all[i] for i in idx]
+        cn0s += [cn0_all[i] for i in idx]
+        lams += [wavelength_m(p) for p in prn]
+        metas.append((k, prn))
+    if not row_sets:
         return out
-    arr = sets[0] if len(sets) == 1 else EphemerisArrays.concatenate(sets)
-    tau_all = np.concatenate(taus)
-    pos, vel, _, drift = sat_pos_vel_clock(arr, np.concatenate(weeks), np.concatenate(times))
+    # the distinct sets as arrays once (a chunk's rows share a few tens), then one row each
+    position: dict[int, int] = {}
+    distinct: list[Ephemeris] = []
+    for e in row_sets:
+        if id(e) not in position:
+            position[id(e)] = len(distinct)
+            distinct.append(e)
+    arr = store.arrays(distinct).take([position[id(e)] for e in row_sets])
+    tau_all = np.array(taus)
+    pos, vel, _, drift = sat_pos_vel_clock(arr, np.array(weeks), np.array(times))
     omega = arr.omega_e_rad_s
     pos, vel = sagnac_rotate(pos, tau_all, omega), sagnac_rotate(vel, tau_all, omega)
+    rate = -np.array(lams) * np.array(dops)  # range_rate_m_s of every row
+    cn0 = np.array(cn0s)
     start = 0
-    for k, prn, ii in metas:
+    for k, prn in metas:
         end = start + len(prn)
-        epoch = requests[k].epoch
         out[k] = DopplerRows(
             prn=prn,
-            range_rate_m_s=range_rate_m_s(prn, epoch.doppler_hz[ii]),
-            cn0_dbhz=epoch.cn0_dbhz[ii],
+            range_rate_m_s=rate[start:end],
+            cn0_dbhz=cn0[start:end],
             sat_ecef_m=pos[start:end],
             sat_vel_ecef_m_s=vel[start:end],
             sat_clock_drift_s_s=drift[start:end],

@@ -68,6 +68,8 @@ from __future__ import annotations
 import datetime as dt
 import math
 from collections.abc import Sequence
+from functools import reduce
+from operator import xor
 
 from pynmeagps import GET, NMEAMessage
 
@@ -205,10 +207,7 @@ def plain_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes
             parts.extend([str(get(key, 0)) for key in keys])
         parts.append(str(get("signalID", "0")))
     data = ",".join(parts).encode()
-    checksum = 0
-    for byte in data:
-        checksum ^= byte
-    return b"$" + data + b"*%02X\r\n" % checksum
+    return b"$" + data + b"*%02X\r\n" % reduce(xor, data, 0)
 
 
 def pynmeagps_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes:

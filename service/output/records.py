@@ -19,9 +19,12 @@ Field rules, common to all classes:
   always ``class solver mode gpst_week gpst_tow_s n_full n_frac``, except that a fix
   declined because no GPS week is known yet (``reason_code`` ``no_time``) has no
   ``gpst_week`` (its ``gpst_tow_s`` is the source's time of week);
-  with a position (mode ``fast``/``spp``): ``x_ecef_m lat_deg lon_deg alt_m clock_bias_m``
-  and, when computed, ``pdop resid_rms_m``; ``gdop_full`` when the solver computed it
-  (the fast solver, also on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
+  with a position (mode ``fast``/``spp``): ``x_ecef_m lat_deg lon_deg alt_m clock_bias_m``,
+  ``clocks_m`` {system letter: receiver clock [m], 0.1 mm} when the rows came from more than
+  one satellite system (each system's clock, :attr:`Fix.clocks_m`; ``clock_bias_m`` is the
+  first's; a one-system fix has only ``clock_bias_m``), and, when computed,
+  ``pdop resid_rms_m``; ``gdop_full`` when the solver computed it (the fast solver, also
+  on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
   eq. (13)} when not empty, which is the fast solver's fractional satellites (also on a
   fast fix declined by the chi-square test, for diagnosis); ``reason`` (and a
   ``reason_code``, one of :class:`service.engine.declines.Decline`) exactly when ``mode`` is
@@ -123,6 +126,8 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
         _put(rec, "lon_deg", fix.lon_deg, 10)
         _put(rec, "alt_m", fix.alt_m, 4)
         _put(rec, "clock_bias_m", fix.clock_bias_m, 4)
+        if len(fix.clocks_m) > 1 and all(_finite(v) for v in fix.clocks_m.values()):
+            rec["clocks_m"] = {k: round(float(v), 4) for k, v in sorted(fix.clocks_m.items())}
     _put(rec, "gdop_full", fix.gdop_full, 3)
     if fix.ok:
         _put(rec, "pdop", fix.pdop, 3)
@@ -191,9 +196,13 @@ def raim_state(fix: Fix) -> str:
     return "pass"
 
 
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+"""What ``json.dumps(rec, separators=(",", ":"), allow_nan=False)`` builds at each call."""
+
+
 def dumps(rec: Mapping[str, Any]) -> str:
     """Compact one-line strict JSON (raises ValueError on NaN/inf)."""
-    return json.dumps(rec, separators=(",", ":"), allow_nan=False)
+    return _ENCODER.encode(rec)
 
 
 def fix_json_line(fix: Fix, since_start_s: float | None = None) -> str:
@@ -336,6 +345,12 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "lon_deg": {"type": "number", "minimum": -180, "maximum": 180},
             "alt_m": _NUM,
             "clock_bias_m": _NUM,
+            "clocks_m": {
+                "type": "object",
+                "minProperties": 2,
+                "patternProperties": {"^[A-Z]$": _NUM},
+                "additionalProperties": False,
+            },
             "gdop_full": _NONNEG,
             "pdop": _NONNEG,
             "n_full": _COUNT,
@@ -378,7 +393,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "not": {
                 "anyOf": [
                     {"required": [k]}
-                    for k in (*_POSITION, *_VELOCITY, "pdop", "raim", "hpl_m", "vpl_m")
+                    for k in (*_POSITION, *_VELOCITY, "clocks_m", "pdop", "raim", "hpl_m", "vpl_m")
                 ]
             },
         },

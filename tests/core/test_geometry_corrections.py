@@ -8,7 +8,14 @@ from hypothesis import strategies as st
 
 from service.core.constants import C_M_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
-from service.core.geometry import ecef_to_geodetic, gdop, geodetic_to_ecef, look_angles
+from service.core.geometry import (
+    ecef_to_geodetic,
+    enu_rotation,
+    enu_rotations_at,
+    gdop,
+    geodetic_to_ecef,
+    look_angles,
+)
 from service.core.types import KlobucharParams
 
 A, F = 6378137.0, 1 / 298.257222101
@@ -28,6 +35,31 @@ def test_geodetic_round_trip(lat, lon, h):
     assert abs(math.degrees(la) - lat) < 1e-9
     assert abs(math.remainder(math.degrees(lo) - lon, 360)) < 1e-9
     assert abs(hh - h) < 1e-4
+
+
+@given(
+    st.lists(
+        st.tuples(st.floats(-89.9, 89.9), st.floats(-180, 180), st.floats(-500, 2_000_000)),
+        min_size=1,
+        max_size=6,
+    )
+)
+def test_enu_rotations_at_points_are_the_rotations_of_their_geodetic_coordinates(points):
+    """One rotation per point, bit for bit enu_rotation of ecef_to_geodetic's latitude and
+    longitude; orthonormal, its third row the ellipsoid normal of the geodetic latitude."""
+    xs = np.array([geodetic_to_ecef(math.radians(a), math.radians(o), h) for a, o, h in points])
+    rots = enu_rotations_at(xs)
+    assert rots.shape == (len(points), 3, 3)
+    for x, rot, (lat, lon, _h) in zip(xs, rots, points, strict=True):
+        la, lo, _ = ecef_to_geodetic(x)
+        assert np.array_equal(rot, enu_rotation(float(la), float(lo)))
+        assert np.allclose(rot @ rot.T, np.eye(3), atol=1e-12)
+        up = [
+            math.cos(math.radians(lat)) * math.cos(math.radians(lon)),
+            math.cos(math.radians(lat)) * math.sin(math.radians(lon)),
+            math.sin(math.radians(lat)),
+        ]
+        assert np.allclose(rot[2], up, atol=1e-9)
 
 
 def test_look_angles_zenith_and_horizon():

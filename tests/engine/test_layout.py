@@ -23,8 +23,10 @@ from service.core.systems import GnssSystem
 from service.core.types import Ephemeris, MeasurementEpoch
 from service.engine.layout import BDS_ONLY, Layout, layout_of
 from service.engine.solver import SolverConfig, solve
+from service.output.records import fix_record
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA
+from tests.support.schema import validate
 
 ISB_M = 123.456
 """The inter-system bias put on the relabelled rows [m]."""
@@ -97,6 +99,23 @@ def test_rows_of_another_system_get_their_own_clock(hksc, take):
         ref_err = np.linalg.norm(np.subtract(ref.x_ecef_m, HKSC_TRUTH_ECEF_M))
         assert err <= max(2.0 * ref_err, 5.0)
         assert fix.chi2 is not None and fix.chi2 <= fix.chi2_max
+
+
+def test_fix_records_carry_each_systems_clock(hksc):
+    """A FIX record of rows from two systems carries both clocks (``clocks_m``, 0.1 mm);
+    a BeiDou-only fix's record has ``clock_bias_m`` alone (docs/architecture.md, JSONL)."""
+    epochs, store, iono = hksc
+    ep = epochs[0]
+    bds = fix_record(solve(ep, store, iono, SolverConfig(), "spp"))
+    assert "clocks_m" not in bds and validate(bds) == []
+    fix = solve(_relabel(ep, 4), _Relabelled(store), iono, SolverConfig(), "spp")  # type: ignore[arg-type]
+    rec = fix_record(fix)
+    assert validate(rec) == []
+    assert list(rec["clocks_m"]) == ["C", "G"]
+    assert rec["clocks_m"]["C"] == rec["clock_bias_m"]
+    assert rec["clocks_m"]["G"] - rec["clocks_m"]["C"] == pytest.approx(ISB_M, abs=3.0)
+    for system, clock_m in fix.clocks_m.items():
+        assert rec["clocks_m"][system] == pytest.approx(clock_m, abs=5e-5)
 
 
 def test_one_clock_for_every_system_would_fail_the_test(hksc):

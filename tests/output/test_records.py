@@ -58,8 +58,9 @@ CONTRACT_FIX_FIELDS = {
     "vpl_m",
     "std_enu_m",
 }
-CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code"}
-"""Fields present only when satellites were excluded / on a declined fix."""
+CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m"}
+"""Fields present only when satellites were excluded / on a declined fix / on a fix from
+rows of more than one satellite system."""
 VELOCITY_FIX_FIELDS = {
     "v_enu_m_s",
     "std_v_enu_m_s",
@@ -286,6 +287,9 @@ BAD = [
     ({**GOOD_FIX, "ambiguity": {"C05": 1.5}}, "$.ambiguity.C05", "type", "'integer'"),
     ({**GOOD_FIX, "ambiguity": {}}, "$.ambiguity", "minProperties", ""),
     ({**GOOD_FIX, "reason": "x"}, "$", "not", ""),  # a fix with a position has no reason
+    ({**GOOD_FIX, "clocks_m": {"C": 1.0}}, "$.clocks_m", "minProperties", ""),
+    ({**GOOD_FIX, "clocks_m": {"C": 1.0, "GPS": 2.0}}, "$.clocks_m", "additionalProperties", ""),
+    ({**GOOD_NONE, "clocks_m": {"C": 1.0, "G": 2.0}}, "$", "not", ""),
     ({k: v for k, v in GOOD_FIX.items() if k != "lat_deg"}, "$", "required", "'lat_deg'"),
     ({**GOOD_NONE, "lat_deg": 22.0}, "$", "not", ""),  # a declined fix has no position
     ({k: v for k, v in GOOD_NONE.items() if k != "reason"}, "$", "required", "'reason'"),
