@@ -413,8 +413,11 @@ class HttpPageServer(Sink):
                 break
             c.out.popleft()
         if not c.out and c.closing:
-            self._drop(c)
-            return
+            # the answer is out: end our side and read what the client still sends until it
+            # closes (closing with unread bytes would reset the connection, and the client
+            # could lose the answer); HEAD_TIMEOUT_S bounds the wait
+            with contextlib.suppress(OSError):
+                c.sock.shutdown(socket.SHUT_WR)
         want = selectors.EVENT_READ | (selectors.EVENT_WRITE if c.out else 0)
         with contextlib.suppress(KeyError, ValueError):
             if self._sel.get_key(c.sock).events != want:
@@ -486,8 +489,7 @@ class HttpPageServer(Sink):
         if m is None:
             self._answer(c, 400, b"bad request\n", _TEXT)
             return
-        method, target = m.group(1), m.group(2)
-        path = target.split(b"?", 1)[0]
+        method, path = m.group(1), m.group(2)  # the whole target: no query is ours either
         if method not in (b"GET", b"HEAD"):
             self._answer(
                 c,
@@ -599,7 +601,7 @@ class HttpPageServer(Sink):
 
     def _expire(self, now: float) -> None:
         for c in list(self._clients.values()):
-            if not c.sse and not c.closing and now - c.opened_s > HEAD_TIMEOUT_S:
+            if not c.sse and now - c.opened_s > HEAD_TIMEOUT_S:
                 self._drop(c)
 
     def _drop(self, c: _Client) -> None:
