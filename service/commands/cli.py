@@ -324,6 +324,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="--wait-config, for tests: never answer, as a receiver at another baud rate",
     )
+    m.add_argument(
+        "--output",
+        action="append",
+        metavar="KIND:SPEC",
+        help="also solve the stream here and publish it (repeatable; kinds: "
+        f"{', '.join(SINKS)}; e.g. http:127.0.0.1:8080, the status page)",
+    )
     add_flags(m, FullRuleConfig, "prMes validity")
 
     t = command(
