@@ -165,7 +165,13 @@ def watch_replay(
             time.sleep(seconds_between)
         summary = proc.stderr.read() if proc.stderr else ""
         proc.wait()
+        # the stream's end reaches the page after its last events (EventSource dispatches
+        # in order): the page says so once it has shown everything the replay sent
         final = browser.evaluate(SAMPLE)
+        end = time.monotonic() + 60.0  # a hang guard, not a timing
+        while not final["conn"].startswith("disconnected") and time.monotonic() < end:
+            time.sleep(0.05)
+            final = browser.evaluate(SAMPLE)
         shots.append(browser.screenshot(out_dir / "status-page-end.png"))
     finally:
         if proc.poll() is None:
