@@ -30,14 +30,20 @@ writes over its transmission time (the daemon decodes the epoch's first messages
 rest is on the line), instead of in one write: the latency is still timed from the last
 byte.
 
+``--http-clients N`` adds the status page (``--output http:127.0.0.1:PORT``) with N clients
+reading its event stream (``/events``) to every other run, alternating with runs without
+it, and compares the p99 of the epoch loop (``loop``: solve start -> every output handed
+its records, from the daemon's own times) and of the latency (goal: within 10 %).
+
 Run: python bench/bench_latency.py [--seconds 60] [--runs 3] [--root DIR ...] [--rt PRIO]
-[--nice N] [--line-rate BAUD] [--tcp]
+[--nice N] [--line-rate BAUD] [--tcp] [--http-clients 20]
 (prints per-run and pooled p50/p99/max, fast-fix and SPP epochs apart; no assertions)
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import socket
 import subprocess
@@ -74,6 +80,7 @@ def one_run(
     rt_priority: int = 0,
     line_rate: int = 0,
     tcp: bool = False,
+    http_clients: int = 0,
 ) -> tuple[dict[str, np.ndarray], list[bytes]] | None:
     """Per-epoch times [ms] of one daemon run (``latency``, ``solve``, ``nonsolve``,
     ``before``, ``after``) and the GGA sentences, or None if GGAs or epochs went missing."""
@@ -87,6 +94,8 @@ def one_run(
     server = socket.create_server(("127.0.0.1", 0)) if tcp else None
     source = f"tcp:127.0.0.1:{server.getsockname()[1]}" if server else os.ttyname(slave)
     chrt = ["chrt", "--fifo", str(rt_priority)] if rt_priority else []
+    http_port = _free_port()
+    http = ["--output", f"http:127.0.0.1:{http_port}"] if http_clients else []
     proc = subprocess.Popen(
         [
             *chrt,
@@ -104,6 +113,7 @@ def one_run(
             f"127.0.0.1:{port}",
             "--log-level",
             "warning",
+            *http,
         ],
         cwd=root,
         env={**os.environ, "BDSFIX_EPOCH_TIMES": str(times_path)},
@@ -130,6 +140,11 @@ def one_run(
         else:
             os.write(master, data)
 
+    try:
+        readers = [SseReader(http_port) for _ in range(http_clients)]  # it binds after NMEA
+    except BaseException:
+        proc.kill()
+        raise
     time.sleep(0.5)
     arrivals: list[float] = []
     ggas: list[bytes] = []
@@ -168,6 +183,12 @@ def one_run(
     proc.terminate()
     proc.wait(10)
     client.close()
+    if readers:
+        got = [r.close() for r in readers]
+        print(
+            f"  {len(readers)} status-page event streams: fix events per reader "
+            f"min {min(got)}, max {max(got)}"
+        )
     os.close(master)
     os.close(slave)
     if server is not None and conn is not None:
@@ -184,7 +205,7 @@ def one_run(
         nan = np.full(len(times), np.nan)
         times = np.column_stack([nan, times[:, 0], times[:, 1], nan, times[:, 2]])
     t_sent, t_arrived = np.array(sent), np.array(arrivals)
-    t_read, t_solve, t_solved, t_gga = (times[:, k] for k in range(4))
+    t_read, t_solve, t_solved, t_gga, t_done = (times[:, k] for k in range(5))
     ms = {
         "latency": (t_arrived - t_sent) * 1e3,
         "solve": (t_solved - t_solve) * 1e3,
@@ -193,10 +214,50 @@ def one_run(
         "decode+": (t_solve - t_read) * 1e3,
         "to GGA": (t_gga - t_solved) * 1e3,
         "client": (t_arrived - t_gga) * 1e3,
+        "loop": (t_done - t_solve) * 1e3,  # the epoch loop: solve and every output
     }
     ms["nonsolve"] = ms["latency"] - ms["solve"]
     ms["d-nonsolve"] = ms["daemon"] - ms["solve"]
     return ms, ggas
+
+
+class SseReader:
+    """One status-page client: reads ``/events`` in a thread and counts the fix events."""
+
+    def __init__(self, port: int) -> None:
+        for _ in range(100):  # the daemon opens its outputs in turn
+            try:
+                self.sock = socket.create_connection(("127.0.0.1", port))
+                break
+            except OSError:
+                time.sleep(0.1)
+        else:
+            raise SystemExit("bdsfix run did not open its status page")
+        self.sock.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        self.fixes = 0
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        tail = b""
+        while True:
+            try:
+                chunk = self.sock.recv(65536)
+            except OSError:
+                return
+            if not chunk:
+                return
+            data = tail + chunk
+            self.fixes += data.count(b"event: fix\n")
+            tail = data[-16:]
+            self.fixes -= tail.count(b"event: fix\n")  # counted again with the next chunk
+
+    def close(self) -> int:
+        with contextlib.suppress(OSError):
+            self.sock.shutdown(socket.SHUT_RDWR)
+        self.sock.close()
+        self.thread.join(timeout=5)
+        return self.fixes
 
 
 def _line(name: str, ms: np.ndarray) -> str:
@@ -208,6 +269,7 @@ def _line(name: str, ms: np.ndarray) -> str:
 
 PARTS = (
     "latency",
+    "loop",
     "solve",
     "nonsolve",
     "daemon",
@@ -290,6 +352,15 @@ def main() -> None:
         f"{LINE_CHUNK_BYTES}-byte writes), the latency still timed from its last byte; "
         "0: each epoch in one write",
     )
+    ap.add_argument(
+        "--http-clients",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also run each case with the status page (--output http:...) and N clients "
+        "reading its event stream, alternating with runs without it; compares the epoch "
+        "loop's p99 (goal: within 10 %%)",
+    )
     args = ap.parse_args()
     if args.nice:
         os.nice(args.nice)  # the daemon, started later, inherits it
@@ -301,14 +372,19 @@ def main() -> None:
     epochs = [data for _ep, data in sim.ubx_epochs()]
     if args.line_rate and max(map(len, epochs)) * 10 / args.line_rate > 0.1:
         raise SystemExit(f"--line-rate {args.line_rate}: an epoch does not fit in 0.1 s")
-    runs: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
-    fast: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
-    spp: dict[Path, list[dict[str, np.ndarray]]] = {r: [] for r in roots}
+    cases = [
+        (f"{root}" + (f" + status page, {n} clients" if n else ""), root, n)
+        for root in roots
+        for n in ([0, args.http_clients] if args.http_clients else [0])
+    ]
+    runs: dict[str, list[dict[str, np.ndarray]]] = {c[0]: [] for c in cases}
+    fast: dict[str, list[dict[str, np.ndarray]]] = {c[0]: [] for c in cases}
+    spp: dict[str, list[dict[str, np.ndarray]]] = {c[0]: [] for c in cases}
     for k in range(args.runs):
-        for root in roots:
+        for label, root, n_http in cases:
             load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-            print(f"run {k + 1}/{args.runs} of {root} (load average {load})")
-            got = one_run(epochs, root, args.rt, args.line_rate, args.tcp)
+            print(f"run {k + 1}/{args.runs} of {label} (load average {load})")
+            got = one_run(epochs, root, args.rt, args.line_rate, args.tcp, n_http)
             if got is None:
                 print("  a count differs from the epoch count: run not measured")
                 continue
@@ -316,23 +392,36 @@ def main() -> None:
             # GGA quality: 0 no fix, 1 a fix (fast or SPP); the scenario's fixes before its
             # first non-GEO SOW are fast fixes, SPP after the first fix of all-full epochs
             quality = np.array([int(g.split(b",")[6] or 0) for g in ggas])
-            for part in ("latency", "solve", "nonsolve", "d-nonsolve"):
+            for part in ("latency", "loop", "solve", "nonsolve", "d-nonsolve"):
                 if np.isfinite(ms[part]).all():
                     print("  " + _line(f"{part:<10}", ms[part]))
-            runs[root].append(ms)
+            runs[label].append(ms)
             fixed = np.flatnonzero(quality > 0)
             if len(fixed):
                 first = fixed[0]
                 # 8 s of fast fixes after the first one; SPP from 12 s after it on
-                fast[root].append({p: v[first : first + 80] for p, v in ms.items()})
-                spp[root].append({p: v[first + 120 :] for p, v in ms.items()})
+                fast[label].append({p: v[first : first + 80] for p, v in ms.items()})
+                spp[label].append({p: v[first + 120 :] for p, v in ms.items()})
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     print(f"load average at the end: {load}")
-    for root in roots:
-        if not runs[root]:
-            print(f"== {root}: no run could be measured")
+    for label, _root, _n in cases:
+        if not runs[label]:
+            print(f"== {label}: no run could be measured")
             continue
-        _report(str(root), runs[root], fast[root], spp[root])
+        _report(label, runs[label], fast[label], spp[label])
+    if args.http_clients:
+        for root in roots:
+            base, page = runs[f"{root}"], runs[f"{root} + status page, {args.http_clients} clients"]
+            if not (base and page):
+                continue
+            print(f"== {root}: the status page with {args.http_clients} event-stream clients")
+            for part in ("loop", "latency"):
+                a = np.percentile(np.concatenate([r[part] for r in base]), 99)
+                b = np.percentile(np.concatenate([r[part] for r in page]), 99)
+                print(
+                    f"  {part} p99: {a:.2f} ms without, {b:.2f} ms with "
+                    f"({100 * (b - a) / a:+.1f} %; goal within 10 %)"
+                )
 
 
 if __name__ == "__main__":

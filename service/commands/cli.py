@@ -20,7 +20,7 @@ from service.core.sow_rule import FullRuleConfig
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
-from service.output.sinks.base import NMEA_TCP_MAX_CLIENTS
+from service.output.sinks.base import HTTP_MAX_CLIENTS, NMEA_TCP_MAX_CLIENTS
 
 log = logging.getLogger(__name__)
 
@@ -219,6 +219,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KIND:SPEC",
         help=f"another output (repeatable; kinds: {', '.join(SINKS)})",
     )
+    r.add_argument(
+        "--http-max-clients",
+        type=_positive_int,
+        default=HTTP_MAX_CLIENTS,
+        metavar="N",
+        help="status page (--output http:HOST:PORT): connections served at once; more are "
+        f"accepted and closed (default {HTTP_MAX_CLIENTS})",
+    )
     r.add_argument("--talker", choices=["GN", "GB", "BD", "GP"], default="GN", help="NMEA talker")
     r.add_argument("--seed", type=int, default=0, help="seed of emulated sync delays")
     r.add_argument(
@@ -315,6 +323,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-answer",
         action="store_true",
         help="--wait-config, for tests: never answer, as a receiver at another baud rate",
+    )
+    m.add_argument(
+        "--output",
+        action="append",
+        metavar="KIND:SPEC",
+        help="also solve the stream here and publish it (repeatable; kinds: "
+        f"{', '.join(SINKS)}; e.g. http:127.0.0.1:8080, the status page)",
     )
     add_flags(m, FullRuleConfig, "prMes validity")
 

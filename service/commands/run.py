@@ -39,6 +39,7 @@ from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.solver import IonoSet
 from service.output.publish import Publishers
 from service.output.sinks import OutputSpec, SinkOptions, open_sinks
+from service.output.timeline import Timeline as BaseTimeline
 
 if TYPE_CHECKING:
     from drivers.rinex import NavData
@@ -242,6 +243,7 @@ def main_run(args: argparse.Namespace) -> int:
         zmq_curve_secret_key=cfg.zmq_curve_secret_key,
         zmq_curve_clients=cfg.zmq_curve_clients,
         nmea_tcp_max_clients=cfg.nmea_tcp_max_clients,
+        http_max_clients=cfg.http_max_clients,
     )
     outputs = build_publishers(specs, cfg.talker, options)
     state_dir = cfg.resolved_state_dir()
@@ -296,38 +298,9 @@ def main_run(args: argparse.Namespace) -> int:
     return signals.exit_code()
 
 
-class Timeline:
-    """First events of a stream, for the human summary of a replay."""
-
-    def __init__(self) -> None:
-        self.first: dict[str, float] = {}
-
-    def mark(self, key: str, t_s: float) -> bool:
-        """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
-        if key in self.first:
-            return False
-        self.first[key] = t_s
-        return True
-
-    def on_result(self, r: EpochResult) -> None:
-        """Mark the first events ``r`` brings."""
-        self.marks(r)
-
-    def marks(self, r: EpochResult) -> list[str]:
-        """Mark the first events ``r`` brings; the keys that are new."""
-        if r.restarted:  # the timeline is the restarted receiver's
-            self.first.clear()
-        new = []
-        for ev in r.track:
-            kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
-            if self.mark(f"first {kind} SOW decoded", ev.since_start_s):
-                new.append(f"first {kind} SOW decoded")
-        if r.since_start_s is None:
-            return new
-        key = {"fast": "first fast fix", "spp": "first conventional fix"}.get(r.fix.mode)
-        if key and self.mark(key, r.since_start_s):
-            new.append(key)
-        return new
+class Timeline(BaseTimeline):
+    """The stream's timeline (:class:`service.output.timeline.Timeline`), and for ``run``
+    one INFO line at each first fix."""
 
     def log_first_fixes(self, r: EpochResult) -> None:
         """:meth:`on_result`, and one INFO line at the first fast and the first conventional
@@ -348,21 +321,6 @@ class Timeline:
                     fix.alt_m,
                     len(fix.used),
                 )
-
-    def lines(self, offset_s: float = 0.0, restarted: bool = False) -> list[str]:
-        since = "the emulated restart" if restarted else "the first measurement"
-        order = [
-            "first GEO SOW decoded",
-            "first fast fix",
-            "first non-GEO SOW decoded",
-            "first conventional fix",
-        ]
-        return [f"  timeline (t: data time since {since}):"] + [
-            f"  {k:<28} t = {self.first[k] + offset_s:6.2f} s"
-            if k in self.first
-            else f"  {k:<28} (not reached)"
-            for k in order
-        ]
 
 
 def main_replay(args: argparse.Namespace) -> int:
@@ -406,7 +364,11 @@ def main_replay(args: argparse.Namespace) -> int:
         sync_seed=args.seed,
         full_rule=full_rule(args),
     )
-    options = SinkOptions(nmea_tcp_max_clients=args.nmea_tcp_max_clients)
+    options = SinkOptions(
+        nmea_tcp_max_clients=args.nmea_tcp_max_clients,
+        http_max_clients=args.http_max_clients,
+        timeline_offset_s=offset,  # the status page's timeline reads as the summary's
+    )
     outputs = build_publishers(specs, args.talker, options)
     # what was opened, once it opened (an error stays the only line)
     if args.files:

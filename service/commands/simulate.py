@@ -25,8 +25,9 @@ import os
 import select
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 from service.commands.options import check_range, full_rule, parse_start
 from service.core.errors import ConfigError, InputError
@@ -36,6 +37,9 @@ from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rtcm import broadcast_sets, frame_1042
 from service.sim.scenario import broadcast_table1, default_start_gpst
 from service.sim.simulator import SimConfig, Simulator
+
+if TYPE_CHECKING:
+    from service.output.publish import Publishers
 
 
 def _ephemerides(nav: str | None) -> tuple[list[Ephemeris], KlobucharParams | None]:
@@ -104,6 +108,33 @@ def _serve_configurable(
         file=sys.stderr,
     )
     return 0
+
+
+def _open_outputs(asked: list[str]) -> Publishers:
+    """``--output KIND:SPEC``: the outputs of the stream solved here (opened before the
+    stream starts: one that cannot open is the command's error)."""
+    from service.commands.run import build_publishers
+    from service.output.sinks import OutputSpec
+
+    return build_publishers([OutputSpec.parse(text) for text in asked])
+
+
+def _solve_here(chunks: Iterator[bytes], gps_week: int, outputs: Publishers) -> None:
+    """Decode the bytes written and solve them as ``bdsfix replay`` of the same stream does
+    (the stream's own RTCM 1042 sets or subframes give the ephemerides), publishing to
+    ``outputs``; the summary of that solution on stderr."""
+    from service.commands.run import decode_chunks
+    from service.commands.summary import stream_lines
+    from service.core.ephemeris import EphemerisStore
+    from service.daemon.loop import Runner
+    from service.engine.pipeline import Pipeline
+
+    runner = Runner(
+        decode_chunks(chunks, gps_week), Pipeline(EphemerisStore()), outputs, inline=True
+    )
+    n = runner.run()
+    for line in stream_lines("simulate", n, runner.counters(), runner.skipped()):
+        print(line, file=sys.stderr)
 
 
 PTY_POLL_S = 0.05
@@ -225,6 +256,8 @@ def main_simulate(args: argparse.Namespace) -> int:
     if not sim.prns:
         raise ConfigError("no satellite in view at that place and time")
     if args.wait_config:
+        if args.output:
+            raise ConfigError("--output is not with --wait-config (the host solves that stream)")
         return _serve_configurable(args, ephs, cfg, iono)
     if args.nak or args.no_answer:
         raise ConfigError("--nak and --no-answer need --pty --wait-config")
@@ -235,6 +268,7 @@ def main_simulate(args: argparse.Namespace) -> int:
         every_s = 1.0 if args.pty else 0.0
     if not (every_s >= 0 and every_s < float("inf")):
         raise ConfigError(f"--ephemerides-every-s must be 0 or a positive number, got {every_s}")
+    outputs = _open_outputs(args.output) if args.output else None
     master = None
     pty: PtyWriter | None = None
     write: Callable[[bytes], object]
@@ -249,7 +283,9 @@ def main_simulate(args: argparse.Namespace) -> int:
         fh = open_output(args.out, binary=True)  # InputError: unwritable or a symlink
         write = fh.write
     sets = b"".join(frame_1042(e) for e in broadcast_sets(ephs, sim.prns, week, tow))
-    try:
+
+    def stream() -> Iterator[bytes]:
+        """Write the scenario (paced as asked); each chunk written, for ``--output``."""
         if pty is not None:
             print("bdsfix simulate: waiting for a reader of the pty", file=sys.stderr, flush=True)
             pty.wait_for_reader()
@@ -263,9 +299,20 @@ def main_simulate(args: argparse.Namespace) -> int:
             if args.ephemerides and ep.t_s >= next_sets_s:
                 # what the stream was made with, as an assisted receiver has it, repeated
                 write(sets)
+                yield sets
                 next_sets_s = ep.t_s + every_s if every_s > 0 else float("inf")
             write(data)
+            yield data
+
+    try:
+        if outputs is None:
+            for _chunk in stream():
+                pass
+        else:
+            _solve_here(stream(), week, outputs)
     finally:
+        if outputs is not None:
+            outputs.close()
         if master is not None:
             time.sleep(0.5)  # the reader takes what is in the pty before it hangs up
             os.close(master)

@@ -37,6 +37,22 @@ def is_geo(sat: str) -> bool:
     return sat[:1] == GnssSystem.BDS.value and prn_number(sat) in GEO_PRNS
 
 
+IGSO_PRNS = frozenset([6, 7, 8, 9, 10, 13, 16, 31, 38, 39, 40, 56])
+"""BDS PRN numbers of the inclined geosynchronous satellites (BDS-2 C06-C10, C13, C16; BDS-3
+C38-C40; the BDS-3 test satellites C31 and C56), as the constellation status of the China
+Satellite Navigation Office lists them; the other non-GEO PRNs are MEOs."""
+
+
+def orbit_class(sat: str) -> Literal["GEO", "IGSO", "MEO", ""]:
+    """The orbit of a BeiDou satellite (``GEO``, ``IGSO`` or ``MEO``, by :data:`GEO_PRNS`
+    and :data:`IGSO_PRNS`); ``""`` for a satellite of another system."""
+    if sat[:1] != GnssSystem.BDS.value:
+        return ""
+    if prn_number(sat) in GEO_PRNS:
+        return "GEO"
+    return "IGSO" if prn_number(sat) in IGSO_PRNS else "MEO"
+
+
 def nav_type(sat: str) -> Literal["D1", "D2"]:
     """The navigation message a BeiDou satellite broadcasts on B1I: D2 from the GEOs, D1
     from the IGSOs and MEOs (ICD 5.2, 5.3)."""

@@ -44,7 +44,7 @@ from service.core.settings import (
 )
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
-from service.output.sinks.base import NMEA_TCP_MAX_CLIENTS
+from service.output.sinks.base import HTTP_MAX_CLIENTS, NMEA_TCP_MAX_CLIENTS
 
 DEFAULT_CONFIG = "/etc/bdsfix/bdsfix.toml"
 
@@ -121,6 +121,14 @@ class DaemonConfig:
     jsonl_out: str = setting("", "JSONL records to a file or - for stdout", kind="str")
     output: tuple[str, ...] = setting(
         (), f"more outputs, KIND:SPEC each (kinds: {', '.join(SINKS)})", kind="list"
+    )
+    http_max_clients: int = setting(
+        HTTP_MAX_CLIENTS,
+        "status page (output http:HOST:PORT): connections served at once; one over the cap "
+        "is accepted and closed at once (counted as http_clients_refused)",
+        kind="int",
+        low=1,
+        high=10_000,
     )
     max_eph_age_s: float = setting(
         7200.0, "oldest usable ephemeris, |t - toe| [s]", kind="float", low=0.0, low_open=True

@@ -56,3 +56,23 @@ def test_simulated_capture_replays_fast_then_spp(tmp_path, rule):
 def test_simulate_rejects_a_bad_start(tmp_path, capsys):
     assert main(["simulate", "--start", "yesterday", "--out", str(tmp_path / "x.ubx")]) == 2
     assert "--start" in capsys.readouterr().err
+
+
+def test_simulate_with_an_output_publishes_what_a_replay_of_its_stream_publishes(tmp_path):
+    """``simulate --output KIND:SPEC`` (the status page is ``http:HOST:PORT``) solves the
+    stream it writes in-process: the same FIX and TRACK records as ``bdsfix replay`` of the
+    capture it wrote."""
+    ubx, here, there = tmp_path / "sim.ubx", tmp_path / "here.jsonl", tmp_path / "there.jsonl"
+    args = ["simulate", "--duration-s", "12", "--out", str(ubx), "--output", f"jsonl:{here}"]
+    assert main(args) == 0
+    assert main(["replay", str(ubx), "--max-speed", "--jsonl-out", str(there)]) == 0
+    ours = [json.loads(line) for line in here.read_text().splitlines()]
+    theirs = [json.loads(line) for line in there.read_text().splitlines()]
+    assert ours == theirs
+    fixes = [r for r in ours if r["class"] == "FIX"]
+    assert len(fixes) == 120 and {r["mode"] for r in fixes} >= {"fast", "spp"}
+
+
+def test_simulate_output_is_refused_with_wait_config(capsys):
+    assert main(["simulate", "--pty", "--wait-config", "--output", "jsonl:-"]) == 2
+    assert "--output is not with --wait-config" in capsys.readouterr().err

@@ -17,6 +17,7 @@ PEERS: dict[str, str] = {
     "socat": "socat",
     "systemd-analyze": "systemd",
     "rnx2rtkp": "rtklib",
+    "chromium": "chromium",
 }
 """Program -> Debian package that installs it."""
 

@@ -21,6 +21,7 @@ SINKS: dict[str, str] = {
     "nmea-serial": "service.output.sinks.nmea_serial:open_sink",
     "zmq": "service.output.sinks.zmq_pub:open_sink",
     "jsonl": "service.output.sinks.lines:open_jsonl",
+    "http": "service.output.sinks.http_page:open_sink",
 }
 
 

@@ -19,6 +19,11 @@ NMEA_TCP_MAX_CLIENTS = 64
 """NMEA TCP clients served at once by default; more connections are accepted and closed
 (setting ``nmea_tcp_max_clients``, see :mod:`service.output.sinks.nmea_tcp`)."""
 
+HTTP_MAX_CLIENTS = 32
+"""Connections the status page serves at once by default (a browser tab holds one event
+stream); more are accepted and closed (setting ``http_max_clients``, see
+:mod:`service.output.sinks.http_page`)."""
+
 
 @dataclass(frozen=True, slots=True)
 class SinkOptions:
@@ -29,6 +34,8 @@ class SinkOptions:
     zmq_curve_secret_key: str = ""
     zmq_curve_clients: str = ""
     nmea_tcp_max_clients: int = NMEA_TCP_MAX_CLIENTS  # nmea-tcp: more clients are refused
+    http_max_clients: int = HTTP_MAX_CLIENTS  # http: more connections are refused
+    timeline_offset_s: float = 0.0  # http: added to the timeline (replay's built-in scenario)
 
 
 class Sink:

@@ -1,0 +1,108 @@
+"""The time-to-first-fix timeline of a stream: the data time since the first measurement (or
+since an emulated restart) of the first GEO and non-GEO satellite whose SOW is known (its
+measurement became full), the first fast fix and the first conventional fix.
+
+One place for it: ``replay`` and ``run`` print it at the end from the pipeline's results
+(:meth:`Timeline.marks`), the status page (:mod:`service.output.sinks.http_page`) shows it
+live from the records the outputs get (:meth:`Timeline.on_record`); both give the same
+figures for the same stream.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+FIRST_GEO_SOW = "first GEO SOW decoded"
+FIRST_FAST = "first fast fix"
+FIRST_NON_GEO_SOW = "first non-GEO SOW decoded"
+FIRST_SPP = "first conventional fix"
+ORDER = (FIRST_GEO_SOW, FIRST_FAST, FIRST_NON_GEO_SOW, FIRST_SPP)
+"""The timeline's events in the order they are shown."""
+
+_FIX_KEYS = {"fast": FIRST_FAST, "spp": FIRST_SPP}
+_NOT_IN_ORDER = frozenset({"no_time", "out_of_order"})
+"""Declines of epochs the pipeline left out of the stream's time (no week, a step back)."""
+
+
+class Timeline:
+    """First events of a stream since its start or its (emulated) restart."""
+
+    def __init__(self, offset_s: float = 0.0) -> None:
+        self.first: dict[str, float] = {}
+        self.offset_s = offset_s
+        """Added to every figure shown (the built-in scenario's first epoch comes
+        ``offset_s`` after the virtual receiver's start)."""
+        self._latest_s = -float("inf")  # records: the latest data time seen since the start
+        self.restarted = False
+        """Records: the timeline started again (data time since the start went back)."""
+
+    def mark(self, key: str, t_s: float) -> bool:
+        """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
+        if key in self.first:
+            return False
+        self.first[key] = t_s
+        return True
+
+    def on_result(self, r: Any) -> None:
+        """Mark the first events a :class:`service.engine.pipeline.EpochResult` brings."""
+        self.marks(r)
+
+    def marks(self, r: Any) -> list[str]:
+        """Mark the first events of an EpochResult; the keys that are new. A satellite's
+        SOW counts as decoded when its measurement became full (``r.track``)."""
+        if r.restarted:  # the timeline is the restarted receiver's
+            self.first.clear()
+        new = []
+        for ev in r.track:
+            key = FIRST_GEO_SOW if ev.nav_type == "D2" else FIRST_NON_GEO_SOW
+            if self.mark(key, ev.since_start_s):
+                new.append(key)
+        if r.since_start_s is None:
+            return new
+        fix_key = _FIX_KEYS.get(r.fix.mode)
+        if fix_key and self.mark(fix_key, r.since_start_s):
+            new.append(fix_key)
+        return new
+
+    def on_record(self, cls: str, rec: Mapping[str, Any]) -> bool:
+        """Mark what a record brings: a ``TRACK`` ``full`` event (a SOW known), a ``FIX``
+        of mode fast or spp. The records carry no restart flag: data time since the start
+        going back (on a ``full`` event or a fix of the stream) is the restart, and the
+        timeline starts again. True when the timeline changed."""
+        t_s = rec.get("since_start_s")
+        if t_s is None:
+            return False
+        if cls == "TRACK":
+            if rec.get("event") != "full":
+                return False
+            key: str = FIRST_GEO_SOW if rec.get("nav_type") == "D2" else FIRST_NON_GEO_SOW
+        elif cls == "FIX":
+            if rec.get("reason_code") in _NOT_IN_ORDER:
+                return False
+            key = _FIX_KEYS.get(str(rec.get("mode")), "")  # "" for none
+        else:
+            return False
+        changed = False
+        if t_s < self._latest_s:
+            self.first.clear()
+            self.restarted = changed = True
+        self._latest_s = t_s
+        return (bool(key) and self.mark(key, t_s)) or changed
+
+    def figures(self) -> dict[str, float | None]:
+        """Each event of :data:`ORDER` and its time [s, with the offset], None if not reached."""
+        return {
+            k: round(self.first[k] + self.offset_s, 6) if k in self.first else None for k in ORDER
+        }
+
+    def lines(self, offset_s: float | None = None, restarted: bool = False) -> list[str]:
+        """The timeline as the summary prints it."""
+        since = "the emulated restart" if restarted else "the first measurement"
+        off = self.offset_s if offset_s is None else offset_s
+        return [f"  timeline (t: data time since {since}):"] + [
+            f"  {k:<28} t = {self.first[k] + off:6.2f} s"
+            if k in self.first
+            else f"  {k:<28} (not reached)"
+            for k in ORDER
+        ]
