@@ -19,6 +19,8 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from service.commands.options import full_rule, solver_config
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
@@ -101,16 +103,46 @@ def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> list[N
     day than its first epoch, refuse the start: one line, exit 3
     (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows). The
     files as read, for the source to put at the head of its stream."""
-    if not nav:
-        return []
     from service.commands.navcheck import check_navigation, first_epoch_time, read_navigation
 
+    if not nav:
+        _check_needs_nav(spec, gps_week)
+        return []
     navs = read_navigation(nav)
     first = None
     if _is_regular_file(spec):
         first = first_epoch_time(spec.removeprefix("file:"), gps_week)
     check_navigation(nav, navs, first)
     return navs
+
+
+def _check_needs_nav(spec: str, gps_week: int | None) -> None:
+    """A file of a format that carries no ephemerides bdsfix decodes
+    (:attr:`drivers.protocols.FileFormat.needs_nav`), given without ``--nav``: one line
+    naming the nav file of its first epoch's day, exit 3."""
+    if not _is_regular_file(spec):
+        return
+    from drivers.source import _file_spec, file_format
+    from service.commands.navcheck import first_epoch_time
+    from service.core.timebase import datetime_from_gpst
+
+    fmt, path = _file_spec(spec)
+    fmt = fmt or file_format(path)
+    if fmt is None or not fmt.needs_nav:
+        return
+    first = first_epoch_time(spec, gps_week)
+    day = ""
+    if first is not None:
+        t = datetime_from_gpst(*first)
+        doy = t.timetuple().tm_yday
+        day = (
+            f" of GPST {t:%Y-%m-%d} (day {doy:03d}), e.g. the IGS broadcast "
+            f"BRDM00DLR_S_{t:%Y}{doy:03d}0000_01D_MN.rnx"
+        )
+    raise InputError(
+        f"{path}: {fmt.describe} carries no ephemerides bdsfix decodes; give --nav with a "
+        f"RINEX 3 nav file{day}"
+    )
 
 
 def _is_regular_file(spec: str) -> bool:
@@ -299,8 +331,14 @@ def main_run(args: argparse.Namespace) -> int:
 class Timeline:
     """First events of a stream, for the human summary of a replay."""
 
+    FULL4 = "4 full ranges (conventional)"
+    """The first epoch with at least 4 full ranges of any system: when a conventional
+    receiver can fix (every satellite's time of week decoded)."""
+
     def __init__(self) -> None:
         self.first: dict[str, float] = {}
+        self.waits: str | None = None
+        """Why the epoch of :attr:`FULL4` had no fix (its decline reason), if it had none."""
 
     def mark(self, key: str, t_s: float) -> bool:
         """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
@@ -317,6 +355,7 @@ class Timeline:
         """Mark the first events ``r`` brings; the keys that are new."""
         if r.restarted:  # the timeline is the restarted receiver's
             self.first.clear()
+            self.waits = None
         new = []
         for ev in r.track:
             kind = "GEO" if ev.nav_type == "D2" else "non-GEO"
@@ -327,6 +366,11 @@ class Timeline:
         key = {"fast": "first fast fix", "spp": "first conventional fix"}.get(r.fix.mode)
         if key and self.mark(key, r.since_start_s):
             new.append(key)
+        full = int(np.isfinite(r.epoch.pr_m).sum())
+        if full >= 4 and self.mark(self.FULL4, r.since_start_s):
+            new.append(self.FULL4)
+            if not r.fix.ok:
+                self.waits = r.fix.reason
         return new
 
     def log_first_fixes(self, r: EpochResult) -> None:
@@ -355,14 +399,18 @@ class Timeline:
             "first GEO SOW decoded",
             "first fast fix",
             "first non-GEO SOW decoded",
+            self.FULL4,
             "first conventional fix",
         ]
-        return [f"  timeline (t: data time since {since}):"] + [
+        lines = [f"  timeline (t: data time since {since}):"] + [
             f"  {k:<28} t = {self.first[k] + offset_s:6.2f} s"
             if k in self.first
             else f"  {k:<28} (not reached)"
             for k in order
         ]
+        if self.waits is not None:
+            lines.append(f"  no fix at {self.FULL4}: {self.waits}")
+        return lines
 
 
 def main_replay(args: argparse.Namespace) -> int:

@@ -53,6 +53,14 @@ WARM_START_MAX_AGE_S = 30.0
 """A fix older than this [s, data time] is not used as the start of the next solve."""
 SAME_EPOCH_S = 1e-6
 """Two epochs closer than this [s] are the same epoch (records carry 1 us)."""
+COARSE_TIME_S = 1e-3
+"""An epoch whose receiver time is less certain than this [s] (``time_unc_s``, e.g. a
+phone's BiasUncertaintyNanos) keeps its fractional ranges out of the fix: the fast fix takes
+the time tag as exact (a satellite's transmit time is the tag minus the flight time, its
+integer milliseconds resolved at that tag), and a 1 ms error moves a satellite by at most
+~4 m along its orbit. Full ranges are unaffected (their transmit time is in the
+measurement; a tag error is common to all and goes into the clock). A coarse-time solution
+(time as a fifth unknown) would use them: not implemented yet."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +92,18 @@ class EpochResult:
     restarted: bool = False
     """The emulated receiver restart (``restart_at_s``) happened at this epoch: what came
     before it (first fixes, decoded SOWs) belongs to the receiver before the restart."""
+
+
+def _without_coarse_fractions(view: MeasurementEpoch) -> tuple[MeasurementEpoch, int]:
+    """``view`` without its fractional ranges when its time is coarser than
+    :data:`COARSE_TIME_S` (their ``frac_pr_m`` NaN), and how many were set aside."""
+    if not view.time_unc_s > COARSE_TIME_S:
+        return view, 0
+    frac = ~np.isfinite(view.pr_m) & np.isfinite(view.frac_pr_m)
+    n = int(frac.sum())
+    if not n:
+        return view, 0
+    return replace(view, frac_pr_m=np.where(frac, np.nan, view.frac_pr_m)), n
 
 
 def count_fix(counters: Counters, fix: Fix) -> None:
@@ -204,9 +224,24 @@ class Pipeline:
             self.restart(epoch, np.random.default_rng(self.sync_seed))
         else:
             restarted_now = False
+        if epoch.restarted:  # the receiver's clock restarted: its old fix is no start
+            self.counters["receiver_restarts"] += 1
+            self._recovered.clear()
+            self._last_fix = None
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
+        view, set_aside = _without_coarse_fractions(view)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        if set_aside and fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
+            self.counters["coarse_time_epochs"] += 1
+            why = reason(
+                Decline.COARSE_TIME,
+                time_unc_s=view.time_unc_s,
+                n_frac=set_aside,
+                n_full=int(np.isfinite(view.pr_m).sum()),
+                need=4,
+            )
+            fix = declined(view, Decline.COARSE_TIME, why)
         if self.velocity:
             fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
