@@ -288,7 +288,7 @@ class GnssLoggerReader:
                 alt_m=_float(f[c["Altitude"]]),
                 accuracy_m=_float(f[c["Accuracy"]]),
             )
-        except (KeyError, IndexError, ValueError):
+        except (KeyError, IndexError, ValueError, OverflowError):
             self.counters["android_bad_rows"] += 1
             return None
 
@@ -302,7 +302,7 @@ class GnssLoggerReader:
             bias_ns = float(first[c["BiasNanos"]] or 0.0)
             bias_unc_ns = _float(first[c["BiasUncertaintyNanos"]])
             discontinuity = int(first[c["HardwareClockDiscontinuityCount"]] or 0)
-        except (KeyError, IndexError, ValueError):
+        except (KeyError, IndexError, ValueError, OverflowError):
             self.counters["android_bad_rows"] += len(rows)
             log.warning("%s:%d: epoch without a usable clock, skipped", self.name, lineno)
             return
@@ -315,7 +315,7 @@ class GnssLoggerReader:
         for f in rows:
             try:
                 row = self._row(f, tow_int_ns, bias_ns)
-            except (KeyError, IndexError, ValueError):
+            except (KeyError, IndexError, ValueError, OverflowError):
                 self.counters["android_bad_rows"] += 1
                 continue
             if row is not None:

@@ -34,6 +34,7 @@ from service.core.types import (
     KlobucharParams,
     MeasurementEpoch,
     NavSubframe,
+    ReceiverFix,
     SatView,
 )
 from service.engine.declines import Decline, reason
@@ -53,6 +54,10 @@ WARM_START_MAX_AGE_S = 30.0
 """A fix older than this [s, data time] is not used as the start of the next solve."""
 SAME_EPOCH_S = 1e-6
 """Two epochs closer than this [s] are the same epoch (records carry 1 us)."""
+RECEIVER_FIX_MAX_AGE_S = 1.5
+"""A receiver's own fix is carried on the results of epochs at most this far from it [s]
+(at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
+MeasEpoch of its second, so the epoch carries the previous second's)."""
 COARSE_TIME_S = 1e-3
 """An epoch whose receiver time is less certain than this [s] (``time_unc_s``, e.g. a
 phone's BiasUncertaintyNanos) keeps its fractional ranges out of the fix: the fast fix takes
@@ -92,6 +97,9 @@ class EpochResult:
     restarted: bool = False
     """The emulated receiver restart (``restart_at_s``) happened at this epoch: what came
     before it (first fixes, decoded SOWs) belongs to the receiver before the restart."""
+    receiver_fix: ReceiverFix | None = None
+    """The receiver's own latest fix (an Android Fix row, an SBF PVTGeodetic) if it is at
+    most :data:`RECEIVER_FIX_MAX_AGE_S` from this epoch, for comparison; never used."""
 
 
 def _without_coarse_fractions(view: MeasurementEpoch) -> tuple[MeasurementEpoch, int]:
@@ -149,6 +157,7 @@ class Pipeline:
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
+    _receiver_fix: ReceiverFix | None = None
 
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
@@ -187,6 +196,18 @@ class Pipeline:
         the saved store."""
         self.iono = self.iono.with_params(params)
         self.store.iono = self.iono.preferred
+
+    def on_receiver_fix(self, rf: ReceiverFix) -> None:
+        """The receiver's own fix: kept for the next epochs' results (``receiver_fixes``)."""
+        self.counters["receiver_fixes"] += 1
+        self._receiver_fix = rf
+
+    def _receiver_fix_near(self, epoch: MeasurementEpoch) -> ReceiverFix | None:
+        rf = self._receiver_fix
+        if rf is None:
+            return None
+        age = diff_s(epoch.gpst_week, epoch.gpst_tow_s, rf.gpst_week, rf.gpst_tow_s)
+        return rf if abs(age) <= RECEIVER_FIX_MAX_AGE_S else None
 
     def on_subframe(self, sf: NavSubframe) -> list[TrackEvent]:
         self.counters["subframes"] += 1
@@ -263,6 +284,7 @@ class Pipeline:
             tuple(checks),
             partial(sky_view, view, self.store),
             restarted_now,
+            self._receiver_fix_near(epoch),
         )
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:

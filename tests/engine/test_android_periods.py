@@ -97,11 +97,7 @@ def test_perth_replay_through_the_pipeline():
     coarse time, the GPS satellites' missing ephemerides or too few full BDS ranges."""
     pipe = _pipeline(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx")
     with open_source(str(PERTH / "SensorLog20171005.txt")) as src:
-        results = [
-            pipe.on_epoch(e)
-            for e in src
-            if isinstance(e, MeasurementEpoch)
-        ]
+        results = [pipe.on_epoch(e) for e in src if isinstance(e, MeasurementEpoch)]
     assert len(results) == 445
     t0 = results[0].epoch.gpst_tow_s
     fixed = [r for r in results if r.fix.ok]
