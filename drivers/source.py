@@ -322,6 +322,21 @@ def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> Non
         raise InputError(f"{path}: no frame found in its first {len(head)} bytes; {expected}")
 
 
+def file_epochs(path: str | Path, *, lenient: bool = False) -> tuple[Iterator[Event], Counters]:
+    """The events of a file of a registered file format (``bdsfix solve`` and ``ttff``: RINEX
+    3 obs, GnssLogger logs, ...) and the counters its reader keeps; ``NAME:PATH`` names the
+    format. InputError (exit 3) for a file of none of them."""
+    fmt, name = _file_spec(str(path))
+    if not os.path.isfile(name):
+        raise InputError(f"{name}: no such file")
+    fmt = fmt or file_format(name)
+    if fmt is None:
+        formats = ", ".join(f.describe for f in _registry.FILE_FORMATS)
+        raise InputError(f"{name}: not a file bdsfix solves; expected {formats}")
+    counters = Counters()
+    return iter(fmt.reader(Path(name), counters, lenient)), counters
+
+
 def is_rinex(path: str | Path) -> bool:
     """True when the file is RINEX (its first line carries the RINEX header label; also
     gzip, Unix compress and Hatanaka compact RINEX): :func:`drivers.rinex.detect`."""

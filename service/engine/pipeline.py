@@ -102,7 +102,7 @@ class EpochResult:
     most :data:`RECEIVER_FIX_MAX_AGE_S` from this epoch, for comparison; never used."""
 
 
-def _without_coarse_fractions(view: MeasurementEpoch) -> tuple[MeasurementEpoch, int]:
+def without_coarse_fractions(view: MeasurementEpoch) -> tuple[MeasurementEpoch, int]:
     """``view`` without its fractional ranges when its time is coarser than
     :data:`COARSE_TIME_S` (their ``frac_pr_m`` NaN), and how many were set aside."""
     if not view.time_unc_s > COARSE_TIME_S:
@@ -251,7 +251,7 @@ class Pipeline:
             self._last_fix = None
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
-        view, set_aside = _without_coarse_fractions(view)
+        view, set_aside = without_coarse_fractions(view)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
         if set_aside and fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
             self.counters["coarse_time_epochs"] += 1

@@ -32,10 +32,16 @@ PERIODS_S = (1e-3, 2e-3, 0.02, 0.1, 0.6, 2.0, 6.0)
 
 
 def _pipeline(nav) -> Pipeline:
+    """A pipeline holding the nav file's ephemerides and ionosphere, as replay's stream
+    head gives them."""
     pipe = Pipeline(EphemerisStore())
-    for ephs in read_nav(nav).ephemerides.values():
+    data = read_nav(nav)
+    for ephs in data.ephemerides.values():
         for eph in ephs:
             pipe.add_ephemeris(eph)
+    for params in (data.iono_gps, data.iono_bds):  # BDS last: preferred when both
+        if params is not None:
+            pipe.set_iono(params)
     return pipe
 
 
