@@ -34,10 +34,19 @@ another version with the same names reads the same).
   reads it back); ``Cn0DbHz`` the C/N0; ``MultipathIndicator`` 1 (detected) is counted
   (``android_multipath``).
 - ``Fix,`` rows (the phone's own fix) become :class:`~service.core.types.ReceiverFix`
-  events; ``Nav,`` and ``Status,`` rows are counted (``android_nav_rows``,
-  ``android_status_rows``; navigation bytes are not decoded yet: give ``--nav``).
+  events; ``Status,`` rows are counted (``android_status_rows``).
+- ``Nav,`` rows (``GnssNavigationMessage``: Svid, Type, Status, MessageId, Sub-messageId,
+  data bytes as signed decimals): BeiDou D1 (type 0x0501) and D2 (0x0502) subframes with
+  parity passed or rebuilt (Status 1, 2) become :class:`~service.core.types.NavSubframe`
+  events (``android_nav_bds``), whose SOW the tracker takes and whose ephemerides the
+  assembler decodes, as a receiver's own: each of the 10 words of 30 bits sits in the last 30
+  bits of 4 bytes, MSB first (``getData()``). They are tagged with the receive time of the
+  latest Raw epoch read (``android_nav_no_time`` before any). Other types (GPS L1 C/A
+  0x0101, GLONASS 0x0301, Galileo, ...) are counted by type (``android_nav_<type>``) and
+  not decoded: give ``--nav``.
 
-Counter keys: ``android_raw_rows``, ``epochs_android``, ``android_bad_rows``,
+Counter keys: ``android_nav_bds``, ``android_nav_bad``, ``android_nav_no_time``,
+``android_nav_<type hex>``, ``android_raw_rows``, ``epochs_android``, ``android_bad_rows``,
 ``android_other_gnss``, ``android_other_band``, ``android_no_code_lock``,
 ``android_sv_time_uncertain``, ``android_full``, ``android_fractional``,
 ``android_multipath``, ``android_clock_restarts``, ``android_fix_rows``,
@@ -52,14 +61,17 @@ import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
+from service.core.bds_nav import b1i_subframe
 from service.core.constants import C_M_S
 from service.core.counters import Counters
+from service.core.errors import DecodeError
 from service.core.systems import GnssSystem, constants_of, sat_id, wavelength_m
 from service.core.timebase import gpst_from_utc
-from service.core.types import MeasurementEpoch, ReceiverFix
+from service.core.types import MeasurementEpoch, NavSubframe, ReceiverFix
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +165,20 @@ DEFAULT_COLUMNS = [
 """GnssLogger v2's Raw columns, for a log without its header."""
 DEFAULT_FIX_COLUMNS = "Fix,Provider,Latitude,Longitude,Altitude,Speed,Accuracy,(UTC)TimeInMs"
 
+NAV_BDS_D1, NAV_BDS_D2 = 0x0501, 0x0502
+"""``GnssNavigationMessage.TYPE_BDS_D1`` / ``TYPE_BDS_D2``."""
+NAV_STATUS_OK = (1, 2)
+"""``STATUS_PARITY_PASSED``, ``STATUS_PARITY_REBUILT``."""
+
+
+def nav_words(data: bytes) -> tuple[int, ...]:
+    """The ten 30-bit words of a GPS L1 C/A or BeiDou D1/D2 subframe from
+    ``GnssNavigationMessage.getData()``'s 40 bytes (each word in the last 30 bits of 4
+    bytes, big-endian)."""
+    if len(data) != 40:
+        raise ValueError(f"{len(data)} data bytes, expected 40")
+    return tuple(int.from_bytes(data[4 * i : 4 * i + 4], "big") & 0x3FFFFFFF for i in range(10))
+
 
 def state_names(state: int) -> tuple[str, ...]:
     """The ``STATE_*`` names of the bits set in ``state``, lowest bit first (unknown bits
@@ -225,6 +251,7 @@ class GnssLoggerReader:
         self._raw_cols: dict[str, int] = self._columns(DEFAULT_COLUMNS)
         self._fix_cols: dict[str, int] = self._columns(DEFAULT_FIX_COLUMNS.split(","))
         self._discontinuity: int | None = None
+        self._time: tuple[int, float] | None = None  # GPST of the latest Raw epoch
 
     @staticmethod
     def _columns(names: list[str]) -> dict[str, int]:
@@ -233,7 +260,7 @@ class GnssLoggerReader:
             cols.setdefault(name.strip(), i)  # the first of a repeated name
         return cols
 
-    def __iter__(self) -> Iterator[MeasurementEpoch | ReceiverFix]:
+    def __iter__(self) -> Iterator[MeasurementEpoch | ReceiverFix | NavSubframe]:
         pending: list[list[str]] = []
         key: tuple[str, str] | None = None
         for lineno, line in enumerate(self._lines, 1):
@@ -263,6 +290,11 @@ class GnssLoggerReader:
                     yield fix
             elif kind == "Nav":
                 self.counters["android_nav_rows"] += 1
+                if pending and self._time is None:  # the epoch being read gives the time
+                    self._time = self._time_of(pending[0])
+                sub = self._nav(fields)
+                if sub is not None:
+                    yield sub
             elif kind == "Status":
                 self.counters["android_status_rows"] += 1
         if pending:
@@ -273,6 +305,41 @@ class GnssLoggerReader:
             self._raw_cols = self._columns(text.split(","))
         elif text.startswith("Fix,"):
             self._fix_cols = self._columns(text.split(","))
+
+    def _time_of(self, first: list[str]) -> tuple[int, float] | None:
+        c = self._raw_cols
+        try:
+            gps_ns = int(first[c["TimeNanos"]]) - _int(first[c["FullBiasNanos"]])
+            week, tow_ns = divmod(gps_ns, WEEK_NS)
+            return week, (tow_ns - float(first[c["BiasNanos"]] or 0.0)) * 1e-9
+        except (KeyError, IndexError, ValueError, OverflowError):
+            return None
+
+    def _nav(self, f: list[str]) -> NavSubframe | None:
+        """A BeiDou D1/D2 subframe of a Nav row, or None (counted)."""
+        try:
+            svid, kind, status = int(f[1]), int(f[2]), int(f[3])
+            data = bytes(int(b) & 0xFF for b in f[6:])
+        except (IndexError, ValueError):
+            self.counters["android_nav_bad"] += 1
+            return None
+        if kind not in (NAV_BDS_D1, NAV_BDS_D2):
+            self.counters[f"android_nav_{kind:#06x}"] += 1
+            return None
+        if status not in NAV_STATUS_OK or not 1 <= svid <= 63:
+            self.counters["android_nav_bad"] += 1
+            return None
+        if self._time is None:
+            self.counters["android_nav_no_time"] += 1
+            return None
+        nav_type: Literal["D1", "D2"] = "D1" if kind == NAV_BDS_D1 else "D2"
+        try:
+            sub = b1i_subframe(sat_id(GnssSystem.BDS, svid), nav_type, nav_words(data), *self._time)
+        except (DecodeError, ValueError):
+            self.counters["android_nav_bad"] += 1
+            return None
+        self.counters["android_nav_bds"] += 1
+        return sub
 
     def _fix(self, f: list[str]) -> ReceiverFix | None:
         c = self._fix_cols
@@ -310,7 +377,11 @@ class GnssLoggerReader:
         if restarted:
             self.counters["android_clock_restarts"] += 1
         self._discontinuity = discontinuity
-        gps_ns = time_ns - full_bias_ns  # integer ns since the GPS epoch, before BiasNanos
+        gps_ns = time_ns - full_bias_ns
+        self._time = (
+            gps_ns // WEEK_NS,
+            (gps_ns % WEEK_NS - bias_ns) * 1e-9,
+        )  # integer ns since the GPS epoch, before BiasNanos
         week, tow_int_ns = divmod(gps_ns, WEEK_NS)
         for f in rows:
             try:
@@ -409,7 +480,7 @@ class GnssLoggerReader:
 
 def events(
     path: str | Path, counters: Counters | None = None, lenient: bool = True
-) -> Iterator[MeasurementEpoch | ReceiverFix]:
+) -> Iterator[MeasurementEpoch | ReceiverFix | NavSubframe]:
     """The events of the GnssLogger log at ``path`` (see :class:`GnssLoggerReader`; a bad
     row is always counted and skipped, ``lenient`` or not). The registry's reader."""
     with open(path, encoding="utf-8", errors="replace") as fh:

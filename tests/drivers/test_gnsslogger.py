@@ -18,6 +18,7 @@ from drivers.gnsslogger import (
     GnssLoggerReader,
     events,
     known_period_s,
+    nav_words,
     state_names,
 )
 from service.core.constants import C_M_S
@@ -328,3 +329,69 @@ def test_a_clock_discontinuity_is_a_restart_and_fix_rows_are_receiver_fixes():
     assert rf.gpst_week == 2229
     assert rf.gpst_tow_s == pytest.approx(3 * 86400 + 14 * 3600 + 60 + 46 + 18)
     assert (rf.lat_deg, rf.lon_deg, rf.alt_m, rf.accuracy_m) == (39.9, 116.3, 50.0, 3.5)
+
+
+def test_perth_gps_nav_rows_hold_subframes_in_the_android_layout():
+    """The Perth log's 499 GPS L1 C/A Nav rows (type 0x0101, not decoded) read with the
+    layout of ``GnssNavigationMessage.getData()`` (:func:`nav_words`): word 1 starts with
+    the TLM preamble 10001011, and the subframe ID of the HOW (bits 20-22, IS-GPS-200
+    20.3.3.2; bits 1-24 of a word are sent inverted when the previous word's D30 is 1) is
+    the row's Sub-messageId."""
+    counters = Counters()
+    list(events(PERTH, counters))
+    assert counters["android_nav_0x0101"] == 499
+    assert counters["android_nav_0x0301"] == 742  # GLONASS strings
+    assert counters["android_nav_bds"] == 0
+    checked, placeholders = 0, []
+    for line in PERTH.open():
+        f = line.strip().split(",")
+        if f[0] != "Nav" or f[2] != "257":
+            continue
+        words = nav_words(bytes(int(b) & 0xFF for b in f[6:]))
+        assert words[0] >> 22 == 0b10001011
+        if words[1] == 0x0BADC0DE:
+            placeholders.append(f[1])
+            continue
+        assert (words[1] >> 8) & 0b111 == int(f[5])
+        checked += 1
+    assert checked == 498 and placeholders == ["3"]
+
+
+def _android_nav_row(sub) -> str:
+    """A Nav row holding a received B1I subframe as Android writes it: type 0x0501 (D1) or
+    0x0502 (D2), status 1 (parity passed), each word in the last 30 bits of 4 bytes, big
+    endian, as signed decimals."""
+    kind = 0x0501 if sub.nav_type == "D1" else 0x0502
+    data = b"".join(w.to_bytes(4, "big") for w in sub.words)
+    signed = ",".join(str(b - 256 if b > 127 else b) for b in data)
+    return f"Nav,{int(sub.prn[1:])},{kind},1,-1,{sub.fra_id},{signed}\n"
+
+
+def test_bds_nav_rows_become_the_receivers_own_subframes():
+    """Real B1I subframes (the Leuven SBF capture's BDSRaw: D1; its GEO's D2 are not on
+    B1I) written as Android Nav rows among real Raw rows come back as the same NavSubframes
+    (words, FraID, SOW, page), tagged with the receive time of the Raw epoch being read."""
+    from drivers.source import open_source
+    from service.core.types import NavSubframe
+
+    with open_source(str(DATA / "leuven-septentrio-sbf-2025" / "log_0000.sbf")) as src:
+        subs = [e for e in src if isinstance(e, NavSubframe)]
+    assert {s.nav_type for s in subs} == {"D1"} and len(subs) >= 20
+    head = _lines(BEIJING, 60)
+    raws = [i for i, x in enumerate(head) if x.startswith("Raw,")]
+    lines = head[: raws[3]] + [_android_nav_row(s) for s in subs] + head[raws[3] :]
+    counters = Counters()
+    out = list(GnssLoggerReader(lines, counters))
+    got = [e for e in out if isinstance(e, NavSubframe)]
+    assert counters["android_nav_bds"] == len(subs) == len(got)
+    first = next(e for e in out if isinstance(e, MeasurementEpoch))
+    for a, b in zip(got, subs, strict=True):
+        assert (a.prn, a.nav_type, a.words, a.fra_id, a.sow_s, a.page) == (
+            b.prn,
+            b.nav_type,
+            b.words,
+            b.fra_id,
+            b.sow_s,
+            b.page,
+        )
+        assert (a.gpst_week, a.gpst_tow_s) == (first.gpst_week, first.gpst_tow_s)
