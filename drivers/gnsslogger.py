@@ -490,3 +490,10 @@ def events(
 def detect(path: Path, head: bytes) -> bool:
     """A GnssLogger log: its header names the Raw columns, or it starts with a Raw row."""
     return MAGIC in head or head.startswith(b"Raw,")
+
+
+def needs_nav(path: Path) -> bool:
+    """True unless the log holds BeiDou D1/D2 Nav rows (whose ephemerides it decodes)."""
+    kinds = (f",{NAV_BDS_D1},", f",{NAV_BDS_D2},")
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        return not any(line.startswith("Nav,") and any(k in line for k in kinds) for line in fh)

@@ -76,20 +76,24 @@ class FileFormat:
     """One file-format entry: ``name`` (the source-spec scheme ``NAME:PATH`` and the
     ``epochs_<name>`` counter the reader keeps), ``describe`` (its words in "expected ..."
     errors), ``detect(path, head)`` (``head``: the file's first bytes, up to 64 KiB) and
-    ``reader``. ``needs_nav``: the format carries no ephemerides bdsfix decodes, so
+    ``reader``. ``needs_nav(path)``: the file carries no ephemerides bdsfix decodes, so
     ``replay`` and ``run`` refuse it without ``--nav`` (exit 3, naming the day's nav file)
-    instead of declining every epoch."""
+    instead of declining every epoch (None: never refused)."""
 
     name: str
     describe: str
     detect: Callable[[Path, bytes], bool]
     reader: FileReader
-    needs_nav: bool = False
+    needs_nav: Callable[[Path], bool] | None = None
 
 
 FILE_FORMATS: tuple[FileFormat, ...] = (
     FileFormat("rinex", "a RINEX 3 obs file", rinex.detect, rinex.obs_events),
     FileFormat(
-        "gnsslogger", "an Android GnssLogger log", gnsslogger.detect, gnsslogger.events, True
+        "gnsslogger",
+        "an Android GnssLogger log",
+        gnsslogger.detect,
+        gnsslogger.events,
+        gnsslogger.needs_nav,
     ),
 )

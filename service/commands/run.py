@@ -128,7 +128,7 @@ def _check_needs_nav(spec: str, gps_week: int | None) -> None:
 
     fmt, path = _file_spec(spec)
     fmt = fmt or file_format(path)
-    if fmt is None or not fmt.needs_nav:
+    if fmt is None or fmt.needs_nav is None or not fmt.needs_nav(Path(path)):
         return
     first = first_epoch_time(spec, gps_week)
     day = ""

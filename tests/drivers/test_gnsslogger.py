@@ -395,3 +395,16 @@ def test_bds_nav_rows_become_the_receivers_own_subframes():
             b.page,
         )
         assert (a.gpst_week, a.gpst_tow_s) == (first.gpst_week, first.gpst_tow_s)
+
+
+def test_a_log_needs_nav_unless_it_holds_bds_nav_rows(tmp_path):
+    from drivers.gnsslogger import needs_nav
+    from drivers.source import open_source
+    from service.core.types import NavSubframe
+
+    assert needs_nav(BEIJING) and needs_nav(PERTH)  # Perth: GPS and GLONASS Nav rows only
+    with open_source(str(DATA / "leuven-septentrio-sbf-2025" / "log_0000.sbf")) as src:
+        sub = next(e for e in src if isinstance(e, NavSubframe))
+    path = tmp_path / "with-bds-nav.txt"
+    path.write_text("".join(_lines(BEIJING, 60)) + _android_nav_row(sub))
+    assert not needs_nav(path)
