@@ -48,7 +48,9 @@ Field rules, common to all classes:
 ``SKY``: ``class gpst_week gpst_tow_s satellites``; each satellite ``prn el_deg az_deg
   used full signal`` plus ``cn0_dbhz`` when measured.
 ``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
-  gpst_tow_s since_start_s``; ``event`` is ``sow`` (a subframe's SOW decoded: ``sow_s`` is
+  gpst_tow_s since_start_s``; ``prn`` a RINEX 3 satellite ID (BeiDou, or GPS/Galileo from a
+  multi-system source such as a phone log), ``nav_type`` ``D2`` for a BeiDou GEO and
+  ``D1`` for every other satellite; ``event`` is ``sow`` (a subframe's SOW decoded: ``sow_s`` is
   the BDT second of week at which that subframe started) or ``full`` (its measurement
   became a full pseudorange at ``gpst_tow_s``); ``full_since_s`` (data time since the
   stream start at which it first became full) when the caller knows it.
@@ -328,7 +330,9 @@ _DIALECT = "https://json-schema.org/draft/2020-12/schema"
 _NUM = {"type": "number"}
 _NONNEG = {"type": "number", "minimum": 0}
 _COUNT = {"type": "integer", "minimum": 0}
-_PRN = {"type": "string", "pattern": "^C[0-9]{2}$"}
+_PRN = {"type": "string", "pattern": "^[CGERJSI][0-9]{2}$"}
+"""A RINEX 3 satellite ID: BeiDou, or another system's from a multi-system source (a phone
+log's GPS and Galileo rows reach the tracker, ``TRACK``)."""
 _WEEK = {"type": "integer", "minimum": 0}
 _TOW = {"type": "number", "minimum": 0, "exclusiveMaximum": 604800}
 _POSITION = ("x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m")
