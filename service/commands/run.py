@@ -331,9 +331,11 @@ def main_run(args: argparse.Namespace) -> int:
 class Timeline:
     """First events of a stream, for the human summary of a replay."""
 
-    FULL4 = "4 full ranges (conventional)"
-    """The first epoch with at least 4 full ranges of any system: when a conventional
-    receiver can fix (every satellite's time of week decoded)."""
+    FULL4 = "first 4 full ranges"
+    """The first epoch with at least 4 full ranges of any system (4 satellites' time of
+    week known): from then on a conventional receiver can fix, geometry and ephemerides
+    permitting. The built-in scenario reaches it with its 4 GEOs at 0.70 s, whose geometry
+    alone does not allow an SPP fix; the Perth phone log with 9 GPS satellites at 12.00 s."""
 
     def __init__(self) -> None:
         self.first: dict[str, float] = {}
