@@ -36,11 +36,17 @@ from service.core.timebase import (
     normalize,
     system_clock_gps_week,
 )
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.types import (
+    Ephemeris,
+    KlobucharParams,
+    MeasurementEpoch,
+    NavSubframe,
+    ReceiverFix,
+)
 
 log = logging.getLogger(__name__)
 
-Event = MeasurementEpoch | NavSubframe | Ephemeris | KlobucharParams
+Event = MeasurementEpoch | NavSubframe | Ephemeris | KlobucharParams | ReceiverFix
 """What drivers emit: the event types of :mod:`service.core.types`."""
 
 DEFAULT_MAX_COMMENT = 8192

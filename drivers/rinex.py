@@ -866,3 +866,42 @@ __all__ = [
     "merge_nav",
     "read_nav",
 ]
+
+
+def detect(path: Path, head: bytes) -> bool:
+    """True when the file's first line carries the RINEX header label (also gzip, Unix
+    compress and Hatanaka compact RINEX: :func:`open_text`). The registry's detection
+    (:data:`drivers.protocols.FILE_FORMATS`); a nav file is detected too, and refused by
+    the obs reader's header check."""
+    first = head.split(b"\n", 1)[0][:200]
+    if b"RINEX VERSION / TYPE" in first or b"CRINEX VERS" in first:
+        return True
+    if not first.startswith(COMPRESSED_MAGICS):
+        return False
+    try:
+        with open_text(path) as fh:
+            return "RINEX VERSION / TYPE" in fh.readline(200)
+    except FramingError:
+        return False
+
+
+def obs_events(
+    path: str | Path, counters: Counter[str] | None = None, lenient: bool = True
+) -> Iterator[MeasurementEpoch]:
+    """The epochs of the obs file at ``path`` (:class:`RinexObsReader`), counting
+    ``epochs_rinex`` and the reader's skipped records into ``counters``.
+    The header is read now (a bad one raises here, not at the first epoch); the file is
+    closed when the iteration ends or is closed. The registry's reader."""
+    reader = RinexObsReader(path, lenient=lenient)
+    if counters is not None:
+        reader.counters = counters  # one set: the reader's skipped epochs reach STATUS
+    return _counted(reader, reader.counters)
+
+
+def _counted(reader: RinexObsReader, counters: Counter[str]) -> Iterator[MeasurementEpoch]:
+    try:
+        for epoch in reader:
+            counters["epochs_rinex"] += 1
+            yield epoch
+    finally:
+        reader.close()

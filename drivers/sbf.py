@@ -34,8 +34,10 @@ capture, pysbf2's code offset sign-corrected).
   u4 (the 10 words of 30 bits, parity included); one failing the header checks is counted
   (``bdsraw_unmapped``), other signals and failed CRCs too (``bdsraw_other_signal``,
   ``bdsraw_crc_failed``).
-- PVTGeodetic: the receiver's own fix is kept as :attr:`SbfMapper.receiver_fix` (ECEF) for
-  comparison (``sbf_pvt``; ``sbf_pvt_no_fix`` when its mode is 0 or a value is do-not-use).
+- PVTGeodetic: the receiver's own fix becomes a :class:`~service.core.types.ReceiverFix`
+  (``sbf-pvtgeodetic``), carried beside bdsfix's fixes for comparison, and is kept as
+  :attr:`SbfMapper.receiver_fix` (ECEF) (``sbf_pvt``; ``sbf_pvt_no_fix`` when its mode is
+  0 or a value is do-not-use).
 
 Counter keys: ``sbf:<Name>`` per block, ``sbf_ignored``, ``epochs_sbf``, ``sbf_bad_time``,
 ``meas_other_gnss``, ``meas_bds_other_signal``, ``meas_aux_antenna``, ``meas_pr_invalid``,
@@ -65,7 +67,7 @@ from service.core.errors import DecodeError
 from service.core.geometry import geodetic_to_ecef
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
 from service.core.timebase import bdt_to_gpst
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, ReceiverFix
 
 log = logging.getLogger(__name__)
 
@@ -329,8 +331,7 @@ class SbfMapper:
             return []
         if number == BDS_RAW:
             return self._on_bds_raw(msg, wnc, tow * 1e-3)
-        self._on_pvt(msg, wnc, tow * 1e-3)
-        return []
+        return self._on_pvt(msg, wnc, tow * 1e-3)
 
     def flush(self) -> list[Event]:
         """Emit the held first epoch, if any (end of stream or idle line)."""
@@ -428,11 +429,12 @@ class SbfMapper:
         self.counters["subframes"] += 1
         return [subframe]
 
-    def _on_pvt(self, msg: Any, wnc: int, tow_s: float) -> None:
+    def _on_pvt(self, msg: Any, wnc: int, tow_s: float) -> list[Event]:
         self.counters["sbf_pvt"] += 1
         lat, lon, h = float(msg.Latitude), float(msg.Longitude), float(msg.Height)
         if int(msg.Type) == 0 or not all(abs(v) < 1e9 for v in (lat, lon, h)):
             self.counters["sbf_pvt_no_fix"] += 1
-            return
+            return []
         x = geodetic_to_ecef(lat, lon, h)  # radians, ellipsoidal height
         self.receiver_fix = (wnc, tow_s, (float(x[0]), float(x[1]), float(x[2])))
+        return [ReceiverFix("sbf-pvtgeodetic", wnc, tow_s, math.degrees(lat), math.degrees(lon), h)]

@@ -1,8 +1,11 @@
 """One entry point from a source spec to a stream of events, with protocol auto-detection.
 
-``open_source(spec)`` accepts a file path (RINEX 3 observation file or a binary capture),
-``-`` (standard input), ``serial:/dev/ttyX[:baud]`` or a bare ``/dev/...`` path, and
-``tcp:host:port``. RINEX is recognised by ``RINEX VERSION / TYPE`` in its first line;
+``open_source(spec)`` accepts a file path (a file of a registered file format or a binary
+capture), ``NAME:PATH`` (PATH read as the registered file format NAME, e.g.
+``gnsslogger:log.txt``, ``rinex:obs.24o``), ``file:PATH``, ``-`` (standard input),
+``serial:/dev/ttyX[:baud]`` or a bare ``/dev/...`` path, and ``tcp:host:port``. The file
+formats of :data:`drivers.protocols.FILE_FORMATS` (RINEX 3 obs, Android GnssLogger logs)
+are recognised by their content and read by their own reader (:class:`FileSource`);
 everything else goes through :class:`StreamDecoder`: the framer and the mappers of the
 protocols registered in :data:`drivers.protocols.PROTOCOLS` (UBX, RTCM3, SBF and NMEA, mixed in
 one stream) behind a ``feed(bytes) -> events`` interface, for an asyncio daemon or any other
@@ -26,8 +29,9 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from drivers import protocols as _registry
 from drivers.framing import Event, Frame, Framer, WeekContext
-from drivers.protocols import PROTOCOLS, Mapper, ProtocolSpec
+from drivers.protocols import FileFormat, Mapper, ProtocolSpec
 from drivers.transport import (
     FileTransport,
     SerialTransport,
@@ -37,7 +41,7 @@ from drivers.transport import (
     pace,
 )
 from service.core.counters import Counters
-from service.core.errors import ConfigError, DecodeError, FramingError, InputError
+from service.core.errors import ConfigError, DecodeError, InputError
 from service.core.ratelog import RateLimitedLog
 from service.core.timebase import MIN_SANE_GPS_WEEK, gpst_from_utc
 
@@ -49,7 +53,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "BinarySource",
     "EventSource",
-    "RinexSource",
+    "FileSource",
     "StreamDecoder",
     "is_rinex",
     "open_source",
@@ -78,8 +82,10 @@ class StreamDecoder:
         max_payload: Mapping[str, int] | None = None,
         mapper_options: Mapping[str, Mapping[str, Any]] | None = None,
         counters: Counters | None = None,
-        protocols: Sequence[ProtocolSpec] = PROTOCOLS,
+        protocols: Sequence[ProtocolSpec] | None = None,
     ) -> None:
+        if protocols is None:  # the registry as it is now (a test may have added to it)
+            protocols = _registry.PROTOCOLS
         self.counters = counters if counters is not None else Counters()
         self.week = WeekContext(gps_week)
         self.framer = Framer(protocols, self.counters, max_payload=max_payload)
@@ -233,89 +239,112 @@ class BinarySource(EventSource):
         self.transport.close()
 
 
-class RinexSource(EventSource):
-    """RINEX 3 observation file through :class:`drivers.rinex.RinexObsReader`.
+class FileSource(EventSource):
+    """A file of a registered file format (:data:`drivers.protocols.FILE_FORMATS`) through
+    its reader.
 
-    A stream is ``lenient`` by default: a broken epoch is logged with file:line, counted
-    (``epochs_skipped``, ``records_skipped``, ``lines_skipped``) and skipped, as the framer
-    does with bad bytes; ``bdsfix solve`` keeps the strict reader and its error.
+    A stream is ``lenient`` by default: a broken record is logged with file:line, counted and
+    skipped, as the framer does with bad bytes; ``bdsfix solve`` keeps the strict reader and
+    its error. Counts ``events``; the reader counts the rest into the same counters.
     """
 
     def __init__(
-        self, path: str | Path, *, prefix: Iterable[Event] = (), lenient: bool = True
+        self,
+        path: str | Path,
+        fmt: FileFormat,
+        *,
+        prefix: Iterable[Event] = (),
+        lenient: bool = True,
     ) -> None:
-        from drivers.rinex import RinexObsReader
-
         self.name = str(path)
+        self.format = fmt
         self.counters = Counters()
-        self._reader: Any = RinexObsReader(path, lenient=lenient)
-        # one set of counters: the reader's skipped epochs/records/lines reach STATUS
-        self._reader.counters = self.counters
+        self._events: Iterable[Event] = fmt.reader(Path(path), self.counters, lenient)
         self._prefix = list(prefix)
 
     def __iter__(self) -> Iterator[Event]:
         yield from self._prefix
-        for epoch in self._reader:
-            self.counters["epochs_rinex"] += 1
+        for ev in self._events:
             self.counters["events"] += 1
-            yield epoch
+            yield ev
 
     def close(self) -> None:
-        closer: Callable[[], None] | None = getattr(self._reader, "close", None)
+        closer: Callable[[], None] | None = getattr(self._events, "close", None)
         if closer is not None:
             closer()
 
 
+DETECT_BYTES = 1 << 16
+"""How much of a file the file formats' detection sees."""
 CAPTURE_SCAN_BYTES = 1 << 20
 """How much of a capture file :func:`check_capture` reads for a first frame."""
 
 
+def file_format(path: str | Path) -> FileFormat | None:
+    """The registered file format (:data:`drivers.protocols.FILE_FORMATS`) whose detection
+    accepts the file's first bytes, in registry order; None: a byte stream for the framer."""
+    from drivers import protocols
+
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(DETECT_BYTES)
+    return next((f for f in protocols.FILE_FORMATS if f.detect(path, head)), None)
+
+
+def expected_inputs() -> str:
+    """The "expected ..." words of an input refusal, from the registry."""
+    from drivers import protocols
+
+    frames = ", ".join(p.name.upper() for p in protocols.PROTOCOLS)
+    files = [f.describe for f in protocols.FILE_FORMATS]
+    return f"expected a capture of {frames} frames, {', '.join(files[:-1])} or {files[-1]}"
+
+
 def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> None:
-    """A capture file must hold something bdsfix reads: a RINEX header, or at least one
-    frame of a registered protocol in its first ``scan_bytes``. Otherwise InputError
-    (exit 3) with one line saying what was expected."""
-    from drivers.protocols import PROTOCOLS
+    """A capture file must hold something bdsfix reads: a registered file format, or at
+    least one frame of a registered protocol in its first ``scan_bytes``. Otherwise
+    InputError (exit 3) with one line saying what was expected."""
+    from drivers import protocols
     from drivers.rinex import COMPRESSED_MAGICS
 
     path = Path(path)
-    if is_rinex(path):
+    if file_format(path) is not None:
         return
     with open(path, "rb") as fh:
         head = fh.read(scan_bytes)
-    expected = (
-        f"expected a capture of {', '.join(p.name.upper() for p in PROTOCOLS)} frames "
-        "or a RINEX 3 obs file"
-    )
+    expected = expected_inputs()
     if not head:
         raise InputError(f"{path}: empty file; {expected}")
     if head.startswith((*COMPRESSED_MAGICS, b"BZh", b"PK\x03\x04", b"\xfd7zXZ")):
         raise InputError(f"{path}: a compressed archive, not a capture: decompress it first")
-    if b"Raw,ElapsedRealtimeMillis," in head[:65536]:
-        raise InputError(
-            f"{path}: an Android GnssLogger text log (Raw records), which bdsfix does not "
-            f"read; {expected}"
-        )
-    framer = Framer(PROTOCOLS)
+    framer = Framer(protocols.PROTOCOLS)
     if not framer.feed(head) and not framer.flush():
         raise InputError(f"{path}: no frame found in its first {len(head)} bytes; {expected}")
 
 
+def file_epochs(path: str | Path, *, lenient: bool = False) -> tuple[Iterator[Event], Counters]:
+    """The events of a file of a registered file format (``bdsfix solve`` and ``ttff``: RINEX
+    3 obs, GnssLogger logs, ...) and the counters its reader keeps; ``NAME:PATH`` names the
+    format. InputError (exit 3) for a file of none of them."""
+    fmt, name = _file_spec(str(path))
+    if not os.path.isfile(name):
+        raise InputError(f"{name}: no such file")
+    fmt = fmt or file_format(name)
+    if fmt is None:
+        formats = ", ".join(f.describe for f in _registry.FILE_FORMATS)
+        raise InputError(f"{name}: not a file bdsfix solves; expected {formats}")
+    counters = Counters()
+    return iter(fmt.reader(Path(name), counters, lenient)), counters
+
+
 def is_rinex(path: str | Path) -> bool:
-    """True when the file's first line carries the RINEX header label (also gzip, Unix
-    compress and Hatanaka compact RINEX: :func:`drivers.rinex.open_text`)."""
-    from drivers.rinex import COMPRESSED_MAGICS, open_text
+    """True when the file is RINEX (its first line carries the RINEX header label; also
+    gzip, Unix compress and Hatanaka compact RINEX): :func:`drivers.rinex.detect`."""
+    from drivers.rinex import detect
 
     with open(path, "rb") as f:
         head = f.readline(200)
-    if b"RINEX VERSION / TYPE" in head or b"CRINEX VERS" in head:
-        return True
-    if not head.startswith(COMPRESSED_MAGICS):
-        return False
-    try:
-        with open_text(path) as fh:
-            return "RINEX VERSION / TYPE" in fh.readline(200)
-    except FramingError:
-        return False
+    return detect(Path(path), head)
 
 
 def _nav_events(
@@ -357,6 +386,19 @@ def serial_device(spec: str, baud: int) -> tuple[str, int]:
     return device, int(rate)
 
 
+def _file_spec(spec: str) -> tuple[FileFormat | None, str]:
+    """(format named by the spec's scheme or None, path) of a file source spec:
+    ``NAME:PATH`` for a registered file format, ``file:PATH`` or ``PATH`` (detected)."""
+    from drivers import protocols
+
+    scheme, sep, rest = spec.partition(":")
+    if sep:
+        for fmt in protocols.FILE_FORMATS:
+            if fmt.name == scheme:
+                return fmt, rest
+    return None, spec.removeprefix("file:")
+
+
 def open_source(
     spec: str,
     *,
@@ -396,11 +438,12 @@ def open_source(
     elif spec == "-":
         transport = FileTransport(sys.stdin.buffer, name="stdin")
     else:
-        path = spec.removeprefix("file:")
+        fmt, path = _file_spec(spec)
         if not os.path.isfile(path):
             raise ConfigError(f"source {spec!r}: no such file")
-        if is_rinex(path):
-            src = RinexSource(path, prefix=prefix)
+        fmt = fmt or file_format(path)
+        if fmt is not None:
+            src = FileSource(path, fmt, prefix=prefix)
             src.counters.update(counters)
             return src
         transport = FileTransport(path)

@@ -111,12 +111,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = command(
         "solve",
-        "batch per-epoch solutions from RINEX 3 obs + nav",
-        "Solve every epoch of a RINEX 3 observation file with the fast fix and/or SPP and "
+        "batch per-epoch solutions from RINEX 3 obs (or a GnssLogger log) + nav",
+        "Solve every epoch of a RINEX 3 observation file (or an Android GnssLogger log) "
+        "with the fast fix and/or SPP and "
         "write one record per epoch and solver; a summary with the decline reasons goes "
         "to stderr.",
     )
-    s.add_argument("obs", help="RINEX 3 observation file (BDS C2I/C1I pseudoranges)")
+    s.add_argument(
+        "obs",
+        help="RINEX 3 observation file (BDS C2I/C1I pseudoranges) or Android GnssLogger log "
+        "(FORMAT:PATH names the format)",
+    )
     s.add_argument("nav", nargs="+", help="one or more RINEX 3 nav files")
     s.add_argument(
         "--mode",
@@ -173,15 +178,17 @@ def build_parser() -> argparse.ArgumentParser:
         "replay",
         "replay a capture (or the built-in scenario) as a receiver",
         "Feed a capture through the same stream path as the daemon: a UBX/RTCM3/SBF/NMEA "
-        "capture or a RINEX 3 obs file, paced in real time (--max-speed: as fast as "
+        "capture, a RINEX 3 obs file or an Android GnssLogger log, paced in real time "
+        "(--max-speed: as fast as "
         "possible); with no FILE, the built-in virtual receiver near Beijing at full speed. "
         "NMEA goes to stdout unless another output is asked for; a summary to stderr.",
     )
     r.add_argument(
         "files",
         nargs="*",
-        help="UBX/RTCM/SBF/NMEA capture or RINEX 3 obs; none: the "
-        "built-in virtual receiver near Beijing",
+        help="UBX/RTCM/SBF/NMEA capture, RINEX 3 obs or GnssLogger log (FORMAT:PATH, e.g. "
+        "gnsslogger:log.txt, names the format); none: the built-in virtual receiver near "
+        "Beijing",
     )
     r.add_argument("--nav", action="append", help="RINEX 3 nav file(s): held ephemerides")
     r.add_argument(
@@ -340,7 +347,9 @@ def build_parser() -> argparse.ArgumentParser:
         "or (--simulate) restarts of the virtual receiver streamed through a pty into "
         "'bdsfix run'. Fast fix versus conventional SPP and GEO-only SPP.",
     )
-    t.add_argument("obs", nargs="?", help="RINEX 3 obs file (not with --simulate)")
+    t.add_argument(
+        "obs", nargs="?", help="RINEX 3 obs file or GnssLogger log (not with --simulate)"
+    )
     t.add_argument("nav", nargs="*", help="RINEX 3 nav file(s)")
     t.add_argument("--trials", type=int, default=100, help="number of restarts")
     t.add_argument("--seed", type=int, default=1, help="random seed of the restart times")

@@ -19,6 +19,8 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from service.commands.options import full_rule, solver_config
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
@@ -102,16 +104,46 @@ def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> list[N
     day than its first epoch, refuse the start: one line, exit 3
     (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows). The
     files as read, for the source to put at the head of its stream."""
-    if not nav:
-        return []
     from service.commands.navcheck import check_navigation, first_epoch_time, read_navigation
 
+    if not nav:
+        _check_needs_nav(spec, gps_week)
+        return []
     navs = read_navigation(nav)
     first = None
     if _is_regular_file(spec):
         first = first_epoch_time(spec.removeprefix("file:"), gps_week)
     check_navigation(nav, navs, first)
     return navs
+
+
+def _check_needs_nav(spec: str, gps_week: int | None) -> None:
+    """A file of a format that carries no ephemerides bdsfix decodes
+    (:attr:`drivers.protocols.FileFormat.needs_nav`), given without ``--nav``: one line
+    naming the nav file of its first epoch's day, exit 3."""
+    if not _is_regular_file(spec):
+        return
+    from drivers.source import _file_spec, file_format
+    from service.commands.navcheck import first_epoch_time
+    from service.core.timebase import datetime_from_gpst
+
+    fmt, path = _file_spec(spec)
+    fmt = fmt or file_format(path)
+    if fmt is None or fmt.needs_nav is None or not fmt.needs_nav(Path(path)):
+        return
+    first = first_epoch_time(spec, gps_week)
+    day = ""
+    if first is not None:
+        t = datetime_from_gpst(*first)
+        doy = t.timetuple().tm_yday
+        day = (
+            f" of GPST {t:%Y-%m-%d} (day {doy:03d}), e.g. the IGS broadcast "
+            f"BRDM00DLR_S_{t:%Y}{doy:03d}0000_01D_MN.rnx"
+        )
+    raise InputError(
+        f"{path}: {fmt.describe} carries no ephemerides bdsfix decodes; give --nav with a "
+        f"RINEX 3 nav file{day}"
+    )
 
 
 def _is_regular_file(spec: str) -> bool:

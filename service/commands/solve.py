@@ -1,4 +1,5 @@
-"""``bdsfix solve``: batch per-epoch fast and SPP solutions from RINEX 3 obs + nav files.
+"""``bdsfix solve``: batch per-epoch fast and SPP solutions from an observation file (any
+registered file format: RINEX 3 obs, an Android GnssLogger log) + RINEX nav files.
 
 With ``--fractional non-geo`` (the default) every non-GEO pseudorange is reduced modulo c*T
 before the fast solver sees it, as in the paper's real-data experiment; the SPP solver always
@@ -22,6 +23,7 @@ from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.batch import CHUNK_EPOCHS, solve_many
+from service.engine.pipeline import without_coarse_fractions
 from service.engine.solver import IonoSet, SolverConfig, fractionalize
 from service.engine.velocity import with_velocities
 
@@ -81,6 +83,9 @@ def solve_epochs(
     with a position gets its velocity from the epoch's Doppler, a chunk at a time
     (:func:`~service.engine.velocity.with_velocities`)."""
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
+        # a receiver time coarser than 1 ms (a phone before its first fix): no fractional
+        # range enters the fix (service.engine.pipeline.COARSE_TIME_S)
+        chunk = [without_coarse_fractions(e)[0] for e in chunk]
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
             fast_in = chunk
@@ -108,7 +113,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 
 
 def main_solve(args: argparse.Namespace) -> int:
-    from drivers.rinex import RinexObsReader
+    from drivers.source import file_epochs
     from service.commands.options import solver_config
     from service.commands.summary import decline_lines, no_epochs_hint, skipped_line
     from service.output.records import csv_header, fix_csv_row, fix_json_line
@@ -124,9 +129,13 @@ def main_solve(args: argparse.Namespace) -> int:
         cfg=cfg,
         with_sky=args.format == "nmea",
     )
-    reader = RinexObsReader(args.obs)
-    with contextlib.closing(RinexObsReader(args.obs, lenient=True)) as head:  # the first epoch only
-        first = next(((e.gpst_week, e.gpst_tow_s) for e in head), None)
+    events, read_counters = file_epochs(args.obs)
+    epochs = (e for e in events if isinstance(e, MeasurementEpoch))
+    head, _ = file_epochs(args.obs, lenient=True)  # the first epoch only
+    with contextlib.closing(head):  # type: ignore[type-var]
+        first = next(
+            ((e.gpst_week, e.gpst_tow_s) for e in head if isinstance(e, MeasurementEpoch)), None
+        )
     store, iono = load_navigation(list(args.nav), first=first)
     counts, excluded = Counters(), Counters()
     declined = {"fast": Counters(), "spp": Counters()}
@@ -134,7 +143,7 @@ def main_solve(args: argparse.Namespace) -> int:
     with _open_out(args.out) as out:
         if args.format == "csv":
             out.write(csv_header() + "\n")
-        for _epoch, fixes in solve_epochs(iter(reader), store, iono, opts):
+        for _epoch, fixes in solve_epochs(epochs, store, iono, opts):
             n_epochs += 1
             for fix in fixes:
                 counts[f"{fix.solver}:{fix.mode}"] += 1
@@ -168,7 +177,7 @@ def main_solve(args: argparse.Namespace) -> int:
     if excluded:
         parts_ex = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
         print(f"  excluded by fault detection: {parts_ex}", file=sys.stderr)
-    skipped = {k: n for k, n in sorted(reader.counters.items()) if k.endswith("_skipped") and n}
+    skipped = {k: n for k, n in sorted(read_counters.items()) if k.endswith("_skipped") and n}
     for line in skipped_line(skipped):
         print(line, file=sys.stderr)
     if n_epochs == 0:

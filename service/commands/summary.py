@@ -67,7 +67,8 @@ def stream_lines(
 
 NO_EPOCHS_HINT = (
     "no measurement epoch in the input: it needs BDS raw measurements (UBX RXM-RAWX/MEASX, "
-    "RTCM3 MSM 1124-1127, SBF MeasEpoch, or a RINEX 3 obs file with C2I/C1I); for RTCM "
+    "RTCM3 MSM 1124-1127, SBF MeasEpoch, a RINEX 3 obs file with C2I/C1I, or GnssLogger "
+    "Raw rows); for RTCM "
     "without ephemerides give --gps-week"
 )
 """What ``replay`` says when its input gave no epoch (it has ``--gps-week``)."""

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.rinex import RinexObsReader
+from drivers.source import file_epochs
 from service.commands.options import check_plot, full_rule, parse_start, solver_config
 from service.commands.solve import load_navigation
 from service.core.bds_nav import quantise_ephemeris
@@ -20,7 +20,7 @@ from service.core.ephemeris import EphemerisStore
 from service.core.errors import ConfigError
 from service.core.sow_rule import FULL_RULES
 from service.core.timebase import gpst_from_utc
-from service.core.types import Ephemeris, KlobucharParams
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch
 from service.daemon.config import STORE_NAME
 from service.engine.solver import IonoSet
 from service.sim.keplerian import table1_ephemerides
@@ -59,7 +59,8 @@ def run_rinex(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], list
     """Emulated restarts on RINEX OBS/NAV by ``rule``: the JSON document and the trials (the
     restart epochs and sync delays depend on ``--seed`` only, so both rules see the same)."""
     store, iono = load_navigation(list(args.nav))
-    epochs = list(RinexObsReader(args.obs))
+    events, _ = file_epochs(args.obs)
+    epochs = [e for e in events if isinstance(e, MeasurementEpoch)]
     if len(epochs) < 40:
         raise ConfigError(f"{args.obs}: {len(epochs)} epochs; ttff needs at least 40")
     cfg = solver_config(args)

@@ -5,6 +5,7 @@ Per-satellite data travel as numpy columns (docs/architecture.md, "Types").
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -29,7 +30,11 @@ class MeasurementEpoch:
     NaN when the satellite's transmit time is not yet known; ``frac_pr_m`` is the pseudorange
     modulo c*T with T = ``period_s`` (the code period of the satellite's signal, 0.001 s for
     B1I, or a longer known period such as 0.020), NaN when unknown. ``gpst_week`` is
-    :data:`UNKNOWN_WEEK` while the source knows only the time of week.
+    :data:`UNKNOWN_WEEK` while the source knows only the time of week. ``time_unc_s`` is how
+    well the receiver knows its time tag (1-sigma, e.g. an Android phone's
+    BiasUncertaintyNanos; NaN: the source does not say, taken as exact), ``restarted`` that
+    the receiver's clock restarted just before this epoch (Android
+    HardwareClockDiscontinuityCount).
     """
 
     gpst_week: int
@@ -43,6 +48,8 @@ class MeasurementEpoch:
     doppler_hz: np.ndarray
     lock_s: np.ndarray
     source: str = ""
+    time_unc_s: float = math.nan
+    restarted: bool = False
 
     def __len__(self) -> int:
         return len(self.prn)
@@ -66,6 +73,8 @@ class MeasurementEpoch:
         doppler_hz: np.ndarray | list[float] | None = None,
         lock_s: np.ndarray | list[float] | None = None,
         source: str = "",
+        time_unc_s: float = math.nan,
+        restarted: bool = False,
     ) -> MeasurementEpoch:
         """Build an epoch, filling absent columns with NaN and deriving ``frac_pr_m``;
         ``period_s`` None is each satellite's system's code period
@@ -101,7 +110,26 @@ class MeasurementEpoch:
             doppler_hz=col(doppler_hz),
             lock_s=col(lock_s),
             source=source,
+            time_unc_s=float(time_unc_s),
+            restarted=restarted,
         )
+
+
+@dataclass(frozen=True, slots=True)
+class ReceiverFix:
+    """A position the receiver computed itself (an Android ``Fix,`` row, a Septentrio
+    PVTGeodetic), carried beside bdsfix's own fix for comparison, never used by the engine.
+
+    ``source`` names it (``android-gps``, ``sbf-pvtgeodetic``); the time is GPST;
+    ``accuracy_m`` the receiver's own horizontal accuracy estimate (NaN: not given)."""
+
+    source: str
+    gpst_week: int
+    gpst_tow_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    accuracy_m: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)

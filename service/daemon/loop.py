@@ -44,7 +44,13 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from service.core.errors import BdsfixError
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.types import (
+    Ephemeris,
+    KlobucharParams,
+    MeasurementEpoch,
+    NavSubframe,
+    ReceiverFix,
+)
 from service.daemon.netnav import NetNavGate, Networked
 from service.daemon.store_writer import StoreWriter
 from service.engine.pipeline import EpochResult, Pipeline
@@ -345,6 +351,8 @@ class Runner:
             self._store_dirty = True
         elif isinstance(ev, KlobucharParams):
             self.pipeline.set_iono(ev)
+        elif isinstance(ev, ReceiverFix):
+            self.pipeline.on_receiver_fix(ev)
         return 0
 
     def _write_epoch_times(self, path: Path) -> None:

@@ -30,6 +30,7 @@ class Decline(StrEnum):
     NUMERICAL = "numerical"
     NO_TIME = "no_time"
     OUT_OF_ORDER = "out_of_order"
+    COARSE_TIME = "coarse_time"
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,6 +129,17 @@ DECLINES: dict[Decline, DeclineText] = {
     Decline.OUT_OF_ORDER: DeclineText(
         "epoch not after the previous one",
         {"": "epoch {what} the previous one (GPST {week} {tow_s:.3f})"},
+    ),
+    Decline.COARSE_TIME: DeclineText(
+        "receiver time too coarse for fractional ranges",
+        {
+            "": "receiver time known to +-{time_unc_s:.3g} s only: {n_frac} fractional "
+            "ranges set aside (a coarse-time fix is needed), {n_full} full (need at least "
+            "{need})"
+        },
+        "the receiver does not know its time well enough (e.g. a phone before its first "
+        "fix: BiasUncertaintyNanos) for the fast fix to use ranges known modulo a period; "
+        "they wait for a coarse-time solution (not implemented yet) or for 4 full ranges",
     ),
 }
 """The one table of decline words: label, reason templates and hint per code."""

@@ -34,6 +34,7 @@ from service.core.types import (
     KlobucharParams,
     MeasurementEpoch,
     NavSubframe,
+    ReceiverFix,
     SatView,
 )
 from service.engine.declines import Decline, reason
@@ -53,6 +54,18 @@ WARM_START_MAX_AGE_S = 30.0
 """A fix older than this [s, data time] is not used as the start of the next solve."""
 SAME_EPOCH_S = 1e-6
 """Two epochs closer than this [s] are the same epoch (records carry 1 us)."""
+RECEIVER_FIX_MAX_AGE_S = 1.5
+"""A receiver's own fix is carried on the results of epochs at most this far from it [s]
+(at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
+MeasEpoch of its second, so the epoch carries the previous second's)."""
+COARSE_TIME_S = 1e-3
+"""An epoch whose receiver time is less certain than this [s] (``time_unc_s``, e.g. a
+phone's BiasUncertaintyNanos) keeps its fractional ranges out of the fix: the fast fix takes
+the time tag as exact (a satellite's transmit time is the tag minus the flight time, its
+integer milliseconds resolved at that tag), and a 1 ms error moves a satellite by at most
+~4 m along its orbit. Full ranges are unaffected (their transmit time is in the
+measurement; a tag error is common to all and goes into the clock). A coarse-time solution
+(time as a fifth unknown) would use them: not implemented yet."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +97,21 @@ class EpochResult:
     restarted: bool = False
     """The emulated receiver restart (``restart_at_s``) happened at this epoch: what came
     before it (first fixes, decoded SOWs) belongs to the receiver before the restart."""
+    receiver_fix: ReceiverFix | None = None
+    """The receiver's own latest fix (an Android Fix row, an SBF PVTGeodetic) if it is at
+    most :data:`RECEIVER_FIX_MAX_AGE_S` from this epoch, for comparison; never used."""
+
+
+def without_coarse_fractions(view: MeasurementEpoch) -> tuple[MeasurementEpoch, int]:
+    """``view`` without its fractional ranges when its time is coarser than
+    :data:`COARSE_TIME_S` (their ``frac_pr_m`` NaN), and how many were set aside."""
+    if not view.time_unc_s > COARSE_TIME_S:
+        return view, 0
+    frac = ~np.isfinite(view.pr_m) & np.isfinite(view.frac_pr_m)
+    n = int(frac.sum())
+    if not n:
+        return view, 0
+    return replace(view, frac_pr_m=np.where(frac, np.nan, view.frac_pr_m)), n
 
 
 def count_fix(counters: Counters, fix: Fix) -> None:
@@ -129,6 +157,7 @@ class Pipeline:
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
+    _receiver_fix: ReceiverFix | None = None
 
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
@@ -168,6 +197,18 @@ class Pipeline:
         self.iono = self.iono.with_params(params)
         self.store.iono = self.iono.preferred
 
+    def on_receiver_fix(self, rf: ReceiverFix) -> None:
+        """The receiver's own fix: kept for the next epochs' results (``receiver_fixes``)."""
+        self.counters["receiver_fixes"] += 1
+        self._receiver_fix = rf
+
+    def _receiver_fix_near(self, epoch: MeasurementEpoch) -> ReceiverFix | None:
+        rf = self._receiver_fix
+        if rf is None:
+            return None
+        age = diff_s(epoch.gpst_week, epoch.gpst_tow_s, rf.gpst_week, rf.gpst_tow_s)
+        return rf if abs(age) <= RECEIVER_FIX_MAX_AGE_S else None
+
     def on_subframe(self, sf: NavSubframe) -> list[TrackEvent]:
         self.counters["subframes"] += 1
         events = self.tracker.on_subframe(sf)
@@ -204,9 +245,24 @@ class Pipeline:
             self.restart(epoch, np.random.default_rng(self.sync_seed))
         else:
             restarted_now = False
+        if epoch.restarted:  # the receiver's clock restarted: its old fix is no start
+            self.counters["receiver_restarts"] += 1
+            self._recovered.clear()
+            self._last_fix = None
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
+        view, set_aside = without_coarse_fractions(view)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        if set_aside and fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
+            self.counters["coarse_time_epochs"] += 1
+            why = reason(
+                Decline.COARSE_TIME,
+                time_unc_s=view.time_unc_s,
+                n_frac=set_aside,
+                n_full=int(np.isfinite(view.pr_m).sum()),
+                need=4,
+            )
+            fix = declined(view, Decline.COARSE_TIME, why)
         if self.velocity:
             fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
@@ -228,6 +284,7 @@ class Pipeline:
             tuple(checks),
             partial(sky_view, view, self.store),
             restarted_now,
+            self._receiver_fix_near(epoch),
         )
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:

@@ -15,7 +15,7 @@ from dataclasses import replace
 from typing import Any
 
 from service.core.counters import Counters
-from service.core.types import Fix, SatView
+from service.core.types import Fix, ReceiverFix, SatView
 from service.output.nmea import fix_utc, lead_sentences, sentences_after_gga
 from service.output.records import fix_record, sky_record, status_record, track_record_of
 from service.output.sinks.base import RECORD_CLASSES, Sink
@@ -56,8 +56,10 @@ class Publishers:
         fix: Fix,
         since_start_s: float | None = None,
         sky: Callable[[Fix], tuple[SatView, ...]] | None = None,
+        receiver_fix: ReceiverFix | None = None,
     ) -> Fix:
-        """Publish one solver's result for one epoch (FIX record and NMEA).
+        """Publish one solver's result for one epoch (FIX record and NMEA); the receiver's
+        own fix, when given, rides on the FIX record (``receiver_fix``).
 
         The latency path goes first: RMC, VTG and GGA to the live NMEA sinks (TCP, serial)
         as soon as they are built, then the FIX record (ZeroMQ, then JSONL), then the other
@@ -78,7 +80,7 @@ class Publishers:
                 sink.write_nmea(lead)
             self.gga_out_s = time.perf_counter()
         if self._takes["FIX"]:
-            rec = fix_record(fix, since_start_s)
+            rec = fix_record(fix, since_start_s, receiver_fix)
             for sink in self._takes["FIX"]:
                 sink.write_record("FIX", rec)
         if sky is not None and fix.ok and not fix.sky:
@@ -108,7 +110,12 @@ class Publishers:
 
     def epoch(self, result: Any) -> None:
         """A :class:`service.engine.pipeline.EpochResult`: its fix, then its sky when it has one."""
-        fix = self.fix(result.fix, result.since_start_s, getattr(result, "sky", None))
+        fix = self.fix(
+            result.fix,
+            result.since_start_s,
+            getattr(result, "sky", None),
+            getattr(result, "receiver_fix", None),
+        )
         if fix.sky:
             self.sky(fix.gpst_week, fix.gpst_tow_s, fix.sky)
 

@@ -42,10 +42,18 @@ Field rules, common to all classes:
   [0, 360)), ``clock_drift_m_s`` (c times the receiver clock rate), each with its 1-sigma
   ``std_v_enu_m_s``, ``std_speed_m_s``, ``std_course_deg`` (at most 180),
   ``std_clock_drift_m_s``; precision 0.1 mm/s and 0.01 deg.
+  ``receiver_fix`` (when the source carries the receiver's own fix: an Android ``Fix,``
+  row, a Septentrio PVTGeodetic; the latest one within 1.5 s of the epoch): ``source``
+  (``android-<provider>``, ``sbf-pvtgeodetic``), its ``gpst_tow_s`` and ``age_s`` (epoch
+  minus receiver fix time), ``lat_deg lon_deg`` and when given ``alt_m`` (ellipsoidal)
+  and ``accuracy_m`` (the receiver's own estimate); on a fix with a position ``dist_m``,
+  the 3-D distance between the two.
 ``SKY``: ``class gpst_week gpst_tow_s satellites``; each satellite ``prn el_deg az_deg
   used full signal`` plus ``cn0_dbhz`` when measured.
 ``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
-  gpst_tow_s since_start_s``; ``event`` is ``sow`` (a subframe's SOW decoded: ``sow_s`` is
+  gpst_tow_s since_start_s``; ``prn`` a RINEX 3 satellite ID (BeiDou, or GPS/Galileo from a
+  multi-system source such as a phone log), ``nav_type`` ``D2`` for a BeiDou GEO and
+  ``D1`` for every other satellite; ``event`` is ``sow`` (a subframe's SOW decoded: ``sow_s`` is
   the BDT second of week at which that subframe started) or ``full`` (its measurement
   became a full pseudorange at ``gpst_tow_s``); ``full_since_s`` (data time since the
   stream start at which it first became full) when the caller knows it.
@@ -62,7 +70,11 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from service.core.types import UNKNOWN_WEEK, Fix, SatView, Velocity
+import numpy as np
+
+from service.core.geometry import geodetic_to_ecef
+from service.core.timebase import diff_s
+from service.core.types import UNKNOWN_WEEK, Fix, ReceiverFix, SatView, Velocity
 
 CSV_COLUMNS = (
     "solver",
@@ -107,7 +119,24 @@ def _put(rec: dict[str, Any], key: str, value: float | None, ndigits: int) -> No
         rec[key] = round(float(value), ndigits)  # type: ignore[arg-type]
 
 
-def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
+def receiver_fix_record(rf: ReceiverFix, fix: Fix) -> dict[str, Any]:
+    """The ``receiver_fix`` object of a FIX record: the receiver's own fix, its age at the
+    epoch, and on a fix with a position the distance between the two."""
+    rec: dict[str, Any] = {"source": rf.source, "gpst_tow_s": round(float(rf.gpst_tow_s), 6)}
+    _put(rec, "age_s", diff_s(fix.gpst_week, fix.gpst_tow_s, rf.gpst_week, rf.gpst_tow_s), 6)
+    _put(rec, "lat_deg", rf.lat_deg, 10)
+    _put(rec, "lon_deg", rf.lon_deg, 10)
+    _put(rec, "alt_m", rf.alt_m, 4)
+    _put(rec, "accuracy_m", rf.accuracy_m, 4)
+    if fix.ok and fix.x_ecef_m is not None and _finite(rf.alt_m):
+        theirs = geodetic_to_ecef(math.radians(rf.lat_deg), math.radians(rf.lon_deg), rf.alt_m)
+        _put(rec, "dist_m", float(np.linalg.norm(np.subtract(fix.x_ecef_m, theirs))), 4)
+    return rec
+
+
+def fix_record(
+    fix: Fix, since_start_s: float | None = None, receiver_fix: ReceiverFix | None = None
+) -> dict[str, Any]:
     """The ``FIX`` record of one solver at one epoch (field rules in the module docstring)."""
     rec: dict[str, Any] = {
         "class": "FIX",
@@ -154,6 +183,8 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
         rec["reason"] = fix.reason or NO_REASON
         if fix.reason_code:
             rec["reason_code"] = fix.reason_code
+    if receiver_fix is not None and fix.gpst_week != UNKNOWN_WEEK:
+        rec["receiver_fix"] = receiver_fix_record(receiver_fix, fix)
     return rec
 
 
@@ -308,7 +339,9 @@ _DIALECT = "https://json-schema.org/draft/2020-12/schema"
 _NUM = {"type": "number"}
 _NONNEG = {"type": "number", "minimum": 0}
 _COUNT = {"type": "integer", "minimum": 0}
-_PRN = {"type": "string", "pattern": "^C[0-9]{2}$"}
+_PRN = {"type": "string", "pattern": "^[CGERJSI][0-9]{2}$"}
+"""A RINEX 3 satellite ID: BeiDou, or another system's from a multi-system source (a phone
+log's GPS and Galileo rows reach the tracker, ``TRACK``)."""
 _WEEK = {"type": "integer", "minimum": 0}
 _TOW = {"type": "number", "minimum": 0, "exclusiveMaximum": 604800}
 _POSITION = ("x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m")
@@ -385,6 +418,21 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             },
             "reason": {"type": "string", "minLength": 1},
             "reason_code": {"type": "string", "minLength": 1},
+            "receiver_fix": {
+                "type": "object",
+                "required": ["source", "gpst_tow_s", "age_s", "lat_deg", "lon_deg"],
+                "properties": {
+                    "source": {"type": "string", "minLength": 1},
+                    "gpst_tow_s": _TOW,
+                    "age_s": _NUM,
+                    "lat_deg": {"type": "number", "minimum": -90, "maximum": 90},
+                    "lon_deg": {"type": "number", "minimum": -180, "maximum": 180},
+                    "alt_m": _NUM,
+                    "accuracy_m": _NONNEG,
+                    "dist_m": _NONNEG,
+                },
+                "additionalProperties": False,
+            },
         },
         "additionalProperties": False,
         "if": {"properties": {"mode": {"const": "none"}}},

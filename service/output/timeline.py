@@ -13,12 +13,23 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 FIRST_GEO_SOW = "first GEO SOW decoded"
 FIRST_FAST = "first fast fix"
 FIRST_NON_GEO_SOW = "first non-GEO SOW decoded"
 FIRST_SPP = "first conventional fix"
 ORDER = (FIRST_GEO_SOW, FIRST_FAST, FIRST_NON_GEO_SOW, FIRST_SPP)
-"""The timeline's events in the order they are shown."""
+"""The timeline's events in the order the status page shows them."""
+FULL4 = "first 4 full ranges"
+"""The first epoch with at least 4 full ranges of any system (4 satellites' time of week
+known): from then on a conventional receiver can fix, geometry and ephemerides permitting.
+The built-in scenario reaches it with its 4 GEOs at 0.70 s, whose geometry alone does not
+allow an SPP fix; the Perth phone log with 9 GPS satellites at 12.00 s. The summaries show
+it (from the epochs, :meth:`Timeline.marks`); the records do not carry every system's full
+ranges, so the page does not."""
+SUMMARY_ORDER = (FIRST_GEO_SOW, FIRST_FAST, FIRST_NON_GEO_SOW, FULL4, FIRST_SPP)
+"""The timeline's events in the order the summaries print them."""
 
 _FIX_KEYS = {"fast": FIRST_FAST, "spp": FIRST_SPP}
 _NOT_IN_ORDER = frozenset({"no_time", "out_of_order"})
@@ -36,6 +47,8 @@ class Timeline:
         self._latest_s = -float("inf")  # records: the latest data time seen since the start
         self.restarted = False
         """Records: the timeline started again (data time since the start went back)."""
+        self.waits: str | None = None
+        """Why the epoch of :data:`FULL4` had no fix (its decline reason), if it had none."""
 
     def mark(self, key: str, t_s: float) -> bool:
         """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
@@ -53,6 +66,7 @@ class Timeline:
         SOW counts as decoded when its measurement became full (``r.track``)."""
         if r.restarted:  # the timeline is the restarted receiver's
             self.first.clear()
+            self.waits = None
         new = []
         for ev in r.track:
             key = FIRST_GEO_SOW if ev.nav_type == "D2" else FIRST_NON_GEO_SOW
@@ -63,6 +77,11 @@ class Timeline:
         fix_key = _FIX_KEYS.get(r.fix.mode)
         if fix_key and self.mark(fix_key, r.since_start_s):
             new.append(fix_key)
+        full = int(np.isfinite(r.epoch.pr_m).sum())
+        if full >= 4 and self.mark(FULL4, r.since_start_s):
+            new.append(FULL4)
+            if not r.fix.ok:
+                self.waits = r.fix.reason
         return new
 
     def on_record(self, cls: str, rec: Mapping[str, Any]) -> bool:
@@ -100,9 +119,12 @@ class Timeline:
         """The timeline as the summary prints it."""
         since = "the emulated restart" if restarted else "the first measurement"
         off = self.offset_s if offset_s is None else offset_s
-        return [f"  timeline (t: data time since {since}):"] + [
+        lines = [f"  timeline (t: data time since {since}):"] + [
             f"  {k:<28} t = {self.first[k] + off:6.2f} s"
             if k in self.first
             else f"  {k:<28} (not reached)"
-            for k in ORDER
+            for k in SUMMARY_ORDER
         ]
+        if self.waits is not None:
+            lines.append(f"  no fix at {FULL4}: {self.waits}")
+        return lines

@@ -23,6 +23,8 @@ What each target allows to escape (anything else is a crash that libFuzzer repor
 - ``rinex_obs``, ``rinex_nav``: the input as a RINEX 3 file (:mod:`drivers.rinex`):
   :class:`~service.core.errors.FramingError`; the lenient observation reader raises it only
   for the header.
+- ``gnsslogger``: the input as an Android GnssLogger log (:mod:`drivers.gnsslogger`), read
+  through the file registry's reader: nothing.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 with atheris.instrument_imports(include=["drivers", "service"]):
     from drivers.framing import Framer, WeekContext
+    from drivers.gnsslogger import events as gnsslogger_events
     from drivers.protocols import PROTOCOLS
     from drivers.rinex import RinexObsReader, read_nav
     from drivers.rtcm import RtcmMapper
@@ -161,6 +164,10 @@ def fuzz_rinex_nav(data: bytes) -> None:
         read_nav(_as_file(data, ".nav"))
 
 
+def fuzz_gnsslogger(data: bytes) -> None:
+    list(gnsslogger_events(_as_file(data, ".txt")))
+
+
 TARGETS = {
     "framer": fuzz_framer,
     "decoder": fuzz_decoder,
@@ -169,6 +176,7 @@ TARGETS = {
     "sfrbx": fuzz_sfrbx,
     "rinex_obs": fuzz_rinex_obs,
     "rinex_nav": fuzz_rinex_nav,
+    "gnsslogger": fuzz_gnsslogger,
 }
 
 
@@ -218,6 +226,13 @@ def seed_corpus(target: str, out: Path) -> int:
         lines = src.read_bytes().splitlines(keepends=True)
         end = next(i for i, line in enumerate(lines) if b"END OF HEADER" in line) + 1
         seeds += [b"".join(lines[: end + n]) for n in (0, 40, 120)]
+    elif target == "gnsslogger":
+        for src in (
+            DATA / "android-perth-s8-2017/SensorLog20171005.txt",
+            DATA / "android-beijing-mi8-2022/gnss_log_2022_09_28_22_01_27.txt",
+        ):
+            lines = src.read_bytes().splitlines(keepends=True)
+            seeds += [b"".join(lines[:n]) for n in (20, 60)]
     for k, seed in enumerate(seeds):
         (out / f"seed-{k:03d}").write_bytes(seed)
     return len(seeds)

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 HARNESS = Path(__file__).with_name("fuzz_atheris.py")
-TARGETS = ("framer", "decoder", "ubx", "rtcm", "sfrbx", "rinex_obs", "rinex_nav")
+TARGETS = ("framer", "decoder", "ubx", "rtcm", "sfrbx", "rinex_obs", "rinex_nav", "gnsslogger")
 MAX_TIME_S = 3
 MAX_RUNS = 200_000
 HANG_S = 60  # one input running this long is a hang (a loaded machine is not)

@@ -20,7 +20,13 @@ from pyubx2.ubxhelpers import calc_checksum
 from drivers.framing import Framer
 from drivers.protocols import PROTOCOLS
 from drivers.source import StreamDecoder
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.types import (
+    Ephemeris,
+    KlobucharParams,
+    MeasurementEpoch,
+    NavSubframe,
+    ReceiverFix,
+)
 from tests.support.paths import DATA
 
 TINY = DATA / "tiny-ubx-rtcm"
@@ -163,7 +169,7 @@ def numbered(number: int, rest: bytes) -> bytes:
 used_rtcm = st.builds(
     numbered, st.sampled_from([1042, 1124, 1125, 1126, 1127, 1077, 1019]), st.binary(max_size=120)
 )
-EVENT_TYPES = (MeasurementEpoch, NavSubframe, Ephemeris, KlobucharParams)
+EVENT_TYPES = (MeasurementEpoch, NavSubframe, Ephemeris, KlobucharParams, ReceiverFix)
 
 
 @SETTINGS

@@ -53,7 +53,13 @@ from drivers.source import StreamDecoder
 from drivers.ubx import UbxMapper
 from service.core.bds_nav import EphemerisAssembler, parse_header
 from service.core.errors import DecodeError, FramingError
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, NavSubframe
+from service.core.types import (
+    Ephemeris,
+    KlobucharParams,
+    MeasurementEpoch,
+    NavSubframe,
+    ReceiverFix,
+)
 from tests.support.paths import DATA
 
 HANG_S = 20.0
@@ -63,7 +69,7 @@ FUZZ = settings(
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
-EVENT_TYPES = (MeasurementEpoch, NavSubframe, Ephemeris, KlobucharParams)
+EVENT_TYPES = (MeasurementEpoch, NavSubframe, Ephemeris, KlobucharParams, ReceiverFix)
 CAPTURES = (
     "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx",
     "ublox-logs/ublox-zed-f9r.log",
@@ -529,3 +535,46 @@ def test_rawx_valid_flag_with_impossible_pseudorange_is_counted_not_used(bad_pr_
             assert math.isnan(pr)
         else:
             assert pr == want[prn]
+
+
+# --- Android GnssLogger logs ------------------------------------------------------------------
+
+
+def _android_lines() -> list[str]:
+    """Header lines and every 50th Raw row of both shared phone logs (all row kinds)."""
+    out: list[str] = []
+    for path in (
+        DATA / "android-perth-s8-2017" / "SensorLog20171005.txt",
+        DATA / "android-beijing-mi8-2022" / "gnss_log_2022_09_28_22_01_27.txt",
+    ):
+        lines = path.read_text().splitlines(keepends=True)
+        out += [x for x in lines if x.startswith("#")]
+        out += [x for x in lines if not x.startswith("#")][::50]
+    out.append("Fix,GPS,39.9,116.3,50.0,0.0,3.5,1664373688500\n")
+    return out
+
+
+_ANDROID = _android_lines()
+android_line = st.sampled_from(_ANDROID)
+android_log = st.lists(
+    st.one_of(
+        android_line,
+        android_line.flatmap(lambda x: mutated(x.encode())).map(
+            lambda b: b.decode("utf-8", "replace")
+        ),
+        st.text(max_size=120),
+    ),
+    max_size=60,
+)
+
+
+@FUZZ
+@given(android_log)
+def test_gnsslogger_reader_never_raises(lines):
+    """Real rows, mutated rows and random text: the reader yields epochs and receiver fixes
+    only, counts what it cannot read, and never raises or hangs."""
+    from drivers.gnsslogger import GnssLoggerReader
+
+    with hang_guard():
+        events = list(GnssLoggerReader(lines))
+    assert all(isinstance(e, MeasurementEpoch | ReceiverFix) for e in events)

@@ -58,9 +58,9 @@ CONTRACT_FIX_FIELDS = {
     "vpl_m",
     "std_enu_m",
 }
-CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m"}
+CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m", "receiver_fix"}
 """Fields present only when satellites were excluded / on a declined fix / on a fix from
-rows of more than one satellite system."""
+rows of more than one satellite system / when the source carries the receiver's own fix."""
 VELOCITY_FIX_FIELDS = {
     "v_enu_m_s",
     "std_v_enu_m_s",
@@ -296,7 +296,7 @@ BAD = [
     ({**GOOD_NONE, "reason": ""}, "$.reason", "minLength", ""),
     ({**GOOD_TRACK, "event": "lost"}, "$.event", "enum", "'lost'"),
     ({k: v for k, v in GOOD_TRACK.items() if k != "sow_s"}, "$", "required", "'sow_s'"),
-    ({**GOOD_TRACK, "prn": "G06"}, "$.prn", "pattern", ""),
+    ({**GOOD_TRACK, "prn": "C6"}, "$.prn", "pattern", ""),
     ({**GOOD_TRACK, "nav_type": "D3"}, "$.nav_type", "enum", "'D3'"),
     (
         {**GOOD_SKY, "satellites": [{"prn": "C01", "used": 1, "full": True}]},

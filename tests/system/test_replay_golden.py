@@ -126,6 +126,17 @@ CASES = {
         "Septentrio SBF with one of every block kind: nav blocks mapped, the rest counted by name",
         NAV_ONLY,
     ),
+    "android-perth": Case(
+        [
+            "android-perth-s8-2017/SensorLog20171005.txt",
+            "--nav",
+            "android-perth-s8-2017/PERT00AUS_R_20172780000_01D_MN.rnx",
+        ],
+        "Android GnssLogger start-up (Galaxy S8), mixed RINEX nav: 4 full ranges at 12.00 s "
+        "(GPS: no GPS ephemerides in the engine yet); fractional ranges set aside while the "
+        "phone's time is uncertain by 5.97 s (coarse_time); the first SPP fix from 4 BDS "
+        "IGSO/MEO at 26.18 s, fast fixes once a GEO joins at 83 s",
+    ),
     "hksc-rinex": Case(
         ["hksc-2021/hksc1610.obs", "--nav", "hksc-2021/hksc1610.nav"],
         "HKSC 2021 RINEX 3.04 obs + nav (5 GEOs): an SPP fix at each of the 205 epochs",

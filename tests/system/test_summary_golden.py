@@ -69,11 +69,11 @@ REFUSED_SOLVES = {
 
 REFUSED = {
     "android-beijing": "android-beijing-mi8-2022/gnss_log_2022_09_28_22_01_27.txt",
-    "android-perth": "android-perth-s8-2017/SensorLog20171005.txt",
     "perth-nav-as-capture": "android-perth-s8-2017/PERT00AUS_R_20172780000_01D_MN.rnx",
 }
-"""Files ``replay`` refuses with one line and exit 3 (Android GnssLogger text logs are not
-a receiver protocol the service reads yet; a nav file is not an observation file)."""
+"""Files ``replay`` refuses with one line and exit 3 (a GnssLogger log without ``--nav``:
+the hint names its day's nav file, none of which is in the data; a nav file is not an
+observation file)."""
 
 AUXILIARY = {
     "README.md": "the data's description",

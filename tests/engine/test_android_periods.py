@@ -1,0 +1,123 @@
+"""Ranges known modulo periods longer than 1 ms (Android states), and a coarse time prior.
+
+A phone reports each signal's transmit time modulo the period its state allows (2 ms at
+BeiDou D2 bit sync up to 6 s at subframe sync, drivers/gnsslogger.py). The fast fix takes
+each row's own c*T as the ambiguity of its integer (solver rows' ``ct_m``): on real
+measurements (the HKSC reference station, 5 GEOs) with four GEOs full and every other
+satellite known only modulo such periods, it recovers each full pseudorange exactly and
+the SPP position. While the receiver's time is coarse (``time_unc_s`` over 1 ms, a phone
+before its first fix) the pipeline keeps fractional ranges out and says why.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from drivers.rinex import read_nav
+from drivers.source import open_source
+from service.core.constants import C_M_S
+from service.core.ephemeris import EphemerisStore
+from service.core.types import MeasurementEpoch
+from service.engine.pipeline import Pipeline
+from tests.support.paths import DATA
+
+OBS = DATA / "hksc-2021" / "hksc1610.obs"
+NAV = DATA / "hksc-2021" / "hksc1610.nav"
+PERTH = DATA / "android-perth-s8-2017"
+PERIODS_S = (1e-3, 2e-3, 0.02, 0.1, 0.6, 2.0, 6.0)
+
+
+def _pipeline(nav) -> Pipeline:
+    """A pipeline holding the nav file's ephemerides and ionosphere, as replay's stream
+    head gives them."""
+    pipe = Pipeline(EphemerisStore())
+    data = read_nav(nav)
+    for ephs in data.ephemerides.values():
+        for eph in ephs:
+            pipe.add_ephemeris(eph)
+    for params in (data.iono_gps, data.iono_bds):  # BDS last: preferred when both
+        if params is not None:
+            pipe.set_iono(params)
+    return pipe
+
+
+def _hksc_epoch() -> MeasurementEpoch:
+    with open_source(str(OBS)) as src:
+        return next(e for e in itertools.islice(src, 5) if isinstance(e, MeasurementEpoch))
+
+
+def _partial(epoch: MeasurementEpoch, n_full: int, time_unc_s: float) -> MeasurementEpoch:
+    """``epoch`` with its first ``n_full`` GEOs full and every other satellite known modulo
+    one of :data:`PERIODS_S` in turn."""
+    geos = [p for p in epoch.prn if int(p[1:]) <= 5][:n_full]
+    full = np.array([p in geos for p in epoch.prn])
+    period = np.array([1e-3 if f else PERIODS_S[k % len(PERIODS_S)] for k, f in enumerate(full)])
+    return replace(
+        epoch,
+        pr_m=np.where(full, epoch.pr_m, np.nan),
+        frac_pr_m=np.mod(epoch.pr_m, C_M_S * period),
+        period_s=period,
+        time_unc_s=time_unc_s,
+    )
+
+
+def test_fast_fix_with_periods_from_2_ms_to_6_s_recovers_the_full_ranges():
+    epoch = _hksc_epoch()
+    spp = _pipeline(NAV).on_epoch(epoch).fix
+    partial = _partial(epoch, 4, time_unc_s=5e-9)
+    assert set(partial.period_s[np.isnan(partial.pr_m)]) == set(PERIODS_S)
+    fix = _pipeline(NAV).on_epoch(partial).fix
+    assert fix.mode == "fast" and fix.ok
+    assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp.x_ecef_m)) < 1e-3
+    assert len(fix.recovered_pr_m) == len(epoch) - 4
+    for prn, pr in fix.recovered_pr_m.items():
+        assert pr == pytest.approx(epoch.pr_m[epoch.prn.index(prn)], abs=1e-3)
+
+
+def test_a_coarse_time_keeps_fractional_ranges_out_and_says_why():
+    epoch = _hksc_epoch()
+    # 3 full GEOs: with the phone's 5.97 s prior the fractional rows are set aside, and the
+    # decline names the prior (a coarse-time solution would use them)
+    fix = _pipeline(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5.968969500122643)).fix
+    assert fix.reason_code == "coarse_time"
+    assert "+-5.97 s" in fix.reason and "13 fractional" in fix.reason and "3 full" in fix.reason
+    # with a fine time the engine's fast fix still needs 4 full ranges (the paper's 4 GEOs)
+    fine = _pipeline(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5e-9)).fix
+    assert fine.reason_code == "too_few_full"
+    # 4 full GEOs: the fast fix with a fine time; with a coarse time the four GEOs are
+    # solved alone (the fractional rows set aside), and their geometry fails the PDOP gate
+    assert _pipeline(NAV).on_epoch(_partial(epoch, 4, time_unc_s=5e-9)).fix.mode == "fast"
+    fix = _pipeline(NAV).on_epoch(_partial(epoch, 4, time_unc_s=5.97)).fix
+    assert fix.reason_code == "pdop_gate"
+
+
+def test_perth_replay_through_the_pipeline():
+    """The Perth start-up with its day's nav (BDS sets read): the first fix is SPP from the
+    four BDS IGSO/MEO at 26.18 s (the engine has no GPS sets yet; measured 25.9 m from the
+    converged position), every published fix within 100 m of the median of the last 5
+    minutes (measured at most 58.5 m), and what comes before is declined for the phone's
+    coarse time, the GPS satellites' missing ephemerides or too few full BDS ranges."""
+    pipe = _pipeline(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx")
+    with open_source(str(PERTH / "SensorLog20171005.txt")) as src:
+        results = [pipe.on_epoch(e) for e in src if isinstance(e, MeasurementEpoch)]
+    assert len(results) == 445
+    t0 = results[0].epoch.gpst_tow_s
+    fixed = [r for r in results if r.fix.ok]
+    assert fixed[0].fix.mode == "spp"
+    assert fixed[0].epoch.gpst_tow_s - t0 == pytest.approx(26.18, abs=0.01)
+    before = {r.fix.reason_code for r in results if r.epoch.gpst_tow_s < fixed[0].epoch.gpst_tow_s}
+    # GPS-only epochs: no GPS sets; then C06 alone or with too few full ranges
+    assert before == {"coarse_time", "no_ephemeris", "too_few_full"}
+    x = np.array([r.fix.x_ecef_m for r in fixed])
+    t = np.array([r.epoch.gpst_tow_s for r in fixed])
+    ref = np.median(x[t > t[-1] - 300], axis=0)
+    dist = np.linalg.norm(x - ref, axis=1)
+    assert dist.max() < 100.0
+    # Perth: about 32.0 S, 115.9 E
+    lat = np.degrees(np.arctan2(ref[2], np.hypot(ref[0], ref[1])))
+    lon = np.degrees(np.arctan2(ref[1], ref[0]))
+    assert -32.5 < lat < -31.5 and 115.5 < lon < 116.5
