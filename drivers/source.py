@@ -39,6 +39,7 @@ from drivers.transport import (
 from service.core.counters import Counters
 from service.core.errors import ConfigError, DecodeError, FramingError, InputError
 from service.core.ratelog import RateLimitedLog
+from service.core.systems import DEFAULT_SYSTEMS
 from service.core.timebase import MIN_SANE_GPS_WEEK, gpst_from_utc
 
 if TYPE_CHECKING:
@@ -242,13 +243,18 @@ class RinexSource(EventSource):
     """
 
     def __init__(
-        self, path: str | Path, *, prefix: Iterable[Event] = (), lenient: bool = True
+        self,
+        path: str | Path,
+        *,
+        prefix: Iterable[Event] = (),
+        lenient: bool = True,
+        systems: Iterable[str] = DEFAULT_SYSTEMS,
     ) -> None:
         from drivers.rinex import RinexObsReader
 
         self.name = str(path)
         self.counters = Counters()
-        self._reader: Any = RinexObsReader(path, lenient=lenient)
+        self._reader: Any = RinexObsReader(path, lenient=lenient, systems=systems)
         # one set of counters: the reader's skipped epochs/records/lines reach STATUS
         self._reader.counters = self.counters
         self._prefix = list(prefix)
@@ -319,7 +325,9 @@ def is_rinex(path: str | Path) -> bool:
 
 
 def _nav_events(
-    nav: str | Path | NavData | Iterable[str | Path | NavData] | None, counters: Counters
+    nav: str | Path | NavData | Iterable[str | Path | NavData] | None,
+    counters: Counters,
+    systems: Iterable[str] = DEFAULT_SYSTEMS,
 ) -> list[Event]:
     if nav is None:
         return []
@@ -328,7 +336,7 @@ def _nav_events(
     items = [nav] if isinstance(nav, str | Path) or not isinstance(nav, Iterable) else list(nav)
     events: list[Event] = []
     for item in items:
-        data = read_nav(item) if isinstance(item, str | Path) else item
+        data = read_nav(item, systems) if isinstance(item, str | Path) else item
         for ephs in data.ephemerides.values():
             events.extend(ephs)
             counters["nav_ephemerides"] += len(ephs)
@@ -367,13 +375,16 @@ def open_source(
     mapper_options: Mapping[str, Mapping[str, Any]] | None = None,
     idle_flush_s: float = 0.5,
     reconnect_max_s: float = 2.0,
+    systems: Iterable[str] = DEFAULT_SYSTEMS,
 ) -> EventSource:
     """Open ``spec`` and return an iterable of events with ``.counters``.
 
     ``nav`` (RINEX nav file or files, as paths or as already read) puts its ephemerides and
     ionosphere parameters at the head of the stream, as held ephemerides. Pace a replay
     with :func:`pace`.
-    ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`.
+    ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`. ``systems`` (RINEX
+    letters) are the systems read from RINEX observation and nav files (BeiDou alone by
+    default; the binary drivers give BeiDou rows only so far).
 
     The GPS week for RTCM MSM times of week comes from the stream (UBX RAWX / NAV-TIMEGPS /
     NAV-PVT, the ephemerides RTCM 1019/1042/1044/1045/1046), with ``gps_week`` or, for live
@@ -383,7 +394,7 @@ def open_source(
     pipeline (``no_time``).
     """
     counters = Counters()
-    prefix = _nav_events(nav, counters)
+    prefix = _nav_events(nav, counters, systems)
     transport: Transport
     if spec.startswith("tcp:"):
         host, _, port = spec[4:].rpartition(":")
@@ -400,7 +411,7 @@ def open_source(
         if not os.path.isfile(path):
             raise ConfigError(f"source {spec!r}: no such file")
         if is_rinex(path):
-            src = RinexSource(path, prefix=prefix)
+            src = RinexSource(path, prefix=prefix, systems=systems)
             src.counters.update(counters)
             return src
         transport = FileTransport(path)

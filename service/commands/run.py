@@ -19,10 +19,11 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.commands.options import full_rule, solver_config
+from service.commands.options import full_rule, solver_config, systems_of
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
+from service.core.systems import DEFAULT_SYSTEMS
 from service.daemon.config import (
     DEFAULT_CONFIG,
     STORE_NAME,
@@ -96,7 +97,12 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
-def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> list[NavData]:
+def _check_nav(
+    spec: str,
+    nav: list[str],
+    gps_week: int | None = None,
+    systems: frozenset[str] = frozenset(DEFAULT_SYSTEMS),
+) -> list[NavData]:
     """RINEX nav files without a BDS ephemeris, or (for a capture file source) of another
     day than its first epoch, refuse the start: one line, exit 3
     (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows). The
@@ -105,7 +111,7 @@ def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> list[N
         return []
     from service.commands.navcheck import check_navigation, first_epoch_time, read_navigation
 
-    navs = read_navigation(nav)
+    navs = read_navigation(nav, systems)
     first = None
     if _is_regular_file(spec):
         first = first_epoch_time(spec.removeprefix("file:"), gps_week)
@@ -393,8 +399,9 @@ def main_replay(args: argparse.Namespace) -> int:
         store = EphemerisStore()
         iono = IonoSet()
         _check_source(args.files[0])
-        navs = _check_nav(args.files[0], args.nav or [], args.gps_week)
-        src = open_source(args.files[0], nav=navs or None, gps_week=args.gps_week)
+        systems = systems_of(args)
+        navs = _check_nav(args.files[0], args.nav or [], args.gps_week, systems)
+        src = open_source(args.files[0], nav=navs or None, gps_week=args.gps_week, systems=systems)
         events = src
         counters = src.counters
         speed = None if args.max_speed else (args.speed or 1.0)

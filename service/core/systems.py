@@ -14,7 +14,8 @@ from enum import StrEnum
 from functools import lru_cache
 
 from service.core.constants import C_M_S
-from service.core.errors import BdsfixError
+from service.core.errors import BdsfixError, ConfigError
+from service.core.settings import setting
 
 
 class GnssSystem(StrEnum):
@@ -144,3 +145,37 @@ def wavelength_m(sat: str) -> float:
     """Carrier wavelength [m] of the signal bdsfix uses from ``sat``'s system: what turns a
     Doppler [Hz] into a range rate (-lambda D)."""
     return C_M_S / constants_of(sat).carrier_hz
+
+
+POSITIONING_SYSTEMS = (GnssSystem.BDS, GnssSystem.GPS, GnssSystem.GAL)
+"""The systems whose measurements and ephemerides the readers give (RINEX 3 so far)."""
+DEFAULT_SYSTEMS = "C"
+"""BeiDou alone until the goldens of the captures that carry GPS/Galileo are regenerated
+(issue 19: the default is to become every system the input carries)."""
+
+
+@dataclass(frozen=True, slots=True)
+class SystemsConfig:
+    """The one user setting of the systems positioned with (flag ``--systems``, TOML key
+    ``systems``)."""
+
+    systems: str = setting(
+        DEFAULT_SYSTEMS,
+        "satellite systems to position with, RINEX letters separated by commas: C (BeiDou "
+        "B1I), G (GPS L1 C/A), E (Galileo E1); each gets its own receiver clock",
+        kind="str",
+    )
+
+
+def parse_systems(text: str) -> frozenset[str]:
+    """The RINEX letters of a ``systems`` setting (``"C,G,E"``, ``"CGE"``, ``"c, g"``);
+    ConfigError names what is not one of :data:`POSITIONING_SYSTEMS`."""
+    letters = [x for x in text.upper().replace(",", " ").split() for x in x]
+    known = {s.value for s in POSITIONING_SYSTEMS}
+    bad = sorted(set(letters) - known)
+    if bad or not letters:
+        raise ConfigError(
+            f"systems {text!r}: expected letters among {', '.join(sorted(known))} "
+            "(C BeiDou, G GPS, E Galileo)"
+        )
+    return frozenset(letters)

@@ -1023,11 +1023,20 @@ def select_rows(
 ) -> tuple[_Rows | None, list[str]]:
     """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
 
-    Returns the rows and the PRNs dropped for want of a usable ephemeris.
+    When some system has a full row, the fast fix takes the fractional rows of a system only
+    when that system has a full row too:
+    phase 1 resolves integers against clocks estimated from full rows, and a system whose
+    rows are all fractional has none yet (its clock modulo its code period is not solved:
+    issue 19, not done). Returns the rows and the PRNs dropped for want of a usable
+    ephemeris.
     """
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     full = np.isfinite(epoch.pr_m)
     fracok = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
+    if solver == "fast" and fracok.any():
+        with_full = {epoch.prn[i][:1] for i in np.flatnonzero(full)}
+        if with_full and any(p[:1] not in with_full for p in epoch.prn):
+            fracok &= np.array([p[:1] in with_full for p in epoch.prn], dtype=bool)
     use = full | fracok if solver == "fast" else full
     idx: list[int] = []
     ephs: list[Ephemeris] = []

@@ -21,11 +21,14 @@ Field rules, common to all classes:
   ``gpst_week`` (its ``gpst_tow_s`` is the source's time of week);
   with a position (mode ``fast``/``spp``): ``x_ecef_m lat_deg lon_deg alt_m clock_bias_m``
   and, when computed, ``pdop resid_rms_m``; ``gdop_full`` when the solver computed it
-  (the fast solver, also on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
-  eq. (13)} when not empty, which is the fast solver's fractional satellites (also on a
-  fast fix declined by the chi-square test, for diagnosis); ``reason`` (and a
-  ``reason_code``, one of :class:`service.engine.declines.Decline`) exactly when ``mode`` is
-  ``none`` (a declined fix has no position fields).
+  (the fast solver, also on a GDOP-gate decline); ``clocks_m`` {system letter: receiver
+  clock [m]} and ``used_by_system`` {letter: satellites used} when the fix used more than
+  one system (``clock_bias_m`` is then BeiDou's clock, or the first system's);
+  ``ambiguity`` {PRN: integer N of eq. (13)} when not empty, which is the fast solver's
+  fractional satellites (also on a fast fix declined by the chi-square test, for
+  diagnosis); ``reason`` (and a ``reason_code``, one of
+  :class:`service.engine.declines.Decline`) exactly when ``mode`` is ``none`` (a declined
+  fix has no position fields).
   Integrity (:mod:`service.engine.raim`): ``redundancy`` (rows - unknowns of the layout:
   used satellites - 4 for a BeiDou-only fix) once a solution was judged, with ``chi2``
   and its threshold ``chi2_max`` when it is >= 1; on a fix, ``raim`` (``pass``,
@@ -56,6 +59,7 @@ import csv
 import io
 import json
 import math
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -123,6 +127,10 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
         _put(rec, "lon_deg", fix.lon_deg, 10)
         _put(rec, "alt_m", fix.alt_m, 4)
         _put(rec, "clock_bias_m", fix.clock_bias_m, 4)
+        if fix.clocks_m:
+            rec["clocks_m"] = {k: round(float(v), 4) for k, v in fix.clocks_m.items()}
+            used = Counter(p[:1] for p in fix.used)
+            rec["used_by_system"] = {k: used[k] for k in fix.clocks_m}
     _put(rec, "gdop_full", fix.gdop_full, 3)
     if fix.ok:
         _put(rec, "pdop", fix.pdop, 3)
@@ -299,7 +307,7 @@ _DIALECT = "https://json-schema.org/draft/2020-12/schema"
 _NUM = {"type": "number"}
 _NONNEG = {"type": "number", "minimum": 0}
 _COUNT = {"type": "integer", "minimum": 0}
-_PRN = {"type": "string", "pattern": "^C[0-9]{2}$"}
+_PRN = {"type": "string", "pattern": "^[CGE][0-9]{2}$"}
 _WEEK = {"type": "integer", "minimum": 0}
 _TOW = {"type": "number", "minimum": 0, "exclusiveMaximum": 604800}
 _POSITION = ("x_ecef_m", "lat_deg", "lon_deg", "alt_m", "clock_bias_m")
@@ -336,6 +344,18 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "lon_deg": {"type": "number", "minimum": -180, "maximum": 180},
             "alt_m": _NUM,
             "clock_bias_m": _NUM,
+            "clocks_m": {
+                "type": "object",
+                "minProperties": 2,
+                "patternProperties": {"^[CGE]$": _NUM},
+                "additionalProperties": False,
+            },
+            "used_by_system": {
+                "type": "object",
+                "minProperties": 2,
+                "patternProperties": {"^[CGE]$": _COUNT},
+                "additionalProperties": False,
+            },
             "gdop_full": _NONNEG,
             "pdop": _NONNEG,
             "n_full": _COUNT,
@@ -343,7 +363,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "ambiguity": {
                 "type": "object",
                 "minProperties": 1,
-                "patternProperties": {"^C[0-9]{2}$": {"type": "integer"}},
+                "patternProperties": {"^[CGE][0-9]{2}$": {"type": "integer"}},
                 "additionalProperties": False,
             },
             "resid_rms_m": _NONNEG,
@@ -365,7 +385,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "excluded": {
                 "type": "object",
                 "minProperties": 1,
-                "patternProperties": {"^C[0-9]{2}$": {"type": "string", "minLength": 1}},
+                "patternProperties": {"^[CGE][0-9]{2}$": {"type": "string", "minLength": 1}},
                 "additionalProperties": False,
             },
             "reason": {"type": "string", "minLength": 1},

@@ -58,8 +58,9 @@ CONTRACT_FIX_FIELDS = {
     "vpl_m",
     "std_enu_m",
 }
-CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code"}
-"""Fields present only when satellites were excluded / on a declined fix."""
+CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m", "used_by_system"}
+"""Fields present only when satellites were excluded / on a declined fix / on a fix of
+several systems."""
 VELOCITY_FIX_FIELDS = {
     "v_enu_m_s",
     "std_v_enu_m_s",
@@ -282,7 +283,7 @@ BAD = [
     ({**GOOD_FIX, "alt_m": float("nan")}, "$.alt_m", "type", "'number'"),
     ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0]}, "$.x_ecef_m", "minItems", ""),
     ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0, "3"]}, "$.x_ecef_m[2]", "type", "'number'"),
-    ({**GOOD_FIX, "ambiguity": {"G05": 1}}, "$.ambiguity", "additionalProperties", "'G05'"),
+    ({**GOOD_FIX, "ambiguity": {"R05": 1}}, "$.ambiguity", "additionalProperties", "'R05'"),
     ({**GOOD_FIX, "ambiguity": {"C05": 1.5}}, "$.ambiguity.C05", "type", "'integer'"),
     ({**GOOD_FIX, "ambiguity": {}}, "$.ambiguity", "minProperties", ""),
     ({**GOOD_FIX, "reason": "x"}, "$", "not", ""),  # a fix with a position has no reason
@@ -292,7 +293,7 @@ BAD = [
     ({**GOOD_NONE, "reason": ""}, "$.reason", "minLength", ""),
     ({**GOOD_TRACK, "event": "lost"}, "$.event", "enum", "'lost'"),
     ({k: v for k, v in GOOD_TRACK.items() if k != "sow_s"}, "$", "required", "'sow_s'"),
-    ({**GOOD_TRACK, "prn": "G06"}, "$.prn", "pattern", ""),
+    ({**GOOD_TRACK, "prn": "R06"}, "$.prn", "pattern", ""),
     ({**GOOD_TRACK, "nav_type": "D3"}, "$.nav_type", "enum", "'D3'"),
     (
         {**GOOD_SKY, "satellites": [{"prn": "C01", "used": 1, "full": True}]},
