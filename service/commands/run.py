@@ -23,7 +23,7 @@ from service.commands.options import full_rule, solver_config, systems_of
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
-from service.core.systems import DEFAULT_SYSTEMS
+from service.core.systems import DEFAULT_SYSTEMS, parse_systems
 from service.daemon.config import (
     DEFAULT_CONFIG,
     STORE_NAME,
@@ -228,7 +228,8 @@ def main_run(args: argparse.Namespace) -> int:
     specs = output_specs(cfg)
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
-    navs = _check_nav(cfg.source, nav_files(cfg))
+    systems = parse_systems(cfg.systems)
+    navs = _check_nav(cfg.source, nav_files(cfg), systems=systems)
     _check_state_dir(cfg.resolved_state_dir())
     lock_state_dir(cfg.resolved_state_dir())  # a second daemon on it: exit 3, one line
     if cfg.configure:  # before the source opens: the set-up has the port to itself
@@ -236,7 +237,11 @@ def main_run(args: argparse.Namespace) -> int:
 
         log.info("receiver set-up: %s", setup_receiver(cfg.source, cfg.baud, cfg.setup))
     source = open_source(
-        cfg.source, nav=navs or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
+        cfg.source,
+        nav=navs or None,
+        baud=cfg.baud,
+        reconnect_max_s=RECONNECT_MAX_S,
+        systems=systems,
     )
     nav_sources = _open_ntrip(cfg)
     transport = getattr(source, "transport", None)
