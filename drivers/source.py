@@ -415,10 +415,13 @@ def open_source(
             src.counters.update(counters)
             return src
         transport = FileTransport(path)
+    options = {k: dict(v) for k, v in (mapper_options or {}).items()}
+    if frozenset(systems) != frozenset(DEFAULT_SYSTEMS):  # RTCM MSM and ephemerides of these
+        options.setdefault("rtcm", {})["systems"] = frozenset(systems)
     decoder = StreamDecoder(
         gps_week=gps_week,
         max_payload=max_payload,
-        mapper_options=mapper_options,
+        mapper_options=options,
         counters=counters,
     )
     if gps_week is None and not isinstance(transport, FileTransport):
