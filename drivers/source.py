@@ -383,8 +383,9 @@ def open_source(
     ionosphere parameters at the head of the stream, as held ephemerides. Pace a replay
     with :func:`pace`.
     ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`. ``systems`` (RINEX
-    letters) are the systems read from RINEX observation and nav files (BeiDou alone by
-    default; the binary drivers give BeiDou rows only so far).
+    letters) are the systems read from RINEX observation and nav files, RTCM MSM and
+    ephemerides and UBX RXM-RAWX (BeiDou alone by default; UBX MEASX and SFRBX, SBF:
+    BeiDou only so far).
 
     The GPS week for RTCM MSM times of week comes from the stream (UBX RAWX / NAV-TIMEGPS /
     NAV-PVT, the ephemerides RTCM 1019/1042/1044/1045/1046), with ``gps_week`` or, for live
@@ -418,6 +419,7 @@ def open_source(
     options = {k: dict(v) for k, v in (mapper_options or {}).items()}
     if frozenset(systems) != frozenset(DEFAULT_SYSTEMS):  # RTCM MSM and ephemerides of these
         options.setdefault("rtcm", {})["systems"] = frozenset(systems)
+        options.setdefault("ubx", {})["systems"] = frozenset(systems)
     decoder = StreamDecoder(
         gps_week=gps_week,
         max_payload=max_payload,

@@ -1,6 +1,7 @@
-"""GPS and Galileo from RTCM 3 (issue 19): MSM7 1077/1097 rows and 1019/1046 ephemerides of the
-Hiroshima OEM729 stream (../shared/data/hiroshima-oem729-rtcm-2022), fixed against the stream's
-own 1005 antenna reference point.
+"""GPS and Galileo from receiver streams (issue 19): RTCM 3 MSM7 1077/1097 rows and 1019/1046
+ephemerides of the Hiroshima OEM729 stream (../shared/data/hiroshima-oem729-rtcm-2022), fixed
+against the stream's own 1005 antenna reference point; UBX RXM-RAWX GPS rows of the PolyU F9P
+capture against the receiver's own NAV-PVT.
 
 References: pyrtcm's parse of the same frames (counts, fields), the scalar transcription of
 IS-GPS-200 Table 20-IV / Galileo OS SIS ICD 5.1.1 (tests/support/independent.py) for the
@@ -144,3 +145,32 @@ _1046 = dict(
         strict=True,
     )
 )  # fmt: skip
+
+
+def test_ubx_rawx_gps_rows_fix_near_the_receivers_own_solution():
+    """UBX RXM-RAWX of the PolyU F9P capture with --systems C,G semantics: GPS L1 C/A rows
+    (gnssId 0, sigId 0) beside B1I, with the GPS and BDS nav files of the day: every epoch
+    an SPP fix using both systems, within 30 m of the receiver's own NAV-PVT (pyubx2's
+    parse; measured p50 8.2 m, max 24.8 m; BeiDou alone p50 4.7 m, max 14.4 m)."""
+    from pyubx2 import UBXReader
+
+    from service.commands.solve import load_navigation
+    from service.core.geometry import geodetic_to_ecef
+
+    d = DATA / "hk-polyu-f9p-ubx-2024"
+    capture = d / "COM18___9600_240925_072456.ubx"
+    pvt = {}
+    with open(capture, "rb") as fh:
+        for _, msg in UBXReader(fh, quitonerror=0):
+            if msg is not None and getattr(msg, "identity", "") == "NAV-PVT":
+                llh = (math.radians(msg.lat), math.radians(msg.lon), msg.height / 1000.0)
+                pvt[round(msg.iTOW / 1000) % 604800] = geodetic_to_ecef(*llh)
+    store, iono = load_navigation([str(d / "hksc269h.24f"), str(d / "hksc269h.24n")], systems="CG")
+    with open_source(str(capture), systems=frozenset("CG")) as src:
+        epochs = [ev for ev in src if isinstance(ev, MeasurementEpoch)]
+    assert len(epochs) == 196
+    assert all({p[0] for p in ep.prn} == {"C", "G"} for ep in epochs)
+    fixes = [solve(ep, store, iono, SolverConfig(), "spp") for ep in epochs]
+    assert all(f.ok and set(f.clocks_m) == {"C", "G"} for f in fixes)
+    err = [np.linalg.norm(np.subtract(f.x_ecef_m, pvt[round(f.gpst_tow_s)])) for f in fixes]
+    assert max(err) < 30.0, max(err)
