@@ -27,7 +27,8 @@ at install); ONE is also timed without it (every module compiled at each start, 
 PYTHONDONTWRITEBYTECODE=1). Each case has one untimed warm-up run of each program.
 
 Run: python bench/bench_vs_rtklib.py [--runs 15] [--files hksc,tst,sim24,one]
-(prints figures; no assertions). Needs rnx2rtkp (Debian package rtklib).
+(prints figures; no assertions). Needs rnx2rtkp (Debian package rtklib). The ``-GEC`` rows run
+both sides with BDS + GPS + Galileo (bdsfix ``--systems C,G,E``, rnx2rtkp navsys 41).
 """
 
 from __future__ import annotations
@@ -76,7 +77,12 @@ out-timesys        =gpst
 out-timeform       =tow
 """
 """rnx2rtkp options: single point, B1I (RTKLIB's frequency 1 of BDS), BDS only (navsys 32),
-10 deg, broadcast iono, Saastamoinen, RAIM FDE (posopt5), ECEF output with GPS week/TOW."""
+10 deg, broadcast iono, Saastamoinen, RAIM FDE (posopt5), ECEF output with GPS week/TOW.
+A multi-system case sets navsys from its systems (RTKLIB: GPS 1, Galileo 8, BDS 32; L1 C/A
+and E1 are frequency 1 of GPS and Galileo)."""
+NAVSYS = {"G": 1, "E": 8, "C": 32}
+URBAN3 = DATA / "hk-urban-3geo-2020"
+URBAN3_LLH = (22.3198722, 114.209101778, 3.0)  # ../shared/data/README.md
 
 Truth = Callable[[int, float], np.ndarray | None]
 
@@ -90,6 +96,8 @@ class Case:
     truth: Truth
     epochs: int
     exclusion: bool = True  # fault exclusion on both sides (bdsfix's default, RTKLIB RAIM FDE)
+    systems: str = "C"  # bdsfix --systems; rnx2rtkp navsys from the same letters
+    extra_nav: tuple[Path, ...] = ()  # further nav files (TST: the GPS one beside the BDS one)
 
 
 # ---- the simulated day ------------------------------------------------------------------------
@@ -303,21 +311,29 @@ def bench_case(
     case: Case, runs: int, workdir: Path, conf: Path, env: dict[str, str], label: str = ""
 ) -> None:
     bds_out, rtk_out = workdir / f"{case.name}.jsonl", workdir / f"{case.name}.pos"
+    navs = [str(case.nav), *map(str, case.extra_nav)]
     bds = [
         *_bdsfix_cmd(),
         "solve",
         str(case.obs),
-        str(case.nav),
+        *navs,
         "--mode",
         case.mode,
         "--out",
         str(bds_out),
+        "--systems",
+        case.systems,
     ]
+    text = RTKLIB_CONF
     if not case.exclusion:
         bds += ["--max-exclusions", "0"]
-        conf = conf.with_name("bds-spp-no-raim.conf")
-        conf.write_text(RTKLIB_CONF.replace("pos1-posopt5       =on\n", ""), encoding="ascii")
-    rtk = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(rtk_out), str(case.obs), str(case.nav)]
+        text = text.replace("pos1-posopt5       =on\n", "")
+    navsys = sum(NAVSYS[s] for s in case.systems.split(","))
+    text = text.replace("pos1-navsys        =32", f"pos1-navsys        ={navsys}")
+    if text != RTKLIB_CONF:
+        conf = conf.with_name(f"{case.name}.conf")
+        conf.write_text(text, encoding="ascii")
+    rtk = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(rtk_out), str(case.obs), *navs]
     run_timed(bds, env)  # warm-up (file cache, bytecode cache), not timed
     run_timed(rtk)
     t_bds, t_rtk = [], []
@@ -326,7 +342,7 @@ def bench_case(
         t_rtk.append(run_timed(rtk))
     mb, mr = statistics.median(t_bds), statistics.median(t_rtk)
     print(
-        f"{case.name + label:<6} {case.epochs:5d} epochs  bdsfix solve --mode {case.mode:<4} "
+        f"{case.name + label:<8} {case.epochs:5d} epochs  bdsfix solve --mode {case.mode:<4} "
         f"{mb:7.3f} s (min {min(t_bds):.3f})  rnx2rtkp {mr:6.3f} s (min {min(t_rtk):.3f})  "
         f"ratio {mb / mr:5.1f}x   ({runs} alternating runs, medians)"
     )
@@ -347,7 +363,11 @@ def bench_case(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=15, help="alternating runs per file")
-    ap.add_argument("--files", default="one,hksc,tst,sim24", help="which files, comma-separated")
+    ap.add_argument(
+        "--files",
+        default="one,hksc,tst,sim24,hksc-gec,tst-gec,3geo,3geo-gec",
+        help="which files, comma-separated (-gec: BDS + GPS + Galileo on both sides)",
+    )
     ap.add_argument("--sim-hours", type=float, default=24.0, help="length of the simulated day")
     args = ap.parse_args()
     if shutil.which("rnx2rtkp") is None:
@@ -383,6 +403,46 @@ def main() -> None:
                 )
             )
             cases.append(replace(cases[-1], name="TST-0", exclusion=False))
+        if "hksc-gec" in want:
+            cases.append(
+                Case(
+                    "HKSC-GEC",
+                    HKSC / "hksc1610.obs",
+                    HKSC / "hksc1610.nav",
+                    "spp",
+                    lambda w, t: HKSC_XYZ,
+                    205,
+                    systems="C,G,E",
+                )
+            )
+        if "tst-gec" in want:  # the drive has no Galileo nav file: its E rows go unused
+            cases.append(
+                Case(
+                    "TST-GEC",
+                    TST / "COM3_190428_124409.obs",
+                    TST / "hksc1180.19b",
+                    "spp",
+                    tst_truth(),
+                    1760,
+                    systems="C,G,E",
+                    extra_nav=(TST / "hksc1180.19n",),
+                )
+            )
+        if "3geo" in want or "3geo-gec" in want:
+            llh = URBAN3_LLH
+            xyz = geodetic_to_ecef(math.radians(llh[0]), math.radians(llh[1]), llh[2])
+            urban3 = Case(
+                "3GEO",
+                URBAN3 / "rover.obs",
+                URBAN3 / "navigation_message.nav",
+                "spp",
+                lambda w, t: xyz,
+                300,
+            )
+            if "3geo" in want:
+                cases.append(urban3)
+            if "3geo-gec" in want:
+                cases.append(replace(urban3, name="3GEO-GEC", systems="C,G,E"))
         if "sim24" in want:
             t0 = time.perf_counter()
             cases.append(make_sim_day(workdir, args.sim_hours))

@@ -479,10 +479,16 @@ class GnssLoggerReader:
 
 
 def events(
-    path: str | Path, counters: Counters | None = None, lenient: bool = True
+    path: str | Path,
+    counters: Counters | None = None,
+    lenient: bool = True,
+    systems: frozenset[str] = frozenset(),
 ) -> Iterator[MeasurementEpoch | ReceiverFix | NavSubframe]:
     """The events of the GnssLogger log at ``path`` (see :class:`GnssLoggerReader`; a bad
-    row is always counted and skipped, ``lenient`` or not). The registry's reader."""
+    row is always counted and skipped, ``lenient`` or not). The registry's reader.
+    ``systems`` is not used to leave rows out: the tracker and the timeline follow every
+    system's time of week (a phone's first four full ranges are often GPS); the solver
+    uses the rows of the systems whose ephemerides it holds, which the nav is read for."""
     with open(path, encoding="utf-8", errors="replace") as fh:
         yield from GnssLoggerReader(fh, counters, name=str(path))
 

@@ -65,10 +65,12 @@ PROTOCOLS: tuple[ProtocolSpec, ...] = (
 )
 
 
-FileReader = Callable[[Path, Counters, bool], Iterable[Event]]
-"""Called as ``reader(path, counters, lenient)``: the file's events in order, counting what
-it reads into ``counters``; ``lenient`` (a stream) skips and counts a broken record where a
-strict reader (``bdsfix solve``) raises. A generator's ``finally`` closes the file."""
+FileReader = Callable[[Path, Counters, bool, frozenset[str]], Iterable[Event]]
+"""Called as ``reader(path, counters, lenient, systems)``: the file's events in order,
+counting what it reads into ``counters``; ``lenient`` (a stream) skips and counts a broken
+record where a strict reader (``bdsfix solve``) raises; ``systems`` (RINEX letters, ``--systems``)
+are the satellite systems asked for, which a reader may use to leave others out. A
+generator's ``finally`` closes the file."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -62,7 +62,7 @@ import math
 import weakref
 import zlib
 from collections import Counter
-from collections.abc import Generator, Iterator
+from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Literal
@@ -77,6 +77,7 @@ from service.core.timebase import (
     BDT_GPST_OFFSET_S,
     bdt_to_gpst,
     gpst_from_utc,
+    gpst_to_bdt,
 )
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch
 
@@ -86,8 +87,8 @@ _GPS_EPOCH_ORDINAL = dt.date(1980, 1, 6).toordinal()
 _BDT_EPOCH_ORDINAL = dt.date(2006, 1, 1).toordinal()
 
 _READ = GnssSystem.BDS.value
-"""The system letter whose observations and ephemerides are read (BeiDou); the records of
-the others are counted and skipped."""
+"""The system letter whose observations are read (BeiDou); the records of the others are
+counted and skipped."""
 
 _B1I_CODES = ("2I", "1I")
 """B1I code suffixes in order of preference: the 3.03+ name, then the 3.02 one."""
@@ -126,9 +127,57 @@ _BDS_RECORD: tuple[tuple[str | None, ...], ...] = (
 )
 """BDS navigation data record (RINEX 3.04 Table A14), one tuple per line; None = spare."""
 
-_BDS_INT_FIELDS = frozenset({"aode", "aodc", "health", "week"})
-_BDS_OPTIONAL = {"tgd1_s": 0.0, "tgd2_s": 0.0, "ura_m": 0.0, "aode": 0, "aodc": 0, "health": 0}
+_GPS_RECORD: tuple[tuple[str | None, ...], ...] = (
+    ("af0_s", "af1_s_s", "af2_s_s2"),  # SV / EPOCH / SV CLK (after the GPST toc epoch)
+    ("aode", "crs_m", "delta_n_rad_s", "m0_rad"),  # BROADCAST ORBIT - 1 (IODE)
+    ("cuc_rad", "e", "cus_rad", "sqrt_a_sqrt_m"),  # BROADCAST ORBIT - 2
+    ("toe_sow_s", "cic_rad", "omega0_rad", "cis_rad"),  # BROADCAST ORBIT - 3 (toe: GPST sow)
+    ("i0_rad", "crc_m", "omega_rad", "omega_dot_rad_s"),  # BROADCAST ORBIT - 4
+    ("idot_rad_s", None, "week", None),  # BROADCAST ORBIT - 5 (L2 codes, GPS week, L2 P flag)
+    ("ura_m", "health", "tgd1_s", "aodc"),  # BROADCAST ORBIT - 6 (URA m, SV health, TGD, IODC)
+    ("tot_sow_s", None, None, None),  # BROADCAST ORBIT - 7 (transmission time, fit interval)
+)
+"""GPS navigation data record (RINEX 3.04 Table A6; QZSS Table A10 is the same)."""
+
+_GAL_RECORD: tuple[tuple[str | None, ...], ...] = (
+    ("af0_s", "af1_s_s", "af2_s_s2"),  # SV / EPOCH / SV CLK (after the GST toc epoch)
+    ("aode", "crs_m", "delta_n_rad_s", "m0_rad"),  # BROADCAST ORBIT - 1 (IODnav)
+    ("cuc_rad", "e", "cus_rad", "sqrt_a_sqrt_m"),  # BROADCAST ORBIT - 2
+    ("toe_sow_s", "cic_rad", "omega0_rad", "cis_rad"),  # BROADCAST ORBIT - 3 (toe: GST sow)
+    ("i0_rad", "crc_m", "omega_rad", "omega_dot_rad_s"),  # BROADCAST ORBIT - 4
+    ("idot_rad_s", "data_sources", "week", None),  # BROADCAST ORBIT - 5 (GAL week = GPS week)
+    ("ura_m", "health", "bgd_e5a_s", "bgd_e5b_s"),  # BROADCAST ORBIT - 6 (SISA m, SV health)
+    ("tot_sow_s", None, None, None),  # BROADCAST ORBIT - 7 (transmission time)
+)
+"""Galileo navigation data record (RINEX 3.04 Table A8): I/NAV or F/NAV by its data
+sources (bit 0 I/NAV E1-B, bit 1 F/NAV E5a-I, bit 2 I/NAV E5b-I; bit 8 clock for E5a,E1,
+bit 9 for E5b,E1)."""
+
+_RECORDS: dict[str, tuple[tuple[str | None, ...], ...]] = {
+    GnssSystem.BDS: _BDS_RECORD,
+    GnssSystem.GPS: _GPS_RECORD,
+    GnssSystem.GAL: _GAL_RECORD,
+}
+"""The systems whose navigation records are read, with their layouts; the others' records are
+counted and skipped."""
+_SYSTEM_NAMES = {GnssSystem.BDS: "BDS", GnssSystem.GPS: "GPS", GnssSystem.GAL: "Galileo"}
+
+_INT_FIELDS = frozenset({"aode", "aodc", "health", "week", "data_sources"})
+_OPTIONAL = {
+    "tgd1_s": 0.0,
+    "tgd2_s": 0.0,
+    "ura_m": 0.0,
+    "aode": 0,
+    "aodc": 0,
+    "health": 0,
+    "data_sources": 0,
+    "bgd_e5a_s": 0.0,
+    "bgd_e5b_s": 0.0,
+}
 """Fields a writer may leave blank, with the value used then; every other one is required."""
+_GAL_INAV = 0b101
+"""Data-source bits of an I/NAV set (E1-B, E5b-I): its clock is for E1,E5b, and a
+single-frequency E1 user takes BGD(E1,E5b) (OS SIS ICD 5.1.5)."""
 
 
 def _sat_id(text: str) -> str:
@@ -380,9 +429,19 @@ def _parse_obs_header(h: _Header, path: Path) -> ObsHeader:
     )
 
 
+_CODES: dict[str, tuple[str, ...]] = {
+    GnssSystem.BDS: _B1I_CODES,
+    GnssSystem.GPS: ("1C",),
+    GnssSystem.GAL: ("1C", "1X", "1B"),
+}
+"""Per system read, the code suffixes of the one signal bdsfix ranges on, by preference:
+BDS B1I (``2I``, 3.02's ``1I``), GPS L1 C/A (``1C``), Galileo E1 (``1C`` pilot, ``1X``
+data+pilot, ``1B`` data; RINEX 3.04 Table 6), as the header declares them."""
+
+
 @dataclass(frozen=True, slots=True)
-class _BdsColumns:
-    """Character offsets of the B1I fields in a system-C observation record."""
+class _Columns:
+    """Character offsets of one system's signal fields in its observation records."""
 
     code: str | None
     pr: int | None
@@ -390,29 +449,38 @@ class _BdsColumns:
     doppler: int | None
 
     @classmethod
-    def from_types(cls, types: tuple[str, ...]) -> _BdsColumns:
-        code = _choose_bds_code(types)
+    def from_types(cls, system: str, types: tuple[str, ...]) -> _Columns:
+        code = next((c for c in _CODES[system] if f"C{c}" in types), None)
         if code is None:
             return cls(None, None, None, None)
         idx = {t: 3 + 16 * i for i, t in enumerate(types)}
         return cls(code, idx[f"C{code}"], idx.get(f"S{code}"), idx.get(f"D{code}"))
 
 
+def _columns(systems: frozenset[str], types: dict[str, tuple[str, ...]]) -> dict[str, _Columns]:
+    return {k: _Columns.from_types(k, types.get(k, ())) for k in systems}
+
+
 class RinexObsReader:
-    """The BDS B1I measurements of a RINEX 3 observation file, epoch by epoch.
+    """The BDS B1I (and, among ``systems``, GPS L1 C/A and Galileo E1: :data:`_CODES`)
+    measurements of a RINEX 3 observation file, epoch by epoch.
 
     The header is read on construction (:attr:`header`); iterating streams the data
     section, one :class:`~service.core.types.MeasurementEpoch` per observation epoch (flags 0
-    and 1), with the BDS satellites that carry a non-zero B1I pseudorange. Epochs without
-    any are yielded empty. Times are GPST. :attr:`counters` counts what was read and
-    skipped; a malformed record raises :class:`~service.core.errors.FramingError`, or with
-    ``lenient`` is logged (``file:line``), counted and skipped (see the module docstring).
-    A malformed header raises in both modes.
+    and 1), with the satellites of ``systems`` (RINEX letters; BeiDou alone by default) that
+    carry a non-zero pseudorange of their signal. Epochs without any are yielded empty.
+    Times are GPST. :attr:`counters` counts what was read and skipped; a malformed record
+    raises :class:`~service.core.errors.FramingError`, or with ``lenient`` is logged
+    (``file:line``), counted and skipped (see the module docstring). A malformed header
+    raises in both modes.
     """
 
-    def __init__(self, path: str | Path, *, lenient: bool = False) -> None:
+    def __init__(
+        self, path: str | Path, *, lenient: bool = False, systems: Iterable[str] = (_READ,)
+    ) -> None:
         self.path = Path(path)
         self.lenient = lenient
+        self.systems = frozenset(systems) & frozenset(_CODES)
         with _open(self.path) as fh:
             lines = _Lines(fh, self.path)
             raw = _read_header(lines, "O")
@@ -456,8 +524,8 @@ class RinexObsReader:
         return week, tow + (sod_s - whole)
 
     def _epochs(self) -> Generator[MeasurementEpoch, None, None]:
-        cols = _BdsColumns.from_types(self.header.obs_types.get(_READ, ()))
         types = dict(self.header.obs_types)
+        cols = _columns(self.systems, types)
         counters = self.counters
         with _open(self.path) as fh:
             fh.seek(self._data_offset)
@@ -490,8 +558,8 @@ class RinexObsReader:
                         continue
                     if flag >= 2:
                         self._special(flag, body, body_start, types, counters)
-                        if flag == 4 and _READ in types:
-                            cols = _BdsColumns.from_types(types[_READ])
+                        if flag == 4:
+                            cols = _columns(self.systems, types)
                         continue
                     if when is None:  # only flags 2-4 may leave the time blank
                         raise lines.error("observation epoch without a time", body_start - 1)
@@ -592,17 +660,18 @@ class RinexObsReader:
         when: tuple[int, float],
         body: list[str],
         first: int,
-        cols: _BdsColumns,
+        cols: dict[str, _Columns],
         lines: _Lines,
     ) -> MeasurementEpoch:
         prn: list[str] = []
+        sig: list[str] = []
         pr: list[float] = []
         cn0: list[float] = []
         dop: list[float] = []
-        i_pr, i_cn0, i_dop = cols.pr, cols.cn0, cols.doppler
         for k, rec in enumerate(body):
             head = rec[:1]
-            if head != _READ:
+            col = cols.get(head)
+            if col is None:
                 if head == ">" or not head.strip():
                     raise lines.error(
                         f"expected an observation record, got {rec.rstrip()[:40]!r} "
@@ -610,13 +679,15 @@ class RinexObsReader:
                         first + k,
                     )
                 continue
+            i_pr, i_cn0, i_dop = col.pr, col.cn0, col.doppler
+            without = "bds_without_b1i" if head == _READ else f"{head}_without_signal"
             if i_pr is None:
-                self.counters["bds_without_b1i"] += 1
+                self.counters[without] += 1
                 continue
             try:
                 value = _float(rec[i_pr : i_pr + 14])
-                if not value > 0.0:  # blank (NaN) or zero: no B1I pseudorange
-                    self.counters["bds_without_b1i"] += 1
+                if not value > 0.0:  # blank (NaN) or zero: no pseudorange of the signal
+                    self.counters[without] += 1
                     continue
                 if not math.isfinite(value):
                     raise ValueError(f"pseudorange {value}")
@@ -631,15 +702,21 @@ class RinexObsReader:
                 log.warning("%s; record skipped", err)
                 continue
             prn.append(sat)
+            sig.append(col.code or "2I")
             pr.append(value)
             cn0.append(c)
             dop.append(d)
-        self.counters["bds_measurements"] += len(prn)
+        n_bds = sum(p[:1] == _READ for p in prn)
+        self.counters["bds_measurements"] += n_bds
+        if n_bds < len(prn):
+            for p in prn:
+                if p[:1] != _READ:
+                    self.counters[f"{p[:1]}_measurements"] += 1
         return MeasurementEpoch.from_columns(
             when[0],
             when[1],
             prn,
-            [cols.code or "2I"] * len(prn),
+            sig,
             np.array(pr, dtype=float),
             cn0_dbhz=cn0,
             doppler_hz=dop,
@@ -706,27 +783,38 @@ def _leap_seconds(h: _Header, path: Path) -> int | None:
     return value
 
 
-def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemeris:
-    """One BDS navigation record (``_BDS_RECORD`` layout) as an Ephemeris; toc -> BDT sow.
+def _nav_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> tuple[Ephemeris, int]:
+    """One BDS, GPS or Galileo navigation record (``_RECORDS`` layouts) as an Ephemeris on
+    BDT (:class:`~service.core.types.Ephemeris`), with its rank among sets of the same t_oe
+    (Galileo: I/NAV 1, F/NAV 0; others 1).
+
+    BDS records are on BDT already. A GPS record's toc epoch, GPS week and toe are GPST
+    (IS-GPS-200 20.3.3.4.3), a Galileo record's are GST with the GAL week counted as the GPS
+    week (RINEX 3.04 Table A8); both go to BDT by GPST - 14 s (BDS-SIS-ICD-B1I-3.0 4.2,
+    GST = GPST to tens of ns, OS SIS ICD 5.1.8). A Galileo set's group delay is BGD(E1,E5b)
+    for an I/NAV set and BGD(E1,E5a) for an F/NAV one (OS SIS ICD 5.1.5: the delay that
+    goes with the set's clock for an E1 user); GPS's is T_GD (IS-GPS-200 20.3.3.3.3.2).
 
     A blank required field or a non-finite integer field is a FramingError. A float field
     that reads as NaN or infinity (``NaN``, an exponent past the double range) is passed on
     as it is: judging values is the store's job (service.core.ephemeris.ephemeris_problem), and
     it refuses that one set while the rest of the file stays usable.
     """
+    system = prn[0]
+    name_of = _SYSTEM_NAMES[GnssSystem(system)]
     first = rec[0]
     values: dict[str, float] = {}
     blank: set[str] = set()
     k = 0
     try:
         day = dt.date(int(first[4:8]), int(first[9:11]), int(first[12:14]))
-        toc_sow = (
-            (day.toordinal() - _BDT_EPOCH_ORDINAL) % 7 * 86400
-            + int(first[15:17]) * 3600
-            + int(first[18:20]) * 60
-            + int(first[21:23])
-        )
-        for k, names in enumerate(_BDS_RECORD):
+        sod = int(first[15:17]) * 3600 + int(first[18:20]) * 60 + int(first[21:23])
+        if system == GnssSystem.BDS:
+            toc_sow = float((day.toordinal() - _BDT_EPOCH_ORDINAL) % 7 * 86400 + sod)
+        else:
+            toc_gps_week, dow = divmod(day.toordinal() - _GPS_EPOCH_ORDINAL, 7)
+            toc_sow = gpst_to_bdt(toc_gps_week, dow * 86400 + sod)[1]
+        for k, names in enumerate(_RECORDS[system]):
             start = 23 if k == 0 else 4
             for j, name in enumerate(names):
                 if name is not None:
@@ -735,20 +823,29 @@ def _bds_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> Ephemer
                     if not text.strip():
                         blank.add(name)
     except ValueError as exc:
-        raise FramingError(f"{path}:{lineno + k}: bad BDS record for {prn}: {exc}") from exc
+        raise FramingError(f"{path}:{lineno + k}: bad {name_of} record for {prn}: {exc}") from exc
     kwargs: dict[str, float | int] = {}
     for name, value in values.items():
         if name in blank:
-            if name not in _BDS_OPTIONAL and name != "tot_sow_s":
-                raise FramingError(f"{path}:{lineno}: BDS record for {prn} lacks {name}")
+            if name not in _OPTIONAL and name != "tot_sow_s":
+                raise FramingError(f"{path}:{lineno}: {name_of} record for {prn} lacks {name}")
             if name == "tot_sow_s":
                 continue
-            value = _BDS_OPTIONAL[name]
-        elif name in _BDS_INT_FIELDS and not math.isfinite(value):
-            raise FramingError(f"{path}:{lineno}: BDS record for {prn}: {name} is {value}")
-        kwargs[name] = int(value) if name in _BDS_INT_FIELDS else value
+            value = _OPTIONAL[name]
+        elif name in _INT_FIELDS and not math.isfinite(value):
+            raise FramingError(f"{path}:{lineno}: {name_of} record for {prn}: {name} is {value}")
+        kwargs[name] = int(value) if name in _INT_FIELDS else value
     kwargs.pop("tot_sow_s", None)
-    return Ephemeris(prn=prn, toc_sow_s=float(toc_sow), source="rinex", **kwargs)  # type: ignore[arg-type]
+    rank = 1
+    if system == GnssSystem.GAL:
+        inav = bool(int(kwargs.pop("data_sources")) & _GAL_INAV)
+        e5a, e5b = kwargs.pop("bgd_e5a_s"), kwargs.pop("bgd_e5b_s")
+        kwargs["tgd1_s"], kwargs["tgd2_s"] = (e5b, e5a) if inav else (e5a, e5b)
+        rank = int(inav)
+    if system != GnssSystem.BDS and math.isfinite(kwargs["toe_sow_s"]):
+        kwargs["week"], kwargs["toe_sow_s"] = gpst_to_bdt(int(kwargs["week"]), kwargs["toe_sow_s"])
+    eph = Ephemeris(prn=prn, toc_sow_s=float(toc_sow), source="rinex", **kwargs)  # type: ignore[arg-type]
+    return eph, rank
 
 
 NTRIP_NAV_HERE = (
@@ -758,16 +855,20 @@ NTRIP_NAV_HERE = (
 """The error (no URL in it: it may hold credentials) for a URL given as a nav file."""
 
 
-def read_nav(path: str | Path) -> NavData:
-    """BDS ephemerides and ionosphere coefficients of a RINEX 3 nav file (mixed or BDS-only).
+def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
+    """The ephemerides of ``systems`` (RINEX letters among BDS, GPS and Galileo; BeiDou alone
+    by default), on BDT (see :func:`_nav_ephemeris`), and the ionosphere coefficients of a
+    RINEX 3 nav file (mixed or of one system).
 
     Records of other systems are skipped (counted in ``counters``). When the same set
-    (PRN, week, toe) appears more than once, the latest transmission time wins, so a
-    health change broadcast later is kept.
+    (PRN, week, toe) appears more than once, a Galileo I/NAV set wins over an F/NAV one
+    (bdsfix ranges on E1), then the latest transmission time, so a health change broadcast
+    later is kept.
     """
     if looks_like_url(str(path)):  # ntrip://, ntrips://, http://... (a Path folds the "//")
         raise ConfigError(NTRIP_NAV_HERE)
     path = Path(path)
+    read = frozenset(systems) & frozenset(_RECORDS)
     counters: Counter[str] = Counter()
     with _open(path) as fh:
         lines = _Lines(fh, path)
@@ -775,7 +876,7 @@ def read_nav(path: str | Path) -> NavData:
         record_lines = dict(_NAV_RECORD_LINES)
         if h.version >= 3.05:
             record_lines[GnssSystem.GLO] = 5
-        held: dict[str, dict[tuple[int, float], tuple[float, Ephemeris]]] = {}
+        held: dict[str, dict[tuple[int, float], tuple[tuple[int, float], Ephemeris]]] = {}
         while (line := lines.next()) is not None:
             if not line.strip():
                 counters["blank_lines"] += 1
@@ -794,10 +895,10 @@ def read_nav(path: str | Path) -> NavData:
                 rec.pop()  # trailing blank lines belong to no record
             want = record_lines[sys_char]
             if len(rec) != want:
-                if sys_char == _READ:
+                if sys_char in read:
                     raise FramingError(
-                        f"{path}:{start}: BDS record {line[:3]!r} has {len(rec)} lines, "
-                        f"expected {want}"
+                        f"{path}:{start}: {_SYSTEM_NAMES[GnssSystem(sys_char)]} record "
+                        f"{line[:3]!r} has {len(rec)} lines, expected {want}"
                     )
                 counters[f"records_{sys_char}_odd_length"] += 1
                 log.warning(
@@ -809,18 +910,18 @@ def read_nav(path: str | Path) -> NavData:
                     want,
                 )
             counters[f"records_{sys_char}"] += 1
-            if sys_char != _READ:
+            if sys_char not in read:
                 continue
             prn = _sat_id(line[:3])
-            eph = _bds_ephemeris(prn, rec, path, start)
+            eph, rank = _nav_ephemeris(prn, rec, path, start)
             tot = _float(rec[7][4:23])
             tot = -math.inf if math.isnan(tot) else tot
             key = (eph.week, eph.toe_sow_s)
             sets = held.setdefault(prn, {})
             if key in sets:
-                counters["bds_repeated_sets"] += 1
-            if key not in sets or tot >= sets[key][0]:
-                sets[key] = (tot, eph)
+                counters[f"{_SYSTEM_NAMES[GnssSystem(sys_char)].lower()}_repeated_sets"] += 1
+            if key not in sets or (rank, tot) >= sets[key][0]:
+                sets[key] = ((rank, tot), eph)
     return NavData(
         version=h.version,
         ephemerides={
@@ -886,13 +987,17 @@ def detect(path: Path, head: bytes) -> bool:
 
 
 def obs_events(
-    path: str | Path, counters: Counter[str] | None = None, lenient: bool = True
+    path: str | Path,
+    counters: Counter[str] | None = None,
+    lenient: bool = True,
+    systems: Iterable[str] = (_READ,),
 ) -> Iterator[MeasurementEpoch]:
-    """The epochs of the obs file at ``path`` (:class:`RinexObsReader`), counting
-    ``epochs_rinex`` and the reader's skipped records into ``counters``.
+    """The epochs of the obs file at ``path`` (:class:`RinexObsReader`) with the satellites
+    of ``systems``, counting ``epochs_rinex`` and the reader's skipped records into
+    ``counters``.
     The header is read now (a bad one raises here, not at the first epoch); the file is
     closed when the iteration ends or is closed. The registry's reader."""
-    reader = RinexObsReader(path, lenient=lenient)
+    reader = RinexObsReader(path, lenient=lenient, systems=systems)
     if counters is not None:
         reader.counters = counters  # one set: the reader's skipped epochs reach STATUS
     return _counted(reader, reader.counters)

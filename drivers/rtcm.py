@@ -45,11 +45,17 @@ import numpy as np
 from pyrtcm import RTCMReader
 
 from drivers.framing import BinaryFraming, Event, WeekContext
-from service.core.constants import C_M_S, URA_M, WEEK_S
+from service.core.constants import C_M_S, ICD_PI, URA_M, WEEK_S
 from service.core.counters import Counters
 from service.core.rtcm1042 import EPH_1042_FIELDS, EPH_1042_INT_FIELDS
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
-from service.core.timebase import BDT_GPST_OFFSET_S, GST_GPS_WEEK_OFFSET, bdt_to_gpst, diff_s
+from service.core.timebase import (
+    BDT_GPST_OFFSET_S,
+    GST_GPS_WEEK_OFFSET,
+    bdt_to_gpst,
+    diff_s,
+    gpst_to_bdt,
+)
 from service.core.types import UNKNOWN_WEEK, Ephemeris, MeasurementEpoch
 
 log = logging.getLogger(__name__)
@@ -120,6 +126,20 @@ FRAMING = BinaryFraming(
 
 BDS_MSM = {1124: 4, 1125: 5, 1126: 6, 1127: 7}
 """BDS MSM message numbers and their MSM level."""
+OTHER_MSM: dict[int, tuple[GnssSystem, int]] = {
+    **{1070 + k: (GnssSystem.GPS, k) for k in (4, 5, 6, 7)},
+    **{1090 + k: (GnssSystem.GAL, k) for k in (4, 5, 6, 7)},
+}
+"""GPS (1074-1077) and Galileo (1094-1097) MSM numbers: system and MSM level; read when the
+mapper's ``systems`` include theirs (issue 19)."""
+OTHER_MSM_TIME_DF = {GnssSystem.GPS: "DF004", GnssSystem.GAL: "DF248"}
+"""The epoch time field of an MSM: GPS TOW [ms] (DF004), Galileo GST TOW [ms] (DF248;
+GST = GPST to tens of ns, OS SIS ICD 5.1.8)."""
+OTHER_MSM_SIGNALS: dict[GnssSystem, dict[int, str]] = {
+    GnssSystem.GPS: {2: "1C"},  # L1 C/A (Table 3.5-91)
+    GnssSystem.GAL: {2: "1C", 4: "1B", 5: "1X"},  # E1 C, B, B+C (Table 3.5-99)
+}
+"""The MSM signal IDs read per system: the signal bdsfix ranges on (RINEX code)."""
 
 EPH_BDS = 1042
 
@@ -145,6 +165,48 @@ EPH_WEEKS: dict[int, EphWeek] = {
 """Ephemerides of other systems read only for their week, while the stream's week is not
 exact (the 1042 BDS week, 13 bits from BDT week 0, comes with the ephemeris itself)."""
 USED_MESSAGES = frozenset({*BDS_MSM, EPH_BDS, *EPH_WEEKS})
+EPH_OF_SYSTEM = {1019: GnssSystem.GPS, 1046: GnssSystem.GAL}
+"""Ephemeris messages mapped to :class:`Ephemeris` when their system is read: GPS 1019 and
+Galileo I/NAV 1046 (E1 users take the I/NAV clock and BGD(E1,E5b); F/NAV 1045 gives the
+week only)."""
+
+GPS_1019_FIELDS: tuple[tuple[str, str, bool], ...] = (
+    # (Ephemeris attribute, data field, in semicircles) RTCM 10403.3 Table 3.5-21
+    ("af0_s", "DF084", False), ("af1_s_s", "DF083", False), ("af2_s_s2", "DF082", False),
+    ("sqrt_a_sqrt_m", "DF092", False), ("e", "DF090", False), ("i0_rad", "DF097", True),
+    ("omega0_rad", "DF095", True), ("omega_rad", "DF099", True), ("m0_rad", "DF088", True),
+    ("delta_n_rad_s", "DF087", True), ("omega_dot_rad_s", "DF100", True),
+    ("idot_rad_s", "DF079", True), ("cuc_rad", "DF089", False), ("cus_rad", "DF091", False),
+    ("crc_m", "DF098", False), ("crs_m", "DF086", False), ("cic_rad", "DF094", False),
+    ("cis_rad", "DF096", False),
+)  # fmt: skip
+GAL_1046_FIELDS: tuple[tuple[str, str, bool], ...] = (
+    # RTCM 10403.3 Table 3.5-114 (I/NAV)
+    ("af0_s", "DF296", False), ("af1_s_s", "DF295", False), ("af2_s_s2", "DF294", False),
+    ("sqrt_a_sqrt_m", "DF303", False), ("e", "DF301", False), ("i0_rad", "DF308", True),
+    ("omega0_rad", "DF306", True), ("omega_rad", "DF310", True), ("m0_rad", "DF299", True),
+    ("delta_n_rad_s", "DF298", True), ("omega_dot_rad_s", "DF311", True),
+    ("idot_rad_s", "DF292", True), ("cuc_rad", "DF300", False), ("cus_rad", "DF302", False),
+    ("crc_m", "DF309", False), ("crs_m", "DF297", False), ("cic_rad", "DF305", False),
+    ("cis_rad", "DF307", False),
+)  # fmt: skip
+
+
+def galileo_sisa_m(index: int) -> float:
+    """SISA [m] of its index (Galileo OS SIS ICD 5.1.12, Table 76): 0-49 by 1 cm, 50-74 from
+    0.5 m by 2 cm, 75-99 from 1 m by 4 cm, 100-125 from 2 m by 16 cm; 126-254 spare and 255
+    NAPA (no accuracy prediction available): NaN, which the store refuses."""
+    if 0 <= index < 50:
+        return index * 0.01
+    if index < 75:
+        return 0.5 + (index - 50) * 0.02
+    if index < 100:
+        return 1.0 + (index - 75) * 0.04
+    if index < 126:
+        return 2.0 + (index - 100) * 0.16
+    return math.nan
+
+
 MSM_RANGE = range(1071, 1138)
 """All MSM numbers (GPS 107x ... IRNSS 113x); their header layout is common."""
 
@@ -226,6 +288,7 @@ class _Cell:
     cn0_dbhz: float
     doppler_hz: float
     lock_s: float
+    signal: str = B1I_CODE
 
 
 def ephemeris_from_1042(msg: Any) -> Ephemeris:
@@ -269,10 +332,15 @@ class RtcmMapper:
         week: WeekContext | None = None,
         *,
         source: str = "rtcm",
+        systems: frozenset[str] | str = MSM_SYSTEM.value,
     ) -> None:
         self.counters = counters if counters is not None else Counters()
         self.week = week if week is not None else WeekContext()
         self.source = source
+        self.systems = frozenset(systems)
+        self._msm = {n: v for n, v in OTHER_MSM.items() if v[0].value in self.systems}
+        self._eph = {n for n, s in EPH_OF_SYSTEM.items() if s.value in self.systems}
+        self._used = USED_MESSAGES | self._msm.keys()
         self._time: tuple[int, float] | None = None
         self._cells: dict[str, _Cell] = {}
 
@@ -280,9 +348,9 @@ class RtcmMapper:
         """Map one checksum-valid RTCM3 frame (library errors propagate to the caller)."""
         number = message_number(raw)
         self.counters[f"rtcm:{number}"] += 1
-        if number in EPH_WEEKS and self.week.exact:
+        if number in EPH_WEEKS and self.week.exact and number not in self._eph:
             number = 0  # the week is the receiver's own: nothing to read there
-        if number in USED_MESSAGES:
+        if number in self._used:
             return self.on_message(RTCMReader.parse(raw))
         self.counters["rtcm_ignored"] += 1
         if number in MSM_RANGE and len(raw) > 10 and not msm_multiple_message_bit(raw):
@@ -296,9 +364,15 @@ class RtcmMapper:
             return self._on_1042(msg)
         if number in BDS_MSM:
             return self._on_msm(msg, BDS_MSM[number])
+        if number in self._msm:
+            return self._on_msm(msg, self._msm[number][1], self._msm[number][0])
+        out: list[Event] = []
         if number in EPH_WEEKS:
-            self._on_eph_week(msg, number)
-        return []
+            if not self.week.exact:
+                self._on_eph_week(msg, number)
+            if number in self._eph:
+                out = self._on_other_eph(msg, number)
+        return out
 
     def flush(self) -> list[Event]:
         """Emit the pending BDS epoch, if any."""
@@ -313,13 +387,14 @@ class RtcmMapper:
             name: np.array([getattr(cells[p], name) for p in prns], dtype=float)
             for name in ("pr_m", "frac_pr_m", "cn0_dbhz", "doppler_hz", "lock_s")
         }
+        signals = [cells[p].signal for p in prns]
         self.counters["epochs_rtcm"] += 1
         return [
             MeasurementEpoch.from_columns(
                 week,
                 tow,
                 prns,
-                [B1I_CODE] * len(prns),
+                signals,
                 col["pr_m"],
                 frac_pr_m=col["frac_pr_m"],
                 period_s=_BDS.code_period_s,
@@ -347,6 +422,60 @@ class RtcmMapper:
         self.counters["ephemerides_rtcm"] += 1
         return [eph]
 
+    def _on_other_eph(self, msg: Any, number: int) -> list[Event]:
+        """A GPS 1019 or Galileo I/NAV 1046 as an :class:`Ephemeris` put on BDT (GPST and
+        GST - 14 s, week - 1356, as every set is held; the week from the broadcast one)."""
+        system = EPH_OF_SYSTEM[number]
+        spec = EPH_WEEKS[number]
+        if system is GnssSystem.GPS:
+            number_df, fields, toc_df = "DF009", GPS_1019_FIELDS, "DF081"
+        else:
+            number_df, fields, toc_df = "DF252", GAL_1046_FIELDS, "DF293"
+        n = int(getattr(msg, number_df))
+        if not 1 <= n <= SYSTEM_CONSTANTS[system].prn_max:
+            self.counters["eph_bad_prn"] += 1
+            return []
+        toe = float(getattr(msg, spec.toe_df))
+        if not 0.0 <= toe < WEEK_S:
+            self.counters["eph_bad_toe"] += 1
+            return []
+        week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
+        values: dict[str, Any] = {
+            name: float(getattr(msg, df)) * (ICD_PI if semi else 1.0) for name, df, semi in fields
+        }
+        bdt_week, toe_bdt = gpst_to_bdt(week, toe)
+        toc_bdt = (float(getattr(msg, toc_df)) - BDT_GPST_OFFSET_S) % WEEK_S
+        if system is GnssSystem.GPS:
+            ura_index = int(msg.DF077)
+            extra: dict[str, Any] = {
+                "tgd1_s": float(msg.DF101),
+                "health": int(msg.DF102),
+                "aode": int(msg.DF071),
+                "aodc": int(msg.DF085),
+                "ura_m": URA_M[ura_index] if 0 <= ura_index < len(URA_M) else math.nan,
+            }
+        else:  # E1-B and E5b health and validity, as RINEX packs them (Table A8)
+            health = int(msg.DF317) | int(msg.DF316) << 1 | int(msg.DF288) << 6
+            extra = {
+                "tgd1_s": float(msg.DF313),
+                "tgd2_s": float(msg.DF312),
+                "health": health | int(msg.DF287) << 7,
+                "aode": int(msg.DF290),
+                "ura_m": galileo_sisa_m(int(msg.DF286)),
+            }
+        self.counters[f"ephemerides_rtcm_{system.value}"] += 1
+        return [
+            Ephemeris(
+                prn=sat_id(system, n),
+                week=bdt_week,
+                toe_sow_s=toe_bdt,
+                toc_sow_s=toc_bdt,
+                source="rtcm",
+                **values,
+                **extra,
+            )
+        ]
+
     def _on_eph_week(self, msg: Any, number: int) -> None:
         spec = EPH_WEEKS[number]
         toe = float(getattr(msg, spec.toe_df))
@@ -358,13 +487,14 @@ class RtcmMapper:
         self.counters[f"eph_week_{number}"] += 1
 
     # --- MSM ------------------------------------------------------------------------------
-    def _on_msm(self, msg: Any, level: int) -> list[Event]:
-        self.counters["msm_bds"] += 1
-        bdt_ms = int(msg.DF427)
-        if not 0 <= bdt_ms < WEEK_S * 1000:
+    def _on_msm(self, msg: Any, level: int, system: GnssSystem = MSM_SYSTEM) -> list[Event]:
+        bds = system is MSM_SYSTEM
+        self.counters["msm_bds" if bds else f"msm_{system.value}"] += 1
+        ms = int(msg.DF427 if bds else getattr(msg, OTHER_MSM_TIME_DF[system]))
+        if not 0 <= ms < WEEK_S * 1000:
             self.counters["msm_bad_time"] += 1
             return []
-        tow = (bdt_ms * 1e-3 + BDT_GPST_OFFSET_S) % WEEK_S
+        tow = (ms * 1e-3 + (BDT_GPST_OFFSET_S if bds else 0.0)) % WEEK_S
         week = self.week.resolve(tow)
         if week is None:
             self.counters["msm_no_week"] += 1
@@ -373,15 +503,21 @@ class RtcmMapper:
         if self._time is not None and not _same_time(week, tow, *self._time):
             out = self.flush()
         self._time = (week, tow)  # a week that became known within the epoch is kept
-        self._merge(msg, level)
+        self._merge(msg, level, system)
         if not int(msg.DF393):
             out += self.flush()
         return out
 
-    def _merge(self, msg: Any, level: int) -> None:
+    def _merge(self, msg: Any, level: int, system: GnssSystem = MSM_SYSTEM) -> None:
         lay = MSM_LAYOUT[level]
+        bds = system is MSM_SYSTEM
+        signals = OTHER_MSM_SIGNALS.get(system, {})
+        wavelength_m = C_M_S / SYSTEM_CONSTANTS[system].carrier_hz
         for k, (si, sat, sig_id) in enumerate(msm_cells(msg), start=1):
-            if BDS_MSM_SIGNALS.get(sig_id) != B1I_CODE:
+            code = B1I_CODE if bds and BDS_MSM_SIGNALS.get(sig_id) == B1I_CODE else None
+            if not bds:
+                code = signals.get(sig_id)
+            if code is None:
                 self.counters["msm_cells_other_signal"] += 1
                 continue
             s = si + 1
@@ -404,7 +540,7 @@ class RtcmMapper:
                 rough = float(getattr(msg, f"DF399_{s:02d}"))
                 fine = float(getattr(msg, f"DF404_{k:02d}"))
                 if rough != ROUGH_RATE_INVALID_M_S and abs(fine - FINE_RATE_INVALID_M_S) > 1e-9:
-                    doppler = -(rough + fine) / B1I_WAVELENGTH_M
+                    doppler = -(rough + fine) / wavelength_m
             cell = _Cell(
                 level=level,
                 pr_m=pr,
@@ -412,11 +548,12 @@ class RtcmMapper:
                 cn0_dbhz=cnr if cnr > 0 else math.nan,
                 doppler_hz=doppler,
                 lock_s=msm_lock_time_s(level, int(getattr(msg, f"{lay.lock}_{k:02d}"))),
+                signal=code,
             )
-            prn = sat_id(MSM_SYSTEM, sat)
+            prn = sat_id(system, sat)
             old = self._cells.get(prn)
             if old is None:
-                self.counters["msm_cells_b1i"] += 1
+                self.counters["msm_cells_b1i" if bds else f"msm_cells_{system.value}"] += 1
             else:
                 self.counters["msm_duplicate_cells"] += 1
                 if old.level >= level:

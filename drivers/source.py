@@ -43,6 +43,7 @@ from drivers.transport import (
 from service.core.counters import Counters
 from service.core.errors import ConfigError, DecodeError, InputError
 from service.core.ratelog import RateLimitedLog
+from service.core.systems import DEFAULT_SYSTEMS
 from service.core.timebase import MIN_SANE_GPS_WEEK, gpst_from_utc
 
 if TYPE_CHECKING:
@@ -255,11 +256,14 @@ class FileSource(EventSource):
         *,
         prefix: Iterable[Event] = (),
         lenient: bool = True,
+        systems: Iterable[str] = DEFAULT_SYSTEMS,
     ) -> None:
         self.name = str(path)
         self.format = fmt
         self.counters = Counters()
-        self._events: Iterable[Event] = fmt.reader(Path(path), self.counters, lenient)
+        self._events: Iterable[Event] = fmt.reader(
+            Path(path), self.counters, lenient, frozenset(systems)
+        )
         self._prefix = list(prefix)
 
     def __iter__(self) -> Iterator[Event]:
@@ -322,10 +326,13 @@ def check_capture(path: str | Path, scan_bytes: int = CAPTURE_SCAN_BYTES) -> Non
         raise InputError(f"{path}: no frame found in its first {len(head)} bytes; {expected}")
 
 
-def file_epochs(path: str | Path, *, lenient: bool = False) -> tuple[Iterator[Event], Counters]:
+def file_epochs(
+    path: str | Path, *, lenient: bool = False, systems: Iterable[str] = DEFAULT_SYSTEMS
+) -> tuple[Iterator[Event], Counters]:
     """The events of a file of a registered file format (``bdsfix solve`` and ``ttff``: RINEX
     3 obs, GnssLogger logs, ...) and the counters its reader keeps; ``NAME:PATH`` names the
-    format. InputError (exit 3) for a file of none of them."""
+    format; ``systems``: the satellite systems (RINEX letters) to read where the format
+    chooses. InputError (exit 3) for a file of none of them."""
     fmt, name = _file_spec(str(path))
     if not os.path.isfile(name):
         raise InputError(f"{name}: no such file")
@@ -334,7 +341,7 @@ def file_epochs(path: str | Path, *, lenient: bool = False) -> tuple[Iterator[Ev
         formats = ", ".join(f.describe for f in _registry.FILE_FORMATS)
         raise InputError(f"{name}: not a file bdsfix solves; expected {formats}")
     counters = Counters()
-    return iter(fmt.reader(Path(name), counters, lenient)), counters
+    return iter(fmt.reader(Path(name), counters, lenient, frozenset(systems))), counters
 
 
 def is_rinex(path: str | Path) -> bool:
@@ -348,7 +355,9 @@ def is_rinex(path: str | Path) -> bool:
 
 
 def _nav_events(
-    nav: str | Path | NavData | Iterable[str | Path | NavData] | None, counters: Counters
+    nav: str | Path | NavData | Iterable[str | Path | NavData] | None,
+    counters: Counters,
+    systems: Iterable[str] = DEFAULT_SYSTEMS,
 ) -> list[Event]:
     if nav is None:
         return []
@@ -357,7 +366,7 @@ def _nav_events(
     items = [nav] if isinstance(nav, str | Path) or not isinstance(nav, Iterable) else list(nav)
     events: list[Event] = []
     for item in items:
-        data = read_nav(item) if isinstance(item, str | Path) else item
+        data = read_nav(item, systems) if isinstance(item, str | Path) else item
         for ephs in data.ephemerides.values():
             events.extend(ephs)
             counters["nav_ephemerides"] += len(ephs)
@@ -409,13 +418,17 @@ def open_source(
     mapper_options: Mapping[str, Mapping[str, Any]] | None = None,
     idle_flush_s: float = 0.5,
     reconnect_max_s: float = 2.0,
+    systems: Iterable[str] = DEFAULT_SYSTEMS,
 ) -> EventSource:
     """Open ``spec`` and return an iterable of events with ``.counters``.
 
     ``nav`` (RINEX nav file or files, as paths or as already read) puts its ephemerides and
     ionosphere parameters at the head of the stream, as held ephemerides. Pace a replay
     with :func:`pace`.
-    ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`.
+    ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`. ``systems`` (RINEX
+    letters) are the systems read from RINEX observation and nav files, RTCM MSM and
+    ephemerides and UBX RXM-RAWX (BeiDou alone by default; UBX MEASX and SFRBX, SBF:
+    BeiDou only so far).
 
     The GPS week for RTCM MSM times of week comes from the stream (UBX RAWX / NAV-TIMEGPS /
     NAV-PVT, the ephemerides RTCM 1019/1042/1044/1045/1046), with ``gps_week`` or, for live
@@ -425,7 +438,7 @@ def open_source(
     pipeline (``no_time``).
     """
     counters = Counters()
-    prefix = _nav_events(nav, counters)
+    prefix = _nav_events(nav, counters, systems)
     transport: Transport
     if spec.startswith("tcp:"):
         host, _, port = spec[4:].rpartition(":")
@@ -443,14 +456,18 @@ def open_source(
             raise ConfigError(f"source {spec!r}: no such file")
         fmt = fmt or file_format(path)
         if fmt is not None:
-            src = FileSource(path, fmt, prefix=prefix)
+            src = FileSource(path, fmt, prefix=prefix, systems=systems)
             src.counters.update(counters)
             return src
         transport = FileTransport(path)
+    options = {k: dict(v) for k, v in (mapper_options or {}).items()}
+    if frozenset(systems) != frozenset(DEFAULT_SYSTEMS):  # RTCM MSM and ephemerides of these
+        options.setdefault("rtcm", {})["systems"] = frozenset(systems)
+        options.setdefault("ubx", {})["systems"] = frozenset(systems)
     decoder = StreamDecoder(
         gps_week=gps_week,
         max_payload=max_payload,
-        mapper_options=mapper_options,
+        mapper_options=options,
         counters=counters,
     )
     if gps_week is None and not isinstance(transport, FileTransport):

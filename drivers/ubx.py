@@ -72,6 +72,12 @@ B1I_RANGE_M = C_M_S * B1I_PERIOD_S
 
 # u-blox signal identifiers (gnssId 3) -> RINEX 3 observation code; only B1I is used.
 BDS_SIGNALS: dict[int, str] = {0: "2I", 1: "2I"}  # B1I D1, B1I D2
+OTHER_SIGNALS: dict[GnssSystem, dict[int, str]] = {
+    GnssSystem.GPS: {0: "1C"},  # gnssId 0 sigId 0: L1 C/A
+    GnssSystem.GAL: {0: "1C", 1: "1B"},  # gnssId 2 sigId 0: E1 C, 1: E1 B
+}
+"""RXM-RAWX signals of GPS and Galileo read when the mapper's ``systems`` include them
+(u-blox F9 interface description, "Signal identifiers"; issue 19)."""
 
 # --- frame (Interface Description, "UBX frame structure" and "UBX checksum") ---------------
 SYNC = b"\xb5\x62"
@@ -130,6 +136,7 @@ class _Sat:
     cn0_dbhz: float = math.nan
     doppler_hz: float = math.nan
     lock_s: float = math.nan
+    signal: str = "2I"
 
 
 @dataclass(slots=True)
@@ -373,12 +380,14 @@ class UbxMapper:
         measx_offset_m: float | None = None,
         pair_tolerance_s: float = 0.02,
         source: str = "ubx",
+        systems: frozenset[str] | str = GnssSystem.BDS.value,
     ) -> None:
         self.counters = counters if counters is not None else Counters()
         self.week = week if week is not None else WeekContext()
         self.measx_offset_m = measx_offset_m
         self.pair_tolerance_s = pair_tolerance_s
         self.source = source
+        self._other = {s: sig for s, sig in OTHER_SIGNALS.items() if s.value in frozenset(systems)}
         self._expected: frozenset[str] = frozenset({RAWX})
         self._pending: _Pending | None = None
         self._last_emitted: tuple[int, float] | None = None
@@ -463,14 +472,22 @@ class UbxMapper:
             return out
         for gnss_id, sv_id, sig_id, pr_m, do_hz, lock_ms, cno, pr_valid in rows:
             system = UBX_GNSS.get(gnss_id)
-            if system is not GnssSystem.BDS:
+            if system is GnssSystem.BDS:
+                sig = BDS_SIGNALS.get(int(sig_id))
+                if sig is None:
+                    self.counters["rawx_bds_other_signal"] += 1
+                    continue
+            elif system in self._other:
+                sig = self._other[system].get(int(sig_id))
+                if sig is None or not 1 <= int(sv_id) <= SYSTEM_CONSTANTS[system].prn_max:
+                    self.counters[f"rawx_{system.value}_other_signal"] += 1
+                    continue
+                self.counters[f"rawx_{system.value}"] += 1
+            else:
                 self.counters["rawx_meas_other_gnss"] += 1
                 continue
-            sig = BDS_SIGNALS.get(int(sig_id))
-            if sig is None:
-                self.counters["rawx_bds_other_signal"] += 1
-                continue
             sat = self._sat(pending, sat_id(system, int(sv_id)))
+            sat.signal = sig
             pr_m = float(pr_m)
             if not pr_valid:
                 self.counters["rawx_pr_invalid"] += 1
@@ -622,7 +639,7 @@ class UbxMapper:
             p.week,
             p.tow_s,
             [s.prn for s, _f in kept],
-            ["2I"] * len(kept),
+            [s.signal for s, _f in kept],
             [s.pr_m for s, _f in kept],
             frac_pr_m=[f for _s, f in kept],
             period_s=B1I_PERIOD_S,

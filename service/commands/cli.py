@@ -17,6 +17,7 @@ from service.core.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_U
 from service.core.receiver_setup import ReceiverSetup
 from service.core.settings import add_flags
 from service.core.sow_rule import FullRuleConfig
+from service.core.systems import SystemsConfig
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
@@ -149,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--out", default="-", help="output file, - for stdout")
     add_flags(s, SolverConfig, "solver")
+    add_flags(s, SystemsConfig, "systems")
 
     c = command(
         "coverage",
@@ -247,6 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(r, FullRuleConfig, "restart (--restart-at and the built-in scenario)")
     add_flags(r, SolverConfig, "solver")
+    add_flags(r, SystemsConfig, "systems (RINEX observation and nav files)")
 
     d = command(
         "run",

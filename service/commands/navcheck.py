@@ -10,11 +10,12 @@ and the command would still look successful.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from service.core.errors import InputError
+from service.core.systems import DEFAULT_SYSTEMS
 from service.core.timebase import bdt_to_gpst, datetime_from_gpst, diff_s
 from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 
@@ -60,11 +61,14 @@ def check_navigation(
     )
 
 
-def read_navigation(paths: Sequence[str | Path]) -> list[NavData]:
-    """The nav files read (:func:`drivers.rinex.read_nav`; a malformed one raises)."""
+def read_navigation(
+    paths: Sequence[str | Path], systems: Iterable[str] = DEFAULT_SYSTEMS
+) -> list[NavData]:
+    """The nav files read, with the ephemerides of ``systems`` (RINEX letters)
+    (:func:`drivers.rinex.read_nav`; a malformed one raises)."""
     from drivers.rinex import read_nav
 
-    return [read_nav(p) for p in paths]
+    return [read_nav(p, systems) for p in paths]
 
 
 def first_epoch_time(path: str | Path, gps_week: int | None = None) -> tuple[int, float] | None:

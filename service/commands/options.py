@@ -13,6 +13,7 @@ from service.core.errors import ConfigError, InputError
 from service.core.files import PLOT_HINT
 from service.core.settings import build, given
 from service.core.sow_rule import FullRuleConfig
+from service.core.systems import SystemsConfig, parse_systems
 from service.engine.solver import SolverConfig
 
 
@@ -20,6 +21,12 @@ def solver_config(args: argparse.Namespace, **overrides: Any) -> SolverConfig:
     """The :class:`service.engine.solver.SolverConfig` of a command's solver flags (the one
     builder every command uses); ``overrides`` are settings the command fixes itself."""
     return build(SolverConfig, given(args, SolverConfig) | overrides, {})
+
+
+def systems_of(args: argparse.Namespace) -> frozenset[str]:
+    """``--systems`` (:class:`service.core.systems.SystemsConfig`): the RINEX letters of the
+    systems to position with; BeiDou alone unless given."""
+    return parse_systems(build(SystemsConfig, given(args, SystemsConfig), {}).systems)
 
 
 def full_rule(args: argparse.Namespace) -> str:

@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from service.commands.options import full_rule, solver_config
+from service.commands.options import full_rule, solver_config, systems_of
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
+from service.core.systems import DEFAULT_SYSTEMS, parse_systems
 from service.daemon.config import (
     DEFAULT_CONFIG,
     STORE_NAME,
@@ -99,7 +100,12 @@ def _check_source(spec: str) -> None:
             raise InputError(f"source {spec!r}: cannot read: {exc.strerror}") from exc
 
 
-def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> list[NavData]:
+def _check_nav(
+    spec: str,
+    nav: list[str],
+    gps_week: int | None = None,
+    systems: frozenset[str] = frozenset(DEFAULT_SYSTEMS),
+) -> list[NavData]:
     """RINEX nav files without a BDS ephemeris, or (for a capture file source) of another
     day than its first epoch, refuse the start: one line, exit 3
     (:func:`service.commands.navcheck.check_navigation`, the rule ``solve`` follows). The
@@ -109,7 +115,7 @@ def _check_nav(spec: str, nav: list[str], gps_week: int | None = None) -> list[N
     if not nav:
         _check_needs_nav(spec, gps_week)
         return []
-    navs = read_navigation(nav)
+    navs = read_navigation(nav, systems)
     first = None
     if _is_regular_file(spec):
         first = first_epoch_time(spec.removeprefix("file:"), gps_week)
@@ -255,7 +261,8 @@ def main_run(args: argparse.Namespace) -> int:
     specs = output_specs(cfg)
     # What can refuse to start (source, nav files, outputs) does so first, with one line.
     _check_source(cfg.source)
-    navs = _check_nav(cfg.source, nav_files(cfg))
+    systems = parse_systems(cfg.systems)
+    navs = _check_nav(cfg.source, nav_files(cfg), systems=systems)
     _check_state_dir(cfg.resolved_state_dir())
     lock_state_dir(cfg.resolved_state_dir())  # a second daemon on it: exit 3, one line
     if cfg.configure:  # before the source opens: the set-up has the port to itself
@@ -263,7 +270,11 @@ def main_run(args: argparse.Namespace) -> int:
 
         log.info("receiver set-up: %s", setup_receiver(cfg.source, cfg.baud, cfg.setup))
     source = open_source(
-        cfg.source, nav=navs or None, baud=cfg.baud, reconnect_max_s=RECONNECT_MAX_S
+        cfg.source,
+        nav=navs or None,
+        baud=cfg.baud,
+        reconnect_max_s=RECONNECT_MAX_S,
+        systems=systems,
     )
     nav_sources = _open_ntrip(cfg)
     transport = getattr(source, "transport", None)
@@ -383,8 +394,9 @@ def main_replay(args: argparse.Namespace) -> int:
         store = EphemerisStore()
         iono = IonoSet()
         _check_source(args.files[0])
-        navs = _check_nav(args.files[0], args.nav or [], args.gps_week)
-        src = open_source(args.files[0], nav=navs or None, gps_week=args.gps_week)
+        systems = systems_of(args)
+        navs = _check_nav(args.files[0], args.nav or [], args.gps_week, systems)
+        src = open_source(args.files[0], nav=navs or None, gps_week=args.gps_week, systems=systems)
         events = src
         counters = src.counters
         speed = None if args.max_speed else (args.speed or 1.0)

@@ -13,7 +13,7 @@ import contextlib
 import itertools
 import logging
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import IO, Literal
 
@@ -21,6 +21,7 @@ from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
 from service.core.files import open_output
+from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.batch import CHUNK_EPOCHS, solve_many
 from service.engine.pipeline import without_coarse_fractions
@@ -44,14 +45,17 @@ class BatchOptions:
 
 
 def load_navigation(
-    paths: list[str], max_age_s: float = 7200.0, first: tuple[int, float] | None = None
+    paths: list[str],
+    max_age_s: float = 7200.0,
+    first: tuple[int, float] | None = None,
+    systems: Iterable[str] = DEFAULT_SYSTEMS,
 ) -> tuple[EphemerisStore, IonoSet]:
     """Ephemeris store and broadcast ionosphere from one or more RINEX 3 nav files, refused
     (exit 3) without a BDS ephemeris or, given the observations' ``first`` epoch (GPST
     week, tow), when they are of another day (:mod:`service.commands.navcheck`)."""
     from service.commands.navcheck import check_navigation, read_navigation
 
-    navs = read_navigation(paths)
+    navs = read_navigation(paths, systems)
     check_navigation(paths, navs, first)
     store = EphemerisStore(max_age_s=max_age_s)
     params = []
@@ -114,7 +118,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.source import file_epochs
-    from service.commands.options import solver_config
+    from service.commands.options import solver_config, systems_of
     from service.commands.summary import decline_lines, no_epochs_hint, skipped_line
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
@@ -129,14 +133,15 @@ def main_solve(args: argparse.Namespace) -> int:
         cfg=cfg,
         with_sky=args.format == "nmea",
     )
-    events, read_counters = file_epochs(args.obs)
+    systems = systems_of(args)
+    events, read_counters = file_epochs(args.obs, systems=systems)
     epochs = (e for e in events if isinstance(e, MeasurementEpoch))
     head, _ = file_epochs(args.obs, lenient=True)  # the first epoch only
     with contextlib.closing(head):  # type: ignore[type-var]
         first = next(
             ((e.gpst_week, e.gpst_tow_s) for e in head if isinstance(e, MeasurementEpoch)), None
         )
-    store, iono = load_navigation(list(args.nav), first=first)
+    store, iono = load_navigation(list(args.nav), first=first, systems=systems)
     counts, excluded = Counters(), Counters()
     declined = {"fast": Counters(), "spp": Counters()}
     n_epochs = 0

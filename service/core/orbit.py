@@ -6,9 +6,15 @@ ICD 5.1.1: the node Omega_k = Omega0 + (Omega_dot - Omega_e) t_k - Omega_e t_oe.
 takes GM, Omega_e and F of its satellite's system (:data:`service.core.systems.SYSTEM_CONSTANTS`
 by the satellite ID). BeiDou GEOs only (C01-C05 and C59-C63, :func:`service.core.bds.is_geo`)
 use Omega_k = Omega0 + Omega_dot t_k - Omega_e t_oe, then the position is rotated by
-R_z(Omega_e t_k) R_x(-5 deg). The clock follows BDS ICD 5.2.4.10 (IS-GPS-200 20.3.3.3.3.1):
-polynomial plus relativistic term F e sqrt(A) sin E_k, less the group delay of the signal in
-use (B1I: T_GD1, ICD 5.2.4.11).
+R_z(Omega_e t_k) R_x(-5 deg). Every set is held on BDT (:class:`service.core.types.Ephemeris`):
+t_k and the clock's t - t_oc are differences, the same on any scale, while the term Omega_e t_oe
+takes t_oe on the satellite's own scale (GPST for GPS, IS-GPS-200 20.3.3.4.3; GST for
+Galileo, OS SIS ICD 5.1.1), that is the BDT t_oe plus
+:attr:`service.core.systems.SystemConstants.ahead_of_bdt_s`, within its week. The clock
+follows BDS ICD 5.2.4.10 (IS-GPS-200 20.3.3.3.3.1; Galileo OS SIS ICD 5.1.4): polynomial
+plus relativistic term F e sqrt(A) sin E_k, less the group delay of the signal in use
+(B1I: T_GD1, ICD 5.2.4.11; GPS L1 C/A: T_GD, IS-GPS-200 20.3.3.3.3.2; Galileo E1 with the
+I/NAV clock: BGD(E1,E5b), OS SIS ICD 5.1.5).
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import numpy as np
 
 from service.core.bds import GEO_TILT_RAD, is_geo
 from service.core.constants import WEEK_S
-from service.core.systems import constants_of
+from service.core.systems import GnssSystem, constants_of, system_of
 from service.core.types import Ephemeris
 
 _HALF_WEEK_S = WEEK_S / 2
@@ -55,14 +61,17 @@ _ARRAY_FIELDS = (
 class EphemerisArrays:
     """Ephemerides of n satellites as numpy columns (one row per satellite, same order), with
     the constants of each satellite's system (``gm_m3_s2`` ... ``carrier_hz``, from
-    :func:`service.core.systems.constants_of`) and whether it is a BeiDou GEO (``geo``)."""
+    :func:`service.core.systems.constants_of`), whether it is a BeiDou satellite (``bds``)
+    and a BeiDou GEO (``geo``)."""
 
     prn: tuple[str, ...]
     geo: np.ndarray
+    bds: np.ndarray
     gm_m3_s2: np.ndarray
     omega_e_rad_s: np.ndarray
     f_rel_s_per_sqrt_m: np.ndarray
     carrier_hz: np.ndarray
+    ahead_of_bdt_s: np.ndarray
     week: np.ndarray
     toe_sow_s: np.ndarray
     toc_sow_s: np.ndarray
@@ -95,10 +104,12 @@ class EphemerisArrays:
         return cls(
             prn=tuple(e.prn for e in ephs),
             geo=np.array([is_geo(e.prn) for e in ephs], dtype=bool),
+            bds=np.array([system_of(e.prn) is GnssSystem.BDS for e in ephs], dtype=bool),
             gm_m3_s2=np.array([k.gm_m3_s2 for k in systems], dtype=float),
             omega_e_rad_s=np.array([k.omega_e_rad_s for k in systems], dtype=float),
             f_rel_s_per_sqrt_m=np.array([k.f_rel_s_per_sqrt_m for k in systems], dtype=float),
             carrier_hz=np.array([k.carrier_hz for k in systems], dtype=float),
+            ahead_of_bdt_s=np.array([k.ahead_of_bdt_s for k in systems], dtype=float),
             **cols,
         )
 
@@ -139,9 +150,17 @@ class _OrbitConstants:
     n_rad_s: np.ndarray  # sqrt(GM / A^3) + delta_n
     sqrt_1_e2: np.ndarray  # sqrt(1 - e^2)
     omega_dot_rel_rad_s: np.ndarray  # Omega_dot - Omega_e (IGSO/MEO node rate)
-    omega_e_toe_rad: np.ndarray  # Omega_e t_oe
+    omega_e_toe_rad: np.ndarray  # Omega_e t_oe, t_oe on the satellite's own time scale
     f_e_sqrt_a: np.ndarray  # F e sqrt(A), the relativistic clock term over sin E
     any_geo: bool
+
+
+def _own_toe_s(eph: EphemerisArrays) -> np.ndarray:
+    """t_oe on each satellite's own time scale [s of its week]: BDT t_oe as it is for
+    BeiDou, plus ``ahead_of_bdt_s`` within the week for the others (a GPS t_oe of 0 is held
+    as BDT week - 1, 604786 s)."""
+    own = np.mod(eph.toe_sow_s + eph.ahead_of_bdt_s, WEEK_S)
+    return np.where(eph.ahead_of_bdt_s != 0.0, own, eph.toe_sow_s)
 
 
 _CONSTANTS: dict[int, tuple[EphemerisArrays, _OrbitConstants]] = {}
@@ -160,7 +179,7 @@ def _constants(eph: EphemerisArrays) -> _OrbitConstants:
         n_rad_s=np.sqrt(eph.gm_m3_s2 / a**3) + eph.delta_n_rad_s,
         sqrt_1_e2=np.sqrt(1.0 - eph.e**2),
         omega_dot_rel_rad_s=eph.omega_dot_rad_s - eph.omega_e_rad_s,
-        omega_e_toe_rad=eph.omega_e_rad_s * eph.toe_sow_s,
+        omega_e_toe_rad=eph.omega_e_rad_s * _own_toe_s(eph),
         f_e_sqrt_a=eph.f_rel_s_per_sqrt_m * eph.e * eph.sqrt_a_sqrt_m,
         any_geo=bool(eph.geo.any()),
     )

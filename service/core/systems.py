@@ -14,7 +14,8 @@ from enum import StrEnum
 from functools import lru_cache
 
 from service.core.constants import C_M_S
-from service.core.errors import BdsfixError
+from service.core.errors import BdsfixError, ConfigError
+from service.core.settings import setting
 
 
 class GnssSystem(StrEnum):
@@ -49,6 +50,12 @@ class SystemConstants:
     [s/sqrt(m)] (the printed value, not one recomputed from GM)."""
     prn_max: int
     """Highest PRN number of the system's RINEX 3 satellite IDs (``C63``, ``G32``)."""
+    ahead_of_bdt_s: float
+    """How far the system's time scale is ahead of BDT [s]: 14 s for GPST (BDS-SIS-ICD-B1I-3.0
+    4.2) and for GST, which Galileo steers to GPST within tens of ns (OS SIS ICD 5.1.8: the
+    GGTO, left to each system's receiver clock); 0 for BDT. Ephemerides are held on BDT
+    (:class:`service.core.types.Ephemeris`); the orbit's Omega_e t_oe term takes t_oe back
+    on the system's own scale with it."""
 
 
 SYSTEM_CONSTANTS: dict[GnssSystem, SystemConstants] = {
@@ -62,6 +69,7 @@ SYSTEM_CONSTANTS: dict[GnssSystem, SystemConstants] = {
         signal="2I",
         f_rel_s_per_sqrt_m=-4.442807309e-10,
         prn_max=63,
+        ahead_of_bdt_s=0.0,
     ),
     # IS-GPS-200N 20.3.3.4.3 (WGS-84 values), 3.3.2 (C/A 1 ms), L1 1575.42 MHz,
     # 20.3.3.3.3.1 (F); PRNs 1-32
@@ -73,6 +81,7 @@ SYSTEM_CONSTANTS: dict[GnssSystem, SystemConstants] = {
         signal="1C",
         f_rel_s_per_sqrt_m=-4.442807633e-10,
         prn_max=32,
+        ahead_of_bdt_s=14.0,
     ),
     # Galileo OS SIS ICD 2.1, 5.1.1 (GM, Earth rate), 3.4 (E1-B/C primary code 4 ms),
     # 5.1.4 (F); PRNs 1-36
@@ -84,6 +93,7 @@ SYSTEM_CONSTANTS: dict[GnssSystem, SystemConstants] = {
         signal="1C",
         f_rel_s_per_sqrt_m=-4.442807309e-10,
         prn_max=36,
+        ahead_of_bdt_s=14.0,
     ),
     # IS-QZSS-PNT 4.1.2 (GPS values), L1 C/A; RINEX 3 J01-J10 (PRN 193-202)
     GnssSystem.QZS: SystemConstants(
@@ -94,6 +104,7 @@ SYSTEM_CONSTANTS: dict[GnssSystem, SystemConstants] = {
         signal="1C",
         f_rel_s_per_sqrt_m=-4.442807633e-10,
         prn_max=10,
+        ahead_of_bdt_s=14.0,
     ),
 }
 """Constants per system that bdsfix can position with (GLONASS, SBAS and NavIC: none yet)."""
@@ -139,3 +150,37 @@ def wavelength_m(sat: str) -> float:
     """Carrier wavelength [m] of the signal bdsfix uses from ``sat``'s system: what turns a
     Doppler [Hz] into a range rate (-lambda D)."""
     return C_M_S / constants_of(sat).carrier_hz
+
+
+POSITIONING_SYSTEMS = (GnssSystem.BDS, GnssSystem.GPS, GnssSystem.GAL)
+"""The systems whose measurements and ephemerides the readers give (RINEX 3 so far)."""
+DEFAULT_SYSTEMS = "C"
+"""BeiDou alone until the goldens of the captures that carry GPS/Galileo are regenerated
+(issue 19: the default is to become every system the input carries)."""
+
+
+@dataclass(frozen=True, slots=True)
+class SystemsConfig:
+    """The one user setting of the systems positioned with (flag ``--systems``, TOML key
+    ``systems``)."""
+
+    systems: str = setting(
+        DEFAULT_SYSTEMS,
+        "satellite systems to position with, RINEX letters separated by commas: C (BeiDou "
+        "B1I), G (GPS L1 C/A), E (Galileo E1); each gets its own receiver clock",
+        kind="str",
+    )
+
+
+def parse_systems(text: str) -> frozenset[str]:
+    """The RINEX letters of a ``systems`` setting (``"C,G,E"``, ``"CGE"``, ``"c, g"``);
+    ConfigError names what is not one of :data:`POSITIONING_SYSTEMS`."""
+    letters = [x for x in text.upper().replace(",", " ").split() for x in x]
+    known = {s.value for s in POSITIONING_SYSTEMS}
+    bad = sorted(set(letters) - known)
+    if bad or not letters:
+        raise ConfigError(
+            f"systems {text!r}: expected letters among {', '.join(sorted(known))} "
+            "(C BeiDou, G GPS, E Galileo)"
+        )
+    return frozenset(letters)

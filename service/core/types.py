@@ -140,10 +140,14 @@ class Ephemeris:
     system).
 
     ``toe_sow_s``/``toc_sow_s`` are BDT seconds of week in BDT ``week``: the store and the
-    solver select and evaluate every set on BDT, so a set of another system must be put on
-    BDT before it enters (not done yet: only BeiDou sets are read). Angles in radians,
-    rates in rad/s. ``health`` is SatH1 (0 = healthy). ``tgd1_s`` is the group delay of the
-    signal in use (B1I: T_GD1).
+    solver select and evaluate every set on BDT, so a set of another system is put on BDT
+    (GPST and GST - 14 s, week - 1356) by its reader; the orbit takes t_oe back on the
+    system's own scale for its Omega_e t_oe term (:mod:`service.core.orbit`). Angles in
+    radians, rates in rad/s. ``health`` is SatH1 (0 = healthy; GPS SV health, Galileo SV
+    health bits). ``tgd1_s`` is the group delay of the signal in use (B1I: T_GD1; GPS L1
+    C/A: T_GD; Galileo E1: BGD(E1,E5b) of an I/NAV set, BGD(E1,E5a) of an F/NAV one).
+    ``aode``/``aodc``: BDS AODE/AODC, GPS IODE/IODC, Galileo IODnav. ``ura_m``: URA, or
+    Galileo's SISA.
     """
 
     prn: str

@@ -42,6 +42,7 @@ from service.core.settings import (
     settings_of,
     unknown_key_message,
 )
+from service.core.systems import DEFAULT_SYSTEMS, parse_systems
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
 from service.output.sinks.base import HTTP_MAX_CLIENTS, NMEA_TCP_MAX_CLIENTS
@@ -159,6 +160,13 @@ class DaemonConfig:
         "sources; the configure_* keys; RAM only, nothing saved); a NAK or no answer stops "
         "the start",
         kind="bool",
+    )
+    systems: str = setting(
+        DEFAULT_SYSTEMS,
+        "satellite systems to position with, RINEX letters separated by commas: C (BeiDou "
+        "B1I), G (GPS L1 C/A), E (Galileo E1), read from RINEX observation and nav files "
+        "(the binary drivers give BeiDou rows only so far)",
+        kind="str",
     )
     solver: SolverConfig = field(default_factory=SolverConfig)
     setup: ReceiverSetup = field(default_factory=ReceiverSetup)
@@ -279,6 +287,7 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
     setup_values = {k: v for k, v in values.items() if k in setup_keys}
     setup = build(ReceiverSetup, setup_values, origin, DAEMON_PREFIX)
     ntrip_sources(daemon)  # a malformed NTRIP URL is a configuration error (one line, exit 2)
+    parse_systems(daemon.systems)  # so is an unknown system letter
     return _with_parts(daemon, solver, setup)
 
 

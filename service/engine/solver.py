@@ -340,6 +340,17 @@ class IonoSet:
         """BDS if known, else GPS (scaled to B1I by the model)."""
         return self.bds if self.bds is not None else self.gps
 
+    def models(self, choice: IonoChoice) -> IonoModels | None:
+        """The coefficients for BeiDou rows (:meth:`model`) and for GPS and Galileo rows:
+        GPSA/GPSB (as RTKLIB corrects Galileo single-frequency rows; NeQuick-G is not
+        implemented), else under ``auto`` the BDS set; None when ``off``. Both are None or
+        neither is."""
+        if choice in ("off", "bds", "gps"):
+            model = self.model(choice)
+            return None if model is None else IonoModels(model, model)
+        bds, other = self.preferred, self.gps or self.bds
+        return None if bds is None or other is None else IonoModels(bds, other)
+
     def model(self, choice: IonoChoice) -> KlobucharParams | None:
         """The coefficients for the ``iono`` setting: off, bds only, gps only, or auto
         (BDS, else the GPS fallback)."""
@@ -350,6 +361,15 @@ class IonoSet:
         if choice == "gps":
             return self.gps
         return self.preferred
+
+
+@dataclass(frozen=True, slots=True)
+class IonoModels:
+    """The Klobuchar coefficients one epoch's rows are corrected with: ``bds`` for BeiDou
+    rows, ``other`` for GPS and Galileo rows (:meth:`IonoSet.models`)."""
+
+    bds: KlobucharParams
+    other: KlobucharParams
 
 
 def _norm(v: np.ndarray) -> float:
@@ -569,7 +589,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
                 state.iterations,
             )
         )
-    model = ctx.iono.model(cfg.iono) if meaningful else None
+    model = ctx.iono.models(cfg.iono) if meaningful else None
     geo = state.geo if kept is rows else state.geo.take(keep)
     state = _fixed_iterations(
         kept,
@@ -587,7 +607,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     geo = state.geo
     loc = _local(x, geo.sat_ecef_m)
     iono_m, tropo_m = (
-        _delays(loc, ctx.bdt_sow_s, model, cfg, kept.eph.carrier_hz) if meaningful else (None, None)
+        _delays(loc, ctx.bdt_sow_s, model, cfg, kept.eph) if meaningful else (None, None)
     )
     corr = total_delay(iono_m, tropo_m)
     v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - kept.clocks(b) - corr
@@ -816,15 +836,21 @@ def _sigma_m(
 def _delays(
     loc: _Local,
     bdt_sow: float,
-    model: KlobucharParams | None,
+    models: IonoModels | None,
     cfg: SolverConfig,
-    carrier_hz: np.ndarray,
+    eph: EphemerisArrays,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Ionospheric (on each row's ``carrier_hz``) and tropospheric delays [m] for the rows at
-    this iterate (None: not applied)."""
-    return delays(
-        loc.lat_rad, loc.lon_rad, loc.alt_m, loc.el_rad, loc.az_rad, bdt_sow, carrier_hz, model, cfg
-    )
+    """Ionospheric (on each row's carrier, BeiDou rows with ``models.bds``, the others with
+    ``models.other``) and tropospheric delays [m] for the rows at this iterate (None: not
+    applied)."""
+    model = None if models is None else models.bds
+    args = (loc.lat_rad, loc.lon_rad, loc.alt_m, loc.el_rad, loc.az_rad, bdt_sow, eph.carrier_hz)
+    iono, tropo = delays(*args, model, cfg)
+    if iono is not None and models is not None and models.other is not model and not eph.bds.all():
+        other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
+        if other is not None:
+            iono = np.where(eph.bds, iono, other)
+    return iono, tropo
 
 
 def delays(
@@ -877,7 +903,7 @@ def _fixed_iterations(
     rows: _Rows,
     ctx: _Context,
     state: _State,
-    model: KlobucharParams | None,
+    model: IonoModels | None,
     meaningful: bool,
     loc0: _Local | None = None,
 ) -> _State:
@@ -893,7 +919,7 @@ def _fixed_iterations(
         w = None
         if meaningful:
             loc = loc0 if loc0 is not None and it == 1 else _local(x, geo.sat_ecef_m)
-            iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg, rows.eph.carrier_hz)
+            iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg, rows.eph)
             dz = dz - total_delay(iono_m, tropo_m)
             if cfg.weighted:
                 w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
@@ -941,11 +967,20 @@ def select_rows(
 ) -> tuple[_Rows | None, list[str]]:
     """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
 
-    Returns the rows and the PRNs dropped for want of a usable ephemeris.
+    When some system has a full row, the fast fix takes the fractional rows of a system only
+    when that system has a full row too:
+    phase 1 resolves integers against clocks estimated from full rows, and a system whose
+    rows are all fractional has none yet (its clock modulo its code period is not solved:
+    issue 19, not done). Returns the rows and the PRNs dropped for want of a usable
+    ephemeris.
     """
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     full = np.isfinite(epoch.pr_m)
     fracok = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
+    if solver == "fast" and fracok.any():
+        with_full = {epoch.prn[i][:1] for i in np.flatnonzero(full)}
+        if with_full and any(p[:1] not in with_full for p in epoch.prn):
+            fracok &= np.array([p[:1] in with_full for p in epoch.prn], dtype=bool)
     use = full | fracok if solver == "fast" else full
     idx: list[int] = []
     ephs: list[Ephemeris] = []

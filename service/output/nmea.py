@@ -33,6 +33,11 @@ receiver's position noise. With RMC and VTG first every report carries our speed
 - NMEA 4.11 fields: GSA ends with the GNSS system ID, 4 = BeiDou; GSV ends with the signal
   ID, 1 = B1I (D1 and D2 alike, as u-blox NMEA 4.11 output and gpsd's tables have it).
   Satellite IDs are BDS PRNs 1-63.
+- Several systems (issue 19, :data:`OTHER_SYSTEMS`): one GSA per system with used
+  satellites, then one GSV group per system in view, each under its system's talker (GP
+  GPS, system ID 1, signal 1 L1 C/A; GA Galileo, system ID 3, signal 7 E1; BeiDou's as
+  above), GPS first (:data:`_NMEA_ORDER`); IDs are each system's PRNs. A BeiDou-only fix
+  gives exactly the sentences it always did.
 - Precision: latitude/longitude carry 7 decimals of minutes (pynmeagps ``hpnmeamode``:
   1e-7 min = 0.19 mm); times carry hundredths of a second (hhmmss.ss), so 10 Hz output
   keeps distinct stamps; the altitude carries millimetres.
@@ -81,6 +86,15 @@ from service.core.types import UNKNOWN_WEEK, Fix, SatView
 TALKERS = ("GN", "GB", "BD", "GP")
 BDS_SYSTEM_ID = "4"
 B1I_SIGNAL_ID = "1"
+OTHER_SYSTEMS: dict[str, tuple[str, str, str]] = {
+    "G": ("GP", "1", "1"),  # GPS: talker GP, system ID 1, signal ID 1 (L1 C/A)
+    "E": ("GA", "3", "7"),  # Galileo: talker GA, system ID 3, signal ID 7 (E1-C/E1-B)
+}
+"""NMEA 4.11 talker, GNSS system ID (GSA) and signal ID (GSV) of the other systems' rows."""
+_NMEA_ORDER = ("G", "C", "E")
+"""Order of the systems' GSA and GSV groups: GPS first, since gpsd (3.22 and later) starts a
+new sky at a GPGSV group of the L1 C/A signal and adds the other talkers' groups after it
+(``processGSV`` in driver_nmea0183.c)."""
 NMEA_MAX_LEN = 82
 GSA_MAX_SV = 12
 GSV_SATS_PER_SENTENCE = 4
@@ -332,8 +346,11 @@ def _prn_of(sat: SatView) -> int:
     return prn_number(sat.prn)
 
 
-def gsv_sentences(sky: Sequence[SatView], talker: str = "GB") -> list[bytes]:
-    """GSV sentences (4 satellites each, sorted by PRN) with the B1I signal ID."""
+def gsv_sentences(
+    sky: Sequence[SatView], talker: str = "GB", signal_id: str = B1I_SIGNAL_ID
+) -> list[bytes]:
+    """GSV sentences (4 satellites each, sorted by PRN) with the signal ID (B1I's unless
+    given)."""
     sats = sorted(sky, key=_prn_of)
     n_sv = len(sats)
     n_msg = max(1, math.ceil(n_sv / GSV_SATS_PER_SENTENCE))
@@ -347,7 +364,7 @@ def gsv_sentences(sky: Sequence[SatView], talker: str = "GB") -> list[bytes]:
             az = _int_or_empty(s.az_deg)
             fields[azk] = az % 360 if isinstance(az, int) else az
             fields[cno] = _int_or_empty(s.cn0_dbhz)
-        fields["signalID"] = B1I_SIGNAL_ID
+        fields["signalID"] = signal_id
         out.append(_serialize(talker, "GSV", fields))
     return out
 
@@ -516,6 +533,21 @@ def lead_sentences(
     return out
 
 
+def _gsa_fields(fix: Fix, used: Sequence[str], system_id: str) -> dict[str, object]:
+    """GSA of one system: its used satellites (up to 12, by PRN), the fix's DOPs, its
+    NMEA 4.11 system ID."""
+    gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
+    ids = sorted(used, key=prn_number)[:GSA_MAX_SV]
+    for j in range(GSA_MAX_SV):
+        gsa[f"svid_{j + 1:02d}"] = prn_number(ids[j]) if j < len(ids) else ""
+    return gsa | {
+        "PDOP": _dop(fix.pdop),
+        "HDOP": _dop(fix.hdop),
+        "VDOP": _dop(fix.vdop),
+        "systemId": system_id,
+    }
+
+
 def sentences_after_gga(
     fix: Fix,
     *,
@@ -531,20 +563,19 @@ def sentences_after_gga(
         return []
     when, t = _clock(fix, utc)
     out = []
-    gsa: dict[str, object] = {"opMode": "A", "navMode": 3}
-    used = sorted(fix.used, key=prn_number)[:GSA_MAX_SV]
-    for j in range(GSA_MAX_SV):
-        gsa[f"svid_{j + 1:02d}"] = prn_number(used[j]) if j < len(used) else ""
-    gsa |= {
-        "PDOP": _dop(fix.pdop),
-        "HDOP": _dop(fix.hdop),
-        "VDOP": _dop(fix.vdop),
-        "systemId": BDS_SYSTEM_ID,
-    }
     bds_talker = "BD" if talker == "BD" else "GB"
-    out.append(_msg(gsa_talker or bds_talker, "GSA", **gsa))
-    if fix.sky:
-        out.extend(gsv_sentences(fix.sky, bds_talker))
+    systems = {p[:1] for p in fix.used} | {s.prn[:1] for s in fix.sky}
+    order = [x for x in _NMEA_ORDER if x in systems or x == "C"]
+    talkers = {**OTHER_SYSTEMS, "C": (bds_talker, BDS_SYSTEM_ID, B1I_SIGNAL_ID)}
+    for letter in order:  # the GSAs, then the GSV groups, each system in _NMEA_ORDER
+        mine = [p for p in fix.used if p[:1] == letter]
+        if mine or letter == "C":
+            gsa_as = (gsa_talker or bds_talker) if letter == "C" else talkers[letter][0]
+            out.append(_msg(gsa_as, "GSA", **_gsa_fields(fix, mine, talkers[letter][1])))
+    for letter in order:
+        sky = [s for s in fix.sky if s.prn[:1] == letter]
+        if sky:
+            out.extend(gsv_sentences(sky, talkers[letter][0], talkers[letter][2]))
     if fix.std_enu_m is not None:
         se, sn, su = fix.std_enu_m
         major, minor, orient = _error_ellipse(fix)

@@ -20,9 +20,10 @@ Field rules, common to all classes:
   declined because no GPS week is known yet (``reason_code`` ``no_time``) has no
   ``gpst_week`` (its ``gpst_tow_s`` is the source's time of week);
   with a position (mode ``fast``/``spp``): ``x_ecef_m lat_deg lon_deg alt_m clock_bias_m``,
-  ``clocks_m`` {system letter: receiver clock [m], 0.1 mm} when the rows came from more than
-  one satellite system (each system's clock, :attr:`Fix.clocks_m`; ``clock_bias_m`` is the
-  first's; a one-system fix has only ``clock_bias_m``), and, when computed,
+  and ``clocks_m`` {system letter: receiver clock [m], 0.1 mm} and ``used_by_system``
+  {letter: satellites used} when the rows came from more than one satellite system (each
+  system's clock, :attr:`Fix.clocks_m`; ``clock_bias_m`` is then BeiDou's clock, or the
+  first system's; a one-system fix has only ``clock_bias_m``), and, when computed,
   ``pdop resid_rms_m``; ``gdop_full`` when the solver computed it (the fast solver, also
   on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
   eq. (13)} when not empty, which is the fast solver's fractional satellites (also on a
@@ -67,6 +68,7 @@ import csv
 import io
 import json
 import math
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -157,6 +159,8 @@ def fix_record(
         _put(rec, "clock_bias_m", fix.clock_bias_m, 4)
         if len(fix.clocks_m) > 1 and all(_finite(v) for v in fix.clocks_m.values()):
             rec["clocks_m"] = {k: round(float(v), 4) for k, v in sorted(fix.clocks_m.items())}
+            used = Counter(p[:1] for p in fix.used)
+            rec["used_by_system"] = {k: used[k] for k in rec["clocks_m"]}
     _put(rec, "gdop_full", fix.gdop_full, 3)
     if fix.ok:
         _put(rec, "pdop", fix.pdop, 3)
@@ -384,6 +388,12 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                 "patternProperties": {"^[A-Z]$": _NUM},
                 "additionalProperties": False,
             },
+            "used_by_system": {
+                "type": "object",
+                "minProperties": 2,
+                "patternProperties": {"^[A-Z]$": _COUNT},
+                "additionalProperties": False,
+            },
             "gdop_full": _NONNEG,
             "pdop": _NONNEG,
             "n_full": _COUNT,
@@ -391,7 +401,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "ambiguity": {
                 "type": "object",
                 "minProperties": 1,
-                "patternProperties": {"^C[0-9]{2}$": {"type": "integer"}},
+                "patternProperties": {"^[CGE][0-9]{2}$": {"type": "integer"}},
                 "additionalProperties": False,
             },
             "resid_rms_m": _NONNEG,
@@ -413,7 +423,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "excluded": {
                 "type": "object",
                 "minProperties": 1,
-                "patternProperties": {"^C[0-9]{2}$": {"type": "string", "minLength": 1}},
+                "patternProperties": {"^[CGE][0-9]{2}$": {"type": "string", "minLength": 1}},
                 "additionalProperties": False,
             },
             "reason": {"type": "string", "minLength": 1},

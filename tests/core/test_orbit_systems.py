@@ -22,6 +22,7 @@ import pytest
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from tests.support.independent import (
+    BDT_BEHIND_GPST_S,
     eph_from_georinex,
     eph_from_georinex_gps_like,
     georinex_ephemerides,
@@ -53,21 +54,23 @@ def records(request):
 
 
 def _icd_clock(rec: dict, t: float, f_rel: float, gm: float) -> float:
-    """af0 + af1 dt + af2 dt^2 + F e sqrt(A) sin E - group delay, in plain scalars."""
+    """af0 + af1 dt + af2 dt^2 + F e sqrt(A) sin E - group delay, in plain scalars (``t``
+    on the record's own scale)."""
     eph = eph_from_georinex_gps_like(rec)
     a = rec["sqrtA"] ** 2
     m = rec["M0"] + (math.sqrt(gm / a**3) + rec["DeltaN"]) * (t - rec["Toe"])
     ecc_anom = m
     for _ in range(30):
         ecc_anom = m + rec["Eccentricity"] * math.sin(ecc_anom)
-    dt = t - eph.toc_sow_s
+    dt = t - (eph.toc_sow_s + BDT_BEHIND_GPST_S)
     rel = f_rel * rec["Eccentricity"] * rec["sqrtA"] * math.sin(ecc_anom)
     return eph.af0_s + eph.af1_s_s * dt + eph.af2_s_s2 * dt * dt + rel - eph.tgd1_s
 
 
 def test_positions_and_clocks_follow_their_own_icd(records):
-    """Every GPS / Galileo record at t_oe and +-1 h: sat_pos_clock == the scalar ICD
-    transcription with that system's constants to 1 mm and 1e-15 s; with BeiDou's GM and
+    """Every GPS / Galileo record at t_oe and +-1 h: sat_pos_clock of the set held on BDT, at
+    the same instant on BDT (GPST - 14 s), == the scalar ICD transcription on the record's
+    own scale with that system's constants to 1 mm and 1e-15 s; with BeiDou's GM and
     Omega_e the transcription moves the satellites by metres (measured 6-15 m for GPS and
     6-16 m for Galileo: Omega_e differs by 1.5e-12 rad/s, times t_oe of about 3.5e5 s, and
     GPS's GM by 1.5 ppm), far beyond the agreement."""
@@ -79,7 +82,7 @@ def test_positions_and_clocks_follow_their_own_icd(records):
         arr = EphemerisArrays.from_ephemerides([eph])
         for dt_s in (-3600.0, 0.0, 3600.0):
             t = rec["Toe"] + dt_s
-            pos, clk = sat_pos_clock(arr, eph.week, np.array([t]))
+            pos, clk = sat_pos_clock(arr, eph.week, np.array([t - BDT_BEHIND_GPST_S]))
             ref = np.array(icd_position(rec, t, False, gm=gm, we=we))
             worst_m = max(worst_m, float(np.linalg.norm(pos[0] - ref)))
             worst_clk_s = max(worst_clk_s, abs(float(clk[0]) - _icd_clock(rec, t, f_rel, gm)))
@@ -103,8 +106,10 @@ def test_a_beidou_geo_set_under_a_gps_id_is_not_a_geo():
     assert not arr.geo[0]
     pos, _ = sat_pos_clock(arr, geo.week, t)
     assert np.linalg.norm(pos - as_geo) > 1e5
-    # and it is the IGSO/MEO algorithm with GPS constants, not something else
-    ref = icd_position(c01, float(t[0]), False, gm=ICD["G"][0], we=ICD["G"][1])
+    # and it is the IGSO/MEO algorithm with GPS constants, not something else: the set is
+    # held on BDT, so as a GPS set its own t_oe is 14 s later
+    on_gpst = {**c01, "Toe": c01["Toe"] + BDT_BEHIND_GPST_S}
+    ref = icd_position(on_gpst, float(t[0]) + BDT_BEHIND_GPST_S, False, *ICD["G"][:2])
     assert np.linalg.norm(pos[0] - np.array(ref)) < 1e-3
 
 

@@ -32,16 +32,25 @@ ISB_M = 123.456
 """The inter-system bias put on the relabelled rows [m]."""
 
 
+GPS_OMEGA_E_RAD_S = 7.2921151467e-5  # IS-GPS-200N 20.3.3.4.3
+GPST_AHEAD_OF_BDT_S = 14.0  # BDS-SIS-ICD-B1I-3.0 4.2
+
+
 class _Relabelled:
     """An ephemeris store that answers "G<n>" with BeiDou satellite "C<n>"'s broadcast set
-    under the other name (the solver asks ``select`` and ``arrays`` only)."""
+    under the other name (the solver asks ``select`` and ``arrays`` only). A GPS set is
+    held on BDT and its Omega_e t_oe term takes t_oe on GPST, 14 s later: Omega_0 gets
+    Omega_e 14 s back, so that the node is the BeiDou set's."""
 
     def __init__(self, store: EphemerisStore) -> None:
         self.store = store
 
     def select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
         e = self.store.select("C" + prn[1:], bdt_week, bdt_sow_s)
-        return None if e is None else replace(e, prn=prn)
+        if e is None or prn[0] == "C":
+            return e
+        omega0 = e.omega0_rad + GPS_OMEGA_E_RAD_S * GPST_AHEAD_OF_BDT_S
+        return replace(e, prn=prn, omega0_rad=omega0)
 
     def arrays(self, ephs: list[Ephemeris]) -> EphemerisArrays:
         return EphemerisArrays.from_ephemerides(ephs)

@@ -58,7 +58,7 @@ CONTRACT_FIX_FIELDS = {
     "vpl_m",
     "std_enu_m",
 }
-CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m", "receiver_fix"}
+CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m", "used_by_system", "receiver_fix"}
 """Fields present only when satellites were excluded / on a declined fix / on a fix from
 rows of more than one satellite system / when the source carries the receiver's own fix."""
 VELOCITY_FIX_FIELDS = {
@@ -283,7 +283,7 @@ BAD = [
     ({**GOOD_FIX, "alt_m": float("nan")}, "$.alt_m", "type", "'number'"),
     ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0]}, "$.x_ecef_m", "minItems", ""),
     ({**GOOD_FIX, "x_ecef_m": [1.0, 2.0, "3"]}, "$.x_ecef_m[2]", "type", "'number'"),
-    ({**GOOD_FIX, "ambiguity": {"G05": 1}}, "$.ambiguity", "additionalProperties", "'G05'"),
+    ({**GOOD_FIX, "ambiguity": {"R05": 1}}, "$.ambiguity", "additionalProperties", "'R05'"),
     ({**GOOD_FIX, "ambiguity": {"C05": 1.5}}, "$.ambiguity.C05", "type", "'integer'"),
     ({**GOOD_FIX, "ambiguity": {}}, "$.ambiguity", "minProperties", ""),
     ({**GOOD_FIX, "reason": "x"}, "$", "not", ""),  # a fix with a position has no reason
@@ -296,7 +296,9 @@ BAD = [
     ({**GOOD_NONE, "reason": ""}, "$.reason", "minLength", ""),
     ({**GOOD_TRACK, "event": "lost"}, "$.event", "enum", "'lost'"),
     ({k: v for k, v in GOOD_TRACK.items() if k != "sow_s"}, "$", "required", "'sow_s'"),
-    ({**GOOD_TRACK, "prn": "C6"}, "$.prn", "pattern", ""),
+CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m", "used_by_system", "receiver_fix"}
+"""Fields present only when satellites were excluded / on a declined fix / on a fix from
+rows of more than one satellite system / when the source carries the receiver's own fix."""
     ({**GOOD_TRACK, "nav_type": "D3"}, "$.nav_type", "enum", "'D3'"),
     (
         {**GOOD_SKY, "satellites": [{"prn": "C01", "used": 1, "full": True}]},

@@ -131,16 +131,28 @@ def eph_from_georinex(rec: dict) -> Ephemeris:
     )
 
 
+BDT_BEHIND_GPST_S = 14.0
+BDT_WEEKS_AFTER_GPST = 1356
+"""BDT = GPST - 14 s, BDT week 0 = GPS week 1356 (BDS-SIS-ICD-B1I-3.0 4.2), written here from
+the ICD (not taken from service.core.timebase)."""
+
+
 def eph_from_georinex_gps_like(rec: dict) -> Ephemeris:
-    """Map a georinex GPS or Galileo record to our type (field mapping only): the week is
-    GPSWeek or GALWeek (RINEX 3 continues the GPS week count for both), t_oc the record's
-    epoch, health the system's health field and the group delay TGD (GPS) or BGD E1/E5b
-    (Galileo)."""
+    """Map a georinex GPS or Galileo record to our type (field mapping, then the times put
+    on BDT as :class:`service.core.types.Ephemeris` holds every set): the week is GPSWeek or
+    GALWeek (RINEX 3 continues the GPS week count for both), t_oc the record's epoch, health
+    the system's health field and the group delay TGD (GPS) or BGD E1/E5b (Galileo). A set
+    whose t_oe or t_oc is within 14 s of its week's start is not expected here (the test
+    files have none: asserted)."""
     week = rec.get("GPSWeek", rec.get("GALWeek"))
+    fields = _kepler_fields(rec)
+    assert fields["toe_sow_s"] >= BDT_BEHIND_GPST_S and fields["toc_sow_s"] >= BDT_BEHIND_GPST_S
+    fields["toe_sow_s"] -= BDT_BEHIND_GPST_S
+    fields["toc_sow_s"] -= BDT_BEHIND_GPST_S
     return Ephemeris(
         prn=rec["prn"],
-        week=int(week),
-        **_kepler_fields(rec),
+        week=int(week) - BDT_WEEKS_AFTER_GPST,
+        **fields,
         tgd1_s=rec.get("TGD", rec.get("BGDe5b", 0.0)),
         health=int(rec["health"]),
         source="georinex",

@@ -28,7 +28,9 @@ def write(path: Path, epochs: list[MeasurementEpoch]) -> None:
                 fh.write(f"{e.gpst_week} {float(e.gpst_tow_s)!r} {prn} {float(pr)!r}\n")
 
 
-def events(path: Path, counters: Counters, lenient: bool) -> Iterator[MeasurementEpoch]:
+def events(
+    path: Path, counters: Counters, lenient: bool, systems: frozenset[str]
+) -> Iterator[MeasurementEpoch]:
     """The registry's reader."""
 
     def epoch(key: tuple[int, float], rows: list[tuple[str, float]]) -> MeasurementEpoch:
