@@ -30,6 +30,9 @@ class Decline(StrEnum):
     NUMERICAL = "numerical"
     NO_TIME = "no_time"
     OUT_OF_ORDER = "out_of_order"
+    TOO_FEW_ROWS = "too_few_rows"
+    NO_DOPPLER = "no_doppler"
+    AMBIGUOUS = "ambiguous"
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,6 +98,8 @@ DECLINES: dict[Decline, DeclineText] = {
             "": "chi-square test failed: {chi2:.1f} > {chi2_max:.1f} (redundancy "
             "{redundancy}; largest w-test {prn} {w:.1f})",
             "no_exclusion": "{reason}; no exclusion of up to {max_exclusions} satellites passes",
+            "coarse": "coarse-time fix: none of {candidates} integer candidates passes the "
+            "chi-square test",
         },
         "inconsistent pseudoranges that fault exclusion could not resolve",
     ),
@@ -128,6 +133,25 @@ DECLINES: dict[Decline, DeclineText] = {
     Decline.OUT_OF_ORDER: DeclineText(
         "epoch not after the previous one",
         {"": "epoch {what} the previous one (GPST {week} {tow_s:.3f})"},
+    ),
+    Decline.TOO_FEW_ROWS: DeclineText(
+        "too few rows for the coarse-time fix",
+        {"": "coarse-time fix: {rows} usable rows, need {need} (5 unknowns, redundancy 2)"},
+        "fewer than 4 full GEO ranges and too few satellites for the coarse-time fix: "
+        "wait for more satellites or their SOW",
+    ),
+    Decline.NO_DOPPLER: DeclineText(
+        "no Doppler for the coarse-time fix",
+        {"": "coarse-time fix: {rows} Doppler rows, no Doppler position"},
+        "the coarse-time fix needs Doppler (RAWX doMes, RINEX D, MSM range rate)",
+    ),
+    Decline.AMBIGUOUS: DeclineText(
+        "ambiguous integers",
+        {
+            "": "coarse-time fix: {passing} integer candidates pass, {rivals} rivals within "
+            "the uniqueness margin"
+        },
+        "more than one integer set fits: the coarse-time fix declines rather than guess",
     ),
 }
 """The one table of decline words: label, reason templates and hint per code."""
