@@ -13,6 +13,7 @@ from service.core.errors import ConfigError, InputError
 from service.core.files import PLOT_HINT
 from service.core.settings import build, given
 from service.core.sow_rule import FullRuleConfig
+from service.engine.coarse import CoarseConfig
 from service.engine.solver import SolverConfig
 
 
@@ -20,6 +21,11 @@ def solver_config(args: argparse.Namespace, **overrides: Any) -> SolverConfig:
     """The :class:`service.engine.solver.SolverConfig` of a command's solver flags (the one
     builder every command uses); ``overrides`` are settings the command fixes itself."""
     return build(SolverConfig, given(args, SolverConfig) | overrides, {})
+
+
+def coarse_config(args: argparse.Namespace) -> CoarseConfig:
+    """The :class:`service.engine.coarse.CoarseConfig` of a command's coarse-time flags."""
+    return build(CoarseConfig, given(args, CoarseConfig), {})
 
 
 def full_rule(args: argparse.Namespace) -> str:

@@ -88,6 +88,12 @@ position layout with ``coarse_time=True``, BeiDou alone: :class:`service.engine.
 class CoarseConfig:
     """Settings of the coarse-time first fix (module docstring)."""
 
+    coarse_fix: bool = setting(
+        True,
+        "coarse-time first fix when fewer than 4 ranges are full (Doppler prior, coarse "
+        "time, validated integer search)",
+        kind="bool",
+    )
     time_prior_s: float = setting(
         2.0,
         "coarse fix: uncertainty of the epoch's time tag (host clock) [s]",

@@ -1,7 +1,8 @@
 """The engine loop shared by replay and the daemon: events in, fixes and TRACK/STATUS out.
 
 Per measurement epoch: the tracker decides which measurements are full, the engine solves
-from all usable ones (the fast fix, which is SPP when everything is full), and integrity
+from all usable ones (the fast fix, which is SPP when everything is full; with fewer than
+four full ranges the coarse-time fix of :mod:`service.engine.coarse`), and integrity
 bookkeeping compares every recovered pseudorange with the full one that arrives once the
 satellite's SOW decodes. A refused solution is passed on as ``mode="none"`` with its reason,
 never as a position.
@@ -36,6 +37,7 @@ from service.core.types import (
     NavSubframe,
     SatView,
 )
+from service.engine.coarse import CoarseConfig, solve_coarse
 from service.engine.declines import Decline, reason
 from service.engine.solver import (
     IonoSet,
@@ -120,6 +122,7 @@ class Pipeline:
     sync_seed: int = 0
     full_rule: str = DEFAULT_FULL_RULE  # when a restarted satellite is full (core.sow_rule)
     velocity: bool = True  # velocity from Doppler on each fix (off for studies of positions)
+    coarse: CoarseConfig = field(default_factory=CoarseConfig)  # the fix with < 4 full ranges
     on_track: Callable[[TrackEvent], None] | None = None
     tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
     counters: Counters = field(default_factory=Counters)
@@ -207,6 +210,8 @@ class Pipeline:
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        if fix.reason_code == Decline.TOO_FEW_FULL and self.coarse.coarse_fix:
+            fix = self._coarse_fix(view, fix)
         if self.velocity:
             fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
@@ -229,6 +234,20 @@ class Pipeline:
             partial(sky_view, view, self.store),
             restarted_now,
         )
+
+    def _coarse_fix(self, view: MeasurementEpoch, paper: Fix) -> Fix:
+        """The coarse-time fix (:mod:`service.engine.coarse`) of an epoch the paper's method
+        declined for want of four full ranges: its fix, or its decline when it found
+        candidates and none was safe to publish (``chi2``, ``ambiguous``, ``pdop_gate``);
+        else (too few rows, no Doppler) the paper's decline stands, the reason to wait."""
+        result = solve_coarse(view, self.store, self.iono, self.cfg, self.coarse)
+        fix = result.fix
+        if fix.ok:
+            self.counters["coarse_fixes"] += 1
+            return fix
+        if fix.reason_code in {Decline.CHI2, Decline.AMBIGUOUS, Decline.PDOP_GATE}:
+            return fix
+        return paper
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
         """The declined fix of an epoch without a week or not after the latest one."""

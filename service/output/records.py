@@ -39,6 +39,10 @@ Field rules, common to all classes:
   [0, 360)), ``clock_drift_m_s`` (c times the receiver clock rate), each with its 1-sigma
   ``std_v_enu_m_s``, ``std_speed_m_s``, ``std_course_deg`` (at most 180),
   ``std_clock_drift_m_s``; precision 0.1 mm/s and 0.01 deg.
+  A fast fix made by the coarse-time method (:mod:`service.engine.coarse`, fewer than four
+  full ranges) says so: ``method`` ``coarse_time`` and ``time_offset_s``, the solved error
+  of the epoch's time tag (true receive time = tag + offset, 1 µs resolution); the paper's
+  fast fix and SPP carry neither.
 ``SKY``: ``class gpst_week gpst_tow_s satellites``; each satellite ``prn el_deg az_deg
   used full signal`` plus ``cn0_dbhz`` when measured.
 ``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
@@ -143,6 +147,9 @@ def fix_record(fix: Fix, since_start_s: float | None = None) -> dict[str, Any]:
             rec["std_enu_m"] = [round(float(v), 4) for v in fix.std_enu_m]
         if fix.velocity is not None:
             _put_velocity(rec, fix.velocity)
+    if fix.ok and fix.method is not None:
+        rec["method"] = fix.method
+        _put(rec, "time_offset_s", fix.time_offset_s, 6)
     if fix.excluded:
         rec["excluded"] = dict(sorted(fix.excluded.items()))
     if not fix.ok:
@@ -368,6 +375,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                 "patternProperties": {"^C[0-9]{2}$": {"type": "string", "minLength": 1}},
                 "additionalProperties": False,
             },
+            "method": {"enum": ["coarse_time"]},
+            "time_offset_s": _NUM,
             "reason": {"type": "string", "minLength": 1},
             "reason_code": {"type": "string", "minLength": 1},
         },

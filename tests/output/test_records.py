@@ -58,8 +58,9 @@ CONTRACT_FIX_FIELDS = {
     "vpl_m",
     "std_enu_m",
 }
-CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code"}
-"""Fields present only when satellites were excluded / on a declined fix."""
+CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "method", "time_offset_s"}
+"""Fields present only when satellites were excluded / on a declined fix / on a fix of the
+coarse-time method."""
 VELOCITY_FIX_FIELDS = {
     "v_enu_m_s",
     "std_v_enu_m_s",
