@@ -103,12 +103,22 @@ class CoarseConfig:
         high=30.0,
     )
     search_radius_m: float = setting(
-        400e3,
-        "coarse fix: radius of the search for prior hypotheses around the Doppler position [m]",
+        1_500e3,
+        "coarse fix: largest distance of a prior hypothesis from the Doppler position [m] "
+        "(the search covers search_sigmas of the Doppler position's covariance within it)",
         kind="float",
         low=0.0,
-        high=3_000e3,
+        high=5_000e3,
     )
+    search_sigmas: float = 4.5
+    speed_sigma_m_s: float = setting(
+        25.0,
+        "coarse fix: prior 1-sigma of the receiver's speed on each horizontal axis [m/s] "
+        "(25: 50 m/s at 2 sigma)",
+        kind="float",
+        low=0.0,
+    )
+    vertical_speed_sigma_m_s: float = 2.0
     grid_step_m: float = 50e3
     uniqueness_margin: float = setting(
         10.0,
@@ -128,13 +138,18 @@ class CoarseConfig:
 
 @dataclass(frozen=True, slots=True)
 class DopplerPrior:
-    """A Doppler position: ECEF [m], clock drift [m/s], the horizontal 1-sigma of the
-    position's covariance [m] (the larger axis) and the rows used."""
+    """A Doppler position: ECEF [m], clock drift [m/s], the horizontal covariance of the
+    position and the rows used."""
 
     x_ecef_m: np.ndarray
     drift_m_s: float
-    sigma_h_m: float
+    q_en_m2: np.ndarray  # horizontal (east, north) covariance [m^2]
     n_rows: int
+
+    @property
+    def sigma_h_m(self) -> float:
+        """1-sigma of the covariance's larger horizontal axis [m]."""
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.q_en_m2)[-1]), 0.0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,45 +250,63 @@ def _up(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(alt), up
 
 
-def doppler_position(sats: _Sats, ccfg: CoarseConfig) -> DopplerPrior | None:
-    """Position and clock drift from the Doppler rows alone, receiver at rest (module
-    docstring, step 1), from the Earth's centre; None with fewer than 3 Doppler rows or no
-    convergence."""
+def doppler_position(
+    sats: _Sats, ccfg: CoarseConfig, speed_sigma_m_s: float | None = None
+) -> DopplerPrior | None:
+    """Position, clock drift and the receiver's velocity from the Doppler rows alone (module
+    docstring, step 1), from the Earth's centre: first at rest, then with the velocity as
+    three more unknowns held by a prior of ``speed_sigma_m_s`` on each horizontal axis
+    (``ccfg.speed_sigma_m_s`` when None; 0: at rest) and ``vertical_speed_sigma_m_s``, so
+    that the covariance says how far a moving receiver's Doppler position may be off.
+    None with fewer than 4 Doppler rows or no convergence."""
     ok = np.isfinite(sats.doppler_hz)
-    if ok.sum() < 3:
+    if ok.sum() < 4:
         return None
+    sv = ccfg.speed_sigma_m_s if speed_sigma_m_s is None else speed_sigma_m_s
     rr = range_rate_m_s(sats.prn, sats.doppler_hz)[ok]
     pos = sats.p0[ok]
     vel = sats.p1[ok]
     ddts = sats.drift_s_s[ok]
     omega = sats.eph.omega_e_rad_s[ok]
+    n = len(rr)
     x = np.zeros(3)
     d = 0.0
-    w = np.full(len(rr) + 1, 1.0 / ccfg.doppler_sigma_m_s**2)
-    w[-1] = 1.0 / ccfg.height_sigma_m**2
-    cov = np.eye(4)
-    for _ in range(12):
+    v_rx = np.zeros(3)
+    cov = np.eye(7)
+    moving = False
+    for _ in range(40):
         tau = np.linalg.norm(pos - x, axis=1) / C_M_S
         s = sagnac_rotate(pos, tau, omega)
         v = sagnac_rotate(vel, tau, omega)
         dv = s - x
         rho = np.linalg.norm(dv, axis=1)
         e = dv / rho[:, None]
-        ev = np.einsum("ij,ij->i", e, v)
+        ev = np.einsum("ij,ij->i", e, v - v_rx)
         pred = ev + d - C_M_S * ddts
-        h = np.zeros((len(rr) + 1, 4))
-        h[:-1, :3] = -(v - ev[:, None] * e) / rho[:, None]
-        h[:-1, 3] = 1.0
-        r = np.empty(len(rr) + 1)
-        r[:-1] = rr - pred
+        h = np.zeros((n + 4, 7))
+        r = np.zeros(n + 4)
+        w = np.empty(n + 4)
+        h[:n, :3] = -((v - v_rx) - ev[:, None] * e) / rho[:, None]
+        h[:n, 3] = 1.0
+        h[:n, 4:] = -e
+        r[:n] = rr - pred
+        w[:n] = 1.0 / ccfg.doppler_sigma_m_s**2
         if np.linalg.norm(x) > 1e6:
             alt, up = _up(x)
-            r[-1] = -float(alt)
-            h[-1, :3] = up
-        else:  # from the centre: the sphere's radius
+            r[n] = -float(alt)
+            h[n, :3] = up
+            lat, lon, _ = ecef_to_geodetic(x)
+            rot = enu_rotation(float(lat), float(lon))
+        else:  # from the centre: the sphere's radius, the velocity held at 0
             nx = max(float(np.linalg.norm(x)), 1.0)
-            r[-1] = 6_371e3 - nx
-            h[-1, :3] = x / nx if nx > 1.0 else 0.0
+            r[n] = 6_371e3 - nx
+            h[n, :3] = x / nx if nx > 1.0 else 0.0
+            rot = np.eye(3)
+        w[n] = 1.0 / ccfg.height_sigma_m**2
+        h[n + 1 :, 4:] = rot
+        r[n + 1 :] = -(rot @ v_rx)
+        sig = (sv, sv, ccfg.vertical_speed_sigma_m_s) if moving and sv > 0 else (1e-3,) * 3
+        w[n + 1 :] = 1.0 / np.square(sig)
         hw = h.T * w
         try:
             cov = np.linalg.inv(hw @ h)
@@ -282,28 +315,49 @@ def doppler_position(sats: _Sats, ccfg: CoarseConfig) -> DopplerPrior | None:
         step = cov @ (hw @ r)
         x = x + step[:3]
         d += float(step[3])
-        if float(np.linalg.norm(step[:3])) < 1.0:
-            break
+        v_rx = v_rx + step[4:]
+        if float(np.linalg.norm(step[:3])) < 10.0:
+            if moving or sv <= 0:
+                break
+            moving = True
     else:
         return None
     if not np.all(np.isfinite(x)):
         return None
     lat, lon, _ = ecef_to_geodetic(x)
-    rot = enu_rotation(float(lat), float(lon))[:2]
-    q = rot @ cov[:3, :3] @ rot.T
-    return DopplerPrior(x, d, math.sqrt(float(np.linalg.eigvalsh(q)[-1])), int(ok.sum()))
+    rot2 = enu_rotation(float(lat), float(lon))[:2]
+    q = rot2 @ cov[:3, :3] @ rot2.T
+    return DopplerPrior(x, d, q, int(ok.sum()))
 
 
-def hypotheses(prior_ecef_m: np.ndarray, radius_m: float, step_m: float) -> np.ndarray:
+def hypotheses(
+    prior_ecef_m: np.ndarray,
+    q_en_m2: np.ndarray | None,
+    kappa: float,
+    radius_m: float,
+    step_m: float,
+) -> np.ndarray:
     """Prior hypotheses (m, 3): a hexagonal grid of spacing ``step_m`` in the prior's local
-    horizontal plane, out to ``radius_m``, each point put on the ellipsoid (height 0)."""
+    horizontal plane over the ellipse x^T Q^-1 x <= kappa^2 of the horizontal covariance
+    ``q_en_m2`` (None: a circle of ``radius_m``), never beyond ``radius_m``, the prior
+    itself always among them; each point put on the ellipsoid (height 0)."""
     lat, lon, _ = ecef_to_geodetic(prior_ecef_m)
     rot = enu_rotation(float(lat), float(lon))
-    k = math.ceil(radius_m / step_m) + 1
+    extent = radius_m
+    if q_en_m2 is not None:
+        extent = min(radius_m, kappa * math.sqrt(max(float(np.linalg.eigvalsh(q_en_m2)[-1]), 0)))
+    k = math.ceil(extent / step_m) + 1
     i, j = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
     east = step_m * (i + 0.5 * j)
     north = step_m * (math.sqrt(3.0) / 2.0) * j
     keep = np.hypot(east, north) <= radius_m + 1e-6
+    if q_en_m2 is not None:
+        qi = np.linalg.inv(q_en_m2 + np.eye(2) * 1e-6)
+        m2 = qi[0, 0] * east**2 + 2 * qi[0, 1] * east * north + qi[1, 1] * north**2
+        # a cell's worth of margin: the truth within the ellipse has a point within step
+        edge = (kappa + step_m / math.sqrt(max(float(np.linalg.eigvalsh(q_en_m2)[0]), 1.0))) ** 2
+        keep &= m2 <= edge
+    keep |= (i == 0) & (j == 0)
     enu = np.stack([east[keep], north[keep], np.zeros(int(keep.sum()))], axis=-1)
     pts = prior_ecef_m + enu @ rot
     glat, glon, _ = ecef_to_geodetic(pts)
@@ -468,7 +522,9 @@ def _solve_coarse(
     if prior is None:
         why = reason(Decline.NO_DOPPLER, rows=int(np.isfinite(sats.doppler_hz).sum()))
         return CoarseResult(declined(epoch, Decline.NO_DOPPLER, why))
-    pts = hypotheses(prior.x_ecef_m, ccfg.search_radius_m, ccfg.grid_step_m)
+    pts = hypotheses(
+        prior.x_ecef_m, prior.q_en_m2, ccfg.search_sigmas, ccfg.search_radius_m, ccfg.grid_step_m
+    )
     n_all = _round(sats, pts)
     frac = sats.ct_m > 0
     if not (~frac).any():  # the common millisecond goes into the clock (module docstring)
@@ -637,10 +693,10 @@ def plain_chain(
         sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s)
         if sats is None or len(sats.prn) < N_PARAMS:
             return None
-        prior = doppler_position(sats, ccfg)
+        prior = doppler_position(sats, ccfg, speed_sigma_m_s=0.0)
         if prior is None:
             return None
-        pts = hypotheses(prior.x_ecef_m, 0.0, ccfg.grid_step_m)
+        pts = hypotheses(prior.x_ecef_m, None, 0.0, 0.0, ccfg.grid_step_m)
         n_int = _round(sats, pts)
         solved = _solve_candidates(sats, n_int, pts, bdt_sow, iono or IonoSet(), cfg, ccfg)
     frac = sats.ct_m > 0

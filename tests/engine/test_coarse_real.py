@@ -137,6 +137,7 @@ def test_tst_urban_drive_never_a_wrong_integer(tst, k):
         if not res.fix.ok:
             assert res.fix.reason_code in {
                 Decline.TOO_FEW_ROWS,
+                Decline.NO_DOPPLER,
                 Decline.CHI2,
                 Decline.AMBIGUOUS,
                 Decline.PDOP_GATE,
@@ -192,9 +193,16 @@ def test_declines_without_doppler_too_few_rows_or_a_unique_candidate(hksc):
         keep_full=(),
     )
     assert solve_coarse(few, store, iono).fix.reason_code == Decline.TOO_FEW_ROWS
-    # the height and horizon checks off and a margin so wide that a wrong candidate is a
-    # rival: declined, never a guess
-    wide = CoarseConfig(uniqueness_margin=1e12, alt_min_m=-1e7, alt_max_m=1e7, horizon_deg=90.0)
+    # a search to 60 sigma, a 30 s time prior, the height and horizon checks off and a
+    # margin so wide that wrong candidates are rivals: declined, never a guess
+    wide = CoarseConfig(
+        search_sigmas=60.0,
+        time_prior_s=30.0,
+        uniqueness_margin=1e12,
+        alt_min_m=-1e7,
+        alt_max_m=1e7,
+        horizon_deg=90.0,
+    )
     res = solve_coarse(fe, store, iono, ccfg=wide)
     assert res.fix.reason_code == Decline.AMBIGUOUS
     assert res.passing == 1
