@@ -272,7 +272,7 @@ def doppler_position(
     x = np.zeros(3)
     d = 0.0
     v_rx = np.zeros(3)
-    cov = np.eye(7)
+    cov: np.ndarray = np.eye(7)
     moving = False
     for _ in range(40):
         tau = np.linalg.norm(pos - x, axis=1) / C_M_S
@@ -309,7 +309,7 @@ def doppler_position(
         w[n + 1 :] = 1.0 / np.square(sig)
         hw = h.T * w
         try:
-            cov = np.linalg.inv(hw @ h)
+            cov = np.asarray(np.linalg.inv(hw @ h), dtype=float)
         except np.linalg.LinAlgError:
             return None
         step = cov @ (hw @ r)
