@@ -206,3 +206,16 @@ def test_declines_without_doppler_too_few_rows_or_a_unique_candidate(hksc):
     res = solve_coarse(fe, store, iono, ccfg=wide)
     assert res.fix.reason_code == Decline.AMBIGUOUS
     assert res.passing == 1
+
+
+def test_where_both_methods_apply_they_agree(hksc):
+    """Every GEO full (the paper's method applies): the coarse-time fix and the paper's fast
+    fix give the same position (each is SPP of the same full ranges)."""
+    store, iono, epochs = hksc
+    for ep, _ in epochs[::5]:
+        fe = fractionalize(ep)  # GEOs full, the rest fractional
+        paper = solve(fe, store, iono, SolverConfig(), "fast")
+        res = solve_coarse(fe, store, iono)
+        assert paper.ok and res.fix.ok and res.absolute
+        assert res.fix.ambiguity == paper.ambiguity
+        assert np.linalg.norm(np.subtract(res.fix.x_ecef_m, paper.x_ecef_m)) <= 1e-3
