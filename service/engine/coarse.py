@@ -394,7 +394,7 @@ class _Solved:
     dof: np.ndarray  # (k,)
     alt: np.ndarray  # (k,)
     min_el_rad: np.ndarray  # (k,)
-    sigma_dt_s: np.ndarray  # (k,) 1-sigma of dt from the normal matrix
+    normal: np.ndarray  # (k, 5, 5) the last normal matrix (with the time prior)
     design: np.ndarray  # (k, n, 5) at the solution
     resid_m: np.ndarray  # (k, n)
     weight: np.ndarray  # (k, n): 1 / sigma^2, 0 below the mask
@@ -467,9 +467,7 @@ def _solve_candidates(
         dt = dt + step[:, 4]
     t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
     dof = (w > 0).sum(axis=1) - N_PARAMS
-    with np.errstate(all="ignore"):
-        var_dt = np.array([_inv_diag(m)[4] for m in normal])
-    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), el.min(axis=1), np.sqrt(var_dt), h, v, w)
+    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), el.min(axis=1), normal, h, v, w)
 
 
 def _inv_diag(m: np.ndarray) -> np.ndarray:
@@ -571,7 +569,8 @@ def _solve_coarse(
         ct = float(sats.ct_m[frac][0])
         k_float = (b + C_M_S * dt) / ct
         shift = round(k_float)
-        doubt = abs(k_float - shift) + 4.0 * C_M_S * float(solved.sigma_dt_s[best]) / ct
+        sigma_dt = math.sqrt(max(float(_inv_diag(solved.normal[best])[4]), 0.0))
+        doubt = abs(k_float - shift) + 4.0 * C_M_S * sigma_dt / ct
         if doubt < 0.5:
             absolute = True
             n_best = n_best - shift * frac
