@@ -41,8 +41,10 @@ def main() -> None:
     slow = [t for t in summary.trials if t.speed_m_s <= 50.0 and t.n_sats >= 7]
     print(f"  <= 50 m/s with >= 7 satellites: {sum(t.fixed for t in slow)}/{len(slow)} fixed")
     for t in summary.trials:
-        if t.wrong:
-            print(f"  WRONG {t}")
+        far = t.error_m is not None and t.error_m > 100.0
+        over = t.error_h_m is not None and t.hpl_m is not None and t.error_h_m > t.hpl_m
+        if t.wrong or far or over:
+            print(f"  {'WRONG' if t.wrong else 'far/over HPL'} {t}")
 
 
 if __name__ == "__main__":
