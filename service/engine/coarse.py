@@ -128,6 +128,13 @@ class CoarseConfig:
         low=1.0,
     )
     min_redundancy: int = 2
+    max_exclusions: int = setting(
+        1,
+        "coarse fix: rows fault exclusion may leave out when no candidate passes (0 or 1)",
+        kind="int",
+        low=0,
+        high=1,
+    )
     height_sigma_m: float = 2_000.0
     doppler_sigma_m_s: float = 0.5
     alt_min_m: float = -2_000.0
@@ -528,23 +535,27 @@ def _solve_coarse(
     if not (~frac).any():  # the common millisecond goes into the clock (module docstring)
         n_all = n_all - n_all[:, :1]
     cand, first = np.unique(n_all, axis=0, return_index=True)
-    solved = _solve_candidates(sats, cand, pts[first], bdt_sow, iono, cfg, ccfg)
-    t_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r >= 1 else np.inf for r in solved.dof])
-    plausible = (
-        (solved.alt >= ccfg.alt_min_m)
-        & (solved.alt <= ccfg.alt_max_m)
-        & (np.abs(solved.dt) <= 1.5 * ccfg.time_prior_s)
-        & (solved.min_el_rad >= -math.radians(ccfg.horizon_deg))
-        & np.isfinite(solved.t_stat)
-    )
-    passing = plausible & (solved.dof >= ccfg.min_redundancy) & (solved.t_stat <= t_max)
-    rivals = plausible & (solved.t_stat <= ccfg.uniqueness_margin * t_max)
+    x0 = pts[first]
+    ev = _evaluate(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
     base = CoarseResult(
         declined(epoch, Decline.NUMERICAL, ""),
         prior=prior,
         candidates=len(cand),
-        passing=int(passing.sum()),
+        passing=int(ev.passing.sum()),
     )
+    excluded: dict[str, str] = {}
+    if not ev.passing.any() and ccfg.max_exclusions > 0 and len(sats.prn) - 1 >= need:
+        # fault exclusion: each row left out in turn, every candidate again; published only
+        # if every passing or rival solution of every subset agrees on the common rows
+        outcome = _exclude_one(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
+        if isinstance(outcome, str):
+            why = reason(Decline.AMBIGUOUS, passing=0, rivals=outcome)
+            return replace(base, fix=declined(epoch, Decline.AMBIGUOUS, why))
+        if outcome is not None:
+            j, sats, cand, ev = outcome
+            excluded = {prn: "coarse-time fix: left out, the other rows pass" for prn in j}
+            frac = sats.ct_m > 0
+    solved, passing, rivals, t_max = ev.solved, ev.passing, ev.rivals, ev.t_max
     if not passing.any():
         best_dof = int(solved.dof.max())
         if best_dof < ccfg.min_redundancy:
@@ -600,8 +611,119 @@ def _solve_coarse(
             recovered_pr_m=recovered,
             method=COARSE_TIME,
             time_offset_s=dt,
+            excluded={**excluded, **fix.excluded},
         )
     return replace(base, fix=fix, time_offset_s=dt, integers=integers, absolute=absolute)
+
+
+@dataclass(slots=True, eq=False)
+class _Evaluation:
+    solved: _Solved
+    t_max: np.ndarray
+    passing: np.ndarray
+    rivals: np.ndarray
+
+
+def _evaluate(
+    sats: _Sats,
+    cand: np.ndarray,
+    x0: np.ndarray,
+    bdt_sow: float,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> _Evaluation:
+    """Solve and judge every candidate (module docstring, steps 3-4)."""
+    solved = _solve_candidates(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
+    t_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r >= 1 else np.inf for r in solved.dof])
+    plausible = (
+        (solved.alt >= ccfg.alt_min_m)
+        & (solved.alt <= ccfg.alt_max_m)
+        & (np.abs(solved.dt) <= 1.5 * ccfg.time_prior_s)
+        & (solved.min_el_rad >= -math.radians(ccfg.horizon_deg))
+        & np.isfinite(solved.t_stat)
+    )
+    passing = plausible & (solved.dof >= ccfg.min_redundancy) & (solved.t_stat <= t_max)
+    rivals = plausible & (solved.t_stat <= ccfg.uniqueness_margin * t_max)
+    return _Evaluation(solved, t_max, passing, rivals)
+
+
+def _take(sats: _Sats, idx: np.ndarray) -> _Sats:
+    """The rows ``idx`` of ``sats``."""
+    return _Sats(
+        prn=tuple(sats.prn[i] for i in idx),
+        z_m=sats.z_m[idx],
+        ct_m=sats.ct_m[idx],
+        cn0_dbhz=sats.cn0_dbhz[idx],
+        doppler_hz=sats.doppler_hz[idx],
+        eph=sats.eph.take(idx),
+        t0=sats.t0,
+        p0=sats.p0[idx],
+        p1=sats.p1[idx],
+        p2=sats.p2[idx],
+        c0=sats.c0[idx],
+        c1=sats.c1[idx],
+        c2=sats.c2[idx],
+        drift_s_s=sats.drift_s_s[idx],
+    )
+
+
+def _exclude_one(
+    sats: _Sats,
+    cand: np.ndarray,
+    x0: np.ndarray,
+    bdt_sow: float,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> tuple[tuple[str], _Sats, np.ndarray, _Evaluation] | str | None:
+    """One row left out (fault exclusion, as the solver's FDE, over every candidate): the
+    row left out, the other rows, their candidates and evaluation of the best subset whose
+    winner passes; None when no subset passes; a text (the rivals) when subsets disagree:
+    a passing or rival solution of any subset whose integers differ from the winner's on
+    the rows both use (relative to a common fractional row when no row is full)."""
+    n = len(sats.prn)
+    found = []
+    for j in range(n):
+        keep = np.array([i for i in range(n) if i != j])
+        sub = _take(sats, keep)
+        cj = cand[:, keep]
+        if not (sub.ct_m == 0).any():
+            cj = cj - cj[:, :1]
+        cj, first = np.unique(cj, axis=0, return_index=True)
+        ev = _evaluate(sub, cj, x0[first], bdt_sow, iono, cfg, ccfg)
+        found.append((j, keep, sub, cj, ev))
+    best = None
+    for j, keep, sub, cj, ev in found:
+        if ev.passing.any():
+            ratio = np.where(ev.passing, ev.solved.t_stat / ev.t_max, np.inf)
+            k = int(np.argmin(ratio))
+            if best is None or ratio[k] < best[0]:
+                best = (float(ratio[k]), j, k)
+    if best is None:
+        return None
+    _, jb, kb = best
+    keep_b, sub_b, cand_b, ev_b = found[jb][1], found[jb][2], found[jb][3], found[jb][4]
+    win = dict(zip(keep_b.tolist(), cand_b[kb].tolist(), strict=True))
+    absolute = bool((sats.ct_m == 0).any())
+    rivals = 0
+    for j, keep, _, cj, ev in found:
+        common = [i for i in keep.tolist() if i in win]
+        frac_common = [i for i in common if sats.ct_m[i] > 0]
+        cols = [keep.tolist().index(i) for i in common]
+        for k in np.flatnonzero(ev.rivals | ev.passing).tolist():
+            if j == jb and k == kb:
+                continue
+            mine = cj[k, cols]
+            theirs = np.array([win[i] for i in common])
+            if not absolute and frac_common:
+                r = common.index(frac_common[0])
+                mine, theirs = mine - mine[r], theirs - theirs[r]
+            if np.any(mine != theirs):
+                rivals += 1
+    if rivals:
+        return f"{rivals} (one row left out)"
+    return (sats.prn[jb],), sub_b, cand_b, ev_b
 
 
 def _coarse_fix(

@@ -48,6 +48,21 @@ def _true_integers(ep, fe, shift_s=0.0):
     return {p: round((full[p] + shift_s * C_M_S - frac[p]) / CT_M) for p in fe.prn}
 
 
+def _without(ep, prns):
+    idx = [i for i, p in enumerate(ep.prn) if p not in prns]
+    return replace(
+        ep,
+        prn=tuple(ep.prn[i] for i in idx),
+        signal=tuple(ep.signal[i] for i in idx),
+        pr_m=ep.pr_m[idx],
+        frac_pr_m=ep.frac_pr_m[idx],
+        period_s=ep.period_s[idx],
+        cn0_dbhz=ep.cn0_dbhz[idx],
+        doppler_hz=ep.doppler_hz[idx],
+        lock_s=ep.lock_s[idx],
+    )
+
+
 def _wrong(res, truth):
     ints = res.integers
     if res.absolute:
@@ -145,12 +160,16 @@ def test_tst_urban_drive_never_a_wrong_integer(tst, k):
             continue
         fixed += 1
         assert not _wrong(res, _true_integers(ep, fe))
-        if res.absolute:
+        if res.absolute:  # SPP of the file's full ranges of the satellites it kept
+            left_out = [p for p, why in res.fix.excluded.items() if "left out" in why]
+            if left_out:
+                ref = solve(_without(ep, left_out), store, iono, SolverConfig(), "spp")
             assert np.linalg.norm(np.subtract(res.fix.x_ecef_m, ref.x_ecef_m)) <= 1e-3
         lat, lon, _ = ecef_to_geodetic(truth)
         e = enu_rotation(lat, lon) @ np.subtract(res.fix.x_ecef_m, truth)
         beyond += math.hypot(e[0], e[1]) > res.fix.hpl_m
-    assert fixed >= 0.55 * len(epochs)
+    print(f"TST k={k}: {fixed}/{len(epochs)} fixed, {beyond} beyond HPL")
+    assert fixed >= 0.60 * len(epochs)
     assert beyond <= 0.01 * fixed
 
 
