@@ -58,7 +58,7 @@ from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
 from service.core.settings import setting
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
-from service.engine.declines import Decline, reason
+from service.engine.declines import Decline, excluded_why, reason
 from service.engine.layout import Layout
 from service.engine.raim import assess, chi2_threshold
 from service.engine.solver import (
@@ -128,7 +128,7 @@ class CoarseConfig:
         low=1.0,
     )
     min_redundancy: int = 2
-    max_exclusions: int = setting(
+    coarse_max_exclusions: int = setting(
         1,
         "coarse fix: rows fault exclusion may leave out when no candidate passes (0 or 1)",
         kind="int",
@@ -544,7 +544,7 @@ def _solve_coarse(
         passing=int(ev.passing.sum()),
     )
     excluded: dict[str, str] = {}
-    if not ev.passing.any() and ccfg.max_exclusions > 0 and len(sats.prn) - 1 >= need:
+    if not ev.passing.any() and ccfg.coarse_max_exclusions > 0 and len(sats.prn) - 1 >= need:
         # fault exclusion: each row left out in turn, every candidate again; published only
         # if every passing or rival solution of every subset agrees on the common rows
         outcome = _exclude_one(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
@@ -553,7 +553,7 @@ def _solve_coarse(
             return replace(base, fix=declined(epoch, Decline.AMBIGUOUS, why))
         if outcome is not None:
             j, sats, cand, ev = outcome
-            excluded = {prn: "coarse-time fix: left out, the other rows pass" for prn in j}
+            excluded = {prn: excluded_why("coarse") for prn in j}
             frac = sats.ct_m > 0
     solved, passing, rivals, t_max = ev.solved, ev.passing, ev.rivals, ev.t_max
     if not passing.any():

@@ -184,8 +184,10 @@ def hint(code: str, command: str = "replay") -> str | None:
 EXCLUSIONS: dict[str, str] = {
     "gross": "pseudorange {dev_km:.4g} km from the epoch's median: impossible",
     "chi2": "chi-square test failed ({chi2:.1f} > {chi2_max:.1f}), w-test {w:.1f}",
+    "coarse": "coarse-time fix: no integer candidate passes with it, one passes without",
 }
-"""Why fault exclusion removed a satellite (``Fix.excluded``): an impossible range, or the
+"""Why fault exclusion removed a satellite (``Fix.excluded``): an impossible range, the coarse-time
+fix's exclusion (service.engine.coarse), or the
 failed test and the satellite's w-test."""
 
 

@@ -25,7 +25,7 @@ from service.core.bds import is_geo
 from service.core.constants import C_M_S
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.engine.coarse import COARSE_TIME, CoarseConfig, plain_chain, solve_coarse
-from service.engine.declines import Decline
+from service.engine.declines import Decline, excluded_why
 from service.engine.solver import SolverConfig, fractionalize, solve
 from tests.support.paths import DATA
 
@@ -161,7 +161,7 @@ def test_tst_urban_drive_never_a_wrong_integer(tst, k):
         fixed += 1
         assert not _wrong(res, _true_integers(ep, fe))
         if res.absolute:  # SPP of the file's full ranges of the satellites it kept
-            left_out = [p for p, why in res.fix.excluded.items() if "left out" in why]
+            left_out = [p for p, why in res.fix.excluded.items() if why == excluded_why("coarse")]
             if left_out:
                 ref = solve(_without(ep, left_out), store, iono, SolverConfig(), "spp")
             assert np.linalg.norm(np.subtract(res.fix.x_ecef_m, ref.x_ecef_m)) <= 1e-3
