@@ -19,6 +19,7 @@ from service.core.settings import add_flags
 from service.core.sow_rule import FullRuleConfig
 from service.core.systems import SystemsConfig
 from service.daemon.config import DEFAULT_CONFIG, add_config_flags
+from service.engine.coarse import CoarseConfig
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
 from service.output.sinks.base import HTTP_MAX_CLIENTS, NMEA_TCP_MAX_CLIENTS
@@ -250,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_flags(r, FullRuleConfig, "restart (--restart-at and the built-in scenario)")
     add_flags(r, SolverConfig, "solver")
     add_flags(r, SystemsConfig, "systems (RINEX observation and nav files)")
+    add_flags(r, CoarseConfig, "coarse-time first fix (fewer than 4 full ranges)")
 
     d = command(
         "run",

@@ -14,6 +14,7 @@ from service.core.files import PLOT_HINT
 from service.core.settings import build, given
 from service.core.sow_rule import FullRuleConfig
 from service.core.systems import SystemsConfig, parse_systems
+from service.engine.coarse import CoarseConfig
 from service.engine.solver import SolverConfig
 
 
@@ -27,6 +28,11 @@ def systems_of(args: argparse.Namespace) -> frozenset[str]:
     """``--systems`` (:class:`service.core.systems.SystemsConfig`): the RINEX letters of the
     systems to position with; BeiDou alone unless given."""
     return parse_systems(build(SystemsConfig, given(args, SystemsConfig), {}).systems)
+
+
+def coarse_config(args: argparse.Namespace) -> CoarseConfig:
+    """The :class:`service.engine.coarse.CoarseConfig` of a command's coarse-time flags."""
+    return build(CoarseConfig, given(args, CoarseConfig), {})
 
 
 def full_rule(args: argparse.Namespace) -> str:

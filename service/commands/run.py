@@ -19,9 +19,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from service.commands.options import full_rule, solver_config, systems_of
+from service.commands.options import coarse_config, full_rule, solver_config, systems_of
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
@@ -297,6 +295,7 @@ def main_run(args: argparse.Namespace) -> int:
         store,
         IonoSet.of([store.iono]),
         cfg.solver,
+        coarse=cfg.coarse,
     )
     notifier = Notifier()
     runner = Runner(
@@ -407,6 +406,7 @@ def main_replay(args: argparse.Namespace) -> int:
         restart_at_s=args.restart_at,
         sync_seed=args.seed,
         full_rule=full_rule(args),
+        coarse=coarse_config(args),
     )
     options = SinkOptions(
         nmea_tcp_max_clients=args.nmea_tcp_max_clients,

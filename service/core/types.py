@@ -296,6 +296,11 @@ class Fix:
     # the receiver clock of each satellite system [m] by its RINEX letter, when the rows
     # came from more than one (``clock_bias_m`` is the first's: BeiDou's when present)
     clocks_m: dict[str, float] = field(default_factory=dict)
+    # how a fast fix was made: None for the paper's method (and SPP), "coarse_time" for the
+    # Doppler-prior coarse-time fix (service.engine.coarse), with its solved receive-time
+    # offset [s] (true receive time = the epoch's tag + time_offset_s)
+    method: str | None = None
+    time_offset_s: float | None = None
 
     @property
     def ok(self) -> bool:

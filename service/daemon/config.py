@@ -3,7 +3,8 @@
 The keys are the settings of :class:`DaemonConfig` (source, outputs, store, status), of
 :class:`service.core.receiver_setup.ReceiverSetup` with the prefix ``configure_`` (the
 receiver set-up run with ``configure = true``) and of
-:class:`service.engine.solver.SolverConfig` (the solver, shared by every command), declared
+:class:`service.engine.solver.SolverConfig` (the solver, shared by every command) and of
+:class:`service.engine.coarse.CoarseConfig` (the coarse-time first fix), declared
 once with their help, type and allowed values; :mod:`service.core.settings` parses and
 checks them. Unknown keys, wrong types and bad values raise
 :class:`~service.core.errors.ConfigError` with one line naming the file or flag and the key
@@ -43,6 +44,7 @@ from service.core.settings import (
     unknown_key_message,
 )
 from service.core.systems import DEFAULT_SYSTEMS, parse_systems
+from service.engine.coarse import CoarseConfig
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
 from service.output.sinks.base import HTTP_MAX_CLIENTS, NMEA_TCP_MAX_CLIENTS
@@ -169,6 +171,7 @@ class DaemonConfig:
         kind="str",
     )
     solver: SolverConfig = field(default_factory=SolverConfig)
+    coarse: CoarseConfig = field(default_factory=CoarseConfig)
     setup: ReceiverSetup = field(default_factory=ReceiverSetup)
 
     def resolved_state_dir(self) -> Path:
@@ -263,8 +266,9 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
     origin: dict[str, str] = {}
     daemon_keys = {f.name for f, _ in settings_of(DaemonConfig)}
     solver_keys = {f.name for f, _ in settings_of(SolverConfig)}
+    coarse_keys = {f.name for f, _ in settings_of(CoarseConfig)}
     setup_keys = {DAEMON_PREFIX + f.name for f, _ in settings_of(ReceiverSetup)}
-    known = daemon_keys | solver_keys | setup_keys
+    known = daemon_keys | solver_keys | coarse_keys | setup_keys
     if path is not None:
         p = Path(path)
         for key, value in _read_toml(p).items():
@@ -283,12 +287,13 @@ def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None
             values[key] = value
             origin[key] = "--" + key.replace("_", "-")
     solver = build(SolverConfig, {k: v for k, v in values.items() if k in solver_keys}, origin)
+    coarse = build(CoarseConfig, {k: v for k, v in values.items() if k in coarse_keys}, origin)
     daemon = build(DaemonConfig, {k: v for k, v in values.items() if k in daemon_keys}, origin)
     setup_values = {k: v for k, v in values.items() if k in setup_keys}
     setup = build(ReceiverSetup, setup_values, origin, DAEMON_PREFIX)
     ntrip_sources(daemon)  # a malformed NTRIP URL is a configuration error (one line, exit 2)
     parse_systems(daemon.systems)  # so is an unknown system letter
-    return _with_parts(daemon, solver, setup)
+    return _with_parts(daemon, solver, setup, coarse)
 
 
 def ntrip_sources(cfg: DaemonConfig) -> list[NtripUrl]:
@@ -307,9 +312,15 @@ def nav_files(cfg: DaemonConfig) -> list[str]:
     return [entry for entry in cfg.nav if not _is_url(entry)]
 
 
-def _with_parts(cfg: DaemonConfig, solver: SolverConfig, setup: ReceiverSetup) -> DaemonConfig:
+def _with_parts(
+    cfg: DaemonConfig,
+    solver: SolverConfig,
+    setup: ReceiverSetup,
+    coarse: CoarseConfig | None = None,
+) -> DaemonConfig:
     kw = {f.name: getattr(cfg, f.name) for f in fields(DaemonConfig)}
     kw["solver"] = solver
+    kw["coarse"] = coarse if coarse is not None else CoarseConfig()
     kw["setup"] = setup
     return DaemonConfig(**kw)
 
@@ -319,6 +330,7 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
     add_flags(parser, DaemonConfig, "daemon")
     add_flags(parser, ReceiverSetup, "receiver set-up (with configure = true)", DAEMON_PREFIX)
     add_flags(parser, SolverConfig, "solver")
+    add_flags(parser, CoarseConfig, "coarse-time first fix (fewer than 4 full ranges)")
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
@@ -326,4 +338,5 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         given(args, DaemonConfig)
         | given(args, ReceiverSetup, DAEMON_PREFIX)
         | given(args, SolverConfig)
+        | given(args, CoarseConfig)
     )

@@ -31,6 +31,9 @@ class Decline(StrEnum):
     NO_TIME = "no_time"
     OUT_OF_ORDER = "out_of_order"
     COARSE_TIME = "coarse_time"
+    TOO_FEW_ROWS = "too_few_rows"
+    NO_DOPPLER = "no_doppler"
+    AMBIGUOUS = "ambiguous"
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,6 +99,8 @@ DECLINES: dict[Decline, DeclineText] = {
             "": "chi-square test failed: {chi2:.1f} > {chi2_max:.1f} (redundancy "
             "{redundancy}; largest w-test {prn} {w:.1f})",
             "no_exclusion": "{reason}; no exclusion of up to {max_exclusions} satellites passes",
+            "coarse": "coarse-time fix: none of {candidates} integer candidates passes the "
+            "chi-square test",
         },
         "inconsistent pseudoranges that fault exclusion could not resolve",
     ),
@@ -139,7 +144,27 @@ DECLINES: dict[Decline, DeclineText] = {
         },
         "the receiver does not know its time well enough (e.g. a phone before its first "
         "fix: BiasUncertaintyNanos) for the fast fix to use ranges known modulo a period; "
-        "they wait for a coarse-time solution (not implemented yet) or for 4 full ranges",
+        "they wait until it is known within the coarse-time fix's time prior (time_prior_s) or "
+        "for 4 full ranges",
+    ),
+    Decline.TOO_FEW_ROWS: DeclineText(
+        "too few rows for the coarse-time fix",
+        {"": "coarse-time fix: {rows} usable rows, need {need} (5 unknowns, redundancy 2)"},
+        "fewer than 4 full GEO ranges and too few satellites for the coarse-time fix: "
+        "wait for more satellites or their SOW",
+    ),
+    Decline.NO_DOPPLER: DeclineText(
+        "no Doppler for the coarse-time fix",
+        {"": "coarse-time fix: {rows} Doppler rows, no Doppler position"},
+        "the coarse-time fix needs Doppler (RAWX doMes, RINEX D, MSM range rate)",
+    ),
+    Decline.AMBIGUOUS: DeclineText(
+        "ambiguous integers",
+        {
+            "": "coarse-time fix: {passing} integer candidates pass, {rivals} rivals within "
+            "the uniqueness margin"
+        },
+        "more than one integer set fits: the coarse-time fix declines rather than guess",
     ),
 }
 """The one table of decline words: label, reason templates and hint per code."""
@@ -172,8 +197,10 @@ def hint(code: str, command: str = "replay") -> str | None:
 EXCLUSIONS: dict[str, str] = {
     "gross": "pseudorange {dev_km:.4g} km from the epoch's median: impossible",
     "chi2": "chi-square test failed ({chi2:.1f} > {chi2_max:.1f}), w-test {w:.1f}",
+    "coarse": "coarse-time fix: no integer candidate passes with it, one passes without",
 }
-"""Why fault exclusion removed a satellite (``Fix.excluded``): an impossible range, or the
+"""Why fault exclusion removed a satellite (``Fix.excluded``): an impossible range, the coarse-time
+fix's exclusion (service.engine.coarse), or the
 failed test and the satellite's w-test."""
 
 

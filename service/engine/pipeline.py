@@ -1,7 +1,8 @@
 """The engine loop shared by replay and the daemon: events in, fixes and TRACK/STATUS out.
 
 Per measurement epoch: the tracker decides which measurements are full, the engine solves
-from all usable ones (the fast fix, which is SPP when everything is full), and integrity
+from all usable ones (the fast fix, which is SPP when everything is full; with fewer than
+four full ranges the coarse-time fix of :mod:`service.engine.coarse`), and integrity
 bookkeeping compares every recovered pseudorange with the full one that arrives once the
 satellite's SOW decodes. A refused solution is passed on as ``mode="none"`` with its reason,
 never as a position.
@@ -37,6 +38,7 @@ from service.core.types import (
     ReceiverFix,
     SatView,
 )
+from service.engine.coarse import CoarseConfig, solve_coarse
 from service.engine.declines import Decline, reason
 from service.engine.solver import (
     IonoSet,
@@ -148,6 +150,7 @@ class Pipeline:
     sync_seed: int = 0
     full_rule: str = DEFAULT_FULL_RULE  # when a restarted satellite is full (core.sow_rule)
     velocity: bool = True  # velocity from Doppler on each fix (off for studies of positions)
+    coarse: CoarseConfig = field(default_factory=CoarseConfig)  # the fix with < 4 full ranges
     on_track: Callable[[TrackEvent], None] | None = None
     tracker: FrameSyncTracker = field(default_factory=FrameSyncTracker)
     counters: Counters = field(default_factory=Counters)
@@ -251,18 +254,26 @@ class Pipeline:
             self._last_fix = None
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
+        whole = view  # with its fractional ranges, for the coarse-time fix
         view, set_aside = without_coarse_fractions(view)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
-        if set_aside and fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
-            self.counters["coarse_time_epochs"] += 1
-            why = reason(
-                Decline.COARSE_TIME,
-                time_unc_s=view.time_unc_s,
-                n_frac=set_aside,
-                n_full=int(np.isfinite(view.pr_m).sum()),
-                need=4,
-            )
-            fix = declined(view, Decline.COARSE_TIME, why)
+        if set_aside and view.time_unc_s > self.coarse.time_prior_s:
+            # the receiver's time is coarser than even the coarse-time fix's prior
+            if fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
+                self.counters["coarse_time_epochs"] += 1
+                why = reason(
+                    Decline.COARSE_TIME,
+                    time_unc_s=view.time_unc_s,
+                    n_frac=set_aside,
+                    n_full=int(np.isfinite(view.pr_m).sum()),
+                    need=4,
+                )
+                fix = declined(view, Decline.COARSE_TIME, why)
+        elif self.coarse.coarse_fix and (
+            fix.reason_code == Decline.TOO_FEW_FULL
+            or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
+        ):
+            fix = self._coarse_fix(whole, fix)
         if self.velocity:
             fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
@@ -286,6 +297,20 @@ class Pipeline:
             restarted_now,
             self._receiver_fix_near(epoch),
         )
+
+    def _coarse_fix(self, view: MeasurementEpoch, paper: Fix) -> Fix:
+        """The coarse-time fix (:mod:`service.engine.coarse`) of an epoch the paper's method
+        declined for want of four full ranges: its fix, or its decline when it found
+        candidates and none was safe to publish (``chi2``, ``ambiguous``, ``pdop_gate``);
+        else (too few rows, no Doppler) the paper's decline stands, the reason to wait."""
+        result = solve_coarse(view, self.store, self.iono, self.cfg, self.coarse)
+        fix = result.fix
+        if fix.ok:
+            self.counters["coarse_fixes"] += 1
+            return fix
+        if fix.reason_code in {Decline.CHI2, Decline.AMBIGUOUS, Decline.PDOP_GATE}:
+            return fix
+        return paper
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
         """The declined fix of an epoch without a week or not after the latest one."""

@@ -49,6 +49,10 @@ Field rules, common to all classes:
   minus receiver fix time), ``lat_deg lon_deg`` and when given ``alt_m`` (ellipsoidal)
   and ``accuracy_m`` (the receiver's own estimate); on a fix with a position ``dist_m``,
   the 3-D distance between the two.
+  A fast fix made by the coarse-time method (:mod:`service.engine.coarse`, fewer than four
+  full ranges) says so: ``method`` ``coarse_time`` and ``time_offset_s``, the solved error
+  of the epoch's time tag (true receive time = tag + offset, 1 µs resolution); the paper's
+  fast fix and SPP carry neither.
 ``SKY``: ``class gpst_week gpst_tow_s satellites``; each satellite ``prn el_deg az_deg
   used full signal`` plus ``cn0_dbhz`` when measured.
 ``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
@@ -181,6 +185,9 @@ def fix_record(
             rec["std_enu_m"] = [round(float(v), 4) for v in fix.std_enu_m]
         if fix.velocity is not None:
             _put_velocity(rec, fix.velocity)
+    if fix.ok and fix.method is not None:
+        rec["method"] = fix.method
+        _put(rec, "time_offset_s", fix.time_offset_s, 6)
     if fix.excluded:
         rec["excluded"] = dict(sorted(fix.excluded.items()))
     if not fix.ok:
@@ -426,6 +433,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                 "patternProperties": {"^[CGE][0-9]{2}$": {"type": "string", "minLength": 1}},
                 "additionalProperties": False,
             },
+            "method": {"enum": ["coarse_time"]},
+            "time_offset_s": _NUM,
             "reason": {"type": "string", "minLength": 1},
             "reason_code": {"type": "string", "minLength": 1},
             "receiver_fix": {

@@ -31,6 +31,7 @@ from service.core.files import PLOT_HINT
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s
 from service.core.types import Fix, MeasurementEpoch
+from service.engine.coarse import CoarseConfig
 from service.engine.pipeline import Pipeline
 from service.engine.solver import IonoSet, SolverConfig, solve
 
@@ -64,7 +65,9 @@ def run_trial(
     and time, from there, the first fix of the pipeline (fast), the first conventional SPP of
     the same view (>= 4 full measurements) and the first GEO-only SPP."""
     t0 = epochs[r]
-    pipeline = Pipeline(store, iono, cfg, full_rule=full_rule, velocity=False)
+    # the paper's method and SPP: the coarse-time fix (< 4 full ranges) is not timed here
+    off = CoarseConfig(coarse_fix=False)
+    pipeline = Pipeline(store, iono, cfg, full_rule=full_rule, velocity=False, coarse=off)
     pipeline.restart(t0, rng)
     fast = conv = geo = geo_err = diff = None
     for ep in epochs[r:]:

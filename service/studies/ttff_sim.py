@@ -217,6 +217,9 @@ def run_daemon_on_pty(
         "--max-eph-age-s",
         str(max_eph_age_s),
         *flags_of(cfg),
+        # the paper's method and SPP are timed here; the coarse-time fix is not
+        "--coarse-fix",
+        "false",
     ]
     for path in nav:
         cmd += ["--nav", str(path)]

@@ -58,9 +58,18 @@ CONTRACT_FIX_FIELDS = {
     "vpl_m",
     "std_enu_m",
 }
-CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m", "used_by_system", "receiver_fix"}
+CONDITIONAL_FIX_FIELDS = {
+    "excluded",
+    "reason_code",
+    "clocks_m",
+    "used_by_system",
+    "receiver_fix",
+    "method",
+    "time_offset_s",
+}
 """Fields present only when satellites were excluded / on a declined fix / on a fix from
-rows of more than one satellite system / when the source carries the receiver's own fix."""
+rows of more than one satellite system / when the source carries the receiver's own fix /
+on a fix of the coarse-time method."""
 VELOCITY_FIX_FIELDS = {
     "v_enu_m_s",
     "std_v_enu_m_s",

@@ -149,7 +149,8 @@ def test_hksc_restart_jsonl_integers_match_the_full_pseudoranges(tmp_path):
     n_checked = 0
     for f in fixes:
         row = row_of[round(f["gpst_tow_s"])]
-        for prn, n in f["ambiguity"].items():
+        # a coarse-time fix of all-fractional ranges claims no absolute integer
+        for prn, n in f.get("ambiguity", {}).items():
             pr = float(c2i[row, svs.index(prn)])
             z = pr % ct  # the fractional value the replay solved with
             assert round((pr - z) / ct) == n, (f["gpst_tow_s"], prn, n)

@@ -53,8 +53,10 @@ def test_hksc_replay_fixes_fast_and_near_the_survey(tmp_path):
 
 def test_hksc_restart_first_fast_fix_after_geos_then_spp_after_d1(tmp_path):
     """--restart-at: fractional until each SOW (the SOW-decode rule: 0.12 s into the first D2
-    subframe after bit sync, 1.2 s into the first D1 subframe); the first fast fix comes at
-    the first epoch with four GEOs full, and only SPP fixes once the D1 SOWs have arrived."""
+    subframe after bit sync, 1.2 s into the first D1 subframe); the first fast fix of the
+    paper's method comes at the first epoch with four GEOs full, and only SPP fixes once the
+    D1 SOWs have arrived. Before four GEOs are full the coarse-time fix
+    (service/engine/coarse.py) fixes the restart epoch itself."""
     d = DATA / "hksc-2021"
     recs = _replay(tmp_path, d / "hksc1610.obs", "--nav", d / "hksc1610.nav", "--restart-at", "60")
     fixes = [r for r in recs if r["class"] == "FIX"]
@@ -65,11 +67,12 @@ def test_hksc_restart_first_fast_fix_after_geos_then_spp_after_d1(tmp_path):
         if r["class"] == "TRACK" and r["event"] == "full" and r["gpst_tow_s"] >= t_restart
     ]
     after = [f for f in fixes if f["gpst_tow_s"] >= t_restart]
-    assert after[0]["since_start_s"] == 0.0 and after[0]["mode"] == "none"
+    assert after[0]["since_start_s"] == 0.0 and after[0]["mode"] == "fast"
+    assert after[0]["method"] == "coarse_time" and abs(after[0]["time_offset_s"]) < 0.01
     geo_full = sorted(t["since_start_s"] for t in track if t["nav_type"] == "D2")
     d1_full = sorted(t["since_start_s"] for t in track if t["nav_type"] == "D1")
     assert len(geo_full) == 5 and geo_full[3] <= 2.0
-    first_fast = next(f for f in after if f["mode"] == "fast")
+    first_fast = next(f for f in after if f["mode"] == "fast" and "method" not in f)
     assert first_fast["since_start_s"] == geo_full[3]  # the epoch the 4th GEO went full
     assert all(f["mode"] != "spp" for f in after if f["since_start_s"] < d1_full[-1])
     assert all(f["mode"] == "spp" for f in after if f["since_start_s"] >= d1_full[-1])
@@ -97,6 +100,7 @@ def test_restart_timeline_agrees_with_the_jsonl(tmp_path, capsys):
     track = [r for r in after if r["class"] == "TRACK" and r["event"] == "full"]
     want = {
         "first fast fix": next(f for f in fixes if f["mode"] == "fast")["since_start_s"],
+        # (the coarse-time fix of the restart epoch: 0 s)
         "first conventional fix": next(f for f in fixes if f["mode"] == "spp")["since_start_s"],
         "first GEO SOW decoded": min(t["since_start_s"] for t in track if t["nav_type"] == "D2"),
         "first non-GEO SOW decoded": min(

@@ -59,6 +59,9 @@ SCHEMA = {
             "vpl_m": float,
             "std_enu_m": list,
             "excluded": dict,
+            # the coarse-time first fix (issue 20)
+            "method": str,
+            "time_offset_s": float,
             # velocity from Doppler (issue 18)
             "v_enu_m_s": list,
             "std_v_enu_m_s": list,

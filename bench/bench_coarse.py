@@ -1,0 +1,178 @@
+"""The coarse-time first fix (service/engine/coarse.py) on real data, beside the plain chain.
+
+HKSC 2021 (static, Leica GR50) and the TST urban drive (u-blox, 4-12 m/s, ground truth):
+every epoch where SPP of the file's full ranges fixes is restarted with only k GEOs full
+(k = 0..3, the first k GEOs of the epoch; fewer where fewer are tracked) and every other
+range reduced modulo 1 ms (`fractionalize`); HKSC also with the time tag shifted by +-2 s
+(the tag and the full ranges together: a receiver clock 2 s wrong; fractional ranges are
+unchanged by a whole-millisecond shift). Each fix is checked against the file's full
+ranges: integers (absolute where the fix claims them, else relative to the first
+fractional satellite), distance to SPP of the full ranges, and on the drive the
+horizontal error against the ground truth and the fix's HPL.
+
+The plain chain (Pocket SDR `pocket_snap.py`, van Diggelen): the same Doppler position
+(height pseudo-observation 0), one rounding of every integer at it against the nearest
+satellite, the same five-state least squares, published without a test.
+
+Run: python bench/bench_coarse.py [--quick]   (prints figures; no assertions)
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.bench_urban import TST, ground_truth  # noqa: E402
+from drivers.rinex import RinexObsReader  # noqa: E402
+from service.commands.solve import load_navigation  # noqa: E402
+from service.core.bds import is_geo  # noqa: E402
+from service.core.constants import C_M_S  # noqa: E402
+from service.core.geometry import ecef_to_geodetic, enu_rotation  # noqa: E402
+from service.engine.coarse import CoarseConfig, plain_chain, solve_coarse  # noqa: E402
+from service.engine.solver import SolverConfig, fractionalize, solve  # noqa: E402
+
+HKSC = ROOT.parent / "shared" / "data" / "hksc-2021"
+CT_M = C_M_S * 1e-3
+
+
+@dataclass
+class Tally:
+    epochs: int = 0
+    fixes: int = 0
+    wrong: int = 0
+    absolute: int = 0
+    beyond_hpl: int = 0
+    eq_1mm: int = 0
+    diff_m: list[float] = field(default_factory=list)
+    err_h_m: list[float] = field(default_factory=list)
+    ms: list[float] = field(default_factory=list)
+    declines: dict[str, int] = field(default_factory=dict)
+    plain_fixes: int = 0
+    plain_wrong: int = 0
+    plain_far: int = 0
+    plain_err_km: list[float] = field(default_factory=list)
+
+
+def restarted(ep, k: int, shift_s: float):
+    """``ep`` with only its first k GEOs full, the tag and full ranges shifted."""
+    geos = [p for p, v in zip(ep.prn, ep.pr_m, strict=True) if is_geo(p) and np.isfinite(v)][:k]
+    fe = fractionalize(ep, keep_full=geos)
+    if shift_s:
+        fe = replace(fe, gpst_tow_s=fe.gpst_tow_s + shift_s, pr_m=fe.pr_m + shift_s * C_M_S)
+    return fe
+
+
+def true_integers(ep, fe, shift_s: float) -> dict[str, int]:
+    full = dict(zip(ep.prn, ep.pr_m.tolist(), strict=True))
+    frac = dict(zip(fe.prn, fe.frac_pr_m.tolist(), strict=True))
+    return {p: round((full[p] + shift_s * C_M_S - frac[p]) / CT_M) for p in fe.prn}
+
+
+def integers_wrong(result, truth: dict[str, int]) -> bool:
+    ints = result.integers or {}
+    if result.absolute:
+        return any(ints[p] != truth[p] for p in ints)
+    ref = next(iter(ints))
+    return any(ints[p] != truth[p] - truth[ref] for p in ints)
+
+
+def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
+    store, iono = load_navigation([str(nav)])
+    cfg, ccfg = SolverConfig(), CoarseConfig()
+    t = Tally()
+    for i, ep in enumerate(RinexObsReader(obs)):
+        if quick and i % 10:
+            continue
+        truth = truth_of(ep) if truth_of else None
+        if truth_of and truth is None:
+            continue
+        ref = solve(ep, store, iono, cfg, "spp")
+        if not ref.ok:
+            continue
+        t.epochs += 1
+        fe = restarted(ep, k, shift_s)
+        tru = true_integers(ep, fe, shift_s)
+        t0 = time.perf_counter()
+        res = solve_coarse(fe, store, iono, cfg, ccfg)
+        t.ms.append(1e3 * (time.perf_counter() - t0))
+        plain = plain_chain(fe, store, iono, cfg, ccfg)
+        if plain is not None:
+            t.plain_fixes += 1
+            x_p, ints_p = plain
+            ref0 = next(iter(ints_p))
+            t.plain_wrong += any(ints_p[p] - ints_p[ref0] != tru[p] - tru[ref0] for p in ints_p)
+            e_km = float(np.linalg.norm(x_p - np.asarray(ref.x_ecef_m))) / 1e3
+            t.plain_err_km.append(e_km)
+            t.plain_far += e_km > 1.0
+        fix = res.fix
+        if not fix.ok:
+            code = fix.reason_code or "?"
+            t.declines[code] = t.declines.get(code, 0) + 1
+            continue
+        t.fixes += 1
+        t.absolute += res.absolute
+        t.wrong += integers_wrong(res, tru)
+        d = float(np.linalg.norm(np.subtract(fix.x_ecef_m, ref.x_ecef_m)))
+        t.diff_m.append(d)
+        t.eq_1mm += d <= 1e-3
+        if truth is not None:
+            lat, lon, _ = ecef_to_geodetic(truth)
+            e = enu_rotation(lat, lon) @ np.subtract(fix.x_ecef_m, truth)
+            eh = math.hypot(e[0], e[1])
+            t.err_h_m.append(eh)
+            t.beyond_hpl += fix.hpl_m is not None and eh > fix.hpl_m
+    d = np.asarray(t.diff_m) if t.diff_m else np.asarray([math.nan])
+    ms = np.asarray(t.ms)
+    pe = np.asarray(t.plain_err_km) if t.plain_err_km else np.asarray([math.nan])
+    print(
+        f"{name:6} k={k} shift {shift_s:+.0f} s: {t.fixes}/{t.epochs} fixed "
+        f"({100 * t.fixes / max(t.epochs, 1):.1f} %), wrong integers {t.wrong}, absolute "
+        f"{t.absolute}, = SPP <= 1 mm {t.eq_1mm}, |fix - SPP| p50 {np.median(d):.3g} max "
+        f"{d.max():.3g} m; declines {t.declines}; {np.median(ms):.1f} ms p50, "
+        f"{np.percentile(ms, 99):.1f} ms p99"
+    )
+    if t.err_h_m:
+        eh = np.asarray(t.err_h_m)
+        print(
+            f"        horizontal error vs truth p50 {np.median(eh):.1f} p95 "
+            f"{np.percentile(eh, 95):.1f} max {eh.max():.1f} m; beyond HPL {t.beyond_hpl}"
+        )
+    print(
+        f"        plain chain: {t.plain_fixes} published, wrong integers {t.plain_wrong}, "
+        f">1 km from SPP {t.plain_far}, error p50 {np.median(pe):.3g} max {pe.max():.3g} km"
+    )
+    return t
+
+
+def main() -> None:
+    quick = "--quick" in sys.argv
+    truth = ground_truth()
+
+    def tst_truth(ep):
+        return truth.get((ep.gpst_week, round(ep.gpst_tow_s)))
+
+    for k in (0, 1, 2, 3):
+        for shift in (0.0, 2.0, -2.0):
+            run("HKSC", HKSC / "hksc1610.obs", HKSC / "hksc1610.nav", k, shift, quick=quick)
+    for k in (0, 1, 2, 3):
+        run(
+            "TST",
+            TST / "COM3_190428_124409.obs",
+            TST / "hksc1180.19b",
+            k,
+            0.0,
+            tst_truth,
+            quick=quick,
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,51 @@
+"""Monte Carlo of the coarse-time first fix over the whole globe (service/studies/coarse_mc.py):
+receivers uniform on the sphere, 0-50 m/s (5 % aircraft at 250 m/s, 10 km), host clock
+errors uniform within the +-2 s time prior, the real 2024 BeiDou-3 broadcast ephemerides of
+../shared/data/hk-polyu-f9p-ubx-2024/hksc269h.24f (C01-C62), times within an hour of their
+median t_oe (the generator and the solver use the same ephemerides).
+
+Run: python bench/bench_coarse_mc.py [N] [SEED]   (default 10000 trials, seed 1; prints
+figures; no assertions)
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from service.commands.solve import load_navigation  # noqa: E402
+from service.studies.coarse_mc import run  # noqa: E402
+
+NAV = ROOT.parent / "shared" / "data" / "hk-polyu-f9p-ubx-2024" / "hksc269h.24f"
+GPST_WEEK = 2333  # BDT week 977 of the file
+
+
+def main() -> None:
+    n = int(sys.argv[1]) if len(sys.argv) > 1 else 10_000
+    seed = int(sys.argv[2]) if len(sys.argv) > 2 else 1
+    store, iono = load_navigation([str(NAV)], max_age_s=86_400.0)
+    mid = float(np.median([e.toe_sow_s for e in store.all()])) + 14.0  # BDT -> GPST
+    t0 = time.perf_counter()
+    summary = run(store, iono, GPST_WEEK, (mid - 3600.0, mid + 3600.0), n, seed)
+    wall = time.perf_counter() - t0
+    print(f"bench_coarse_mc: {n} trials, seed {seed}, {1e3 * wall / n:.1f} ms per trial")
+    for key, value in summary.figures().items():
+        print(f"  {key:<16} {value:.4g}" if isinstance(value, float) else f"  {key:<16} {value}")
+    print(f"  declines         {summary.declines()}")
+    slow = [t for t in summary.trials if t.speed_m_s <= 50.0 and t.n_sats >= 7]
+    print(f"  <= 50 m/s with >= 7 satellites: {sum(t.fixed for t in slow)}/{len(slow)} fixed")
+    for t in summary.trials:
+        far = t.error_m is not None and t.error_m > 100.0
+        over = t.error_h_m is not None and t.hpl_m is not None and t.error_h_m > t.hpl_m
+        if t.wrong or far or over:
+            print(f"  {'WRONG' if t.wrong else 'far/over HPL'} {t}")
+
+
+if __name__ == "__main__":
+    main()

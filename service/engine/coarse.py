@@ -1,0 +1,830 @@
+"""A first fix without four full GEO ranges: Doppler prior, coarse time, validated integers.
+
+The paper's fast fix (:mod:`service.engine.solver`) needs four full GEO ranges to fix the
+position and clock before any integer millisecond is known (Zhao, Cui, Lu, eqs. 1-16). This
+module does without them, after coarse-time navigation (van Diggelen, *A-GPS*, ch. 4: a
+prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the time):
+
+1. **Doppler position** (:func:`doppler_position`). The pseudorange rate of satellite i is
+   rdot_i = e_i . (V_i - v) + d - c dts_i/dt (Kaplan & Hegarty 9.3, as
+   :mod:`service.engine.velocity`); with v = 0 the unknowns are the position x and the clock
+   drift d, solved by Gauss-Newton from the Earth's centre with
+   d(e_i . V_i)/dx = -(V_i - (e_i . V_i) e_i) / rho_i, and a height pseudo-observation
+   (h = 0 +- ``height_sigma_m``). A moving receiver biases it by about |v| / 2e-4 s^-1
+   (50 km at 10 m/s): the prior is not good enough to round integers once.
+2. **Candidate integer sets** (:func:`solve_coarse`). A hexagonal grid of prior hypotheses on
+   the ellipsoid, spacing ``grid_step_m``, out to ``search_radius_m`` around the Doppler
+   position; at each point the nearest-satellite rule predicts every range and rounds
+   N_j = round((rho_j + b - z_j) / (c T_j)), b taken from the full rows, or (none) from the
+   nearest satellite. A hypothesis within step / sqrt(3) of the truth rounds every integer
+   right: the range differences it predicts are wrong by at most
+   |e_j - e_r| |dx| <= 2 * 29 km, plus 20 km of height and 3.2 km of a 2 s time error,
+   well inside c T / 2. The distinct integer vectors are the candidates.
+3. **Coarse-time solve** of each candidate: unknowns x, b and the receive-time offset dt
+   (true receive time = tag + dt), rows [-e_j^T, 1, rdot_j] with rdot_j = e_j . V_j the
+   satellite's range rate (van Diggelen's coarse-time row), the satellites at
+   tag + dt - rho_j / c (each one's position interpolated to second order over the time
+   prior), Klobuchar and Saastamoinen delays and the weights of the solver's error model
+   (:func:`service.engine.solver.measurement_sigma_m`), and the time prior
+   dt = 0 +- ``time_prior_s`` as one more row.
+4. **Validation.** A candidate passes when its rows' redundancy (rows - 5) is at least
+   ``min_redundancy`` and its weighted residuals pass the chi-square test at the solver's
+   ``p_fa`` (:func:`service.engine.raim.chi2_threshold`), at a plausible place: height in
+   [``alt_min_m``, ``alt_max_m``], |dt| within the prior, every tracked satellite above
+   ``-horizon_deg``. It is published only if no other plausible candidate has a statistic
+   below ``uniqueness_margin`` times its own threshold; else the epoch is declined
+   ``ambiguous``.
+5. **The fix.** The winner's integers make full ranges; a fix is then the solver's own SPP
+   of them (all of :func:`service.engine.solver.solve`'s corrections and integrity), at the
+   epoch's tag when full rows anchor the clock (so the fix equals SPP of the true full
+   ranges), else at tag + dt with the ranges less the solved clock (the millisecond common
+   to every range is not observable without a full range: the fix is then the coarse-time
+   solution, not SPP at the true time).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
+from service.core.corrections import sagnac_rotate
+from service.core.ephemeris import EphemerisStore
+from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
+from service.core.settings import setting
+from service.core.timebase import gpst_to_bdt
+from service.core.types import Ephemeris, Fix, MeasurementEpoch
+from service.engine.declines import Decline, excluded_why, reason
+from service.engine.layout import Layout
+from service.engine.raim import assess, chi2_threshold
+from service.engine.solver import (
+    IonoSet,
+    SolverConfig,
+    declined,
+    delays,
+    measurement_sigma_m,
+    ranges,
+    solve,
+    total_delay,
+)
+from service.engine.velocity import range_rate_m_s
+
+log = logging.getLogger(__name__)
+
+COARSE_TIME = "coarse_time"
+"""``Fix.method`` of a fix made here (the paper's fast fix and SPP leave it None)."""
+COARSE_LAYOUT = Layout(coarse_time=True)
+
+N_PARAMS = 5
+"""Unknowns of a candidate's solve: x, y, z, the clock and the coarse-time offset (the
+position layout with ``coarse_time=True``, BeiDou alone: :class:`service.engine.layout.Layout`)."""
+
+
+@dataclass(frozen=True, slots=True)
+class CoarseConfig:
+    """Settings of the coarse-time first fix (module docstring)."""
+
+    coarse_fix: bool = setting(
+        True,
+        "coarse-time first fix when fewer than 4 ranges are full (Doppler prior, coarse "
+        "time, validated integer search)",
+        kind="bool",
+    )
+    time_prior_s: float = setting(
+        2.0,
+        "coarse fix: uncertainty of the epoch's time tag (host clock) [s]",
+        kind="float",
+        low=0.0,
+        low_open=True,
+        high=30.0,
+    )
+    search_radius_m: float = setting(
+        1_500e3,
+        "coarse fix: largest distance of a prior hypothesis from the Doppler position [m] "
+        "(the search covers search_sigmas of the Doppler position's covariance within it)",
+        kind="float",
+        low=0.0,
+        high=5_000e3,
+    )
+    search_sigmas: float = 4.5
+    speed_sigma_m_s: float = setting(
+        25.0,
+        "coarse fix: prior 1-sigma of the receiver's speed on each horizontal axis [m/s] "
+        "(25: 50 m/s at 2 sigma)",
+        kind="float",
+        low=0.0,
+    )
+    vertical_speed_sigma_m_s: float = 2.0
+    grid_step_m: float = 50e3
+    uniqueness_margin: float = setting(
+        10.0,
+        "coarse fix: a rival integer set must have a chi-square statistic above this many "
+        "times its threshold, else the epoch is declined ambiguous",
+        kind="float",
+        low=1.0,
+    )
+    min_redundancy: int = 2
+    coarse_max_exclusions: int = setting(
+        1,
+        "coarse fix: rows fault exclusion may leave out when no candidate passes (0 or 1)",
+        kind="int",
+        low=0,
+        high=1,
+    )
+    height_sigma_m: float = 2_000.0
+    doppler_sigma_m_s: float = 0.5
+    alt_min_m: float = -2_000.0
+    alt_max_m: float = 15_000.0
+    horizon_deg: float = 5.0
+    iterations: int = 7
+
+
+@dataclass(frozen=True, slots=True)
+class DopplerPrior:
+    """A Doppler position: ECEF [m], clock drift [m/s], the horizontal covariance of the
+    position and the rows used."""
+
+    x_ecef_m: np.ndarray
+    drift_m_s: float
+    q_en_m2: np.ndarray  # horizontal (east, north) covariance [m^2]
+    n_rows: int
+
+    @property
+    def sigma_h_m(self) -> float:
+        """1-sigma of the covariance's larger horizontal axis [m]."""
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.q_en_m2)[-1]), 0.0))
+
+
+@dataclass(frozen=True, slots=True)
+class CoarseResult:
+    """What :func:`solve_coarse` found: the published fix (or the decline), the winning
+    candidate's time offset [s] and integers, and the search's figures."""
+
+    fix: Fix
+    time_offset_s: float | None = None
+    integers: dict[str, int] | None = None
+    prior: DopplerPrior | None = None
+    candidates: int = 0
+    passing: int = 0
+    absolute: bool = False
+    """The integers are absolute (full rows anchor them, or the solved time resolved the
+    common millisecond): the fix is SPP of the full ranges they make. Else ``integers`` are
+    relative to the first fractional satellite and the fix is the coarse-time solution."""
+
+
+@dataclass(slots=True, eq=False)
+class _Sats:
+    """The rows of one epoch with their satellites' states, as second-order polynomials of
+    time about ``t0`` (BDT sow): position, velocity and clock."""
+
+    prn: tuple[str, ...]
+    z_m: np.ndarray
+    ct_m: np.ndarray
+    cn0_dbhz: np.ndarray
+    doppler_hz: np.ndarray
+    eph: EphemerisArrays
+    t0: float
+    p0: np.ndarray
+    p1: np.ndarray
+    p2: np.ndarray
+    c0: np.ndarray
+    c1: np.ndarray
+    c2: np.ndarray
+    drift_s_s: np.ndarray
+
+    def at(self, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions (..., n, 3), velocities and clocks (..., n) at t0 + ``tau_s`` (..., n)."""
+        t = tau_s[..., None]
+        pos = self.p0 + (self.p1 + self.p2 * t) * t
+        vel = self.p1 + 2.0 * self.p2 * t
+        clk = self.c0 + (self.c1 + self.c2 * tau_s) * tau_s
+        return pos, vel, clk
+
+
+def _sats(
+    epoch: MeasurementEpoch, store: EphemerisStore, bdt_week: int, bdt_sow: float, span_s: float
+) -> _Sats | None:
+    """The BeiDou rows of ``epoch`` with an ephemeris and a full or fractional range."""
+    idx: list[int] = []
+    ephs: list[Ephemeris] = []
+    full = np.isfinite(epoch.pr_m)
+    frac = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
+    for i in np.flatnonzero(full | frac).tolist():
+        if not epoch.prn[i].startswith("C"):
+            continue
+        e = store.select(epoch.prn[i], bdt_week, bdt_sow)
+        if e is not None:
+            idx.append(i)
+            ephs.append(e)
+    if not idx:
+        return None
+    ii = np.asarray(idx)
+    arr = store.arrays(ephs)
+    t0 = bdt_sow - NOMINAL_FLIGHT_TIME_S
+    h = max(span_s, 0.5)
+    n = len(idx)
+    (pm, cm), (pz, cz), (pp, cp) = (
+        sat_pos_clock(arr, bdt_week, np.full(n, t0 + k * h)) for k in (-1.0, 0.0, 1.0)
+    )
+    _, _, _, drift = sat_pos_vel_clock(arr, bdt_week, np.full(n, t0))
+    return _Sats(
+        prn=tuple(epoch.prn[i] for i in idx),
+        z_m=np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii]),
+        ct_m=np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii]),
+        cn0_dbhz=epoch.cn0_dbhz[ii],
+        doppler_hz=epoch.doppler_hz[ii],
+        eph=arr,
+        t0=t0,
+        p0=pz,
+        p1=(pp - pm) / (2 * h),
+        p2=(pp - 2 * pz + pm) / (2 * h * h),
+        c0=cz,
+        c1=(cp - cm) / (2 * h),
+        c2=(cp - 2 * cz + cm) / (2 * h * h),
+        drift_s_s=drift,
+    )
+
+
+def _up(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Geodetic height [m] and the local up unit vector of points ``x`` (..., 3)."""
+    lat, lon, alt = ecef_to_geodetic(x)
+    lat, lon = np.asarray(lat), np.asarray(lon)
+    up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=-1)
+    return np.asarray(alt), up
+
+
+def doppler_position(
+    sats: _Sats, ccfg: CoarseConfig, speed_sigma_m_s: float | None = None
+) -> DopplerPrior | None:
+    """Position, clock drift and the receiver's velocity from the Doppler rows alone (module
+    docstring, step 1), from the Earth's centre: first at rest, then with the velocity as
+    three more unknowns held by a prior of ``speed_sigma_m_s`` on each horizontal axis
+    (``ccfg.speed_sigma_m_s`` when None; 0: at rest) and ``vertical_speed_sigma_m_s``, so
+    that the covariance says how far a moving receiver's Doppler position may be off.
+    None with fewer than 4 Doppler rows or no convergence."""
+    ok = np.isfinite(sats.doppler_hz)
+    if ok.sum() < 4:
+        return None
+    sv = ccfg.speed_sigma_m_s if speed_sigma_m_s is None else speed_sigma_m_s
+    rr = range_rate_m_s(sats.prn, sats.doppler_hz)[ok]
+    pos = sats.p0[ok]
+    vel = sats.p1[ok]
+    ddts = sats.drift_s_s[ok]
+    omega = sats.eph.omega_e_rad_s[ok]
+    n = len(rr)
+    x = np.zeros(3)
+    d = 0.0
+    v_rx = np.zeros(3)
+    cov: np.ndarray = np.eye(7)
+    moving = False
+    for _ in range(40):
+        tau = np.linalg.norm(pos - x, axis=1) / C_M_S
+        s = sagnac_rotate(pos, tau, omega)
+        v = sagnac_rotate(vel, tau, omega)
+        dv = s - x
+        rho = np.linalg.norm(dv, axis=1)
+        e = dv / rho[:, None]
+        ev = np.einsum("ij,ij->i", e, v - v_rx)
+        pred = ev + d - C_M_S * ddts
+        h = np.zeros((n + 4, 7))
+        r = np.zeros(n + 4)
+        w = np.empty(n + 4)
+        h[:n, :3] = -((v - v_rx) - ev[:, None] * e) / rho[:, None]
+        h[:n, 3] = 1.0
+        h[:n, 4:] = -e
+        r[:n] = rr - pred
+        w[:n] = 1.0 / ccfg.doppler_sigma_m_s**2
+        if np.linalg.norm(x) > 1e6:
+            alt, up = _up(x)
+            r[n] = -float(alt)
+            h[n, :3] = up
+            lat, lon, _ = ecef_to_geodetic(x)
+            rot = enu_rotation(float(lat), float(lon))
+        else:  # from the centre: the sphere's radius, the velocity held at 0
+            nx = max(float(np.linalg.norm(x)), 1.0)
+            r[n] = 6_371e3 - nx
+            h[n, :3] = x / nx if nx > 1.0 else 0.0
+            rot = np.eye(3)
+        w[n] = 1.0 / ccfg.height_sigma_m**2
+        h[n + 1 :, 4:] = rot
+        r[n + 1 :] = -(rot @ v_rx)
+        sig = (sv, sv, ccfg.vertical_speed_sigma_m_s) if moving and sv > 0 else (1e-3,) * 3
+        w[n + 1 :] = 1.0 / np.square(sig)
+        hw = h.T * w
+        try:
+            cov = np.asarray(np.linalg.inv(hw @ h), dtype=float)
+        except np.linalg.LinAlgError:
+            return None
+        step = cov @ (hw @ r)
+        x = x + step[:3]
+        d += float(step[3])
+        v_rx = v_rx + step[4:]
+        if float(np.linalg.norm(step[:3])) < 10.0:
+            if moving or sv <= 0:
+                break
+            moving = True
+    else:
+        return None
+    if not np.all(np.isfinite(x)):
+        return None
+    lat, lon, _ = ecef_to_geodetic(x)
+    rot2 = enu_rotation(float(lat), float(lon))[:2]
+    q = rot2 @ cov[:3, :3] @ rot2.T
+    return DopplerPrior(x, d, q, int(ok.sum()))
+
+
+def hypotheses(
+    prior_ecef_m: np.ndarray,
+    q_en_m2: np.ndarray | None,
+    kappa: float,
+    radius_m: float,
+    step_m: float,
+) -> np.ndarray:
+    """Prior hypotheses (m, 3): a hexagonal grid of spacing ``step_m`` in the prior's local
+    horizontal plane over the ellipse x^T Q^-1 x <= kappa^2 of the horizontal covariance
+    ``q_en_m2`` (None: a circle of ``radius_m``), never beyond ``radius_m``, the prior
+    itself always among them; each point put on the ellipsoid (height 0)."""
+    lat, lon, _ = ecef_to_geodetic(prior_ecef_m)
+    rot = enu_rotation(float(lat), float(lon))
+    extent = radius_m
+    if q_en_m2 is not None:
+        extent = min(radius_m, kappa * math.sqrt(max(float(np.linalg.eigvalsh(q_en_m2)[-1]), 0)))
+    k = math.ceil(extent / step_m) + 1
+    i, j = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
+    east = step_m * (i + 0.5 * j)
+    north = step_m * (math.sqrt(3.0) / 2.0) * j
+    keep = np.hypot(east, north) <= radius_m + 1e-6
+    if q_en_m2 is not None:
+        qi = np.linalg.inv(q_en_m2 + np.eye(2) * 1e-6)
+        m2 = qi[0, 0] * east**2 + 2 * qi[0, 1] * east * north + qi[1, 1] * north**2
+        # a cell's worth of margin: the truth within the ellipse has a point within step
+        edge = (kappa + step_m / math.sqrt(max(float(np.linalg.eigvalsh(q_en_m2)[0]), 1.0))) ** 2
+        keep &= m2 <= edge
+    keep |= (i == 0) & (j == 0)
+    enu = np.stack([east[keep], north[keep], np.zeros(int(keep.sum()))], axis=-1)
+    pts = prior_ecef_m + enu @ rot
+    glat, glon, _ = ecef_to_geodetic(pts)
+    return geodetic_to_ecef(glat, glon, np.zeros_like(glat))
+
+
+def _round(sats: _Sats, pts: np.ndarray) -> np.ndarray:
+    """The integer vector (m, n) the nearest-satellite rule gives at each hypothesis: full
+    rows (N = 0) fix the clock where there are any, else the nearest satellite does."""
+    n = len(sats.prn)
+    sat = np.broadcast_to(sats.p0, (len(pts), n, 3))
+    clk = np.broadcast_to(sats.c0, (len(pts), n))
+    omega = np.broadcast_to(sats.eph.omega_e_rad_s, (len(pts), n))
+    _, pred, _ = ranges(sat, clk, pts, omega)
+    frac = sats.ct_m > 0
+    ct = np.where(frac, sats.ct_m, 1.0)
+    if (~frac).any():
+        b = np.median((sats.z_m - pred)[:, ~frac], axis=1)
+    else:
+        ref = np.argmin(pred, axis=1)
+        rows = np.arange(len(pts))
+        b = sats.z_m[ref] + np.round((pred[rows, ref] - sats.z_m[ref]) / ct[ref]) * ct[ref]
+        b = b - pred[rows, ref]
+    n_int = np.round((pred + b[:, None] - sats.z_m) / ct)
+    return np.where(frac, n_int, 0.0)
+
+
+@dataclass(slots=True, eq=False)
+class _Solved:
+    x: np.ndarray  # (k, 3)
+    b: np.ndarray  # (k,)
+    dt: np.ndarray  # (k,)
+    t_stat: np.ndarray  # (k,)
+    dof: np.ndarray  # (k,)
+    alt: np.ndarray  # (k,)
+    min_el_rad: np.ndarray  # (k,)
+    normal: np.ndarray  # (k, 5, 5) the last normal matrix (with the time prior)
+    design: np.ndarray  # (k, n, 5) at the solution
+    resid_m: np.ndarray  # (k, n)
+    weight: np.ndarray  # (k, n): 1 / sigma^2, 0 below the mask
+
+
+def _solve_candidates(
+    sats: _Sats,
+    n_int: np.ndarray,
+    x0: np.ndarray,
+    bdt_sow: float,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> _Solved:
+    """The coarse-time solve (module docstring, step 3) of every candidate at once."""
+    k, n = n_int.shape
+    p = sats.z_m + n_int * sats.ct_m  # (k, n)
+    omega = np.broadcast_to(sats.eph.omega_e_rad_s, (k, n))
+    model = iono.model(cfg.iono)
+    x = x0.copy()
+    dt = np.zeros(k)
+    rel = bdt_sow - sats.t0  # the tag's receive time, from t0
+    # the clock from the first geometry
+    pos, _, clk = sats.at(np.full((k, n), rel - NOMINAL_FLIGHT_TIME_S))
+    _, pred, _ = ranges(pos, clk, x, omega)
+    b = np.median(p - pred, axis=1)
+    w_prior = 1.0 / ccfg.time_prior_s**2
+    mask_sin = math.sin(math.radians(cfg.elmask_deg))
+    carrier = sats.eph.carrier_hz
+    el = np.zeros((k, n))
+    alt = np.zeros(k)
+    v = np.zeros((k, n))
+    w = np.ones((k, n))
+    for it in range(ccfg.iterations):
+        d = pos - x[:, None, :]
+        tau = np.sqrt(np.einsum("kni,kni->kn", d, d)) / C_M_S
+        pos, vel, clk = sats.at(rel + dt[:, None] - tau)
+        los, pred, _ = ranges(pos, clk, x, omega)
+        vel = sagnac_rotate(vel, tau, omega)
+        rdot = np.einsum("kni,kni->kn", los, vel)
+        lat, lon, alt = ecef_to_geodetic(x)
+        rot = enu_rotation(lat, lon)  # (k, 3, 3)
+        enu = np.einsum("kij,knj->kni", rot, los)
+        el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
+        az = np.arctan2(enu[..., 0], enu[..., 1])
+        near = it >= 2
+        if near:
+            io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
+            corr = total_delay(io, tr)
+            sigma = measurement_sigma_m(el, sats.cn0_dbhz, io, tr, cfg)
+            w = np.where(enu[..., 2] >= mask_sin, 1.0 / sigma**2, 0.0)
+        else:
+            corr = 0.0
+            w = np.full((k, n), 1e-2)
+        v = p - pred - b[:, None] - corr
+        h = np.concatenate([-los, np.ones((k, n, 1)), rdot[..., None]], axis=-1)
+        hw = h * w[..., None]
+        normal = np.einsum("kni,knj->kij", hw, h)
+        normal[:, 4, 4] += w_prior
+        rhs = np.einsum("kni,kn->ki", hw, v)
+        rhs[:, 4] += w_prior * (0.0 - dt)
+        try:
+            step = np.linalg.solve(normal, rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.stack(
+                [np.linalg.lstsq(a, r, rcond=None)[0] for a, r in zip(normal, rhs, strict=True)]
+            )
+        x = x + step[:, :3]
+        b = b + step[:, 3]
+        dt = dt + step[:, 4]
+    t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
+    dof = (w > 0).sum(axis=1) - N_PARAMS
+    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), el.min(axis=1), normal, h, v, w)
+
+
+def _inv_diag(m: np.ndarray) -> np.ndarray:
+    """The diagonal of the inverse of ``m`` (inf where singular)."""
+    try:
+        return np.diag(np.linalg.inv(m))
+    except np.linalg.LinAlgError:
+        return np.full(len(m), np.inf)
+
+
+def solve_coarse(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    ccfg: CoarseConfig | None = None,
+) -> CoarseResult:
+    """The coarse-time first fix of one epoch (module docstring): a :class:`CoarseResult`
+    whose ``fix`` is the published fix or a decline (``too_few_rows``, ``no_doppler``,
+    ``chi2``, ``ambiguous``). Never raises for bad input or numbers."""
+    cfg = cfg or SolverConfig()
+    ccfg = ccfg or CoarseConfig()
+    iono = iono or IonoSet()
+    if not epoch.week_known:
+        return CoarseResult(declined(epoch, Decline.NO_TIME, reason(Decline.NO_TIME)))
+    try:
+        with np.errstate(all="ignore"):
+            return _solve_coarse(epoch, store, iono, cfg, ccfg)
+    except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
+        log.debug("coarse failure at GPST %.3f", epoch.gpst_tow_s, exc_info=True)
+        why = reason(Decline.NUMERICAL, error=type(exc).__name__, message=exc)
+        return CoarseResult(declined(epoch, Decline.NUMERICAL, why))
+
+
+def _solve_coarse(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> CoarseResult:
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s)
+    need = N_PARAMS + ccfg.min_redundancy
+    if sats is None or len(sats.prn) < need:
+        have = 0 if sats is None else len(sats.prn)
+        why = reason(Decline.TOO_FEW_ROWS, rows=have, need=need)
+        return CoarseResult(declined(epoch, Decline.TOO_FEW_ROWS, why))
+    prior = doppler_position(sats, ccfg)
+    if prior is None:
+        why = reason(Decline.NO_DOPPLER, rows=int(np.isfinite(sats.doppler_hz).sum()))
+        return CoarseResult(declined(epoch, Decline.NO_DOPPLER, why))
+    pts = hypotheses(
+        prior.x_ecef_m, prior.q_en_m2, ccfg.search_sigmas, ccfg.search_radius_m, ccfg.grid_step_m
+    )
+    n_all = _round(sats, pts)
+    frac = sats.ct_m > 0
+    if not (~frac).any():  # the common millisecond goes into the clock (module docstring)
+        n_all = n_all - n_all[:, :1]
+    cand, first = np.unique(n_all, axis=0, return_index=True)
+    x0 = pts[first]
+    ev = _evaluate(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
+    base = CoarseResult(
+        declined(epoch, Decline.NUMERICAL, ""),
+        prior=prior,
+        candidates=len(cand),
+        passing=int(ev.passing.sum()),
+    )
+    excluded: dict[str, str] = {}
+    if not ev.passing.any() and ccfg.coarse_max_exclusions > 0 and len(sats.prn) - 1 >= need:
+        # fault exclusion: each row left out in turn, every candidate again; published only
+        # if every passing or rival solution of every subset agrees on the common rows
+        outcome = _exclude_one(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
+        if isinstance(outcome, str):
+            why = reason(Decline.AMBIGUOUS, passing=0, rivals=outcome)
+            return replace(base, fix=declined(epoch, Decline.AMBIGUOUS, why))
+        if outcome is not None:
+            j, sats, cand, ev = outcome
+            excluded = {prn: excluded_why("coarse") for prn in j}
+            frac = sats.ct_m > 0
+    solved, passing, rivals, t_max = ev.solved, ev.passing, ev.rivals, ev.t_max
+    if not passing.any():
+        best_dof = int(solved.dof.max())
+        if best_dof < ccfg.min_redundancy:
+            why = reason(Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS, need=need)
+            return replace(base, fix=declined(epoch, Decline.TOO_FEW_ROWS, why))
+        why = reason(Decline.CHI2, "coarse", candidates=len(cand))
+        return replace(base, fix=declined(epoch, Decline.CHI2, why))
+    ratio = np.where(passing, solved.t_stat / t_max, np.inf)
+    best = int(np.argmin(ratio))
+    if int(rivals.sum()) > 1:
+        why = reason(Decline.AMBIGUOUS, passing=int(passing.sum()), rivals=int(rivals.sum()) - 1)
+        return replace(base, fix=declined(epoch, Decline.AMBIGUOUS, why))
+    n_best = cand[best]
+    p_full = sats.z_m + n_best * sats.ct_m
+    dt = float(solved.dt[best])
+    b = float(solved.b[best])
+    absolute = bool((~frac).any())
+    if not absolute:
+        # the common millisecond from the time offset: the full ranges are p - K c T with
+        # K c T = b + c dt (the receiver clock is the tag's error); resolved when the
+        # solved time leaves no doubt about the millisecond (4 sigma inside half of it)
+        ct = float(sats.ct_m[frac][0])
+        k_float = (b + C_M_S * dt) / ct
+        shift = round(k_float)
+        sigma_dt = math.sqrt(max(float(_inv_diag(solved.normal[best])[4]), 0.0))
+        doubt = abs(k_float - shift) + 4.0 * C_M_S * sigma_dt / ct
+        if doubt < 0.5:
+            absolute = True
+            n_best = n_best - shift * frac
+            p_full = sats.z_m + n_best * sats.ct_m
+    fractional = tuple(p for p, f in zip(sats.prn, frac, strict=True) if f)
+    integers = {p: int(k) for p, k, f in zip(sats.prn, n_best, frac, strict=True) if f}
+    if absolute:
+        fix = solve(_full_epoch(epoch, sats.prn, p_full), store, iono, cfg, "spp")
+        recovered = {
+            p: float(z + k * c)
+            for p, z, k, c, f in zip(sats.prn, sats.z_m, n_best, sats.ct_m, frac, strict=True)
+            if f
+        }
+    else:
+        fix = _coarse_fix(epoch, sats, solved, best, cfg)
+        recovered = {}
+        ref = fractional[0]
+        integers = {p: k - integers[ref] for p, k in integers.items()}
+    if fix.ok:
+        fix = replace(
+            fix,
+            solver="fast",
+            mode="fast",
+            full=tuple(p for p in fix.used if p not in integers),
+            fractional=fractional,
+            ambiguity=integers if absolute else {},
+            recovered_pr_m=recovered,
+            method=COARSE_TIME,
+            time_offset_s=dt,
+            excluded={**excluded, **fix.excluded},
+        )
+    return replace(base, fix=fix, time_offset_s=dt, integers=integers, absolute=absolute)
+
+
+@dataclass(slots=True, eq=False)
+class _Evaluation:
+    solved: _Solved
+    t_max: np.ndarray
+    passing: np.ndarray
+    rivals: np.ndarray
+
+
+def _evaluate(
+    sats: _Sats,
+    cand: np.ndarray,
+    x0: np.ndarray,
+    bdt_sow: float,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> _Evaluation:
+    """Solve and judge every candidate (module docstring, steps 3-4)."""
+    solved = _solve_candidates(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
+    t_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r >= 1 else np.inf for r in solved.dof])
+    plausible = (
+        (solved.alt >= ccfg.alt_min_m)
+        & (solved.alt <= ccfg.alt_max_m)
+        & (np.abs(solved.dt) <= 1.5 * ccfg.time_prior_s)
+        & (solved.min_el_rad >= -math.radians(ccfg.horizon_deg))
+        & np.isfinite(solved.t_stat)
+    )
+    passing = plausible & (solved.dof >= ccfg.min_redundancy) & (solved.t_stat <= t_max)
+    rivals = plausible & (solved.t_stat <= ccfg.uniqueness_margin * t_max)
+    return _Evaluation(solved, t_max, passing, rivals)
+
+
+def _take(sats: _Sats, idx: np.ndarray) -> _Sats:
+    """The rows ``idx`` of ``sats``."""
+    return _Sats(
+        prn=tuple(sats.prn[i] for i in idx),
+        z_m=sats.z_m[idx],
+        ct_m=sats.ct_m[idx],
+        cn0_dbhz=sats.cn0_dbhz[idx],
+        doppler_hz=sats.doppler_hz[idx],
+        eph=sats.eph.take(idx),
+        t0=sats.t0,
+        p0=sats.p0[idx],
+        p1=sats.p1[idx],
+        p2=sats.p2[idx],
+        c0=sats.c0[idx],
+        c1=sats.c1[idx],
+        c2=sats.c2[idx],
+        drift_s_s=sats.drift_s_s[idx],
+    )
+
+
+def _exclude_one(
+    sats: _Sats,
+    cand: np.ndarray,
+    x0: np.ndarray,
+    bdt_sow: float,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> tuple[tuple[str], _Sats, np.ndarray, _Evaluation] | str | None:
+    """One row left out (fault exclusion, as the solver's FDE, over every candidate): the
+    row left out, the other rows, their candidates and evaluation of the best subset whose
+    winner passes; None when no subset passes; a text (the rivals) when subsets disagree:
+    a passing or rival solution of any subset whose integers differ from the winner's on
+    the rows both use (relative to a common fractional row when no row is full)."""
+    n = len(sats.prn)
+    found = []
+    for j in range(n):
+        keep = np.array([i for i in range(n) if i != j])
+        sub = _take(sats, keep)
+        cj = cand[:, keep]
+        if not (sub.ct_m == 0).any():
+            cj = cj - cj[:, :1]
+        cj, first = np.unique(cj, axis=0, return_index=True)
+        ev = _evaluate(sub, cj, x0[first], bdt_sow, iono, cfg, ccfg)
+        found.append((j, keep, sub, cj, ev))
+    best = None
+    for j, keep, sub, cj, ev in found:
+        if ev.passing.any():
+            ratio = np.where(ev.passing, ev.solved.t_stat / ev.t_max, np.inf)
+            k = int(np.argmin(ratio))
+            if best is None or ratio[k] < best[0]:
+                best = (float(ratio[k]), j, k)
+    if best is None:
+        return None
+    _, jb, kb = best
+    keep_b, sub_b, cand_b, ev_b = found[jb][1], found[jb][2], found[jb][3], found[jb][4]
+    win = dict(zip(keep_b.tolist(), cand_b[kb].tolist(), strict=True))
+    absolute = bool((sats.ct_m == 0).any())
+    rivals = 0
+    for j, keep, _, cj, ev in found:
+        common = [i for i in keep.tolist() if i in win]
+        frac_common = [i for i in common if sats.ct_m[i] > 0]
+        cols = [keep.tolist().index(i) for i in common]
+        for k in np.flatnonzero(ev.rivals | ev.passing).tolist():
+            if j == jb and k == kb:
+                continue
+            mine = cj[k, cols]
+            theirs = np.array([win[i] for i in common])
+            if not absolute and frac_common:
+                r = common.index(frac_common[0])
+                mine, theirs = mine - mine[r], theirs - theirs[r]
+            if np.any(mine != theirs):
+                rivals += 1
+    if rivals:
+        return f"{rivals} (one row left out)"
+    return (sats.prn[jb],), sub_b, cand_b, ev_b
+
+
+def _coarse_fix(
+    epoch: MeasurementEpoch, sats: _Sats, solved: _Solved, best: int, cfg: SolverConfig
+) -> Fix:
+    """The coarse-time solution itself as a fix (the common millisecond unresolved): the
+    winner's position, its integrity from the 5-column design (chi-square, protection
+    levels: :func:`service.engine.raim.assess` with the coarse-time layout), the PDOP gate."""
+    used = solved.weight[best] > 0
+    x = solved.x[best]
+    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
+    rot = enu_rotation(lat, lon)
+    sigma = 1.0 / np.sqrt(solved.weight[best][used])
+    integ = assess(
+        solved.design[best][used],
+        solved.resid_m[best][used],
+        sigma,
+        rot,
+        cfg.p_fa,
+        cfg.p_md,
+        COARSE_LAYOUT,
+    )
+    g = solved.design[best][used]
+    pdop = math.sqrt(max(float(np.sum(_inv_diag(g.T @ g)[:3])), 0.0))
+    if not pdop <= cfg.pdop_max:  # the geometry's, with the coarse-time column
+        why = reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
+        return declined(epoch, Decline.PDOP_GATE, why)
+    cov = integ.cov_enu_m2
+    prns = tuple(p for p, u in zip(sats.prn, used, strict=True) if u)
+    resid = solved.resid_m[best][used]
+    return Fix(
+        solver="fast",
+        mode="fast",
+        gpst_week=epoch.gpst_week,
+        gpst_tow_s=epoch.gpst_tow_s,
+        x_ecef_m=(float(x[0]), float(x[1]), float(x[2])),
+        lat_deg=math.degrees(lat),
+        lon_deg=math.degrees(lon),
+        alt_m=alt,
+        clock_bias_m=-C_M_S * float(solved.dt[best]),
+        std_enu_m=tuple(math.sqrt(max(float(cov[i, i]), 0.0)) for i in range(3)),  # type: ignore[arg-type]
+        used=prns,
+        resid_rms_m=float(np.sqrt(np.mean(resid**2))),
+        redundancy=integ.redundancy,
+        chi2=integ.chi2,
+        chi2_max=integ.chi2_max,
+        hpl_m=integ.hpl_m,
+        vpl_m=integ.vpl_m,
+        cov_enu_m2=tuple((float(r[0]), float(r[1]), float(r[2])) for r in cov),
+    )
+
+
+def _full_epoch(
+    epoch: MeasurementEpoch, prns: tuple[str, ...], pr_m: np.ndarray
+) -> MeasurementEpoch:
+    """``epoch`` with the full ranges ``pr_m`` of ``prns`` (the other rows dropped)."""
+    where = {p: i for i, p in enumerate(epoch.prn)}
+    ii = np.array([where[p] for p in prns])
+    return replace(
+        epoch,
+        prn=prns,
+        signal=tuple(epoch.signal[i] for i in ii),
+        pr_m=np.asarray(pr_m, dtype=float),
+        frac_pr_m=epoch.frac_pr_m[ii],
+        period_s=epoch.period_s[ii],
+        cn0_dbhz=epoch.cn0_dbhz[ii],
+        doppler_hz=epoch.doppler_hz[ii],
+        lock_s=epoch.lock_s[ii],
+    )
+
+
+def plain_chain(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    ccfg: CoarseConfig | None = None,
+) -> tuple[np.ndarray, dict[str, int]] | None:
+    """The untested chain this module replaces, for comparison only (bench/bench_coarse.py):
+    the Doppler position (height pseudo-observation 0), every integer rounded once at it
+    against the nearest satellite, the five-state least squares, no test (Pocket SDR
+    ``pocket_snap.py``: ``pos_dop``, ``res_coff_amb``, ``pos_coff``). Its position and
+    integers (relative to the first fractional row), or None without a Doppler position."""
+    cfg = cfg or SolverConfig()
+    ccfg = ccfg or CoarseConfig()
+    with np.errstate(all="ignore"):
+        bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+        sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s)
+        if sats is None or len(sats.prn) < N_PARAMS:
+            return None
+        prior = doppler_position(sats, ccfg, speed_sigma_m_s=0.0)
+        if prior is None:
+            return None
+        pts = hypotheses(prior.x_ecef_m, None, 0.0, 0.0, ccfg.grid_step_m)
+        n_int = _round(sats, pts)
+        solved = _solve_candidates(sats, n_int, pts, bdt_sow, iono or IonoSet(), cfg, ccfg)
+    frac = sats.ct_m > 0
+    if not frac.any() or not np.all(np.isfinite(solved.x[0])):
+        return None
+    ref = int(np.flatnonzero(frac)[0])
+    ints = {
+        p: int(n - n_int[0, ref]) for p, n, f in zip(sats.prn, n_int[0], frac, strict=True) if f
+    }
+    return solved.x[0], ints
