@@ -305,9 +305,7 @@ BAD = [
     ({**GOOD_NONE, "reason": ""}, "$.reason", "minLength", ""),
     ({**GOOD_TRACK, "event": "lost"}, "$.event", "enum", "'lost'"),
     ({k: v for k, v in GOOD_TRACK.items() if k != "sow_s"}, "$", "required", "'sow_s'"),
-CONDITIONAL_FIX_FIELDS = {"excluded", "reason_code", "clocks_m", "used_by_system", "receiver_fix"}
-"""Fields present only when satellites were excluded / on a declined fix / on a fix from
-rows of more than one satellite system / when the source carries the receiver's own fix."""
+    ({**GOOD_TRACK, "prn": "C6"}, "$.prn", "pattern", ""),
     ({**GOOD_TRACK, "nav_type": "D3"}, "$.nav_type", "enum", "'D3'"),
     (
         {**GOOD_SKY, "satellites": [{"prn": "C01", "used": 1, "full": True}]},
