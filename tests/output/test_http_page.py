@@ -252,3 +252,10 @@ def test_the_daemon_config_opens_it_with_its_cap(tmp_path):
         assert get(sink.address, "/").status == 200
     finally:
         sink.close()
+
+
+def test_a_port_in_use_is_a_bind_error(server):
+    from service.core.errors import BindError
+
+    with pytest.raises(BindError, match="address already in use"):
+        HttpPageServer(*server.address)
