@@ -115,16 +115,26 @@ class Timeline:
             k: round(self.first[k] + self.offset_s, 6) if k in self.first else None for k in ORDER
         }
 
+    def texts(self) -> dict[str, str]:
+        """Each event of :data:`ORDER` as :meth:`lines` writes its figure."""
+        return {
+            k: figure_text(self.first[k] + self.offset_s if k in self.first else None)
+            for k in ORDER
+        }
+
     def lines(self, offset_s: float | None = None, restarted: bool = False) -> list[str]:
         """The timeline as the summary prints it."""
         since = "the emulated restart" if restarted else "the first measurement"
         off = self.offset_s if offset_s is None else offset_s
         lines = [f"  timeline (t: data time since {since}):"] + [
-            f"  {k:<28} t = {self.first[k] + off:6.2f} s"
-            if k in self.first
-            else f"  {k:<28} (not reached)"
+            f"  {k:<28} {figure_text(self.first[k] + off if k in self.first else None)}"
             for k in SUMMARY_ORDER
         ]
         if self.waits is not None:
             lines.append(f"  no fix at {FULL4}: {self.waits}")
         return lines
+
+
+def figure_text(t_s: float | None) -> str:
+    """One figure of the timeline as the summaries and the status page write it."""
+    return "(not reached)" if t_s is None else f"t = {t_s:6.2f} s"

@@ -231,3 +231,31 @@ def test_a_client_that_stops_reading_is_dropped_while_the_loop_runs_on(tmp_path)
     outputs.close()
     reader.close()
     stalled.close()
+
+
+def test_the_daemon_config_opens_it_with_its_cap(tmp_path):
+    """``output = ["http:..."]`` and ``http_max_clients`` in bdsfix.toml, as ``run`` reads
+    and opens them."""
+    from service.commands.run import output_specs
+    from service.daemon.config import load_config
+
+    toml = tmp_path / "bdsfix.toml"
+    toml.write_text(
+        'nmea_tcp = ""\nzmq = ""\noutput = ["http:127.0.0.1:0"]\nhttp_max_clients = 3\n'
+    )
+    cfg = load_config(toml)
+    specs = output_specs(cfg)
+    assert specs == [OutputSpec("http", "127.0.0.1:0")]
+    (sink,) = open_sinks(specs, SinkOptions(http_max_clients=cfg.http_max_clients))
+    try:
+        assert isinstance(sink, HttpPageServer) and sink.max_clients == 3
+        assert get(sink.address, "/").status == 200
+    finally:
+        sink.close()
+
+
+def test_a_port_in_use_is_a_bind_error(server):
+    from service.core.errors import BindError
+
+    with pytest.raises(BindError, match="address already in use"):
+        HttpPageServer(*server.address)

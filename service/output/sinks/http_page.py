@@ -167,23 +167,21 @@ class _PageState:
         self.modes: deque[list[Any]] = deque(maxlen=MODE_CHANGES)  # [tow_s, since_s, mode]
         self._mode = ""
 
-    def take(self, cls: str, rec: Mapping[str, Any]) -> list[tuple[str, Any]]:
-        """Update from one record; the SSE events it makes (name, data)."""
-        events: list[tuple[str, Any]] = []
+    def take(self, cls: str, rec: Mapping[str, Any]) -> list[bytes]:
+        """Update from one record; the SSE events it makes (each record encoded once)."""
+        events: list[bytes] = []
         if self.timeline.on_record(cls, rec):
-            events.append(("timeline", self.timeline_view()))
+            events.append(_sse("timeline", dumps(self.timeline_view())))
         if cls == "FIX":
             self._fix(rec)
-            events.append(("fix", rec))
         elif cls == "SKY":
             rec = sky_view(rec)
-            events.append(("sky", rec))
-        elif cls == "STATUS":
-            events.append(("status", rec))
-        else:
+        elif cls != "STATUS":
             return events
+        body = dumps(rec)
+        events.append(_sse(cls.lower(), body))
         self.latest[cls] = rec
-        self.latest_json[cls] = dumps(rec).encode()
+        self.latest_json[cls] = body.encode()
         return events
 
     def _fix(self, rec: Mapping[str, Any]) -> None:
@@ -209,9 +207,7 @@ class _PageState:
             "since": "the emulated restart" if self.timeline.restarted else "the first measurement",
             "order": list(ORDER),
             "t_s": figures,
-            "text": {
-                k: ("(not reached)" if v is None else f"t = {v:6.2f} s") for k, v in figures.items()
-            },
+            "text": self.timeline.texts(),
         }
 
     def snapshot(self) -> dict[str, Any]:
@@ -224,11 +220,6 @@ class _PageState:
             "modes": list(self.modes),
             "history_s": HISTORY_S,
         }
-
-
-def _timeline_text(t_s: float | None) -> str:
-    """A timeline figure as the replay summary writes it."""
-    return "(not reached)" if t_s is None else f"t = {t_s:6.2f} s"
 
 
 def _data_time_s(rec: Mapping[str, Any]) -> float | None:
@@ -248,8 +239,8 @@ def sky_view(rec: Mapping[str, Any]) -> dict[str, Any]:
     return {**rec, "satellites": sats}
 
 
-def _sse(name: str, data: Any) -> bytes:
-    return f"event: {name}\ndata: {dumps(data)}\n\n".encode()
+def _sse(name: str, json_text: str) -> bytes:
+    return f"event: {name}\ndata: {json_text}\n\n".encode()
 
 
 class HttpPageServer(Sink):
@@ -377,8 +368,7 @@ class HttpPageServer(Sink):
                 cls, rec = self._inbox.popleft()
             except IndexError:
                 break
-            for name, data in self._state.take(cls, rec):
-                chunks.append(_sse(name, data))
+            chunks += self._state.take(cls, rec)
         if not chunks:
             return
         block = b"".join(chunks)
@@ -597,7 +587,7 @@ class HttpPageServer(Sink):
         c.sse = True
         self._n_sse = sum(1 for x in self._clients.values() if x.sse)
         self._counters.add("http_event_streams_opened")
-        self._queue(c, head + b"retry: 2000\n\n" + _sse("state", self._state.snapshot()))
+        self._queue(c, head + b"retry: 2000\n\n" + _sse("state", dumps(self._state.snapshot())))
 
     def _expire(self, now: float) -> None:
         for c in list(self._clients.values()):
