@@ -15,6 +15,7 @@ import math
 import os
 import signal
 import sys
+from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,6 +26,7 @@ from service.commands.options import full_rule, solver_config
 from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
+from service.core.systems import system_of
 from service.daemon.config import (
     DEFAULT_CONFIG,
     STORE_NAME,
@@ -342,7 +344,8 @@ class Timeline:
     def __init__(self) -> None:
         self.first: dict[str, float] = {}
         self.waits: str | None = None
-        """Why the epoch of :attr:`FULL4` had no fix (its decline reason), if it had none."""
+        """Why the epoch of :attr:`FULL4` had no fix (its full ranges by system and its
+        decline reason), if it had none."""
 
     def mark(self, key: str, t_s: float) -> bool:
         """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
@@ -374,7 +377,12 @@ class Timeline:
         if full >= 4 and self.mark(self.FULL4, r.since_start_s):
             new.append(self.FULL4)
             if not r.fix.ok:
-                self.waits = r.fix.reason
+                full_prns = [
+                    p for p, pr in zip(r.epoch.prn, r.epoch.pr_m, strict=True) if math.isfinite(pr)
+                ]
+                by_system = Counter(system_of(p).name for p in full_prns)
+                systems = ", ".join(f"{name} {n}" for name, n in sorted(by_system.items()))
+                self.waits = f"({systems} full): {r.fix.reason}"
         return new
 
     def log_first_fixes(self, r: EpochResult) -> None:
@@ -413,7 +421,7 @@ class Timeline:
             for k in order
         ]
         if self.waits is not None:
-            lines.append(f"  no fix at {self.FULL4}: {self.waits}")
+            lines.append(f"  no fix at {self.FULL4} {self.waits}")
         return lines
 
 
