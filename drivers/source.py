@@ -56,6 +56,7 @@ __all__ = [
     "EventSource",
     "FileSource",
     "StreamDecoder",
+    "file_spec",
     "is_rinex",
     "open_source",
     "pace",
@@ -333,7 +334,7 @@ def file_epochs(
     3 obs, GnssLogger logs, ...) and the counters its reader keeps; ``NAME:PATH`` names the
     format; ``systems``: the satellite systems (RINEX letters) to read where the format
     chooses. InputError (exit 3) for a file of none of them."""
-    fmt, name = _file_spec(str(path))
+    fmt, name = file_spec(str(path))
     if not os.path.isfile(name):
         raise InputError(f"{name}: no such file")
     fmt = fmt or file_format(name)
@@ -395,7 +396,7 @@ def serial_device(spec: str, baud: int) -> tuple[str, int]:
     return device, int(rate)
 
 
-def _file_spec(spec: str) -> tuple[FileFormat | None, str]:
+def file_spec(spec: str) -> tuple[FileFormat | None, str]:
     """(format named by the spec's scheme or None, path) of a file source spec:
     ``NAME:PATH`` for a registered file format, ``file:PATH`` or ``PATH`` (detected)."""
     from drivers import protocols
@@ -451,7 +452,7 @@ def open_source(
     elif spec == "-":
         transport = FileTransport(sys.stdin.buffer, name="stdin")
     else:
-        fmt, path = _file_spec(spec)
+        fmt, path = file_spec(spec)
         if not os.path.isfile(path):
             raise ConfigError(f"source {spec!r}: no such file")
         fmt = fmt or file_format(path)

@@ -84,14 +84,14 @@ def _check_source(spec: str) -> None:
     waited for); TCP sources are retried, since the server may start after the daemon."""
     if spec == "-" or spec.startswith(("tcp:", "serial:", "/dev/")):
         return
-    path = spec.removeprefix("file:")
+    from drivers.source import check_capture, file_spec
+
+    fmt, path = file_spec(spec)  # FORMAT:PATH names a registered file format
     if not os.path.exists(path):
         raise InputError(f"source {spec!r}: no such file or device")
     if os.path.isdir(path):
         raise InputError(f"source {spec!r}: is a directory")
-    if os.path.isfile(path):
-        from drivers.source import check_capture
-
+    if os.path.isfile(path) and fmt is None:
         try:
             check_capture(path)
         except OSError as exc:
@@ -127,11 +127,11 @@ def _check_needs_nav(spec: str, gps_week: int | None) -> None:
     naming the nav file of its first epoch's day, exit 3."""
     if not _is_regular_file(spec):
         return
-    from drivers.source import _file_spec, file_format
+    from drivers.source import file_format, file_spec
     from service.commands.navcheck import first_epoch_time
     from service.core.timebase import datetime_from_gpst
 
-    fmt, path = _file_spec(spec)
+    fmt, path = file_spec(spec)
     fmt = fmt or file_format(path)
     if fmt is None or fmt.needs_nav is None or not fmt.needs_nav(Path(path)):
         return
@@ -154,7 +154,9 @@ def _is_regular_file(spec: str) -> bool:
     """Whether the source ``spec`` names a regular file (not stdin, a device, a FIFO or TCP)."""
     if spec == "-" or spec.startswith(("tcp:", "serial:")):
         return False
-    return os.path.isfile(spec.removeprefix("file:"))
+    from drivers.source import file_spec
+
+    return os.path.isfile(file_spec(spec)[1])
 
 
 STATE_DIR_MODE = 0o700  # the state directory, when the daemon creates it

@@ -10,10 +10,14 @@ figures for the same stream.
 
 from __future__ import annotations
 
+import math
+from collections import Counter
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+
+from service.core.systems import system_of
 
 FIRST_GEO_SOW = "first GEO SOW decoded"
 FIRST_FAST = "first fast fix"
@@ -48,7 +52,8 @@ class Timeline:
         self.restarted = False
         """Records: the timeline started again (data time since the start went back)."""
         self.waits: str | None = None
-        """Why the epoch of :data:`FULL4` had no fix (its decline reason), if it had none."""
+        """Why the epoch of :data:`FULL4` had no fix (its full ranges by system and its
+        decline reason), if it had none."""
 
     def mark(self, key: str, t_s: float) -> bool:
         """Note ``key`` at ``t_s`` unless already noted; True when it is new."""
@@ -81,7 +86,12 @@ class Timeline:
         if full >= 4 and self.mark(FULL4, r.since_start_s):
             new.append(FULL4)
             if not r.fix.ok:
-                self.waits = r.fix.reason
+                full_prns = [
+                    p for p, pr in zip(r.epoch.prn, r.epoch.pr_m, strict=True) if math.isfinite(pr)
+                ]
+                by_system = Counter(system_of(p).name for p in full_prns)
+                systems = ", ".join(f"{name} {n}" for name, n in sorted(by_system.items()))
+                self.waits = f"({systems} full): {r.fix.reason}"
         return new
 
     def on_record(self, cls: str, rec: Mapping[str, Any]) -> bool:
@@ -131,7 +141,7 @@ class Timeline:
             for k in SUMMARY_ORDER
         ]
         if self.waits is not None:
-            lines.append(f"  no fix at {FULL4}: {self.waits}")
+            lines.append(f"  no fix at {FULL4} {self.waits}")
         return lines
 
 

@@ -39,3 +39,16 @@ def test_ttff_runs_emulated_restarts_on_the_perth_log(capsys):
     assert main(["ttff", str(LOG), str(NAV), "--trials", "5", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["conventional"]["success_pct"] > 0
+
+
+def test_replay_takes_a_format_named_by_its_scheme(tmp_path, capsys):
+    """``gnsslogger:PATH`` reaches the GnssLogger reader through replay's checks (the file
+    exists, its day's nav) as a plain path does: the same 445 FIX records."""
+    outs = []
+    for spec in (str(LOG), f"gnsslogger:{LOG}"):
+        out = tmp_path / f"{len(outs)}.jsonl"
+        args = ["replay", spec, "--nav", str(NAV), "--max-speed", "--jsonl", str(out)]
+        assert main(args) == 0
+        outs.append([x for x in out.read_text().splitlines() if '"FIX"' in x])
+    capsys.readouterr()
+    assert len(outs[0]) == 445 and outs[0] == outs[1]
