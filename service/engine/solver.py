@@ -903,9 +903,21 @@ def _delays(
     args = (loc.lat_rad, loc.lon_rad, loc.alt_m, loc.el_rad, loc.az_rad, bdt_sow, eph.carrier_hz)
     iono, tropo = delays(*args, model, cfg)
     if iono is not None and models is not None and models.other is not model and not eph.bds.all():
-        other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
+        sel = ~eph.bds
+        other, _ = delays(
+            loc.lat_rad,
+            loc.lon_rad,
+            loc.alt_m,
+            loc.el_rad[sel],
+            loc.az_rad[sel],
+            bdt_sow,
+            eph.carrier_hz[sel],
+            models.other,
+            cfg,
+        )
         if other is not None:
-            iono = np.where(eph.bds, iono, other)
+            iono = iono.copy()
+            iono[sel] = other
     return iono, tropo
 
 
