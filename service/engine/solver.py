@@ -1036,11 +1036,10 @@ def select_rows(
     """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
 
     When some system has a full row, the fast fix takes the fractional rows of a system only
-    when that system has a full row too:
-    phase 1 resolves integers against clocks estimated from full rows, and a system whose
-    rows are all fractional has none yet (its clock modulo its code period is not solved:
-    issue 19, not done). Returns the rows and the PRNs dropped for want of a usable
-    ephemeris.
+    when that system has a full row too: phase 1 resolves integers against clocks estimated
+    from full rows, and a system whose rows are all fractional has none; its rows join
+    afterwards (:func:`_with_other_systems`). Returns the rows and the PRNs dropped for
+    want of a usable ephemeris.
     """
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     full = np.isfinite(epoch.pr_m)
