@@ -92,8 +92,9 @@ class SolverConfig:
     )
     iono: IonoChoice = setting(
         "auto",
-        "ionosphere: auto (BDS Klobuchar when broadcast, else GPS coefficients scaled to B1I), "
-        "bds, gps or off",
+        "ionosphere: auto (BeiDou rows: BDS Klobuchar when broadcast, else GPS coefficients "
+        "scaled to B1I; GPS and Galileo rows: GPS coefficients, else BDS), bds, gps (every "
+        "row with those) or off",
         kind="str",
         choices=("auto", "bds", "gps", "off"),
     )
