@@ -5,7 +5,10 @@ Every epoch with a ground-truth row is solved by SPP (all full) and by the fast 
 ranges reduced modulo 1 ms, as `bdsfix solve` does), with the daemon's defaults and, for
 comparison, with fault exclusion off (detection only) and with the chi-square test off.
 
-Run: python bench/bench_urban.py   (prints figures; no assertions)
+With ``--systems C,G`` (or ``C,G,E``) the drive's GPS rows join (its GPS nav file beside the
+BDS one; it has no Galileo nav file, so Galileo rows go unused), each system with its clock.
+
+Run: python bench/bench_urban.py [--systems C,G]   (prints figures; no assertions)
 """
 
 from __future__ import annotations
@@ -42,11 +45,19 @@ def ground_truth() -> dict[tuple[int, int], np.ndarray]:
 
 
 def main() -> None:
+    import argparse
+
+    from service.core.systems import parse_systems
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--systems", default="C", help="RINEX letters, e.g. C,G (default C)")
+    systems = parse_systems(ap.parse_args().systems)
     truth = ground_truth()
-    store, iono = load_navigation([str(TST / "hksc1180.19b")])
+    navs = [str(TST / "hksc1180.19b")] + ([str(TST / "hksc1180.19n")] if "G" in systems else [])
+    store, iono = load_navigation(navs, systems=systems)
     epochs = [
         ep
-        for ep in RinexObsReader(TST / "COM3_190428_124409.obs")
+        for ep in RinexObsReader(TST / "COM3_190428_124409.obs", systems=systems)
         if (ep.gpst_week, round(ep.gpst_tow_s)) in truth
     ]
     configs = {
@@ -54,7 +65,7 @@ def main() -> None:
         "detection only": SolverConfig(max_exclusions=0),
         "no test (PDOP gate only)": SolverConfig(p_fa=0.0),
     }
-    print(f"bench_urban: {len(epochs)} TST epochs with ground truth")
+    print(f"bench_urban: {len(epochs)} TST epochs with ground truth, systems {sorted(systems)}")
     for solver in ("spp", "fast"):
         for name, cfg in configs.items():
             errs, over = [], 0

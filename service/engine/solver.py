@@ -93,8 +93,9 @@ class SolverConfig:
     )
     iono: IonoChoice = setting(
         "auto",
-        "ionosphere: auto (BDS Klobuchar when broadcast, else GPS coefficients scaled to B1I), "
-        "bds, gps or off",
+        "ionosphere: auto (BeiDou rows: BDS Klobuchar when broadcast, else GPS coefficients "
+        "scaled to B1I; GPS and Galileo rows: GPS coefficients, else BDS), bds, gps (every "
+        "row with those) or off",
         kind="str",
         choices=("auto", "bds", "gps", "off"),
     )
@@ -847,9 +848,21 @@ def _delays(
     args = (loc.lat_rad, loc.lon_rad, loc.alt_m, loc.el_rad, loc.az_rad, bdt_sow, eph.carrier_hz)
     iono, tropo = delays(*args, model, cfg)
     if iono is not None and models is not None and models.other is not model and not eph.bds.all():
-        other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
+        sel = ~eph.bds
+        other, _ = delays(
+            loc.lat_rad,
+            loc.lon_rad,
+            loc.alt_m,
+            loc.el_rad[sel],
+            loc.az_rad[sel],
+            bdt_sow,
+            eph.carrier_hz[sel],
+            models.other,
+            cfg,
+        )
         if other is not None:
-            iono = np.where(eph.bds, iono, other)
+            iono = iono.copy()
+            iono[sel] = other
     return iono, tropo
 
 
@@ -968,11 +981,10 @@ def select_rows(
     """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
 
     When some system has a full row, the fast fix takes the fractional rows of a system only
-    when that system has a full row too:
-    phase 1 resolves integers against clocks estimated from full rows, and a system whose
-    rows are all fractional has none yet (its clock modulo its code period is not solved:
-    issue 19, not done). Returns the rows and the PRNs dropped for want of a usable
-    ephemeris.
+    when that system has a full row too: phase 1 resolves integers against clocks estimated
+    from full rows, and a system whose rows are all fractional has none; its rows join
+    afterwards (:func:`_with_other_systems`). Returns the rows and the PRNs dropped for
+    want of a usable ephemeris.
     """
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     full = np.isfinite(epoch.pr_m)
@@ -1009,6 +1021,74 @@ def select_rows(
         clk=layout.clock_index(prn),
     )
     return rows, missing
+
+
+AMBIGUITY_MARGIN = 0.25
+"""A fractional row of a system without full rows gets its integer from a fast fix only when
+its predicted range puts it at most this many code periods from an integer: the prediction
+(orbit at an approximate transmit time, no ionosphere or troposphere, the BeiDou clock for
+the system's, whose inter-system bias is metres to kilometres) errs by far less than the
+150 km of a quarter millisecond."""
+
+
+def _with_other_systems(
+    epoch: MeasurementEpoch, store: EphemerisStore, rows: _Rows, ctx: _Context, fix: Fix
+) -> Fix:
+    """The fast fix ``fix`` of ``rows`` joined by the fractional rows of the systems that have
+    no full row (which :func:`select_rows` left out): each one's integer N (paper eq. 11)
+    from the range predicted at the fix with the fix's BeiDou clock, N = round((rho - c
+    dt_sat + b - z) / cT), then every row solved again with those integers held (the rows
+    become full, and the fix reports them fractional with their N). ``fix`` itself when there
+    are none, when a prediction is ambiguous (:data:`AMBIGUITY_MARGIN`) or the joined solve
+    fails."""
+    have = set(rows.prn)
+    todo = [
+        i
+        for i, p in enumerate(epoch.prn)
+        if p not in have
+        and not np.isfinite(epoch.pr_m[i])
+        and np.isfinite(epoch.frac_pr_m[i])
+        and np.isfinite(epoch.period_s[i])
+    ]
+    if not todo or fix.x_ecef_m is None:
+        return fix
+    x = np.asarray(fix.x_ecef_m, dtype=float)
+    b = fix.clocks_m.get("C", fix.clock_bias_m or 0.0)
+    ephs, idx = [], []
+    for i in todo:
+        e = store.select(epoch.prn[i], ctx.bdt_week, ctx.bdt_sow_s)
+        if e is not None:
+            ephs.append(e)
+            idx.append(i)
+    if not ephs:
+        return fix
+    arr = store.arrays(ephs)
+    ii = np.asarray(idx)
+    tau = np.full(len(ii), NOMINAL_FLIGHT_TIME_S)
+    for _ in range(2):  # transmit time from the geometric range (metres of error, not km)
+        sat, clk = sat_pos_clock(arr, ctx.bdt_week, ctx.bdt_sow_s - tau)
+        tau = np.linalg.norm(sat - x, axis=1) / C_M_S
+    _, pred, _ = ranges(sat, clk, x, arr.omega_e_rad_s)
+    ct = C_M_S * epoch.period_s[ii]
+    n_float = (pred + b - epoch.frac_pr_m[ii]) / ct
+    n = np.rint(n_float)
+    if np.any(np.abs(n_float - n) > AMBIGUITY_MARGIN):
+        return fix
+    pr = epoch.pr_m.copy()
+    pr[ii] = epoch.frac_pr_m[ii] + n * ct
+    joined, _ = select_rows(replace(epoch, pr_m=pr), store, "fast")
+    if joined is None:
+        return fix
+    again = _solve_rows(joined, ctx)
+    if not again.ok:
+        return fix
+    recovered = {epoch.prn[i]: int(k) for i, k in zip(ii, n, strict=True)}
+    return replace(
+        again,
+        full=tuple(p for p in again.full if p not in recovered),
+        fractional=again.fractional + tuple(p for p in recovered if p in again.used),
+        ambiguity={**again.ambiguity, **{p: k for p, k in recovered.items() if p in again.used}},
+    )
 
 
 def declined(
@@ -1057,6 +1137,8 @@ def solve(
             bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
             ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
             fix = _solve_rows(rows, ctx)
+            if solver == "fast" and fix.ok:
+                fix = _with_other_systems(epoch, store, rows, ctx, fix)
             if with_sky and fix.ok:
                 fix = replace(fix, sky=sky_view(epoch, store, fix))
         except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
