@@ -7,7 +7,8 @@ range reduced modulo 1 ms (`fractionalize`); HKSC also with the time tag shifted
 (the tag and the full ranges together: a receiver clock 2 s wrong; fractional ranges are
 unchanged by a whole-millisecond shift). Each fix is checked against the file's full
 ranges: integers (absolute where the fix claims them, else relative to the first
-fractional satellite), distance to SPP of the full ranges, and on the drive the
+fractional satellite), distance to SPP of the full ranges (of the satellites the fix kept
+when its fault exclusion left one out), and on the drive the
 horizontal error against the ground truth and the fix's HPL.
 
 The plain chain (Pocket SDR `pocket_snap.py`, van Diggelen): the same Doppler position
@@ -37,6 +38,7 @@ from service.core.bds import is_geo  # noqa: E402
 from service.core.constants import C_M_S  # noqa: E402
 from service.core.geometry import ecef_to_geodetic, enu_rotation  # noqa: E402
 from service.engine.coarse import CoarseConfig, plain_chain, solve_coarse  # noqa: E402
+from service.engine.declines import excluded_why  # noqa: E402
 from service.engine.solver import SolverConfig, fractionalize, solve  # noqa: E402
 
 HKSC = ROOT.parent / "shared" / "data" / "hksc-2021"
@@ -120,6 +122,21 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
         t.fixes += 1
         t.absolute += res.absolute
         t.wrong += integers_wrong(res, tru)
+        left_out = [p for p, why in fix.excluded.items() if why == excluded_why("coarse")]
+        if left_out:  # SPP of the full ranges of the satellites the fix kept
+            kept = [i for i, p in enumerate(ep.prn) if p not in left_out]
+            sub = replace(
+                ep,
+                prn=tuple(ep.prn[i] for i in kept),
+                signal=tuple(ep.signal[i] for i in kept),
+                pr_m=ep.pr_m[kept],
+                frac_pr_m=ep.frac_pr_m[kept],
+                period_s=ep.period_s[kept],
+                cn0_dbhz=ep.cn0_dbhz[kept],
+                doppler_hz=ep.doppler_hz[kept],
+                lock_s=ep.lock_s[kept],
+            )
+            ref = solve(sub, store, iono, cfg, "spp")
         d = float(np.linalg.norm(np.subtract(fix.x_ecef_m, ref.x_ecef_m)))
         t.diff_m.append(d)
         t.eq_1mm += d <= 1e-3

@@ -705,11 +705,12 @@ def _exclude_one(
     _, jb, kb = best
     keep_b, sub_b, cand_b, ev_b = found[jb][1], found[jb][2], found[jb][3], found[jb][4]
     win = dict(zip(keep_b.tolist(), cand_b[kb].tolist(), strict=True))
-    absolute = bool((sats.ct_m == 0).any())
     rivals = 0
     for j, keep, _, cj, ev in found:
         common = [i for i in keep.tolist() if i in win]
         frac_common = [i for i in common if sats.ct_m[i] > 0]
+        # absolute integers only where a full row both use anchors them, else relative
+        absolute = len(frac_common) < len(common)
         cols = [keep.tolist().index(i) for i in common]
         for k in np.flatnonzero(ev.rivals | ev.passing).tolist():
             if j == jb and k == kb:

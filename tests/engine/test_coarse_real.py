@@ -137,7 +137,7 @@ def tst():
     return store, iono, epochs
 
 
-@pytest.mark.parametrize("k", [0, 2])
+@pytest.mark.parametrize("k", [0, 1, 2])
 def test_tst_urban_drive_never_a_wrong_integer(tst, k):
     """A moving receiver (4-12 m/s, NLOS): the Doppler prior is tens to hundreds of km off;
     no published fix has a wrong integer, at most 1 % are outside their HPL, and the fixes
