@@ -69,25 +69,33 @@ def decline_fix(
 def verdict(
     integ: Integrity,
     used: Sequence[str],
-    w: np.ndarray,
     alt_m: float,
     clock_m: float,
     pdop: float,
     cfg: Gates,
+    slots: Sequence[int] | None = None,
 ) -> tuple[Decline, str] | None:
     """The decline of a solution (None: it is published): a failed chi-square test (the
-    reason names the used satellite ``used[k]`` with the largest w-test ``w[k]``), it lies
-    outside the plausible shell (altitude ``alt_m``, receiver clock ``clock_m``: the one
-    furthest from zero), or its PDOP is above the gate."""
+    reason names the used satellite ``used[k]`` with the largest w-test, ``integ.w[k]``, or
+    ``integ.w[slots[k]]`` where the w-tests cover a batch's slots), it lies outside the
+    plausible shell (altitude ``alt_m``, receiver clock ``clock_m``: the one furthest from
+    zero), or its PDOP is above the gate."""
     if integ.chi2 is not None and not integ.passed:
-        worst = int(np.nanargmax(np.abs(w))) if np.any(np.isfinite(w)) else 0
+        # numpy.nanargmax(|w|) where any w is finite, else the first row (as plain floats:
+        # a batch judges thousands of failed candidates)
+        w_all: list[float] = integ.w.tolist()
+        wl = w_all if slots is None else [w_all[i] for i in slots]
+        worst = 0
+        if any(math.isfinite(v) for v in wl):
+            size = [abs(v) if v == v else -math.inf for v in wl]  # NaN: never the largest
+            worst = size.index(max(size))
         why = reason(
             Decline.CHI2,
             chi2=integ.chi2,
             chi2_max=integ.chi2_max,
             redundancy=integ.redundancy,
             prn=used[worst],
-            w=w[worst],
+            w=wl[worst],
         )
         return Decline.CHI2, why
     if not (cfg.alt_min_m <= alt_m <= cfg.alt_max_m) or abs(clock_m) > cfg.clock_max_s * C_M_S:
