@@ -183,7 +183,8 @@ def _gather(cols: EphemerisArrays, idx: np.ndarray) -> EphemerisArrays:
 def _orbits(ch: _Chunk, sel: np.ndarray, n_int: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Satellite positions and clocks at the transmit times of eqs. (4)-(5) for epochs
     ``sel`` with integers ``n_int`` (as :func:`service.engine.solver._geometry`)."""
-    eph = _gather_rows(ch.eph, sel)
+    # every epoch of the chunk (the start of phase 1): its columns as they are, not copied
+    eph = ch.eph if len(sel) == len(ch.z) else _gather_rows(ch.eph, sel)
     sow = ch.bdt_sow[sel, None]
     t1 = sow - (ch.z[sel] + n_int * ch.ct[sel]) / C_M_S
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
@@ -552,7 +553,8 @@ def _judged(
     frac = ch.frac[e, : len(prn)].tolist()
     kk = np.flatnonzero(kept[: len(prn)]).tolist()
     used = tuple(prn[i] for i in kk)
-    ambiguity = {prn[i]: int(n_int[e, i]) for i in kk if frac[i]}
+    n_row = n_int[e].tolist()  # (plain floats: the same sums, without numpy's per-item cost)
+    ambiguity = {prn[i]: int(n_row[i]) for i in kk if frac[i]}
     gdop_full = numbers["gdop"][k] if solver == "fast" else None
     alt, clocks, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
     clock = clocks[0] if len(clocks) == 1 else max(clocks, key=abs)  # furthest from zero
@@ -601,10 +603,16 @@ def _judged(
         used=used,
         frac=[frac[i] for i in kk],
         ambiguity=ambiguity,
-        recovered_pr_m={
-            prn[i]: float(ch.z[e, i] + n_int[e, i] * ch.ct[e, i]) for i in kk if frac[i]
-        },
+        recovered_pr_m=_recovered(ch, e, prn, n_row, kk, frac),
     )
+
+
+def _recovered(
+    ch: _Chunk, e: int, prn: tuple[str, ...], n_row: list[float], kk: list[int], frac: list[bool]
+) -> dict[str, float]:
+    """The full ranges z + N c T [m] of epoch ``e``'s used fractional rows."""
+    z, ct = ch.z[e].tolist(), ch.ct[e].tolist()
+    return {prn[i]: z[i] + n_row[i] * ct[i] for i in kk if frac[i]}
 
 
 def _decline(

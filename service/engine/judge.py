@@ -158,7 +158,8 @@ def solution_fix(
     ``clocks_m`` names each when there is more than one), DOPs, the east-north-up
     covariance ``cov`` and the integrity figures ``integ``, over the rows ``used`` (``frac``:
     which are fractional; mode ``fast`` when any is)."""
-    full = tuple(p for p, f in zip(used, frac, strict=True) if not f)
+    full = tuple([p for p, f in zip(used, frac, strict=True) if not f])
+    c0, c1, c2 = cov[0], cov[1], cov[2]
     return Fix(
         solver=solver,
         mode="fast" if len(full) < len(used) else "spp",
@@ -183,17 +184,18 @@ def solution_fix(
         pdop=pdop,
         hdop=hdop,
         vdop=vdop,
-        std_enu_m=(_std(cov, 0), _std(cov, 1), _std(cov, 2)),
-        cov_enu_m2=tuple((r[0], r[1], r[2]) for r in cov),
+        # correctly rounded square roots, as numpy's
+        std_enu_m=(
+            math.sqrt(max(c0[0], 0.0)),
+            math.sqrt(max(c1[1], 0.0)),
+            math.sqrt(max(c2[2], 0.0)),
+        ),
+        cov_enu_m2=((c0[0], c0[1], c0[2]), (c1[0], c1[1], c1[2]), (c2[0], c2[1], c2[2])),
         hpl_m=integ.hpl_m,
         vpl_m=integ.vpl_m,
         used=used,
         full=full,
-        fractional=tuple(p for p, f in zip(used, frac, strict=True) if f),
+        fractional=tuple([p for p, f in zip(used, frac, strict=True) if f]),
         ambiguity=ambiguity,
         recovered_pr_m=recovered_pr_m,
     )
-
-
-def _std(cov: list[list[float]], k: int) -> float:
-    return math.sqrt(max(cov[k][k], 0.0))  # correctly rounded, as numpy's
