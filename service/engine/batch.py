@@ -553,8 +553,10 @@ def _judged(
     frac = ch.frac[e, : len(prn)].tolist()
     kk = np.flatnonzero(kept[: len(prn)]).tolist()
     used = tuple(prn[i] for i in kk)
-    n_row = n_int[e].tolist()  # (plain floats: the same sums, without numpy's per-item cost)
-    ambiguity = {prn[i]: int(n_row[i]) for i in kk if frac[i]}
+    fr = [i for i in kk if frac[i]]  # the used fractional rows
+    # (plain floats: the same sums, without numpy's per-item cost)
+    n_row: list[float] = n_int[e].tolist() if fr else []
+    ambiguity = {prn[i]: int(n_row[i]) for i in fr}
     gdop_full = numbers["gdop"][k] if solver == "fast" else None
     alt, clocks, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
     clock = clocks[0] if len(clocks) == 1 else max(clocks, key=abs)  # furthest from zero
@@ -603,16 +605,16 @@ def _judged(
         used=used,
         frac=[frac[i] for i in kk],
         ambiguity=ambiguity,
-        recovered_pr_m=_recovered(ch, e, prn, n_row, kk, frac),
+        recovered_pr_m=_recovered(ch, e, prn, n_row, fr) if fr else {},
     )
 
 
 def _recovered(
-    ch: _Chunk, e: int, prn: tuple[str, ...], n_row: list[float], kk: list[int], frac: list[bool]
+    ch: _Chunk, e: int, prn: tuple[str, ...], n_row: list[float], fr: list[int]
 ) -> dict[str, float]:
-    """The full ranges z + N c T [m] of epoch ``e``'s used fractional rows."""
+    """The full ranges z + N c T [m] of epoch ``e``'s used fractional rows ``fr``."""
     z, ct = ch.z[e].tolist(), ch.ct[e].tolist()
-    return {prn[i]: z[i] + n_row[i] * ct[i] for i in kk if frac[i]}
+    return {prn[i]: z[i] + n_row[i] * ct[i] for i in fr}
 
 
 def _decline(
