@@ -7,12 +7,14 @@ and checks; docs/method.md), but each step of the iteration is one set of numpy 
 cost per epoch is paid once per chunk:
 
 - phase 1 (paper eqs. 3-16) from the Earth's centre with the backtracking step, all epochs
-  of the chunk in lockstep; an epoch that has converged keeps its state. The step is the
-  least-squares step of eq. (10) on the augmented system of eq. (11) (a -1 ambiguity
-  column in metres per fractional row, rounded in units of c*T by eq. 13), formed as the
-  per-epoch solver forms it (:func:`_phase1_step`). The satellites' orbits (eqs. 4-5)
-  depend on the integers only: an epoch's are computed again only when a step moves its
-  integers;
+  of the chunk in lockstep; an epoch that has converged keeps its state. The x/b step is
+  the least-squares step over the full rows: each fractional row has its own ambiguity
+  column in eq. (11), so its residual is absorbed by dN_j = h_j . [dx, db] - dz_j (in
+  metres, rounded in units of c*T by eq. 13), which is the solution of the augmented
+  system of eq. (10) without forming it (the per-epoch solver forms it: the same step in
+  exact arithmetic, not in rounding, so no convergence is the per-epoch solver's to
+  decide). The satellites' orbits (eqs. 4-5) depend on the integers only: an epoch's are
+  computed again only when a step moves its integers;
 - phase 2: the elevation mask, Klobuchar, Saastamoinen and the error model's weights,
   iterated to convergence (the ranges, delays and weights are the per-epoch solver's own
   functions, :func:`~service.engine.solver.ranges`, :func:`~service.engine.solver.delays`,
@@ -181,7 +183,8 @@ def _gather(cols: EphemerisArrays, idx: np.ndarray) -> EphemerisArrays:
 def _orbits(ch: _Chunk, sel: np.ndarray, n_int: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Satellite positions and clocks at the transmit times of eqs. (4)-(5) for epochs
     ``sel`` with integers ``n_int`` (as :func:`service.engine.solver._geometry`)."""
-    eph = _gather_rows(ch.eph, sel)
+    # every epoch of the chunk (the start of phase 1): its columns as they are, not copied
+    eph = ch.eph if len(sel) == len(ch.z) else _gather_rows(ch.eph, sel)
     sow = ch.bdt_sow[sel, None]
     t1 = sow - (ch.z[sel] + n_int * ch.ct[sel]) / C_M_S
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
@@ -193,10 +196,11 @@ def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
     return EphemerisArrays(prn=(), **kw)
 
 
-def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
-    """Each row's receiver clock [m]: ``b`` (e, clocks) at the rows' clock indices ``cix``
-    (e, s); with one clock, ``b`` itself (it broadcasts over the rows)."""
-    return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
+def _row_clocks(b: np.ndarray, cix: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """Each row's receiver clock [m] for epochs ``sel``: their clocks ``b`` (e, clocks) at
+    the rows' clock indices ``cix[sel]`` (e, s); with one clock, ``b`` itself (it broadcasts
+    over the rows, and no index is gathered)."""
+    return b if b.shape[1] == 1 else np.take_along_axis(b, cix[sel], axis=1)
 
 
 def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -214,28 +218,6 @@ def _where(
     if near.all():
         return value
     return np.where(near, value, far)
-
-
-def _phase1_step(
-    h: np.ndarray, dz: np.ndarray, frac: np.ndarray, valid: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The least-squares step of eq. (10) on the augmented system of eq. (11), per epoch:
-    the layout's columns ``h`` (e, s, p) and one ambiguity column per fractional row (-1, in
-    metres), as the per-epoch solver forms it. Returns the step of the layout's unknowns
-    (e, p) and each row's ambiguity step [m] (e, s; 0 for full rows). A slot that is not a
-    fractional row has an empty ambiguity column: its unknown is held at 0 by a unit
-    diagonal (it is decoupled from the rest, whose normal equations are the augmented
-    system's own)."""
-    n_e, n_s, n_p = h.shape
-    amb = np.zeros((n_e, n_s, n_s))
-    ii = np.arange(n_s)
-    amb[:, ii, ii] = np.where(frac, -1.0, 0.0)
-    ha = np.concatenate([h * valid[..., None], amb], axis=2)
-    normal = np.swapaxes(ha, -1, -2) @ ha
-    normal[:, n_p + ii, n_p + ii] += np.where(frac, 0.0, 1.0)
-    rhs = np.swapaxes(ha, -1, -2) @ np.where(valid, dz, 0.0)[..., None]
-    step = linalg.solve(normal, rhs)[..., 0]
-    return step[:, :n_p], step[:, n_p:]
 
 
 def _local(
@@ -300,6 +282,8 @@ def _solve_chunk(
     n_par, n_clk, cix = layout.n_params, layout.n_clocks, ch.cix
 
     def design(los_: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        if n_clk == 1:  # one clock column: no clock indices to gather
+            return layout.design(los_)
         return layout.design(los_, cix if sel is None else cix[sel])
 
     too_few = ~unsure & ~no_rows & (n_full < n_par)
@@ -329,7 +313,7 @@ def _solve_chunk(
     fullw = ch.full.astype(float)
 
     def cost_of(sel: np.ndarray, pred_: np.ndarray, b_: np.ndarray) -> np.ndarray:
-        r = np.where(ch.full[sel], ch.z[sel] - pred_ - _row_clocks(b_, cix[sel]), 0.0)
+        r = np.where(ch.full[sel], ch.z[sel] - pred_ - _row_clocks(b_, cix, sel), 0.0)
         return np.einsum("es,es->e", r, r)
 
     cost = cost_of(every, pred, b)
@@ -340,14 +324,16 @@ def _solve_chunk(
         if not sel.size:
             break
         iters[sel] += 1
-        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix, sel)
         h = design(los[sel], sel)
         try:
-            step, dn_m = _phase1_step(h, dz, ch.frac[sel], ch.valid[sel])  # eq. (10)
+            step = _lsq(h, dz, fullw[sel])  # eq. (10) over the full rows
         except np.linalg.LinAlgError:
             _fail(ok, sel, np.ones(sel.size, dtype=bool), unsure)
             active[sel] = False
             continue
+        # each fractional row's ambiguity step [m]: its residual after the x/b step
+        dn_m = np.einsum("esk,ek->es", h, step) - dz
         frac = ch.frac[sel]
         ct = np.where(frac, ch.ct[sel], 1.0)
         lam = np.ones(sel.size)
@@ -394,11 +380,12 @@ def _solve_chunk(
         converged[sel] = finite & settled
         active[sel] = finite & ~settled
 
-    # no convergence (or a position no longer finite): the per-epoch solver decides. Both
-    # step on the augmented system of eq. (10), but with a gross fault the iteration is
-    # sensitive to rounding, and the two orders of operations can settle differently
-    # (HKSC, a 1 ms error on GEO C01 at epoch 60, fast: the per-epoch iteration converges
-    # in 11 steps, this one not in 30), so a decline of this kind is not the batch's to give
+    # no convergence (or a position no longer finite): the per-epoch solver decides. With a
+    # gross fault the iteration is sensitive to rounding, and its step here and the
+    # per-epoch solver's (the augmented system formed) can settle differently (HKSC, 1 ms
+    # on GEO C01, fast: at epochs 20 and 60 the per-epoch iteration converges in 11 steps,
+    # this one not in 30; forming the augmented system here too settles epoch 20 but not
+    # 60, and costs a fifth of the batch's time), so this decline is not the batch's to give
     _fail(ok, np.flatnonzero(ok), ~converged[ok], unsure)
 
     # eqs. (12), (20)-(21): the GEO-GDOP gate over the full rows at the converged position
@@ -426,7 +413,7 @@ def _solve_chunk(
         if not sel.size:
             break
         iters[sel] += 1
-        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix, sel)
         try:
             step = _lsq(design(los[sel], sel), dz, validw[sel])
         except np.linalg.LinAlgError:
@@ -476,7 +463,7 @@ def _solve_chunk(
         if not sel.size:
             break
         iters[sel] += 1
-        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix[sel])
+        dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix, sel)
         lat, lon, alt, el, az = _local(x[sel], sat[sel])
         io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
         near = meaningful[sel, None]
@@ -508,7 +495,7 @@ def _solve_chunk(
     io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
     kp = keep[sel]
     near = meaningful[sel, None]
-    bc = _row_clocks(b[sel], cix[sel])
+    bc = _row_clocks(b[sel], cix, sel)
     corr = _where(near, total_delay(io, tr), 0.0)
     v = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - bc - corr
     v = np.where(kp, v, 0.0)
@@ -566,12 +553,14 @@ def _judged(
     frac = ch.frac[e, : len(prn)].tolist()
     kk = np.flatnonzero(kept[: len(prn)]).tolist()
     used = tuple(prn[i] for i in kk)
-    w = integ.w[kk]
-    ambiguity = {prn[i]: int(n_int[e, i]) for i in kk if frac[i]}
+    fr = [i for i in kk if frac[i]]  # the used fractional rows
+    # (plain floats: the same sums, without numpy's per-item cost)
+    n_row: list[float] = n_int[e].tolist() if fr else []
+    ambiguity = {prn[i]: int(n_row[i]) for i in fr}
     gdop_full = numbers["gdop"][k] if solver == "fast" else None
     alt, clocks, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
-    clock = max(clocks, key=abs)  # the clock furthest from zero
-    declined = verdict(integ, used, w, alt, clock, pdop, cfg)
+    clock = clocks[0] if len(clocks) == 1 else max(clocks, key=abs)  # furthest from zero
+    declined = verdict(integ, used, alt, clock, pdop, cfg, kk)
     if declined is not None:
         code, why = declined
         fix = decline_fix(
@@ -592,7 +581,9 @@ def _judged(
         )
         if code is not Decline.CHI2 or integ.chi2 is None or integ.chi2_max is None:
             return fix
-        return _Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, tuple(w.tolist()), fix)
+        w = integ.w.tolist()
+        wtest = tuple(w[i] for i in kk)
+        return _Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix)
     return solution_fix(
         solver=solver,
         gpst_week=ep.gpst_week,
@@ -614,10 +605,16 @@ def _judged(
         used=used,
         frac=[frac[i] for i in kk],
         ambiguity=ambiguity,
-        recovered_pr_m={
-            prn[i]: float(ch.z[e, i] + n_int[e, i] * ch.ct[e, i]) for i in kk if frac[i]
-        },
+        recovered_pr_m=_recovered(ch, e, prn, n_row, fr) if fr else {},
     )
+
+
+def _recovered(
+    ch: _Chunk, e: int, prn: tuple[str, ...], n_row: list[float], fr: list[int]
+) -> dict[str, float]:
+    """The full ranges z + N c T [m] of epoch ``e``'s used fractional rows ``fr``."""
+    z, ct = ch.z[e].tolist(), ch.ct[e].tolist()
+    return {prn[i]: z[i] + n_row[i] * ct[i] for i in fr}
 
 
 def _decline(

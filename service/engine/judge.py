@@ -69,25 +69,33 @@ def decline_fix(
 def verdict(
     integ: Integrity,
     used: Sequence[str],
-    w: np.ndarray,
     alt_m: float,
     clock_m: float,
     pdop: float,
     cfg: Gates,
+    slots: Sequence[int] | None = None,
 ) -> tuple[Decline, str] | None:
     """The decline of a solution (None: it is published): a failed chi-square test (the
-    reason names the used satellite ``used[k]`` with the largest w-test ``w[k]``), it lies
-    outside the plausible shell (altitude ``alt_m``, receiver clock ``clock_m``: the one
-    furthest from zero), or its PDOP is above the gate."""
+    reason names the used satellite ``used[k]`` with the largest w-test, ``integ.w[k]``, or
+    ``integ.w[slots[k]]`` where the w-tests cover a batch's slots), it lies outside the
+    plausible shell (altitude ``alt_m``, receiver clock ``clock_m``: the one furthest from
+    zero), or its PDOP is above the gate."""
     if integ.chi2 is not None and not integ.passed:
-        worst = int(np.nanargmax(np.abs(w))) if np.any(np.isfinite(w)) else 0
+        # numpy.nanargmax(|w|) where any w is finite, else the first row (as plain floats:
+        # a batch judges thousands of failed candidates)
+        w_all: list[float] = integ.w.tolist()
+        wl = w_all if slots is None else [w_all[i] for i in slots]
+        worst = 0
+        if any(math.isfinite(v) for v in wl):
+            size = [abs(v) if v == v else -math.inf for v in wl]  # NaN: never the largest
+            worst = size.index(max(size))
         why = reason(
             Decline.CHI2,
             chi2=integ.chi2,
             chi2_max=integ.chi2_max,
             redundancy=integ.redundancy,
             prn=used[worst],
-            w=w[worst],
+            w=wl[worst],
         )
         return Decline.CHI2, why
     if not (cfg.alt_min_m <= alt_m <= cfg.alt_max_m) or abs(clock_m) > cfg.clock_max_s * C_M_S:
@@ -150,7 +158,8 @@ def solution_fix(
     ``clocks_m`` names each when there is more than one), DOPs, the east-north-up
     covariance ``cov`` and the integrity figures ``integ``, over the rows ``used`` (``frac``:
     which are fractional; mode ``fast`` when any is)."""
-    full = tuple(p for p, f in zip(used, frac, strict=True) if not f)
+    full = tuple([p for p, f in zip(used, frac, strict=True) if not f])
+    c0, c1, c2 = cov[0], cov[1], cov[2]
     return Fix(
         solver=solver,
         mode="fast" if len(full) < len(used) else "spp",
@@ -175,17 +184,18 @@ def solution_fix(
         pdop=pdop,
         hdop=hdop,
         vdop=vdop,
-        std_enu_m=(_std(cov, 0), _std(cov, 1), _std(cov, 2)),
-        cov_enu_m2=tuple((r[0], r[1], r[2]) for r in cov),
+        # correctly rounded square roots, as numpy's
+        std_enu_m=(
+            math.sqrt(max(c0[0], 0.0)),
+            math.sqrt(max(c1[1], 0.0)),
+            math.sqrt(max(c2[2], 0.0)),
+        ),
+        cov_enu_m2=((c0[0], c0[1], c0[2]), (c1[0], c1[1], c1[2]), (c2[0], c2[1], c2[2])),
         hpl_m=integ.hpl_m,
         vpl_m=integ.vpl_m,
         used=used,
         full=full,
-        fractional=tuple(p for p, f in zip(used, frac, strict=True) if f),
+        fractional=tuple([p for p, f in zip(used, frac, strict=True) if f]),
         ambiguity=ambiguity,
         recovered_pr_m=recovered_pr_m,
     )
-
-
-def _std(cov: list[list[float]], k: int) -> float:
-    return math.sqrt(max(cov[k][k], 0.0))  # correctly rounded, as numpy's

@@ -626,7 +626,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
     q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
     pdop = float(np.sqrt(np.trace(q_enu)))
-    declined_why = verdict(integ, kept.prn, integ.w, loc.alt_m, b_max, pdop, cfg)
+    declined_why = verdict(integ, kept.prn, loc.alt_m, b_max, pdop, cfg)
     if declined_why is not None:
         code, why = declined_why
         fix = decline_fix(
