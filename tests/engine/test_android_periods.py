@@ -78,6 +78,10 @@ def test_fast_fix_with_periods_from_2_ms_to_6_s_recovers_the_full_ranges():
         assert pr == pytest.approx(epoch.pr_m[epoch.prn.index(prn)], abs=1e-3)
 
 
+def spp_of(epoch):
+    return _pipeline(NAV).on_epoch(epoch).fix
+
+
 def test_a_coarse_time_keeps_fractional_ranges_out_and_says_why():
     epoch = _hksc_epoch()
     # 3 full GEOs: with the phone's 5.97 s prior the fractional rows are set aside, and the
@@ -85,9 +89,11 @@ def test_a_coarse_time_keeps_fractional_ranges_out_and_says_why():
     fix = _pipeline(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5.968969500122643)).fix
     assert fix.reason_code == "coarse_time"
     assert "+-5.97 s" in fix.reason and "13 fractional" in fix.reason and "3 full" in fix.reason
-    # with a fine time the engine's fast fix still needs 4 full ranges (the paper's 4 GEOs)
+    # with a fine time the paper's fast fix still needs 4 full ranges (its 4 GEOs); the
+    # coarse-time fix (service.engine.coarse) takes the epoch instead and gives SPP's position
     fine = _pipeline(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5e-9)).fix
-    assert fine.reason_code == "too_few_full"
+    assert fine.ok and fine.method == "coarse_time"
+    assert np.linalg.norm(np.subtract(fine.x_ecef_m, spp_of(epoch).x_ecef_m)) < 1e-3
     # 4 full GEOs: the fast fix with a fine time; with a coarse time the four GEOs are
     # solved alone (the fractional rows set aside), and their geometry fails the PDOP gate
     assert _pipeline(NAV).on_epoch(_partial(epoch, 4, time_unc_s=5e-9)).fix.mode == "fast"
