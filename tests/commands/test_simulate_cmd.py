@@ -42,13 +42,17 @@ def test_simulated_capture_replays_fast_then_spp(tmp_path, rule):
     )
     recs = [json.loads(x) for x in out.read_text().splitlines()]
     fixes = [r for r in recs if r["class"] == "FIX"]
-    first_fast = next(f["since_start_s"] for f in fixes if f["mode"] == "fast")
+    # the paper's fast fix (four full GEOs); the coarse-time fix may come before it
+    first_fast = next(
+        f["since_start_s"] for f in fixes if f["mode"] == "fast" and "method" not in f
+    )
+    first_any = next(f["since_start_s"] for f in fixes if f["mode"] == "fast")
     first_spp = next(f["since_start_s"] for f in fixes if f["mode"] == "spp")
     if rule == "sow":
         assert first_fast <= 1.0 and first_spp >= 1.2
     else:
         assert 0.6 <= first_fast <= 1.5 and first_spp >= 6.0
-    assert first_spp > first_fast
+    assert first_any <= first_fast < first_spp
     sows = [r for r in recs if r["class"] == "TRACK" and r["event"] == "sow"]
     assert {r["nav_type"] for r in sows} == {"D1", "D2"}
 
