@@ -68,11 +68,11 @@ from service.engine.solver import (
     GROSS_SPREAD_M,
     IonoSet,
     SolverConfig,
-    delays,
     measurement_sigma_m,
     ranges,
     sky_view,
     solve,
+    system_delays,
     total_delay,
 )
 
@@ -457,7 +457,8 @@ def _solve_chunk(
     for e, code, why, fields in declines:
         out[e] = _decline(ch, e, solver, code, why, fields)
     keepw = keep.astype(float)
-    model = iono.model(cfg.iono)
+    models = iono.models(cfg.iono)
+    bds = ch.eph.bds
     sel = np.flatnonzero(ok)
     for _it in range(cfg.max_iter):
         if not sel.size:
@@ -465,7 +466,9 @@ def _solve_chunk(
         iters[sel] += 1
         dz = ch.z[sel] + n_int[sel] * ch.ct[sel] - pred[sel] - _row_clocks(b[sel], cix, sel)
         lat, lon, alt, el, az = _local(x[sel], sat[sel])
-        io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
+        io, tr = system_delays(
+            lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], bds[sel], models, cfg
+        )
         near = meaningful[sel, None]
         dz = dz - _where(near, total_delay(io, tr), 0.0)
         w = keepw[sel]
@@ -492,7 +495,9 @@ def _solve_chunk(
     if not sel.size:
         return out
     lat, lon, alt, el, az = _local(x[sel], sat[sel])
-    io, tr = delays(lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], model, cfg)
+    io, tr = system_delays(
+        lat, lon, alt, el, az, ch.bdt_sow[sel], ch.eph.carrier_hz[sel], bds[sel], models, cfg
+    )
     kp = keep[sel]
     near = meaningful[sel, None]
     bc = _row_clocks(b[sel], cix, sel)
@@ -662,7 +667,7 @@ def _solve_layouts(
     """:func:`_solve_chunk` of ``ch``; when its epochs' rows differ in their satellite
     systems (so in their clocks, :class:`~service.engine.layout.Layout`), each layout's
     epochs are solved as a chunk of their own."""
-    if ch.layout is not None:
+    if ch.layout is not None and (solver == "spp" or ch.layout.n_clocks == 1):
         return _solve_chunk(ch, ch.layout, iono, cfg, solver)
     groups: dict[Layout, list[int]] = {}
     for e, ps in enumerate(ch.prn):
@@ -671,6 +676,11 @@ def _solve_layouts(
     for idx in groups.values():
         sub = _Chunk([ch.epochs[e] for e in idx], store, solver)
         layout = sub.layout if sub.layout is not None else BDS_ONLY
+        if solver == "fast" and layout.n_clocks > 1:
+            # the fast fix of rows of several systems resolves the integers of a system
+            # without full rows after the others' fix (solver._with_other_systems): the
+            # per-epoch solver's (None: handed to it)
+            continue
         for e, res in zip(idx, _solve_chunk(sub, layout, iono, cfg, solver), strict=True):
             out[e] = res
     return out

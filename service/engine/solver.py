@@ -841,28 +841,45 @@ def _delays(
     cfg: SolverConfig,
     eph: EphemerisArrays,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Ionospheric (on each row's carrier, BeiDou rows with ``models.bds``, the others with
-    ``models.other``) and tropospheric delays [m] for the rows at this iterate (None: not
-    applied)."""
+    """:func:`system_delays` for the rows at this iterate."""
+    return system_delays(
+        loc.lat_rad,
+        loc.lon_rad,
+        loc.alt_m,
+        loc.el_rad,
+        loc.az_rad,
+        bdt_sow,
+        eph.carrier_hz,
+        eph.bds,
+        models,
+        cfg,
+    )
+
+
+def system_delays(
+    lat_rad: float | np.ndarray,
+    lon_rad: float | np.ndarray,
+    alt_m: float | np.ndarray,
+    el_rad: np.ndarray,
+    az_rad: np.ndarray,
+    bdt_sow_s: float | np.ndarray,
+    carrier_hz: np.ndarray,
+    bds_rows: np.ndarray,
+    models: IonoModels | None,
+    cfg: SolverConfig,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """:func:`delays` with each row's system's ionosphere: BeiDou rows (``bds_rows``) with
+    ``models.bds``, GPS and Galileo rows with ``models.other`` (:meth:`IonoSet.models`), each
+    on its own carrier. One epoch or a batch, as :func:`delays`; the per-epoch solver and
+    the batch both call it, so their corrections are the same numbers."""
     model = None if models is None else models.bds
-    args = (loc.lat_rad, loc.lon_rad, loc.alt_m, loc.el_rad, loc.az_rad, bdt_sow, eph.carrier_hz)
+    args = (lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, carrier_hz)
     iono, tropo = delays(*args, model, cfg)
-    if iono is not None and models is not None and models.other is not model and not eph.bds.all():
-        sel = ~eph.bds
-        other, _ = delays(
-            loc.lat_rad,
-            loc.lon_rad,
-            loc.alt_m,
-            loc.el_rad[sel],
-            loc.az_rad[sel],
-            bdt_sow,
-            eph.carrier_hz[sel],
-            models.other,
-            cfg,
-        )
+    mixed = models is not None and models.other is not model and not bool(np.all(bds_rows))
+    if iono is not None and models is not None and mixed:
+        other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
         if other is not None:
-            iono = iono.copy()
-            iono[sel] = other
+            iono = np.where(bds_rows, iono, other)
     return iono, tropo
 
 
