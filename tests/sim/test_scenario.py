@@ -41,14 +41,24 @@ def test_replay_without_arguments_prints_the_timeline(tmp_path, rule):
             times[key.strip()] = float(val.split()[0])
     print(rule, times)
     fast, conv = times["first fast fix"], times["first conventional fix"]
+    fixes = [json.loads(x) for x in out.read_text().splitlines()]
+    # the paper's fast fix (four full GEOs) apart from the coarse-time fix before it
+    paper = next(
+        f["since_start_s"]
+        for f in fixes
+        if f["class"] == "FIX" and f["mode"] == "fast" and "method" not in f
+    )
+    offset = fast - next(
+        f["since_start_s"] for f in fixes if f["class"] == "FIX" and f["mode"] == "fast"
+    )
+    paper += offset  # the summary counts from the virtual receiver's start
     if rule == "sow":  # the default
-        assert fast <= 1.0
+        assert fast <= paper <= 1.0
         assert conv >= times["first non-GEO SOW decoded"] >= 1.2
     else:
-        assert 0.6 <= fast <= 1.5
+        assert fast <= 0.6 <= paper <= 1.5
         assert conv >= 6.0
     assert fast < conv
-    fixes = [json.loads(x) for x in out.read_text().splitlines()]
     assert any(f["class"] == "TRACK" and f["event"] == "sow" for f in fixes)
 
 
@@ -64,7 +74,7 @@ def test_scenario_fast_fixes_equal_spp_of_the_true_full_ranges():
     from service.engine.pipeline import Pipeline
 
     pipe = Pipeline(store2, iono)
-    n_fast = 0
+    n_fast = n_coarse = 0
     for ev in events:
         if not isinstance(ev, MeasurementEpoch):
             continue
@@ -81,8 +91,20 @@ def test_scenario_fast_fixes_equal_spp_of_the_true_full_ranges():
             cn0_dbhz=ep.cn0_dbhz,  # the same signal quality, so the same weights
         )
         spp = solve(full, store, solver="spp")
-        assert np.linalg.norm(np.subtract(r.fix.x_ecef_m, spp.x_ecef_m)) <= 1e-3
+        d = np.linalg.norm(np.subtract(r.fix.x_ecef_m, spp.x_ecef_m))
+        if r.fix.method == "coarse_time" and not r.fix.full:
+            # every range fractional: the coarse-time solution itself, its time solved to
+            # about a millisecond (docs/method.md), not SPP at the true time (measured: 1.4 m
+            # at most here), within its protection levels of SPP's position
+            assert d <= np.hypot(r.fix.hpl_m, r.fix.vpl_m)
+            n_coarse += 1
+        else:
+            assert d <= 1e-3
         err = np.linalg.norm(np.subtract(r.fix.x_ecef_m, ep.truth_x_ecef_m))
-        assert err <= 5 * 1.3 * r.fix.pdop
+        if r.fix.pdop is not None:
+            assert err <= 5 * 1.3 * r.fix.pdop
+        else:  # the coarse-time solution has no PDOP of four unknowns: its protection levels
+            assert err <= np.hypot(r.fix.hpl_m, r.fix.vpl_m)
         n_fast += 1
     assert n_fast >= 40  # 47: from the first fast fix (0.7 s) to the last D1 SOW (5.3 s)
+    assert n_coarse <= 6  # the coarse-time fixes before the GEOs are full (0.7 s)

@@ -106,6 +106,10 @@ def test_restart_timeline_agrees_with_the_jsonl(tmp_path, capsys):
         "first non-GEO SOW decoded": min(
             t["since_start_s"] for t in track if t["nav_type"] == "D1"
         ),
+        # the epoch where the fourth satellite became full (HKSC keeps its satellites)
+        "first 4 full ranges": sorted(
+            {t["prn"]: t["since_start_s"] for t in reversed(track)}.values()
+        )[3],
     }
     assert timeline == pytest.approx(want, abs=0.005)
     assert want["first conventional fix"] > 0.0  # SPP waits for the D1 SOWs after a restart
