@@ -4,8 +4,10 @@ Every epoch the engine does not fix comes back as a :class:`service.core.types.F
 ``mode="none"``, a ``reason_code`` (a :class:`Decline`) and a ``reason`` made from that
 code's template here. The summaries of ``replay``, ``run`` and ``solve`` name each code by
 its label and give its hint, from the same table; so do the reasons fault exclusion gives
-for a satellite it removed (:data:`EXCLUSIONS`). No other module writes these words
-(tests/engine/test_declines.py reads the table and checks the summaries use it).
+for a satellite it removed (:data:`EXCLUSIONS`), and what a command says when it saw no
+epoch at all (:data:`NO_EPOCHS`). No other module writes these words, and none is written
+twice here (tests/engine/test_declines.py reads the tables, checks the summaries use them
+and scans every string literal in service/ for their sentences).
 """
 
 from __future__ import annotations
@@ -50,6 +52,9 @@ class DeclineText:
     command_hints: dict[str, str] = field(default_factory=dict)
 
 
+_GIVE_EPHEMERIDES = "give the satellites' ephemerides: "
+_WEEK_UNKNOWN = "the GPS week is not known yet: "
+
 DECLINES: dict[Decline, DeclineText] = {
     Decline.NO_MEASUREMENTS: DeclineText(
         "no measurements",
@@ -59,12 +64,11 @@ DECLINES: dict[Decline, DeclineText] = {
     Decline.NO_EPHEMERIS: DeclineText(
         "no usable ephemeris",
         {"": "no usable ephemeris for {prns}"},
-        "give the satellites' ephemerides: a RINEX 3 nav file of the same day "
-        "(replay/run --nav NAV, solve's NAV argument), or a capture that carries them (UBX "
-        "RXM-SFRBX, RTCM 1042)",
+        _GIVE_EPHEMERIDES + "a RINEX 3 nav file of the same day (replay/run --nav NAV, solve's "
+        "NAV argument), or a capture that carries them (UBX RXM-SFRBX, RTCM 1042)",
         {
-            "solve": "give the satellites' ephemerides: a RINEX 3 nav file of the same "
-            "day as the obs file (the NAV argument)",
+            "solve": _GIVE_EPHEMERIDES + "a RINEX 3 nav file of the same day as the obs file "
+            "(the NAV argument)",
         },
     ),
     Decline.TOO_FEW_FULL: DeclineText(
@@ -122,12 +126,12 @@ DECLINES: dict[Decline, DeclineText] = {
     Decline.NO_TIME: DeclineText(
         "time unknown (no GPS week yet)",
         {"": "GPS week not known yet: the source gave only the time of week"},
-        "the GPS week is not known yet: give --gps-week N (RTCM without ephemerides)",
+        _WEEK_UNKNOWN + "give --gps-week N (RTCM without ephemerides)",
         {
             # run has no --gps-week: a live stream takes the week from the system clock
-            "run": "the GPS week is not known yet: a live stream takes it from the system "
-            "clock until the receiver's time tag or ephemerides give it; a capture file has "
-            "no clock: 'bdsfix replay FILE --gps-week N'",
+            "run": _WEEK_UNKNOWN
+            + "a live stream takes it from the system clock until the receiver's time tag or "
+            "ephemerides give it; a capture file has no clock: 'bdsfix replay FILE --gps-week N'",
             "solve": "the obs file's epochs carry no GPS time: check its header and epoch lines",
         },
     ),
@@ -207,3 +211,27 @@ failed test and the satellite's w-test."""
 def excluded_why(kind: str, **fields: object) -> str:
     """The reason a satellite was excluded (:data:`EXCLUSIONS`)."""
     return EXCLUSIONS[kind].format(**fields)
+
+
+NO_EPOCHS: dict[str, str] = {
+    "replay": "no measurement epoch in the input: it needs BDS raw measurements (UBX "
+    "RXM-RAWX/MEASX, RTCM3 MSM 1124-1127, SBF MeasEpoch, a RINEX 3 obs file with C2I/C1I, or "
+    "GnssLogger Raw rows); for RTCM without ephemerides give --gps-week",
+    # run has no --gps-week (the system clock gives a live stream its week)
+    "run": "no measurement epoch from the source: it needs BDS raw measurements (UBX "
+    "RXM-RAWX/MEASX or RTCM3 MSM 1124-1127); 'bdsfix configure' sets a u-blox receiver up",
+    "run_never_opened": "the source never opened ({failures} attempts, see the WARNING "
+    "lines): is the receiver plugged in, or the server listening?",
+    "solve": "no measurement epoch in the obs file: it needs BDS pseudoranges (C2I or C1I)",
+}
+"""What a command says when it saw no measurement epoch at all (no decline then: no epoch
+was solved), in that command's own flags; ``run_never_opened``: ``run``'s source never
+opened (``{failures}``: its attempts)."""
+
+
+def no_epochs(command: str, open_failures: int = 0) -> str:
+    """The :data:`NO_EPOCHS` hint of ``command`` (``replay`` for a command without its own);
+    ``open_failures``: how often ``run`` failed to open a source that never opened."""
+    if command == "run" and open_failures:
+        return NO_EPOCHS["run_never_opened"].format(failures=open_failures)
+    return NO_EPOCHS.get(command, NO_EPOCHS["replay"])
