@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from service.engine.declines import hint, label, no_epochs
+from service.core.declines import hint, label, no_epochs
 
 TOP_REASONS = 3
 
@@ -67,7 +67,7 @@ def stream_lines(
 
 def no_epochs_hint(command: str, counters: Mapping[str, int | float] | None = None) -> str:
     """What to do when ``command`` saw no measurement epoch, in that command's own flags
-    (:data:`service.engine.declines.NO_EPOCHS`); ``run`` says when its source never opened
+    (:data:`service.core.declines.NO_EPOCHS`); ``run`` says when its source never opened
     (open failures and no source event in ``counters``)."""
     c = counters or {}
     failures = int(c.get("source_open_failures", 0))

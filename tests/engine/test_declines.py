@@ -1,4 +1,4 @@
-"""A decline is a value: one table (service.engine.declines.DECLINES) holds the words of
+"""A decline is a value: one table (service.core.declines.DECLINES) holds the words of
 every decline code, and the records, the summaries and the hints take them from it.
 
 Read from the table: every reason in the golden records matches its code's template, every
@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from service.commands.summary import decline_lines, no_epochs_hint
-from service.engine.declines import DECLINES, NO_EPOCHS, Decline, hint, label, reason
+from service.core.declines import DECLINES, NO_EPOCHS, Decline, hint, label, reason
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = ROOT / "tests" / "golden"
@@ -123,7 +123,7 @@ def test_no_decline_words_are_written_twice_in_service():
     """Every clause of 20 characters or more in the tables' strings (labels, reason templates,
     hints, exclusion reasons, no-epoch hints) appears in no string literal of any other module
     of service/: each reason and hint is written once, in the table."""
-    table = ROOT / "service" / "engine" / "declines.py"
+    table = ROOT / "service" / "core" / "declines.py"
     clauses = {
         c.strip() for s in _literals(table) for c in _CLAUSE.split(s) if len(c.strip()) >= 20
     }

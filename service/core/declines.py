@@ -1,13 +1,18 @@
 """A decline is a value: its code, and the one table of the words users see for it.
 
 Every epoch the engine does not fix comes back as a :class:`service.core.types.Fix` with
-``mode="none"``, a ``reason_code`` (a :class:`Decline`) and a ``reason`` made from that
-code's template here. The summaries of ``replay``, ``run`` and ``solve`` name each code by
-its label and give its hint, from the same table; so do the reasons fault exclusion gives
-for a satellite it removed (:data:`EXCLUSIONS`), and what a command says when it saw no
-epoch at all (:data:`NO_EPOCHS`). No other module writes these words, and none is written
-twice here (tests/engine/test_declines.py reads the tables, checks the summaries use them
-and scans every string literal in service/ for their sentences).
+``mode="none"`` and a :class:`Declined`: its code (a :class:`Decline`), the variant of the
+code's reason template and the figures that fill it; the fix's ``reason_code`` and
+``reason`` (what the records carry) are made from it and the template here, when asked.
+The summaries of ``replay``, ``run`` and ``solve`` name each code by its label and give its
+hint, from the same table; so do the reasons fault exclusion gives for a satellite it
+removed (:data:`EXCLUSIONS`), and what a command says when it saw no epoch at all
+(:data:`NO_EPOCHS`). No other module writes these words
+(tests/engine/test_declines.py reads the tables, checks the summaries use them and scans
+every string literal in service/ for their sentences).
+
+The table lives in core, beside :class:`service.core.types.Fix`, which holds the value and
+makes its words from it: the words are shared vocabulary (engine, output, commands).
 """
 
 from __future__ import annotations
@@ -174,10 +179,36 @@ DECLINES: dict[Decline, DeclineText] = {
 """The one table of decline words: label, reason templates and hint per code."""
 
 
+@dataclass(frozen=True, slots=True)
+class Declined:
+    """A decline as a value: its ``code``, the ``variant`` of the code's reason template and
+    the figures that fill it (``fields``, name-value pairs). Nothing is written out until a
+    record or a summary asks: :attr:`reason` formats the template of :data:`DECLINES`, so a
+    decline carries no words of its own (``Fix.decline``)."""
+
+    code: Decline
+    variant: str = ""
+    fields: tuple[tuple[str, object], ...] = ()
+
+    @classmethod
+    def of(cls, code: Decline, variant: str = "", **fields: object) -> Declined:
+        """The decline ``code`` with reason template ``variant`` and its figures ``fields``."""
+        return cls(code, variant, tuple(fields.items()))
+
+    @property
+    def reason(self) -> str:
+        """The record's ``reason``: the code's template (``variant``) filled with ``fields``."""
+        return DECLINES[self.code].templates[self.variant].format(**dict(self.fields))
+
+    def figure(self, name: str) -> object:
+        """The figure ``name`` of this decline (KeyError: it has none)."""
+        return dict(self.fields)[name]
+
+
 def reason(code: Decline, variant: str = "", **fields: object) -> str:
     """The record's ``reason`` for ``code``: its template (``variant``) filled with
     ``fields``."""
-    return DECLINES[code].templates[variant].format(**fields)
+    return Declined.of(code, variant, **fields).reason
 
 
 def label(code: str) -> str:
