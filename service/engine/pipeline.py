@@ -40,6 +40,7 @@ from service.core.types import (
     SatView,
 )
 from service.engine.coarse import CoarseConfig, solve_coarse
+from service.engine.layout import BDS_ONLY
 from service.engine.solver import (
     IonoSet,
     SolverConfig,
@@ -261,12 +262,16 @@ class Pipeline:
             # the receiver's time is coarser than even the coarse-time fix's prior
             if fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
                 self.counters["coarse_time_epochs"] += 1
+                # the full ranges the solve needed (its layout's unknowns); with no row at all,
+                # one system's position and clock
+                figures = dict(fix.decline.fields) if fix.decline is not None else {}
+                need = figures.get("need", BDS_ONLY.n_params)
                 why = Declined.of(
                     Decline.COARSE_TIME,
                     time_unc_s=view.time_unc_s,
                     n_frac=set_aside,
                     n_full=int(np.isfinite(view.pr_m).sum()),
-                    need=4,
+                    need=need,
                 )
                 fix = declined(view, why)
         elif self.coarse.coarse_fix and (

@@ -18,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from service.commands.summary import decline_lines, no_epochs_hint
-from service.core.declines import DECLINES, NO_EPOCHS, Decline, hint, label, reason
+from service.core.declines import DECLINES, NO_EPOCHS, Decline, Declined, hint, label, reason
+from service.core.types import Fix
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = ROOT / "tests" / "golden"
@@ -51,6 +52,31 @@ def test_reasons_are_formatted_from_the_table():
     )
     assert (
         reason(Decline.PDOP_GATE, pdop=12.345, pdop_max=10.0) == "PDOP gate failed: PDOP 12.3 > 10"
+    )
+
+
+def test_a_declined_fix_holds_a_value_and_makes_its_words_from_the_table():
+    """A declined fix stores no words: its ``reason`` and ``reason_code`` are made from its
+    :class:`Declined` (code, variant, figures) and the table, and a published fix has none."""
+    why = Declined.of(Decline.GDOP_GATE, "unsettled", gdop=1234.56, beta=3000.0, iterations=12)
+    fix = Fix(solver="fast", mode="none", gpst_week=2161, gpst_tow_s=1.0, decline=why)
+    assert fix.reason_code == "gdop_gate" and fix.decline.figure("iterations") == 12
+    # the template written out by hand from the paper's gate, not by the code under test
+    assert (
+        fix.reason
+        == "GDOP gate failed: GDOP_full 1234.6 >= beta 3000 (no convergence after 12 iterations)"
+    )
+    assert (
+        "reason" not in Fix.__dataclass_fields__ and "reason_code" not in Fix.__dataclass_fields__
+    )
+    published = Fix(solver="fast", mode="spp", gpst_week=2161, gpst_tow_s=1.0)
+    assert published.decline is None and published.reason is None and published.reason_code is None
+    # the same decline is the same value: one figure different is another decline
+    assert why == Declined.of(
+        Decline.GDOP_GATE, "unsettled", gdop=1234.56, beta=3000.0, iterations=12
+    )
+    assert why != Declined.of(
+        Decline.GDOP_GATE, "unsettled", gdop=1234.56, beta=3000.0, iterations=13
     )
 
 
