@@ -1101,14 +1101,9 @@ def declined(
     why: Declined,
     solver: Literal["fast", "spp"] = "fast",
 ) -> Fix:
-    """A declined fix for ``epoch`` (``mode="none"``), declined for ``why``."""
-    return Fix(
-        solver=solver,
-        mode="none",
-        gpst_week=epoch.gpst_week,
-        gpst_tow_s=epoch.gpst_tow_s,
-        decline=why,
-    )
+    """A declined fix for ``epoch`` (``mode="none"``), declined for ``why`` before any row
+    was solved (:func:`service.engine.judge.decline_fix` over no rows)."""
+    return decline_fix(solver, epoch.gpst_week, epoch.gpst_tow_s, (), (), why)
 
 
 def solve(
