@@ -239,6 +239,11 @@ fix's exclusion (service.engine.coarse), or the
 failed test and the satellite's w-test."""
 
 
+NO_REASON = "declined without a reason"
+"""A record's ``reason`` for a declined fix that carries no :class:`Declined` (no engine
+builder makes one; the records still never leave a declined fix without words)."""
+
+
 def excluded_why(kind: str, **fields: object) -> str:
     """The reason a satellite was excluded (:data:`EXCLUSIONS`)."""
     return EXCLUSIONS[kind].format(**fields)

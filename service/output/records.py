@@ -78,6 +78,7 @@ from typing import Any
 
 import numpy as np
 
+from service.core.declines import NO_REASON
 from service.core.geometry import geodetic_to_ecef
 from service.core.timebase import diff_s
 from service.core.types import UNKNOWN_WEEK, Fix, ReceiverFix, SatView, Velocity
@@ -112,7 +113,6 @@ CSV_COLUMNS = (
 )
 
 TRACK_EVENTS = ("sow", "full")
-NO_REASON = "declined without a reason"
 
 
 def _finite(value: float | None) -> bool:
