@@ -36,9 +36,9 @@ from drivers.rinex import RinexObsReader  # noqa: E402
 from service.commands.solve import load_navigation  # noqa: E402
 from service.core.bds import is_geo  # noqa: E402
 from service.core.constants import C_M_S  # noqa: E402
+from service.core.declines import excluded_why  # noqa: E402
 from service.core.geometry import ecef_to_geodetic, enu_rotation  # noqa: E402
 from service.engine.coarse import CoarseConfig, plain_chain, solve_coarse  # noqa: E402
-from service.engine.declines import excluded_why  # noqa: E402
 from service.engine.solver import SolverConfig, fractionalize, solve  # noqa: E402
 
 HKSC = ROOT.parent / "shared" / "data" / "hksc-2021"

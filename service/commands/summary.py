@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from service.engine.declines import hint, label
+from service.core.declines import hint, label, no_epochs
 
 TOP_REASONS = 3
 
@@ -65,31 +65,10 @@ def stream_lines(
     return lines
 
 
-NO_EPOCHS_HINT = (
-    "no measurement epoch in the input: it needs BDS raw measurements (UBX RXM-RAWX/MEASX, "
-    "RTCM3 MSM 1124-1127, SBF MeasEpoch, a RINEX 3 obs file with C2I/C1I, or GnssLogger "
-    "Raw rows); for RTCM "
-    "without ephemerides give --gps-week"
-)
-"""What ``replay`` says when its input gave no epoch (it has ``--gps-week``)."""
-
-
 def no_epochs_hint(command: str, counters: Mapping[str, int | float] | None = None) -> str:
-    """What to do when ``command`` saw no measurement epoch, with that command's own flags:
-    ``replay`` has ``--gps-week``; ``run`` has not (the system clock gives a live stream its
-    week) and says when its source never opened; ``solve`` reads RINEX obs only."""
+    """What to do when ``command`` saw no measurement epoch, in that command's own flags
+    (:data:`service.core.declines.NO_EPOCHS`); ``run`` says when its source never opened
+    (open failures and no source event in ``counters``)."""
     c = counters or {}
-    if command == "solve":
-        return "no measurement epoch in the obs file: it needs BDS pseudoranges (C2I or C1I)"
-    if command != "run":
-        return NO_EPOCHS_HINT
     failures = int(c.get("source_open_failures", 0))
-    if failures and not c.get("source_events"):
-        return (
-            f"the source never opened ({failures} attempts, see the WARNING lines): is the "
-            "receiver plugged in, or the server listening?"
-        )
-    return (
-        "no measurement epoch from the source: it needs BDS raw measurements (UBX "
-        "RXM-RAWX/MEASX or RTCM3 MSM 1124-1127); 'bdsfix configure' sets a u-blox receiver up"
-    )
+    return no_epochs(command, 0 if c.get("source_events") else failures)

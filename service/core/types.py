@@ -11,6 +11,7 @@ from typing import Literal
 
 import numpy as np
 
+from service.core.declines import Declined
 from service.core.systems import constants_of
 
 FixMode = Literal["fast", "spp", "none"]
@@ -251,7 +252,7 @@ class Velocity:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Fix:
-    """A solver's result for one epoch; ``mode == "none"`` carries ``reason`` instead.
+    """A solver's result for one epoch; ``mode == "none"`` carries a ``decline`` instead.
 
     ``solver`` is which solver ran (``fast``/``spp``), ``mode`` what it achieved.
     """
@@ -277,8 +278,8 @@ class Fix:
     recovered_pr_m: dict[str, float] = field(default_factory=dict)
     resid_rms_m: float | None = None
     iterations: int = 0
-    reason: str | None = None
-    reason_code: str | None = None
+    # why a fix is declined (mode "none"): its code, template variant and figures
+    decline: Declined | None = None
     sky: tuple[SatView, ...] = ()
     # integrity (service.engine.raim): redundancy (rows - unknowns) of the final solution;
     # the chi-square statistic and its threshold (None at redundancy 0: no test possible);
@@ -305,3 +306,15 @@ class Fix:
     @property
     def ok(self) -> bool:
         return self.mode != "none"
+
+    @property
+    def reason_code(self) -> str | None:
+        """The decline's code (the ``declined_<code>`` counters, the records'
+        ``reason_code``); None for a published fix."""
+        return None if self.decline is None else self.decline.code.value
+
+    @property
+    def reason(self) -> str | None:
+        """The decline in words, from the one table (:data:`service.core.declines.DECLINES`);
+        None for a published fix."""
+        return None if self.decline is None else self.decline.reason

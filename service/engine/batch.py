@@ -25,7 +25,7 @@ cost per epoch is paid once per chunk:
   (:func:`service.engine.judge.verdict`); the declines of no rows, too few full ranges (also
   above the mask), the GEO-GDOP gate, a failed test, an implausible solution and the PDOP
   gate are built here by the builders both paths call (:mod:`service.engine.judge`), in the
-  words of the one table (:mod:`service.engine.declines`);
+  words of the one table (:mod:`service.core.declines`);
 - the unknowns are the chunk's rows' :class:`~service.engine.layout.Layout`: a receiver
   clock per satellite system (a chunk whose epochs differ in their systems is solved one
   layout at a time);
@@ -54,13 +54,13 @@ from typing import Literal
 import numpy as np
 
 from service.core.constants import C_M_S
+from service.core.declines import Decline, Declined, excluded_why
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine import linalg
-from service.engine.declines import Decline, excluded_why, reason
 from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
 from service.engine.layout import BDS_ONLY, Layout, dop, layout_of
 from service.engine.raim import Integrity, assess_many
@@ -288,18 +288,19 @@ def _solve_chunk(
 
     too_few = ~unsure & ~no_rows & (n_full < n_par)
     ok &= ~unsure & ~too_few & ~no_rows
-    # the declines decided here: (epoch, code, reason, fields of the declined fix)
-    declines: list[tuple[int, Decline, str, dict[str, object]]] = []
+    # the declines decided here: (epoch, why, fields of the declined fix)
+    declines: list[tuple[int, Declined, dict[str, object]]] = []
     for e in np.flatnonzero(no_rows & ~unsure).tolist():
         if ch.missing[e]:
-            code = Decline.NO_EPHEMERIS
-            declines.append((e, code, reason(code, prns=", ".join(ch.missing[e])), {}))
+            declines.append(
+                (e, Declined.of(Decline.NO_EPHEMERIS, prns=", ".join(ch.missing[e])), {})
+            )
         else:
-            declines.append((e, Decline.NO_MEASUREMENTS, reason(Decline.NO_MEASUREMENTS), {}))
+            declines.append((e, Declined.of(Decline.NO_MEASUREMENTS), {}))
     for e in np.flatnonzero(too_few).tolist():
         n_f, n_q = int(n_full[e]), int(ch.frac[e].sum())
-        why = reason(Decline.TOO_FEW_FULL, n_full=n_f, n_frac=n_q, need=n_par)
-        declines.append((e, Decline.TOO_FEW_FULL, why, {}))
+        why = Declined.of(Decline.TOO_FEW_FULL, n_full=n_f, n_frac=n_q, need=n_par)
+        declines.append((e, why, {}))
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
     x = np.zeros((n_e, 3))
@@ -401,9 +402,8 @@ def _solve_chunk(
         gd_l, beta_l, it_l = gd.tolist(), beta.tolist(), iters.tolist()
         for e in np.flatnonzero(gate).tolist():
             it = it_l[e]
-            why = reason(Decline.GDOP_GATE, gdop=gd_l[e], beta=beta_l[e], iterations=it)
-            fields = {"gdop_full": gd_l[e], "iterations": it}
-            declines.append((e, Decline.GDOP_GATE, why, fields))
+            why = Declined.of(Decline.GDOP_GATE, gdop=gd_l[e], beta=beta_l[e], iterations=it)
+            declines.append((e, why, {"gdop_full": gd_l[e], "iterations": it}))
         ok &= ~gate
 
     # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
@@ -448,14 +448,14 @@ def _solve_chunk(
         with np.errstate(all="ignore"):
             gd = dop(design(los), fullw)  # at the position of the fixed iterations
         for e in np.flatnonzero(masked).tolist():
-            why = reason(
+            why = Declined.of(
                 Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=int(n_full_k[e])
             )
-            fields = {"gdop_full": float(gd[e]) if n_frac[e] else None, "iterations": int(iters[e])}
-            declines.append((e, Decline.TOO_FEW_FULL, why, fields))
+            gd_e = float(gd[e]) if n_frac[e] else None
+            declines.append((e, why, {"gdop_full": gd_e, "iterations": int(iters[e])}))
     ok &= ~masked
-    for e, code, why, fields in declines:
-        out[e] = _decline(ch, e, solver, code, why, fields)
+    for e, why, fixed in declines:
+        out[e] = _decline(ch, e, solver, why, fixed)
     keepw = keep.astype(float)
     models = iono.models(cfg.iono)
     bds = ch.eph.bds
@@ -565,16 +565,14 @@ def _judged(
     gdop_full = numbers["gdop"][k] if solver == "fast" else None
     alt, clocks, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
     clock = clocks[0] if len(clocks) == 1 else max(clocks, key=abs)  # furthest from zero
-    declined = verdict(integ, used, alt, clock, pdop, cfg, kk)
-    if declined is not None:
-        code, why = declined
+    why = verdict(integ, used, alt, clock, pdop, cfg, kk)
+    if why is not None:
         fix = decline_fix(
             solver,
             ep.gpst_week,
             ep.gpst_tow_s,
             prn,
             frac,
-            code,
             why,
             gdop_full=gdop_full,
             iterations=numbers["iters"][k],
@@ -582,9 +580,9 @@ def _judged(
             redundancy=integ.redundancy,
             chi2=integ.chi2,
             chi2_max=integ.chi2_max,
-            **({"ambiguity": ambiguity} if code is Decline.CHI2 else {}),
+            **({"ambiguity": ambiguity} if why.code is Decline.CHI2 else {}),
         )
-        if code is not Decline.CHI2 or integ.chi2 is None or integ.chi2_max is None:
+        if why.code is not Decline.CHI2 or integ.chi2 is None or integ.chi2_max is None:
             return fix
         w = integ.w.tolist()
         wtest = tuple(w[i] for i in kk)
@@ -626,15 +624,14 @@ def _decline(
     ch: _Chunk,
     e: int,
     solver: Literal["fast", "spp"],
-    code: Decline,
-    why: str,
+    why: Declined,
     fields: dict[str, object],
 ) -> Fix:
     """Epoch ``e``'s decline decided before its solution is judged (the per-epoch solver's:
     over its rows, with ``fields``; an epoch without rows has none)."""
     ep, prn = ch.epochs[e], ch.prn[e]
     frac = ch.frac[e, : len(prn)].tolist()
-    return decline_fix(solver, ep.gpst_week, ep.gpst_tow_s, prn, frac, code, why, **fields)
+    return decline_fix(solver, ep.gpst_week, ep.gpst_tow_s, prn, frac, why, **fields)
 
 
 def _outcomes(
@@ -801,8 +798,7 @@ def solve_many(
                 out[i] = fix
             # no exclusion passes: the failed solution's decline
             for i in hopeless:
-                fix = failed[i].fix
-                out[i] = replace(fix, reason=no_exclusion(fix, cfg.max_exclusions))
+                out[i] = no_exclusion(failed[i].fix, cfg.max_exclusions)
         elif failed:  # no exclusion asked for: the failed solution's decline
             for i, f in failed.items():
                 out[i] = f.fix

@@ -52,13 +52,13 @@ import numpy as np
 
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import sagnac_rotate
+from service.core.declines import Decline, Declined, excluded_why
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
 from service.core.settings import setting
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
-from service.engine.declines import Decline, excluded_why, reason
 from service.engine.layout import Layout
 from service.engine.raim import assess, chi2_threshold
 from service.engine.solver import (
@@ -499,14 +499,14 @@ def solve_coarse(
     ccfg = ccfg or CoarseConfig()
     iono = iono or IonoSet()
     if not epoch.week_known:
-        return CoarseResult(declined(epoch, Decline.NO_TIME, reason(Decline.NO_TIME)))
+        return CoarseResult(declined(epoch, Declined.of(Decline.NO_TIME)))
     try:
         with np.errstate(all="ignore"):
             return _solve_coarse(epoch, store, iono, cfg, ccfg)
     except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
         log.debug("coarse failure at GPST %.3f", epoch.gpst_tow_s, exc_info=True)
-        why = reason(Decline.NUMERICAL, error=type(exc).__name__, message=exc)
-        return CoarseResult(declined(epoch, Decline.NUMERICAL, why))
+        why = Declined.of(Decline.NUMERICAL, error=type(exc).__name__, message=str(exc))
+        return CoarseResult(declined(epoch, why))
 
 
 def _solve_coarse(
@@ -521,12 +521,12 @@ def _solve_coarse(
     need = N_PARAMS + ccfg.min_redundancy
     if sats is None or len(sats.prn) < need:
         have = 0 if sats is None else len(sats.prn)
-        why = reason(Decline.TOO_FEW_ROWS, rows=have, need=need)
-        return CoarseResult(declined(epoch, Decline.TOO_FEW_ROWS, why))
+        why = Declined.of(Decline.TOO_FEW_ROWS, rows=have, need=need)
+        return CoarseResult(declined(epoch, why))
     prior = doppler_position(sats, ccfg)
     if prior is None:
-        why = reason(Decline.NO_DOPPLER, rows=int(np.isfinite(sats.doppler_hz).sum()))
-        return CoarseResult(declined(epoch, Decline.NO_DOPPLER, why))
+        why = Declined.of(Decline.NO_DOPPLER, rows=int(np.isfinite(sats.doppler_hz).sum()))
+        return CoarseResult(declined(epoch, why))
     pts = hypotheses(
         prior.x_ecef_m, prior.q_en_m2, ccfg.search_sigmas, ccfg.search_radius_m, ccfg.grid_step_m
     )
@@ -538,7 +538,7 @@ def _solve_coarse(
     x0 = pts[first]
     ev = _evaluate(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
     base = CoarseResult(
-        declined(epoch, Decline.NUMERICAL, ""),
+        declined(epoch, Declined.of(Decline.NUMERICAL, error="", message="")),  # replaced below
         prior=prior,
         candidates=len(cand),
         passing=int(ev.passing.sum()),
@@ -549,8 +549,8 @@ def _solve_coarse(
         # if every passing or rival solution of every subset agrees on the common rows
         outcome = _exclude_one(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
         if isinstance(outcome, str):
-            why = reason(Decline.AMBIGUOUS, passing=0, rivals=outcome)
-            return replace(base, fix=declined(epoch, Decline.AMBIGUOUS, why))
+            why = Declined.of(Decline.AMBIGUOUS, passing=0, rivals=outcome)
+            return replace(base, fix=declined(epoch, why))
         if outcome is not None:
             j, sats, cand, ev = outcome
             excluded = {prn: excluded_why("coarse") for prn in j}
@@ -559,15 +559,17 @@ def _solve_coarse(
     if not passing.any():
         best_dof = int(solved.dof.max())
         if best_dof < ccfg.min_redundancy:
-            why = reason(Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS, need=need)
-            return replace(base, fix=declined(epoch, Decline.TOO_FEW_ROWS, why))
-        why = reason(Decline.CHI2, "coarse", candidates=len(cand))
-        return replace(base, fix=declined(epoch, Decline.CHI2, why))
+            why = Declined.of(Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS, need=need)
+            return replace(base, fix=declined(epoch, why))
+        why = Declined.of(Decline.CHI2, "coarse", candidates=len(cand))
+        return replace(base, fix=declined(epoch, why))
     ratio = np.where(passing, solved.t_stat / t_max, np.inf)
     best = int(np.argmin(ratio))
     if int(rivals.sum()) > 1:
-        why = reason(Decline.AMBIGUOUS, passing=int(passing.sum()), rivals=int(rivals.sum()) - 1)
-        return replace(base, fix=declined(epoch, Decline.AMBIGUOUS, why))
+        why = Declined.of(
+            Decline.AMBIGUOUS, passing=int(passing.sum()), rivals=int(rivals.sum()) - 1
+        )
+        return replace(base, fix=declined(epoch, why))
     n_best = cand[best]
     p_full = sats.z_m + n_best * sats.ct_m
     dt = float(solved.dt[best])
@@ -750,8 +752,8 @@ def _coarse_fix(
     g = solved.design[best][used]
     pdop = math.sqrt(max(float(np.sum(_inv_diag(g.T @ g)[:3])), 0.0))
     if not pdop <= cfg.pdop_max:  # the geometry's, with the coarse-time column
-        why = reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
-        return declined(epoch, Decline.PDOP_GATE, why)
+        why = Declined.of(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
+        return declined(epoch, why)
     cov = integ.cov_enu_m2
     prns = tuple(p for p, u in zip(sats.prn, used, strict=True) if u)
     resid = solved.resid_m[best][used]

@@ -6,7 +6,7 @@ decline is recorded.
 A converged, weighted solution is judged in the order of docs/method.md: the chi-square
 test of its residuals (:mod:`service.engine.raim`), the plausible shell (altitude, receiver
 clock), the PDOP gate. Its first failure is the decline (:func:`verdict`); a decline's words
-come from the one table (:mod:`service.engine.declines`). Fault exclusion ranks candidate
+come from the one table (:mod:`service.core.declines`). Fault exclusion ranks candidate
 solutions by :func:`fit_ratio`.
 """
 
@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Literal, Protocol
 
 import numpy as np
 
 from service.core.constants import C_M_S
+from service.core.declines import Decline, Declined
 from service.core.systems import GnssSystem
 from service.core.types import Fix
-from service.engine.declines import Decline, reason
 from service.engine.raim import Integrity
 
 Solver = Literal["fast", "spp"]
@@ -47,12 +48,11 @@ def decline_fix(
     gpst_tow_s: float,
     prn: Sequence[str],
     frac: Sequence[bool],
-    code: Decline,
-    why: str,
+    why: Declined,
     **fields: object,
 ) -> Fix:
     """The declined fix (``mode="none"``) of a solve over rows ``prn`` (``frac``: which of
-    them are fractional), with reason ``why`` of ``code`` and the figures ``fields``."""
+    them are fractional), declined for ``why``, with the figures ``fields`` of the fix."""
     return Fix(
         solver=solver,
         mode="none",
@@ -60,8 +60,7 @@ def decline_fix(
         gpst_tow_s=gpst_tow_s,
         full=tuple(p for p, f in zip(prn, frac, strict=True) if not f),
         fractional=tuple(p for p, f in zip(prn, frac, strict=True) if f),
-        reason=why,
-        reason_code=code.value,
+        decline=why,
         **fields,  # type: ignore[arg-type]
     )
 
@@ -74,7 +73,7 @@ def verdict(
     pdop: float,
     cfg: Gates,
     slots: Sequence[int] | None = None,
-) -> tuple[Decline, str] | None:
+) -> Declined | None:
     """The decline of a solution (None: it is published): a failed chi-square test (the
     reason names the used satellite ``used[k]`` with the largest w-test, ``integ.w[k]``, or
     ``integ.w[slots[k]]`` where the w-tests cover a batch's slots), it lies outside the
@@ -89,7 +88,7 @@ def verdict(
         if any(math.isfinite(v) for v in wl):
             size = [abs(v) if v == v else -math.inf for v in wl]  # NaN: never the largest
             worst = size.index(max(size))
-        why = reason(
+        return Declined.of(
             Decline.CHI2,
             chi2=integ.chi2,
             chi2_max=integ.chi2_max,
@@ -97,17 +96,16 @@ def verdict(
             prn=used[worst],
             w=wl[worst],
         )
-        return Decline.CHI2, why
     if not (cfg.alt_min_m <= alt_m <= cfg.alt_max_m) or abs(clock_m) > cfg.clock_max_s * C_M_S:
-        return Decline.IMPLAUSIBLE, implausible_reason(alt_m, clock_m, cfg)
+        return implausible(alt_m, clock_m, cfg)
     if not pdop <= cfg.pdop_max:
-        return Decline.PDOP_GATE, reason(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
+        return Declined.of(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
     return None
 
 
-def implausible_reason(alt_m: float, clock_m: float, cfg: Gates) -> str:
-    """The reason of a solution outside the plausible shell (altitude, receiver clock)."""
-    return reason(
+def implausible(alt_m: float, clock_m: float, cfg: Gates) -> Declined:
+    """The decline of a solution outside the plausible shell (altitude, receiver clock)."""
+    return Declined.of(
         Decline.IMPLAUSIBLE,
         alt_m=alt_m,
         alt_min_m=cfg.alt_min_m,
@@ -117,10 +115,13 @@ def implausible_reason(alt_m: float, clock_m: float, cfg: Gates) -> str:
     )
 
 
-def no_exclusion(fix: Fix, max_exclusions: int) -> str:
-    """The reason of a failed test that no exclusion of up to ``max_exclusions`` satellites
-    resolves (``fix``: the failed solution's decline)."""
-    return reason(Decline.CHI2, "no_exclusion", reason=fix.reason, max_exclusions=max_exclusions)
+def no_exclusion(fix: Fix, max_exclusions: int) -> Fix:
+    """``fix`` (a failed test's decline) declined because no exclusion of up to
+    ``max_exclusions`` satellites resolves it."""
+    why = Declined.of(
+        Decline.CHI2, "no_exclusion", reason=fix.reason, max_exclusions=max_exclusions
+    )
+    return replace(fix, decline=why)
 
 
 def fit_ratio(chi2: float | None, chi2_max: float | None) -> float:

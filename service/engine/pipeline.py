@@ -26,6 +26,7 @@ import numpy as np
 from service.core.bds_nav import EphemerisAssembler
 from service.core.constants import C_M_S
 from service.core.counters import Counters
+from service.core.declines import Decline, Declined
 from service.core.ephemeris import EphemerisStore
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s, gpst_to_bdt
@@ -39,7 +40,7 @@ from service.core.types import (
     SatView,
 )
 from service.engine.coarse import CoarseConfig, solve_coarse
-from service.engine.declines import Decline, reason
+from service.engine.layout import BDS_ONLY
 from service.engine.solver import (
     IonoSet,
     SolverConfig,
@@ -261,14 +262,18 @@ class Pipeline:
             # the receiver's time is coarser than even the coarse-time fix's prior
             if fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
                 self.counters["coarse_time_epochs"] += 1
-                why = reason(
+                # the full ranges the solve needed (its layout's unknowns); with no row at all,
+                # one system's position and clock
+                figures = dict(fix.decline.fields) if fix.decline is not None else {}
+                need = figures.get("need", BDS_ONLY.n_params)
+                why = Declined.of(
                     Decline.COARSE_TIME,
                     time_unc_s=view.time_unc_s,
                     n_frac=set_aside,
                     n_full=int(np.isfinite(view.pr_m).sum()),
-                    need=4,
+                    need=need,
                 )
-                fix = declined(view, Decline.COARSE_TIME, why)
+                fix = declined(view, why)
         elif self.coarse.coarse_fix and (
             fix.reason_code == Decline.TOO_FEW_FULL
             or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
@@ -315,14 +320,14 @@ class Pipeline:
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
         """The declined fix of an epoch without a week or not after the latest one."""
         if not epoch.week_known:
-            return declined(epoch, Decline.NO_TIME, reason(Decline.NO_TIME))
+            return declined(epoch, Declined.of(Decline.NO_TIME))
         last = self._latest
         if last is not None:
             step = diff_s(epoch.gpst_week, epoch.gpst_tow_s, *last)
             if step < SAME_EPOCH_S:
                 what = "repeats" if step > -SAME_EPOCH_S else f"is {-step:.3f} s before"
-                why = reason(Decline.OUT_OF_ORDER, what=what, week=last[0], tow_s=last[1])
-                return declined(epoch, Decline.OUT_OF_ORDER, why)
+                why = Declined.of(Decline.OUT_OF_ORDER, what=what, week=last[0], tow_s=last[1])
+                return declined(epoch, why)
         return None
 
     def restart(self, epoch: MeasurementEpoch, rng: np.random.Generator) -> None:

@@ -36,6 +36,7 @@ import numpy as np
 from service.core.bds import is_geo
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
+from service.core.declines import Decline, Declined, excluded_why
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -44,7 +45,6 @@ from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, constants_of
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 from service.engine import linalg
-from service.engine.declines import Decline, excluded_why, reason
 from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
 from service.engine.layout import Layout, dop, layout_of
 from service.engine.raim import Integrity, assess
@@ -419,11 +419,9 @@ class _State:
 
 @dataclass(frozen=True, slots=True)
 class _Decline:
-    """Why an attempt gave no solution (``code``: the counter key, see
-    :data:`service.engine.declines.DECLINES`)."""
+    """Why an attempt gave no solution (``why``), with the figures its declined fix keeps."""
 
-    reason: str
-    code: Decline
+    why: Declined
     gdop_full: float | None = None
     iterations: int = 0
 
@@ -459,7 +457,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         try:
             step = _lsq(h, dz)  # eq. (10)
         except np.linalg.LinAlgError:
-            return _Decline(reason(Decline.SINGULAR), Decline.SINGULAR)
+            return _Decline(Declined.of(Decline.SINGULAR))
         # Backtracking: the float ambiguities absorb the fractional rows, so x and b move on
         # the full rows alone; from the Earth's centre, near-equatorial GEOs make the plain
         # step overshoot (beyond GEO altitude, then divergence). A step that increases the
@@ -486,8 +484,7 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
             converged = True
             break
     if not np.isfinite(x).all():
-        why = reason(Decline.NO_CONVERGENCE, iterations=it)
-        return _Decline(why, Decline.NO_CONVERGENCE, iterations=it)
+        return _Decline(Declined.of(Decline.NO_CONVERGENCE, iterations=it), iterations=it)
 
     # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
     # phase-1 position (or at the last iterate when the iteration did not settle)
@@ -498,11 +495,10 @@ def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Sta
         beta = derive_beta(t_min, cfg.range_error_m)
     if n_frac and not gd < beta:
         variant = "" if converged else "unsettled"
-        why = reason(Decline.GDOP_GATE, variant, gdop=gd, beta=beta, iterations=it)
-        return _Decline(why, Decline.GDOP_GATE, gd, it)
+        why = Declined.of(Decline.GDOP_GATE, variant, gdop=gd, beta=beta, iterations=it)
+        return _Decline(why, gd, it)
     if not converged:
-        why = reason(Decline.NO_CONVERGENCE, iterations=it)
-        return _Decline(why, Decline.NO_CONVERGENCE, gd, it)
+        return _Decline(Declined.of(Decline.NO_CONVERGENCE, iterations=it), gd, it)
 
     # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
     state = _fixed_iterations(rows, ctx, _State(x, b, n_int, geo, it), None, False)
@@ -542,8 +538,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
             ctx.gpst_tow_s,
             rows.prn,
             frac.tolist(),
-            d.code,
-            d.reason,
+            d.why,
             gdop_full=d.gdop_full,
             iterations=d.iterations,
         )
@@ -552,10 +547,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     need = rows.layout.n_params
     if n_full < need:
         return declined(
-            _Decline(
-                reason(Decline.TOO_FEW_FULL, n_full=n_full, n_frac=n_frac, need=need),
-                Decline.TOO_FEW_FULL,
-            )
+            _Decline(Declined.of(Decline.TOO_FEW_FULL, n_full=n_full, n_frac=n_frac, need=need))
         )
     if cfg.x0_ecef_m is not None and not n_frac:
         # every measurement full and a position known: conventional SPP, phase 2 alone (the
@@ -584,8 +576,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     if n_full_k < kept.layout.n_params:
         return declined(
             _Decline(
-                reason(Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=n_full_k),
-                Decline.TOO_FEW_FULL,
+                Declined.of(Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=n_full_k),
                 rows.dop(state.geo.los, np.flatnonzero(~frac)) if n_frac else None,
                 state.iterations,
             )
@@ -602,7 +593,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     )
     x, b, it = state.x, state.b, state.iterations
     if not (np.isfinite(x).all() and np.isfinite(b).all()):
-        return declined(_Decline(reason(Decline.DIVERGED), Decline.DIVERGED, iterations=it))
+        return declined(_Decline(Declined.of(Decline.DIVERGED), iterations=it))
 
     # ---- judge the solution -----------------------------------------------------------------
     geo = state.geo
@@ -626,16 +617,14 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
     b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
     q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
     pdop = float(np.sqrt(np.trace(q_enu)))
-    declined_why = verdict(integ, kept.prn, loc.alt_m, b_max, pdop, cfg)
-    if declined_why is not None:
-        code, why = declined_why
+    why = verdict(integ, kept.prn, loc.alt_m, b_max, pdop, cfg)
+    if why is not None:
         fix = decline_fix(
             ctx.solver,
             ctx.gpst_week,
             ctx.gpst_tow_s,
             rows.prn,
             frac.tolist(),
-            code,
             why,
             gdop_full=gdop_full,
             iterations=it,
@@ -643,7 +632,7 @@ def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _At
             redundancy=integ.redundancy,
             chi2=integ.chi2,
             chi2_max=integ.chi2_max,
-            **({"ambiguity": ambiguity} if code is Decline.CHI2 else {}),
+            **({"ambiguity": ambiguity} if why.code is Decline.CHI2 else {}),
         )
         return _Attempt(fix, rows, keep, integ, x)
     fix = solution_fix(
@@ -746,8 +735,7 @@ def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]
             break
         _, current, prn, why = failing
         removed[prn] = why
-    fix = replace(failed.fix, reason=no_exclusion(failed.fix, ctx.cfg.max_exclusions))
-    return replace(failed, fix=fix), {}
+    return replace(failed, fix=no_exclusion(failed.fix, ctx.cfg.max_exclusions)), {}
 
 
 def _warm_start(failed: _Attempt) -> np.ndarray | None:
@@ -1110,20 +1098,12 @@ def _with_other_systems(
 
 def declined(
     epoch: MeasurementEpoch,
-    code: Decline,
-    why: str,
+    why: Declined,
     solver: Literal["fast", "spp"] = "fast",
 ) -> Fix:
-    """A declined fix for ``epoch`` (``mode="none"``) with reason ``why`` (from
-    :func:`service.engine.declines.reason`) and ``code``."""
-    return Fix(
-        solver=solver,
-        mode="none",
-        gpst_week=epoch.gpst_week,
-        gpst_tow_s=epoch.gpst_tow_s,
-        reason=why,
-        reason_code=code.value,
-    )
+    """A declined fix for ``epoch`` (``mode="none"``), declined for ``why`` before any row
+    was solved (:func:`service.engine.judge.decline_fix` over no rows)."""
+    return decline_fix(solver, epoch.gpst_week, epoch.gpst_tow_s, (), (), why)
 
 
 def solve(
@@ -1139,18 +1119,16 @@ def solve(
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
     if not epoch.week_known:
-        return declined(epoch, Decline.NO_TIME, reason(Decline.NO_TIME), solver)
+        return declined(epoch, Declined.of(Decline.NO_TIME), solver)
     with np.errstate(all="ignore"):
         try:
             rows, missing = select_rows(epoch, store, solver)
             if rows is None:
                 if missing:
-                    code = Decline.NO_EPHEMERIS
-                    why = reason(code, prns=", ".join(missing))
+                    why = Declined.of(Decline.NO_EPHEMERIS, prns=", ".join(missing))
                 else:
-                    code = Decline.NO_MEASUREMENTS
-                    why = reason(code)
-                return declined(epoch, code, why, solver)
+                    why = Declined.of(Decline.NO_MEASUREMENTS)
+                return declined(epoch, why, solver)
             bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
             ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
             fix = _solve_rows(rows, ctx)
@@ -1162,8 +1140,8 @@ def solve(
             log.debug(
                 "solver failure at GPST %d %.3f", epoch.gpst_week, epoch.gpst_tow_s, exc_info=True
             )
-            why = reason(Decline.NUMERICAL, error=type(exc).__name__, message=exc)
-            return declined(epoch, Decline.NUMERICAL, why, solver)
+            why = Declined.of(Decline.NUMERICAL, error=type(exc).__name__, message=str(exc))
+            return declined(epoch, why, solver)
     return fix
 
 

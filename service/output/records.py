@@ -28,7 +28,7 @@ Field rules, common to all classes:
   on a GDOP-gate decline); ``ambiguity`` {PRN: integer N of
   eq. (13)} when not empty, which is the fast solver's fractional satellites (also on a
   fast fix declined by the chi-square test, for diagnosis); ``reason`` (and a
-  ``reason_code``, one of :class:`service.engine.declines.Decline`) exactly when ``mode`` is
+  ``reason_code``, one of :class:`service.core.declines.Decline`) exactly when ``mode`` is
   ``none`` (a declined fix has no position fields).
   Integrity (:mod:`service.engine.raim`): ``redundancy`` (rows - unknowns of the layout:
   used satellites - 4 for a BeiDou-only fix) once a solution was judged, with ``chi2``
@@ -78,6 +78,7 @@ from typing import Any
 
 import numpy as np
 
+from service.core.declines import NO_REASON
 from service.core.geometry import geodetic_to_ecef
 from service.core.timebase import diff_s
 from service.core.types import UNKNOWN_WEEK, Fix, ReceiverFix, SatView, Velocity
@@ -112,7 +113,6 @@ CSV_COLUMNS = (
 )
 
 TRACK_EVENTS = ("sow", "full")
-NO_REASON = "declined without a reason"
 
 
 def _finite(value: float | None) -> bool:

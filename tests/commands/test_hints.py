@@ -13,7 +13,7 @@ import pytest
 
 from service.commands.cli import build_parser
 from service.commands.summary import no_epochs_hint
-from service.engine.declines import Decline, hint
+from service.core.declines import Decline, hint
 from tests.support.paths import ROOT
 
 HANG_S = 120.0

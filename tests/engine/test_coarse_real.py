@@ -23,9 +23,9 @@ from drivers.rinex import RinexObsReader
 from service.commands.solve import load_navigation
 from service.core.bds import is_geo
 from service.core.constants import C_M_S
+from service.core.declines import Decline, excluded_why
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.engine.coarse import COARSE_TIME, CoarseConfig, plain_chain, solve_coarse
-from service.engine.declines import Decline, excluded_why
 from service.engine.solver import SolverConfig, fractionalize, solve
 from tests.support.paths import DATA
 

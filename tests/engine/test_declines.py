@@ -1,13 +1,15 @@
-"""A decline is a value: one table (service.engine.declines.DECLINES) holds the words of
+"""A decline is a value: one table (service.core.declines.DECLINES) holds the words of
 every decline code, and the records, the summaries and the hints take them from it.
 
 Read from the table: every reason in the golden records matches its code's template, every
 decline line of the golden summaries names codes by their label, the summary of any code
-gives its label and hint, and no template or hint is written anywhere else in service/.
+gives its label and hint, the no-epoch lines are the table's, and no clause of the tables is
+written in any string literal of another module of service/.
 """
 
 from __future__ import annotations
 
+import ast
 import json
 import re
 import string
@@ -15,8 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from service.commands.summary import decline_lines
-from service.engine.declines import DECLINES, EXCLUSIONS, Decline, hint, label, reason
+from service.commands.summary import decline_lines, no_epochs_hint
+from service.core.declines import DECLINES, NO_EPOCHS, Decline, Declined, hint, label, reason
+from service.core.types import Fix
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = ROOT / "tests" / "golden"
@@ -49,6 +52,31 @@ def test_reasons_are_formatted_from_the_table():
     )
     assert (
         reason(Decline.PDOP_GATE, pdop=12.345, pdop_max=10.0) == "PDOP gate failed: PDOP 12.3 > 10"
+    )
+
+
+def test_a_declined_fix_holds_a_value_and_makes_its_words_from_the_table():
+    """A declined fix stores no words: its ``reason`` and ``reason_code`` are made from its
+    :class:`Declined` (code, variant, figures) and the table, and a published fix has none."""
+    why = Declined.of(Decline.GDOP_GATE, "unsettled", gdop=1234.56, beta=3000.0, iterations=12)
+    fix = Fix(solver="fast", mode="none", gpst_week=2161, gpst_tow_s=1.0, decline=why)
+    assert fix.reason_code == "gdop_gate" and fix.decline.figure("iterations") == 12
+    # the template written out by hand from the paper's gate, not by the code under test
+    assert (
+        fix.reason
+        == "GDOP gate failed: GDOP_full 1234.6 >= beta 3000 (no convergence after 12 iterations)"
+    )
+    assert (
+        "reason" not in Fix.__dataclass_fields__ and "reason_code" not in Fix.__dataclass_fields__
+    )
+    published = Fix(solver="fast", mode="spp", gpst_week=2161, gpst_tow_s=1.0)
+    assert published.decline is None and published.reason is None and published.reason_code is None
+    # the same decline is the same value: one figure different is another decline
+    assert why == Declined.of(
+        Decline.GDOP_GATE, "unsettled", gdop=1234.56, beta=3000.0, iterations=12
+    )
+    assert why != Declined.of(
+        Decline.GDOP_GATE, "unsettled", gdop=1234.56, beta=3000.0, iterations=13
     )
 
 
@@ -96,23 +124,61 @@ def test_summary_of_each_code_uses_its_label_and_hint(code):
         assert lines[1] == f"  hint: {DECLINES[code].hint}"
 
 
-def _literal_parts(template: str) -> list[str]:
-    """The fixed text between a template's fields, where long enough to be telling."""
-    return [t for t, *_ in string.Formatter().parse(template) if len(t.strip()) >= 16]
+_CLAUSE = re.compile(r"[:;,.?!]\s|\{[^}]*\}|[()]")
+"""Where a user-facing text splits into clauses: punctuation and format fields."""
+
+
+def _literals(path: Path) -> list[str]:
+    """The string constants of a module that a user can see: every one but the docstrings
+    (of the module, classes, functions and attributes), with implicitly concatenated pieces
+    joined as the parser joins them, and the fixed parts of f-strings."""
+    tree = ast.parse(path.read_text())
+    docs = {
+        id(n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)
+    }
+    return [
+        n.value
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs
+    ]
 
 
 def test_no_decline_words_are_written_twice_in_service():
-    texts: list[str] = []
-    for t in DECLINES.values():
-        for tpl in t.templates.values():
-            texts += _literal_parts(tpl)
-        if t.hint:
-            texts.append(t.hint)
-        texts += t.command_hints.values()
-    for tpl in EXCLUSIONS.values():
-        texts += _literal_parts(tpl)
-    table = ROOT / "service" / "engine" / "declines.py"
-    sources = {p: p.read_text() for p in (ROOT / "service").rglob("*.py") if p != table}
-    for text in texts:
-        where = [p.relative_to(ROOT) for p, src in sources.items() if text in src]
-        assert not where, (text, where)
+    """Every clause of 20 characters or more in the tables' strings (labels, reason templates,
+    hints, exclusion reasons, no-epoch hints) appears in no string literal of any other module
+    of service/: each reason and hint is written once, in the table."""
+    table = ROOT / "service" / "core" / "declines.py"
+    clauses = {
+        c.strip() for s in _literals(table) for c in _CLAUSE.split(s) if len(c.strip()) >= 20
+    }
+    assert len(clauses) > 40  # the tables' words, not an empty scan
+    for text in [t.hint for t in DECLINES.values() if t.hint] + list(NO_EPOCHS.values()):
+        assert any(c in text for c in clauses), text
+    others = {p: _literals(p) for p in (ROOT / "service").rglob("*.py") if p != table}
+    assert sum(map(len, others.values())) > 1000
+    for clause in sorted(clauses):
+        where = [
+            p.relative_to(ROOT) for p, lits in others.items() if any(clause in s for s in lits)
+        ]
+        assert not where, (clause, where)
+
+
+def test_the_no_epoch_lines_of_the_summaries_come_from_the_table():
+    n = 0
+    for path in sorted(GOLDEN.glob("*.summary")):
+        for line in path.read_text().splitlines():
+            if "no measurement epoch" in line:
+                assert line.strip() in NO_EPOCHS.values(), (path.name, line)
+                n += 1
+    assert n >= 2
+    assert no_epochs_hint("replay") == NO_EPOCHS["replay"]
+    assert no_epochs_hint("solve") == NO_EPOCHS["solve"]
+    assert no_epochs_hint("run") == NO_EPOCHS["run"]
+    never = no_epochs_hint("run", {"source_open_failures": 3})
+    assert _pattern(NO_EPOCHS["run_never_opened"]).fullmatch(never) and "(3 attempts" in never
+    # a source that opened once and then failed to reopen did open
+    assert (
+        no_epochs_hint("run", {"source_open_failures": 3, "source_events": 1}) == NO_EPOCHS["run"]
+    )

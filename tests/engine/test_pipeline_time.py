@@ -16,10 +16,10 @@ from drivers.rinex import RinexObsReader
 from drivers.rtcm import message_number
 from drivers.source import open_source
 from service.commands.solve import load_navigation
+from service.core.declines import DECLINES, Decline
 from service.core.ephemeris import EphemerisStore
 from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 from service.daemon.loop import Runner
-from service.engine.declines import DECLINES, Decline
 from service.engine.pipeline import EpochResult, Pipeline
 from service.output.nmea import fix_utc, sentences_for_fix
 from service.output.records import SCHEMAS, fix_record

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 
+from service.core.declines import Decline, Declined
 from service.core.types import SatView, Velocity
 from service.output.records import (
     CSV_COLUMNS,
@@ -135,7 +136,7 @@ def test_declined_fix_has_reason_and_no_position():
     assert None not in rec.values()
     assert validate(rec) == []
     # a declined Fix must still say why, even when the solver forgot to
-    rec = fix_record(declined_fix(reason=None, gdop_full=None))
+    rec = fix_record(declined_fix(decline=None, gdop_full=None))
     assert rec["reason"] and validate(rec) == []
 
 
@@ -148,7 +149,7 @@ def test_integrity_states_and_exclusions():
     why = "chi-square test failed (812.5 > 28.5), w-test 27.9"
     excl = fix_record(hksc_fix(excluded={"C08": why}))
     assert excl["excluded"] == {"C08": why}
-    declined = fix_record(declined_fix(reason_code="gdop_gate", excluded={"C08": why}))
+    declined = fix_record(declined_fix(excluded={"C08": why}))
     assert declined["reason_code"] == "gdop_gate" and declined["excluded"] == {"C08": why}
     for rec in (untested, unprotected, excl, declined):
         assert validate(rec) == []
@@ -177,7 +178,7 @@ def test_csv_round_trips_through_the_csv_module():
     fixes = [
         hksc_fix(),
         hksc_fix("spp"),
-        declined_fix(reason='too few "full" measurements: 3 full, 2 fractional'),
+        declined_fix(decline=Declined.of(Decline.NO_EPHEMERIS, prns='"C01", C02')),
     ]
     text = csv_header() + "\n" + "".join(fix_csv_row(f) + "\n" for f in fixes)
     rows = list(csv.DictReader(io.StringIO(text)))
@@ -190,7 +191,7 @@ def test_csv_round_trips_through_the_csv_module():
     assert fast["reason"] == "" and int(fast["n_frac"]) == 3
     assert spp["gdop_full"] == "" and spp["mode"] == "spp"
     assert none["x_ecef_m"] == none["lat_deg"] == none["pdop"] == ""
-    assert none["reason"] == 'too few "full" measurements: 3 full, 2 fractional'
+    assert none["reason"] == 'no usable ephemeris for "C01", C02'
     assert none["gdop_full"] == "4812.3"
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+from service.core.declines import Decline, Declined
 from service.core.types import Fix, SatView
 
 # HKSC (Hong Kong SatRef) survey coordinates, CGCS2000/ITRF ECEF in metres
@@ -101,7 +102,8 @@ def declined_fix(**changes: object) -> Fix:
         "full": ("C01", "C23", "C32"),
         "fractional": ("C06", "C09"),
         "gdop_full": 4812.3,
-        "reason": "GDOP gate failed: GDOP_full 4812.3 >= beta 3000",
+        # reason "GDOP gate failed: GDOP_full 4812.3 >= beta 3000"
+        "decline": Declined.of(Decline.GDOP_GATE, gdop=4812.3, beta=3000.0, iterations=9),
     }
     fields.update(changes)
     return Fix(**fields)  # type: ignore[arg-type]

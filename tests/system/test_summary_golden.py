@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import pytest
 
 from service.commands.cli import main
-from service.engine.declines import Decline, hint
+from service.core.declines import Decline, hint
 from tests.support.paths import DATA, GOLDEN
 from tests.system.test_replay_golden import CASES as REPLAY_CASES
 

@@ -1,11 +1,18 @@
 """A decline is a value: its code, and the one table of the words users see for it.
 
 Every epoch the engine does not fix comes back as a :class:`service.core.types.Fix` with
-``mode="none"``, a ``reason_code`` (a :class:`Decline`) and a ``reason`` made from that
-code's template here. The summaries of ``replay``, ``run`` and ``solve`` name each code by
-its label and give its hint, from the same table; so do the reasons fault exclusion gives
-for a satellite it removed (:data:`EXCLUSIONS`). No other module writes these words
-(tests/engine/test_declines.py reads the table and checks the summaries use it).
+``mode="none"`` and a :class:`Declined`: its code (a :class:`Decline`), the variant of the
+code's reason template and the figures that fill it; the fix's ``reason_code`` and
+``reason`` (what the records carry) are made from it and the template here, when asked.
+The summaries of ``replay``, ``run`` and ``solve`` name each code by its label and give its
+hint, from the same table; so do the reasons fault exclusion gives for a satellite it
+removed (:data:`EXCLUSIONS`), and what a command says when it saw no epoch at all
+(:data:`NO_EPOCHS`). No other module writes these words
+(tests/engine/test_declines.py reads the tables, checks the summaries use them and scans
+every string literal in service/ for their sentences).
+
+The table lives in core, beside :class:`service.core.types.Fix`, which holds the value and
+makes its words from it: the words are shared vocabulary (engine, output, commands).
 """
 
 from __future__ import annotations
@@ -50,6 +57,9 @@ class DeclineText:
     command_hints: dict[str, str] = field(default_factory=dict)
 
 
+_GIVE_EPHEMERIDES = "give the satellites' ephemerides: "
+_WEEK_UNKNOWN = "the GPS week is not known yet: "
+
 DECLINES: dict[Decline, DeclineText] = {
     Decline.NO_MEASUREMENTS: DeclineText(
         "no measurements",
@@ -59,12 +69,11 @@ DECLINES: dict[Decline, DeclineText] = {
     Decline.NO_EPHEMERIS: DeclineText(
         "no usable ephemeris",
         {"": "no usable ephemeris for {prns}"},
-        "give the satellites' ephemerides: a RINEX 3 nav file of the same day "
-        "(replay/run --nav NAV, solve's NAV argument), or a capture that carries them (UBX "
-        "RXM-SFRBX, RTCM 1042)",
+        _GIVE_EPHEMERIDES + "a RINEX 3 nav file of the same day (replay/run --nav NAV, solve's "
+        "NAV argument), or a capture that carries them (UBX RXM-SFRBX, RTCM 1042)",
         {
-            "solve": "give the satellites' ephemerides: a RINEX 3 nav file of the same "
-            "day as the obs file (the NAV argument)",
+            "solve": _GIVE_EPHEMERIDES + "a RINEX 3 nav file of the same day as the obs file "
+            "(the NAV argument)",
         },
     ),
     Decline.TOO_FEW_FULL: DeclineText(
@@ -122,12 +131,12 @@ DECLINES: dict[Decline, DeclineText] = {
     Decline.NO_TIME: DeclineText(
         "time unknown (no GPS week yet)",
         {"": "GPS week not known yet: the source gave only the time of week"},
-        "the GPS week is not known yet: give --gps-week N (RTCM without ephemerides)",
+        _WEEK_UNKNOWN + "give --gps-week N (RTCM without ephemerides)",
         {
             # run has no --gps-week: a live stream takes the week from the system clock
-            "run": "the GPS week is not known yet: a live stream takes it from the system "
-            "clock until the receiver's time tag or ephemerides give it; a capture file has "
-            "no clock: 'bdsfix replay FILE --gps-week N'",
+            "run": _WEEK_UNKNOWN
+            + "a live stream takes it from the system clock until the receiver's time tag or "
+            "ephemerides give it; a capture file has no clock: 'bdsfix replay FILE --gps-week N'",
             "solve": "the obs file's epochs carry no GPS time: check its header and epoch lines",
         },
     ),
@@ -170,10 +179,36 @@ DECLINES: dict[Decline, DeclineText] = {
 """The one table of decline words: label, reason templates and hint per code."""
 
 
+@dataclass(frozen=True, slots=True)
+class Declined:
+    """A decline as a value: its ``code``, the ``variant`` of the code's reason template and
+    the figures that fill it (``fields``, name-value pairs). Nothing is written out until a
+    record or a summary asks: :attr:`reason` formats the template of :data:`DECLINES`, so a
+    decline carries no words of its own (``Fix.decline``)."""
+
+    code: Decline
+    variant: str = ""
+    fields: tuple[tuple[str, object], ...] = ()
+
+    @classmethod
+    def of(cls, code: Decline, variant: str = "", **fields: object) -> Declined:
+        """The decline ``code`` with reason template ``variant`` and its figures ``fields``."""
+        return cls(code, variant, tuple(fields.items()))
+
+    @property
+    def reason(self) -> str:
+        """The record's ``reason``: the code's template (``variant``) filled with ``fields``."""
+        return DECLINES[self.code].templates[self.variant].format(**dict(self.fields))
+
+    def figure(self, name: str) -> object:
+        """The figure ``name`` of this decline (KeyError: it has none)."""
+        return dict(self.fields)[name]
+
+
 def reason(code: Decline, variant: str = "", **fields: object) -> str:
     """The record's ``reason`` for ``code``: its template (``variant``) filled with
     ``fields``."""
-    return DECLINES[code].templates[variant].format(**fields)
+    return Declined.of(code, variant, **fields).reason
 
 
 def label(code: str) -> str:
@@ -204,6 +239,35 @@ fix's exclusion (service.engine.coarse), or the
 failed test and the satellite's w-test."""
 
 
+NO_REASON = "declined without a reason"
+"""A record's ``reason`` for a declined fix that carries no :class:`Declined` (no engine
+builder makes one; the records still never leave a declined fix without words)."""
+
+
 def excluded_why(kind: str, **fields: object) -> str:
     """The reason a satellite was excluded (:data:`EXCLUSIONS`)."""
     return EXCLUSIONS[kind].format(**fields)
+
+
+NO_EPOCHS: dict[str, str] = {
+    "replay": "no measurement epoch in the input: it needs BDS raw measurements (UBX "
+    "RXM-RAWX/MEASX, RTCM3 MSM 1124-1127, SBF MeasEpoch, a RINEX 3 obs file with C2I/C1I, or "
+    "GnssLogger Raw rows); for RTCM without ephemerides give --gps-week",
+    # run has no --gps-week (the system clock gives a live stream its week)
+    "run": "no measurement epoch from the source: it needs BDS raw measurements (UBX "
+    "RXM-RAWX/MEASX or RTCM3 MSM 1124-1127); 'bdsfix configure' sets a u-blox receiver up",
+    "run_never_opened": "the source never opened ({failures} attempts, see the WARNING "
+    "lines): is the receiver plugged in, or the server listening?",
+    "solve": "no measurement epoch in the obs file: it needs BDS pseudoranges (C2I or C1I)",
+}
+"""What a command says when it saw no measurement epoch at all (no decline then: no epoch
+was solved), in that command's own flags; ``run_never_opened``: ``run``'s source never
+opened (``{failures}``: its attempts)."""
+
+
+def no_epochs(command: str, open_failures: int = 0) -> str:
+    """The :data:`NO_EPOCHS` hint of ``command`` (``replay`` for a command without its own);
+    ``open_failures``: how often ``run`` failed to open a source that never opened."""
+    if command == "run" and open_failures:
+        return NO_EPOCHS["run_never_opened"].format(failures=open_failures)
+    return NO_EPOCHS.get(command, NO_EPOCHS["replay"])
