@@ -27,6 +27,7 @@ from service.core.bds_nav import EphemerisAssembler
 from service.core.constants import C_M_S
 from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore
+from service.core.gps_nav import LnavAssembler
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import (
@@ -160,6 +161,7 @@ class Pipeline:
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
+    _lnav: LnavAssembler = field(default_factory=LnavAssembler)
     _receiver_fix: ReceiverFix | None = None
 
     # --- navigation data -----------------------------------------------------------------
@@ -220,7 +222,11 @@ class Pipeline:
         return events
 
     def _feed_assembler(self, sf: NavSubframe) -> None:
-        for item in self._assembler.feed(sf.prn, sf.nav_type, sf.words):
+        if sf.nav_type == "LNAV":
+            items = self._lnav.feed(sf.prn, sf.words, sf.gpst_week)
+        else:
+            items = self._assembler.feed(sf.prn, sf.nav_type, sf.words)
+        for item in items:
             if isinstance(item, Ephemeris):
                 self.add_ephemeris(item)
             elif isinstance(item, KlobucharParams):
