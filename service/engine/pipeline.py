@@ -286,7 +286,7 @@ class Pipeline:
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
         if fix.mode == "fast":
-            for prn, pr in fix.recovered_pr_m.items():
+            for prn, pr in _recovered_ranges(view, fix).items():
                 i = view.prn.index(prn)
                 self._recovered[prn] = _Recovered(
                     epoch.gpst_week, epoch.gpst_tow_s, pr, float(view.period_s[i])
@@ -388,3 +388,15 @@ class Pipeline:
         if self.on_track is not None:
             for ev in events:
                 self.on_track(ev)
+
+
+def _recovered_ranges(view: MeasurementEpoch, fix: Fix) -> dict[str, float]:
+    """The full ranges a fast fix recovered: ``recovered_pr_m`` (the systems solved with the
+    GEOs' full rows), and for the other systems' fractional rows, whose integers the solver
+    gives only in ``ambiguity`` (paper eq. 11 with the BeiDou clock), fraction + N c T."""
+    out = dict(fix.recovered_pr_m)
+    for prn, n in fix.ambiguity.items():
+        if prn not in out and prn in view.prn:
+            i = view.prn.index(prn)
+            out[prn] = float(view.frac_pr_m[i] + n * C_M_S * view.period_s[i])
+    return out
