@@ -46,5 +46,30 @@ def test_gps_from_own_sfrbx_fixes_near_the_receivers_solution(tmp_path):
     pvt = _nav_pvt()
     err = [np.linalg.norm(np.subtract(r["x_ecef_m"], pvt[round(r["gpst_tow_s"])])) for r in fixes]
     assert float(np.median(err)) < 6.0 and max(err) < 30.0, (np.median(err), max(err))
-    sow = [r for r in recs if r["class"] == "TRACK" and r.get("nav_type") == "LNAV"]
-    assert sow and all(r["event"] == "sow" and r["prn"].startswith("G") for r in sow)
+    sow = [r for r in recs if r["class"] == "TRACK" and r["event"] == "sow"]
+    gps = [r for r in sow if r["prn"].startswith("G")]
+    assert gps and all(r["nav_type"] == "LNAV" and r["sow_s"] % 6 == 0 for r in gps)
+
+
+def test_perth_phone_fixes_at_its_first_full_gps_ranges(tmp_path):
+    """The Android Perth start-up log with its same-day nav file: BeiDou alone fixes first at
+    26.18 s; with GPS the first fix comes at 12.0 s, when the phone's first four GPS ranges
+    have their TOW decoded (the log's own state bits), from GPS rows alone. Its position is
+    checked against the BeiDou-only fixes' median (the log has no truth): 11.5 m."""
+    d = DATA / "android-perth-s8-2017"
+    nav = d / "PERT00AUS_R_20172780000_01D_MN.rnx"
+    first = {}
+    fixes = {}
+    for systems in ("C", "C,G"):
+        out = tmp_path / f"perth-{systems}.jsonl"
+        argv = ["replay", "--max-speed", "--systems", systems, "--nav", str(nav)]
+        rc = main([*argv, "--jsonl-out", str(out), str(d / "SensorLog20171005.txt")])
+        assert rc == 0
+        recs = [json.loads(line) for line in out.read_text().splitlines()]
+        fixes[systems] = [r for r in recs if r["class"] == "FIX" and r["mode"] != "none"]
+        first[systems] = fixes[systems][0]
+    assert round(first["C"]["since_start_s"], 2) == 26.18
+    assert first["C,G"]["since_start_s"] == 12.0
+    assert first["C,G"]["n_full"] >= 4
+    median = np.median([r["x_ecef_m"] for r in fixes["C"]], axis=0)
+    assert np.linalg.norm(np.subtract(first["C,G"]["x_ecef_m"], median)) < 20.0
