@@ -212,3 +212,27 @@ def test_another_receivers_subframes_pass_the_same_parity():
         "mismatched_sets": 0,
         "ephemerides": 6,
     }
+
+
+def test_subframe4_page18_gives_the_days_gpsa_gpsb():
+    """Klobuchar alpha/beta of subframe 4 page 18 (SV ID 56; IS-GPS-200 Figure 20-1 sheet 8:
+    word 3 data ID, SV ID, alpha0, alpha1; word 4 alpha2, alpha3, beta0; word 5 beta1-3;
+    scales per Table 20-X). The captures carry no page 18 (it comes every 12.5 min), so the
+    page is built here, bit by bit, from the station's GPSA/GPSB of the day (as integers of
+    each LSB), and must decode back to them."""
+    iono = read_nav(POLYU / "hksc269h.24n", systems="G").iono_gps
+    assert iono is not None
+    scales = (2.0**-30, 2.0**-27, 2.0**-24, 2.0**-24, 2.0**11, 2.0**14, 2.0**16, 2.0**16)
+    ints = [round(v / s) for v, s in zip((*iono.alpha, *iono.beta), scales, strict=True)]
+    bits = "10001011" + "0" * 16  # word 1: TLM preamble
+    bits += format(285918 // 6, "017b") + "00" + "100" + "00"  # word 2: HOW, subframe ID 4
+    bits += "01" + format(56, "06b")  # word 3: data ID 1, SV ID 56
+    bits += "".join(format(n & 0xFF, "08b") for n in ints)
+    bits += "0" * (240 - len(bits))
+    words = gn.subframe_words(int(bits, 2))
+    out = gn.LnavAssembler().feed("G10", words, 2333)
+    assert len(out) == 1 and out[0].system == "GPS"
+    got = (*out[0].alpha, *out[0].beta)
+    assert got == tuple(n * s for n, s in zip(ints, scales, strict=True))
+    # RINEX prints 5 significant digits: the broadcast integers give its values back to that
+    assert got == pytest.approx((*iono.alpha, *iono.beta), rel=5e-5)
