@@ -1,4 +1,4 @@
-"""u-blox RXM-SFRBX (BDS B1I D1/D2) to :class:`~service.core.types.NavSubframe`.
+"""u-blox RXM-SFRBX (BDS B1I D1/D2, GPS L1 C/A LNAV) to :class:`~service.core.types.NavSubframe`.
 
 u-blox (F9 HPG Interface Description, UBX-RXM-SFRBX) delivers a BDS D1/D2 subframe as 10
 dwords, one 30-bit word each in bits 29-0 (bits 31-30 are padding), in the ICD bit
@@ -11,6 +11,11 @@ B1C/B2a, different messages). B2I and B3I carry the same D1/D2 format (the codec
 them, see the tests) but the service works on B1I, so only sigId 0 and 1 are mapped. The
 message type follows the satellite (ICD 5.1: GEOs C01-C05/C59-C63 broadcast D2), which
 also covers receivers that report sigId 0 for every BDS subframe.
+
+GPS (gnssId 0) sigId 0, L1 C/A: the ten LNAV words as transmitted, one in bits 29-0 of each
+dword, parity included (IS-GPS-200 20.3.5; :mod:`service.core.gps_nav` checks the parity,
+and every word of the PolyU F9P capture passes). Other GPS signals (L2C CNAV, sigId 3/4) and
+Galileo I/NAV words are counted as unmapped: no library here decodes them.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from typing import Any, Literal
 from service.core.bds import nav_type as bds_nav_type
 from service.core.bds_nav import b1i_subframe
 from service.core.errors import DecodeError
+from service.core.gps_nav import lnav_subframe
 from service.core.systems import GnssSystem, sat_id
 from service.core.types import NavSubframe
 
@@ -48,6 +54,8 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
     None for other GNSS or signals, a word count other than 10, or a subframe that fails
     the preamble/header checks (:func:`service.core.bds_nav.parse_header`).
     """
+    if UBX_GNSS.get(int(msg.gnssId)) is GnssSystem.GPS:
+        return _gps_lnav(msg, gpst_week, gpst_tow_s)
     if UBX_GNSS.get(int(msg.gnssId)) is not GnssSystem.BDS or int(msg.numWords) != 10:
         return None
     sig_type = B1I_SIGIDS.get(int(msg.sigId))
@@ -64,13 +72,29 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
             sig_type,
             nav_type,
         )
-    blocks = getattr(msg, "blocks", None)  # drivers.ubx.parse_rxm: one dict per word
-    if blocks is not None:
-        words = tuple(int(b["dwrd"]) & WORD_MASK for b in blocks)
-    else:  # pyubx2: dwrd_01 .. dwrd_10
-        words = tuple(int(getattr(msg, f"dwrd_{i:02d}")) & WORD_MASK for i in range(1, 11))
+    words = _words(msg)
     try:
         return b1i_subframe(prn, nav_type, words, gpst_week, gpst_tow_s)
+    except DecodeError as exc:
+        log.debug("%s SFRBX rejected: %s", prn, exc)
+        return None
+
+
+def _words(msg: Any) -> tuple[int, ...]:
+    blocks = getattr(msg, "blocks", None)  # drivers.ubx.parse_rxm: one dict per word
+    if blocks is not None:
+        return tuple(int(b["dwrd"]) & WORD_MASK for b in blocks)
+    # pyubx2: dwrd_01 .. dwrd_10
+    return tuple(int(getattr(msg, f"dwrd_{i:02d}")) & WORD_MASK for i in range(1, 11))
+
+
+def _gps_lnav(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavSubframe | None:
+    """The LNAV subframe of a GPS L1 C/A SFRBX (sigId 0, 10 words), else None."""
+    if int(msg.sigId) != 0 or int(msg.numWords) != 10:
+        return None
+    prn = sat_id(GnssSystem.GPS, int(msg.svId))
+    try:
+        return lnav_subframe(prn, _words(msg), gpst_week, gpst_tow_s)
     except DecodeError as exc:
         log.debug("%s SFRBX rejected: %s", prn, exc)
         return None

@@ -29,7 +29,8 @@ section 5).
 - One :class:`MeasurementEpoch` per receive epoch combines RAWX and MEASX: ``pr_m`` from a
   valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
   exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
-- RXM-SFRBX (BDS) becomes a :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
+- RXM-SFRBX (BDS, and GPS L1 C/A LNAV when the mapper's ``systems`` include GPS) becomes a
+  :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
   the latest measurement time, or, in a stream without RAWX/MEASX, with the latest
   navigation epoch of UBX-NAV-TIMEGPS (week and time of week valid) or UBX-NAV-PVT (date
   and time valid). A subframe before any of them is counted (``sfrbx_no_time``).
@@ -38,7 +39,7 @@ Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``rawx_meas_other_gnss``, ``rawx_bds_other_signal``, ``rawx_pr_invalid``,
 ``rawx_pr_implausible``, ``measx_invalid``, ``measx_only_sats``, ``measx_uncalibrated``,
 ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``, ``epoch_no_week``,
-``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
+``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_gps``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
 ``sfrbx_unmapped``, ``subframes``.
 """
 
@@ -669,10 +670,14 @@ class UbxMapper:
 
     # --- navigation subframes ---------------------------------------------------------------
     def _on_sfrbx(self, msg: Any) -> list[Event]:
-        if UBX_GNSS.get(int(msg.gnssId)) is not GnssSystem.BDS:
+        system = UBX_GNSS.get(int(msg.gnssId))
+        if system is GnssSystem.GPS and GnssSystem.GPS in self._other:
+            self.counters["sfrbx_gps"] += 1
+        elif system is not GnssSystem.BDS:
             self.counters["sfrbx_other_gnss"] += 1
             return []
-        self.counters["sfrbx_bds"] += 1
+        else:
+            self.counters["sfrbx_bds"] += 1
         when = self._last_meas_time or self._last_nav_time
         if when is None:
             self.counters["sfrbx_no_time"] += 1

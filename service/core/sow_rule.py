@@ -16,6 +16,10 @@ subframe's preamble and cannot frame it; it waits for the next preamble (the nex
 boundary of BDT transmit time, a multiple of 0.6 s or 6 s) and knows the time 0.12 s or 1.2 s
 after it, plus the signal's flight time.
 
+GPS L1 C/A LNAV (IS-GPS-200 20.3.2, 20.3.3.2) has the same timing as D1: 300-bit subframes at
+50 bps, the time of week in the HOW (word 2), so 1.2 s into a subframe (``time_known_after_s``
+of ``"LNAV"``); its subframe boundaries are on GPST (service.engine.tracker).
+
 ``sow`` is this rule, the default everywhere a time to first fix is made or measured (the
 virtual receiver's RAWX prMes validity, emulated restarts of ``replay --restart-at`` and
 ``ttff``, the built-in scenario). ``subframe``, the rule used before, waits for the end of that
@@ -48,7 +52,8 @@ DEFAULT_FULL_RULE = "sow"
 def time_known_after_s(nav_type: str, rule: str = DEFAULT_FULL_RULE) -> float:
     """Seconds after the first bit of a subframe (whose preamble the receiver saw after bit
     sync) at which the receiver knows the satellite's time: the SOW decoded (``sow``: D2
-    0.12 s, D1 1.2 s) or the whole subframe read (``subframe``: D2 0.6 s, D1 6 s)."""
+    0.12 s, D1 and GPS LNAV 1.2 s) or the whole subframe read (``subframe``: D2 0.6 s, D1
+    and LNAV 6 s)."""
     if rule not in FULL_RULES:
         raise ValueError(f"unknown full rule {rule!r}: one of {', '.join(FULL_RULES)}")
     rate = D2_BIT_RATE_BPS if nav_type == "D2" else D1_BIT_RATE_BPS

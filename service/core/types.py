@@ -197,10 +197,15 @@ class KlobucharParams:
 
 @dataclass(frozen=True, slots=True)
 class NavSubframe:
-    """One B1I navigation subframe: 10 words of 30 bits as received (parity included)."""
+    """One navigation subframe: 10 words of 30 bits as received (parity included).
+
+    ``nav_type`` ``D1``/``D2``: a BDS B1I subframe, ``sow_s`` its SOW (BDT). ``LNAV``: a GPS
+    L1 C/A subframe (:mod:`service.core.gps_nav`), ``sow_s`` its HOW time (GPST of the next
+    subframe's start, IS-GPS-200 20.3.3.2) and ``fra_id`` its subframe ID.
+    """
 
     prn: str
-    nav_type: Literal["D1", "D2"]
+    nav_type: Literal["D1", "D2", "LNAV"]
     fra_id: int
     sow_s: int
     words: tuple[int, ...]

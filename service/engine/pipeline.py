@@ -28,6 +28,7 @@ from service.core.constants import C_M_S
 from service.core.counters import Counters
 from service.core.declines import Decline, Declined
 from service.core.ephemeris import EphemerisStore
+from service.core.gps_nav import LnavAssembler
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import (
@@ -161,6 +162,7 @@ class Pipeline:
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
+    _lnav: LnavAssembler = field(default_factory=LnavAssembler)
     _receiver_fix: ReceiverFix | None = None
 
     # --- navigation data -----------------------------------------------------------------
@@ -221,7 +223,11 @@ class Pipeline:
         return events
 
     def _feed_assembler(self, sf: NavSubframe) -> None:
-        for item in self._assembler.feed(sf.prn, sf.nav_type, sf.words):
+        if sf.nav_type == "LNAV":
+            items = self._lnav.feed(sf.prn, sf.words, sf.gpst_week)
+        else:
+            items = self._assembler.feed(sf.prn, sf.nav_type, sf.words)
+        for item in items:
             if isinstance(item, Ephemeris):
                 self.add_ephemeris(item)
             elif isinstance(item, KlobucharParams):
@@ -285,7 +291,7 @@ class Pipeline:
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
         if fix.mode == "fast":
-            for prn, pr in fix.recovered_pr_m.items():
+            for prn, pr in _recovered_ranges(view, fix).items():
                 i = view.prn.index(prn)
                 self._recovered[prn] = _Recovered(
                     epoch.gpst_week, epoch.gpst_tow_s, pr, float(view.period_s[i])
@@ -387,3 +393,15 @@ class Pipeline:
         if self.on_track is not None:
             for ev in events:
                 self.on_track(ev)
+
+
+def _recovered_ranges(view: MeasurementEpoch, fix: Fix) -> dict[str, float]:
+    """The full ranges a fast fix recovered: ``recovered_pr_m`` (the systems solved with the
+    GEOs' full rows), and for the other systems' fractional rows, whose integers the solver
+    gives only in ``ambiguity`` (paper eq. 11 with the BeiDou clock), fraction + N c T."""
+    out = dict(fix.recovered_pr_m)
+    for prn, n in fix.ambiguity.items():
+        if prn not in out and prn in view.prn:
+            i = view.prn.index(prn)
+            out[prn] = float(view.frac_pr_m[i] + n * C_M_S * view.period_s[i])
+    return out

@@ -6,6 +6,13 @@ D1, 5.3.3 for D2). GEOs (D2, 500 bps) decode a SOW every 0.6 s subframe, IGSO/ME
 50 bps) every 6 s. Until then the measurement is fractional: known modulo c*T, with T = 1 ms
 after code lock (20 ms once D1 bit sync is known).
 
+GPS L1 C/A (IS-GPS-200 20.3.2, 20.3.3.2): LNAV subframes of 6 s at 50 bps start at multiples
+of 6 s of GPST, and the HOW (word 2) gives the time of week, so a GPS satellite's time is
+known, like a D1 satellite's, 60 bits = 1.2 s after the preamble (``sow`` rule), but on
+GPST's subframe boundaries, which lie 2 s off BDT's (GPST = BDT + 14 s). A decoded LNAV
+subframe marks it known as a B1I subframe does. Galileo I/NAV word timing is not modelled:
+a Galileo satellite is emulated as a D1 one.
+
 The tracker trusts the receiver: a measurement the driver reports as full (u-blox prValid,
 RINEX, RTCM with integer milliseconds) is full. After a restart, real or emulated
 (``--restart-at``), every satellite is fractional again until its first SOW after the
@@ -29,7 +36,10 @@ import numpy as np
 from service.core.bds import nav_type, subframe_period_s
 from service.core.bds_nav import SubframeHeader, subframe_start_sow_s
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
+from service.core.gps_nav import SUBFRAME_S as LNAV_SUBFRAME_S
+from service.core.gps_nav import LnavHeader
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
+from service.core.systems import GnssSystem, system_of
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import MeasurementEpoch, NavSubframe
 
@@ -41,6 +51,12 @@ SYNC_DELAY_MAX_S = 0.5
 assumed receiver behaviour: code lock and bit sync within half a second)."""
 
 
+def message_of(prn: str) -> str:
+    """The navigation message whose subframes give ``prn``'s time: ``LNAV`` for GPS, else
+    BeiDou's D1/D2 (:func:`service.core.bds.nav_type`; Galileo as D1, see the module)."""
+    return "LNAV" if system_of(prn) is GnssSystem.GPS else nav_type(prn)
+
+
 @dataclass(frozen=True, slots=True)
 class TrackEvent:
     """A satellite's frame-sync event (ZMQ topic ``TRACK``)."""
@@ -50,8 +66,8 @@ class TrackEvent:
     gpst_week: int
     gpst_tow_s: float
     since_start_s: float
-    nav_type: str
-    sow_s: float | None = None
+    nav_type: str  # D1, D2 (BeiDou) or LNAV (GPS)
+    sow_s: float | None = None  # start of the subframe: BDT SOW (BeiDou), GPST tow (GPS)
     full_since_s: float | None = None  # data time since start at which it became full
 
 
@@ -62,7 +78,8 @@ class SubframeEmulator:
     Each satellite needs a bit-sync delay after the restart and then waits for the next
     preamble: the first subframe that starts after sync (a receiver synced mid-subframe has
     not seen that subframe's preamble). Subframe boundaries are multiples of 0.6 s (D2) or
-    6 s (D1) of BDT transmit time (ICD 5.2.2, 5.3.1), seen one flight time later. The
+    6 s (D1) of BDT transmit time (ICD 5.2.2, 5.3.1), of 6 s of GPST for GPS LNAV
+    (IS-GPS-200 20.3.2), seen one flight time later. The
     satellite's time is known ``time_known_after_s(nav_type, rule)`` after that boundary:
     rule ``sow`` once words 1-2 have decoded (D2 0.12 s, D1 1.2 s), rule ``subframe`` at the
     end of the subframe (0.6 s, 6 s).
@@ -100,15 +117,19 @@ class SubframeEmulator:
 
     def full_at_tow_s(self, prn: str, pr_m: float) -> tuple[int, float]:
         """GPST (week, tow) at which ``prn``'s time is first known after the restart."""
-        period = subframe_period_s(prn)
-        known_s = time_known_after_s(nav_type(prn), self.rule)
+        message = message_of(prn)
+        known_s = time_known_after_s(message, self.rule)
         flight_s = pr_m / C_M_S if math.isfinite(pr_m) else NOMINAL_FLIGHT_TIME_S
         delay = self.sync_delay_s.get(prn, self.default_sync_delay_s)
-        _, bdt_sow = gpst_to_bdt(self.restart_gpst_week, self.restart_gpst_tow_s)
-        tx_sync = bdt_sow + delay - flight_s  # transmit time of the first synced bit
+        if message == "LNAV":  # subframes on GPST
+            period, t_sys = LNAV_SUBFRAME_S, self.restart_gpst_tow_s
+        else:  # on BDT
+            period = subframe_period_s(prn)
+            _, t_sys = gpst_to_bdt(self.restart_gpst_week, self.restart_gpst_tow_s)
+        tx_sync = t_sys + delay - flight_s  # transmit time of the first synced bit
         start = math.ceil(round(tx_sync / period, 9)) * period  # the next preamble
         known_rx = start + known_s + flight_s
-        return self.restart_gpst_week, self.restart_gpst_tow_s + (known_rx - bdt_sow)
+        return self.restart_gpst_week, self.restart_gpst_tow_s + (known_rx - t_sys)
 
 
 class FrameSyncTracker:
@@ -147,7 +168,12 @@ class FrameSyncTracker:
             self._start = (sf.gpst_week, sf.gpst_tow_s)
         self._sow_after_restart.add(sf.prn)
         since = self.since_start_s(sf.gpst_week, sf.gpst_tow_s)
-        header = SubframeHeader(sf.fra_id, int(sf.sow_s), sf.page)
+        if sf.nav_type == "LNAV":  # the HOW's time is the next subframe's (IS-GPS-200 20.3.3.2)
+            start_s = LnavHeader(sf.fra_id, int(sf.sow_s)).start_tow_s
+        else:
+            start_s = subframe_start_sow_s(
+                SubframeHeader(sf.fra_id, int(sf.sow_s), sf.page), sf.nav_type
+            )
         return [
             TrackEvent(
                 prn=sf.prn,
@@ -156,7 +182,7 @@ class FrameSyncTracker:
                 gpst_tow_s=sf.gpst_tow_s,
                 since_start_s=since,
                 nav_type=sf.nav_type,
-                sow_s=subframe_start_sow_s(header, sf.nav_type),
+                sow_s=start_s,
                 full_since_s=self._full_since_s.get(sf.prn),
             )
         ]
@@ -187,7 +213,7 @@ class FrameSyncTracker:
                         gpst_week=week,
                         gpst_tow_s=tow,
                         since_start_s=since,
-                        nav_type=nav_type(prn),
+                        nav_type=message_of(prn),
                         full_since_s=since,
                     )
                 )
