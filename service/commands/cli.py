@@ -416,6 +416,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="--simulate: satellites whose ephemeris is older are not simulated; the daemon "
         "gets the same limit",
     )
+    t.add_argument(
+        "--coarse-fix",
+        action="store_true",
+        help="--simulate: the daemon also runs the coarse-time first fix (fewer than 4 full "
+        "GEO ranges); its fixes count as fast",
+    )
     add_flags(t, FullRuleConfig, "restart")
     add_flags(t, SolverConfig, "solver")
 
