@@ -92,6 +92,7 @@ class SimTrial:
     declined: dict[str, int] = field(default_factory=dict)  # reasons before the first fix
     first_method: str | None = None  # the first fast fix's method (coarse_time, or None)
     coarse_no_full_vs_spp_m: float | None = None  # coarse-time fixes with no full row
+    coarse_full_vs_spp_m: float | None = None  # coarse-time fixes with a full row (in fast_vs)
 
 
 def plan_trials(
@@ -348,7 +349,7 @@ def analyse(
         full: set[str] = set()
         events = sorted(full_at[plan.index])
         fast = conv = geo = geo_err = None
-        n_fast, diffs, ratios, no_full = 0, [], [], []
+        n_fast, diffs, ratios, no_full, coarse_full = 0, [], [], [], []
         first_method = None
         # SPP references start at the true position (same least-squares fixed point, fewer
         # iterations); the daemon's fast fix started from the Earth's centre
@@ -372,6 +373,8 @@ def analyse(
                         no_full.append(d)
                     else:
                         diffs.append(d)
+                        if fix.get("method") == "coarse_time":
+                            coarse_full.append(d)
                 if fix.get("pdop"):
                     err = float(np.linalg.norm(x - truth))
                     ratios.append(err / (noise_m * float(fix["pdop"])))
@@ -401,6 +404,7 @@ def analyse(
                 dict(declined),
                 first_method,
                 max(no_full) if no_full else None,
+                max(coarse_full) if coarse_full else None,
             )
         )
     return out
@@ -428,6 +432,9 @@ def summarize_sim(trials: list[SimTrial], location: dict[str, float]) -> dict[st
     no_full = [t.coarse_no_full_vs_spp_m for t in trials if t.coarse_no_full_vs_spp_m is not None]
     if no_full:
         doc["fast"]["coarse_no_full_max_diff_to_spp_m"] = round(max(no_full), 4)
+    c_full = [t.coarse_full_vs_spp_m for t in trials if t.coarse_full_vs_spp_m is not None]
+    if c_full:
+        doc["fast"]["coarse_full_max_diff_to_spp_m"] = max(c_full)
     doc["per_trial"] = [
         {"fast_s": t.fast_s, "conventional_s": t.conventional_s, "geo_only_s": t.geo_only_s}
         for t in trials
