@@ -120,7 +120,7 @@ def _print(doc: dict[str, Any], as_json: bool) -> None:
                     else ""
                 )
             )
-        if "first_by_coarse_time" in d["fast"]:
+        if d["fast"].get("first_by_coarse_time"):
             v = d["fast"]
             print(
                 f"{'first fix by the coarse-time fix':>34}: {v['first_by_coarse_time']} trials"
