@@ -160,9 +160,35 @@ def build_parser() -> argparse.ArgumentParser:
         "GDOP gate passed, over a global grid and a span of days, from the paper's Table 1 "
         "constellation or a nav file's GEOs.",
     )
-    c.add_argument("--days", type=float, default=8.0, help="span of the study [days]")
-    c.add_argument("--step-s", type=float, default=300.0, help="time step [s]")
-    c.add_argument("--grid-deg", type=float, default=1.0, help="grid spacing [deg]")
+    c.add_argument(
+        "--days", type=float, default=None, help="span of the study [days] (8; --first-fix: 1)"
+    )
+    c.add_argument(
+        "--step-s", type=float, default=None, help="time step [s] (300; --first-fix: 600)"
+    )
+    c.add_argument(
+        "--grid-deg", type=float, default=None, help="grid spacing [deg] (1; --first-fix: 2)"
+    )
+    c.add_argument(
+        "--first-fix",
+        action="store_true",
+        help="compare the paper's method with the coarse-time first fix (>= 7 BeiDou "
+        "satellites above the mask) over the surface x time, every satellite of Table 1 or "
+        "of --nav",
+    )
+    c.add_argument(
+        "--solve-grid-deg",
+        type=float,
+        default=0.0,
+        help="--first-fix with --nav: also run the coarse-time solver on simulated first "
+        "epochs on a grid this coarse [deg] (0: off)",
+    )
+    c.add_argument(
+        "--solve-epochs",
+        type=int,
+        default=4,
+        help="--solve-grid-deg: epochs spread over the span",
+    )
     c.add_argument(
         "--altitudes-m",
         type=_float_list,
@@ -170,7 +196,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="user altitudes, comma-separated [m]",
     )
     c.add_argument("--beta", type=float, default=3000.0, help="GEO GDOP gate beta (eq. 21)")
-    c.add_argument("--elmask-deg", type=float, default=0.0, help="elevation mask [deg]")
+    c.add_argument(
+        "--elmask-deg",
+        type=float,
+        default=None,
+        help="elevation mask [deg] (0; --first-fix: the solver's 10)",
+    )
     c.add_argument("--nav", help="RINEX nav file: broadcast constellation instead of Table 1")
     add_start_flag(c, "the study's first epoch (default: Table 1's, 2015-05-19T04:00:00)")
     c.add_argument("--json", dest="json_out", help="write the result as JSON to FILE (- stdout)")
@@ -384,6 +415,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=7200.0,
         help="--simulate: satellites whose ephemeris is older are not simulated; the daemon "
         "gets the same limit",
+    )
+    t.add_argument(
+        "--coarse-fix",
+        action="store_true",
+        help="--simulate: the daemon also runs the coarse-time first fix (fewer than 4 full "
+        "GEO ranges); its fixes count as fast",
     )
     add_flags(t, FullRuleConfig, "restart")
     add_flags(t, SolverConfig, "solver")

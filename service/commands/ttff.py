@@ -120,6 +120,17 @@ def _print(doc: dict[str, Any], as_json: bool) -> None:
                     else ""
                 )
             )
+        if d["fast"].get("first_by_coarse_time"):
+            v = d["fast"]
+            print(
+                f"{'first fix by the coarse-time fix':>34}: {v['first_by_coarse_time']} trials"
+                + (
+                    f", max |coarse - SPP| with no full range "
+                    f"{v['coarse_no_full_max_diff_to_spp_m'] * 1e3:.0f} mm"
+                    if "coarse_no_full_max_diff_to_spp_m" in v
+                    else ""
+                )
+            )
         if "conventional_over_fast" in d:
             print(f"{'conventional / fast (medians)':>34}: {d['conventional_over_fast']:.1f}")
 
@@ -185,6 +196,7 @@ def run_simulated(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], 
             cfg,
             nav=nav,
             max_eph_age_s=args.max_eph_age_s,
+            coarse_fix=args.coarse_fix,
         )
     trials = analyse(stream, records, store, iono, cfg, args.noise_m)
     location = {"lat_deg": args.lat_deg, "lon_deg": args.lon_deg, "alt_m": args.alt_m}
@@ -194,4 +206,5 @@ def run_simulated(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], 
     doc["sigma_m"] = args.noise_m
     doc["stream_epochs"] = len(stream.epochs)
     doc["start_gpst"] = [week, round(tow, 3)]
+    doc["coarse_fix"] = args.coarse_fix
     return doc, trials

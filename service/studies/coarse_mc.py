@@ -114,9 +114,34 @@ def run_trial(
     course = rng.uniform(0.0, 2 * math.pi)
     rot = enu_rotation(lat, lon)
     v = rot.T @ np.array([speed * math.sin(course), speed * math.cos(course), 0.0])
-    x = geodetic_to_ecef(lat, lon, h)
     tow = rng.uniform(*tow_range_s)
     clock_error = rng.uniform(-ccfg.time_prior_s, ccfg.time_prior_s)
+    return simulate_and_solve(
+        store, iono, gpst_week, tow, lat, lon, h, v, clock_error, None, rng, cfg, ccfg
+    )
+
+
+def simulate_and_solve(
+    store: EphemerisStore,
+    iono: IonoSet,
+    gpst_week: int,
+    tow: float,
+    lat: float,
+    lon: float,
+    h: float,
+    v: np.ndarray,
+    clock_error: float,
+    k_full: int | None,
+    rng: np.random.Generator,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> Trial:
+    """One simulated epoch at geodetic (``lat``, ``lon`` [rad], ``h`` [m]) moving at ECEF
+    ``v`` [m/s], true GPST (``gpst_week``, ``tow``), host clock ``clock_error`` [s], with
+    ``k_full`` GEOs full (None: drawn 0-3), solved by :func:`solve_coarse` (module docstring)."""
+    rot = enu_rotation(lat, lon)
+    x = geodetic_to_ecef(lat, lon, h)
+    speed = float(np.linalg.norm(v))
     bdt_week, bdt_sow = gpst_to_bdt(gpst_week, tow)
     ephs = [e for p in sorted(store.prns) if (e := store.select(p, bdt_week, bdt_sow)) is not None]
     arr = store.arrays(ephs)
@@ -139,7 +164,7 @@ def run_trial(
     rate = tr.carrier_rate_m_s[seen] - e @ v + drift + rng.normal(0.0, 0.05, len(seen))
     doppler = -rate / np.array([wavelength_m(p) for p in prn])
     geos = [p for p in prn if is_geo(p)]
-    k = int(rng.integers(0, min(3, len(geos)) + 1))
+    k = int(rng.integers(0, min(3, len(geos)) + 1)) if k_full is None else k_full
     full = set(geos[:k])
     pr = tr.pr_m[seen]
     ct = C_M_S * 1e-3

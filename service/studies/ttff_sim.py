@@ -87,8 +87,12 @@ class SimTrial:
     geo_only_err_m: float | None
     fast_fixes: int
     fast_vs_spp_m: float | None  # the largest |fast - SPP| of the trial's fast fixes
+    # (a coarse-time fix with no full row is left out: it is not SPP at the true time)
     max_err_ratio: float | None  # 3D error / (sigma * PDOP), over the trial's fast fixes
     declined: dict[str, int] = field(default_factory=dict)  # reasons before the first fix
+    first_method: str | None = None  # the first fast fix's method (coarse_time, or None)
+    coarse_no_full_vs_spp_m: float | None = None  # coarse-time fixes with no full row
+    coarse_full_vs_spp_m: float | None = None  # coarse-time fixes with a full row (in fast_vs)
 
 
 def plan_trials(
@@ -186,6 +190,7 @@ def run_daemon_on_pty(
     nav: Sequence[str] = (),
     max_eph_age_s: float = 7200.0,
     timeout_s: float = 900.0,
+    coarse_fix: bool = False,
 ) -> list[dict[str, Any]]:
     """Feed the stream to ``bdsfix run`` through a pty; the records of its JSONL output."""
     master, slave = os.openpty()
@@ -217,9 +222,9 @@ def run_daemon_on_pty(
         "--max-eph-age-s",
         str(max_eph_age_s),
         *flags_of(cfg),
-        # the paper's method and SPP are timed here; the coarse-time fix is not
+        # the paper's method and SPP are timed here; the coarse-time fix only when asked
         "--coarse-fix",
-        "false",
+        "true" if coarse_fix else "false",
     ]
     for path in nav:
         cmd += ["--nav", str(path)]
@@ -344,7 +349,8 @@ def analyse(
         full: set[str] = set()
         events = sorted(full_at[plan.index])
         fast = conv = geo = geo_err = None
-        n_fast, diffs, ratios = 0, [], []
+        n_fast, diffs, ratios, no_full, coarse_full = 0, [], [], [], []
+        first_method = None
         # SPP references start at the true position (same least-squares fixed point, fewer
         # iterations); the daemon's fast fix started from the Earth's centre
         ref_cfg = replace(cfg, x0_ecef_m=(float(truth[0]), float(truth[1]), float(truth[2])))
@@ -358,10 +364,17 @@ def analyse(
                 n_fast += 1
                 if fast is None:
                     fast = ep.t_s
+                    first_method = fix.get("method")
                 ref = _spp(ep, ep.prn, store, iono, ref_cfg)
                 x = np.asarray(fix["x_ecef_m"])
                 if ref.ok and ref.x_ecef_m is not None:
-                    diffs.append(float(np.linalg.norm(x - np.asarray(ref.x_ecef_m))))
+                    d = float(np.linalg.norm(x - np.asarray(ref.x_ecef_m)))
+                    if fix.get("method") == "coarse_time" and not fix.get("n_full"):
+                        no_full.append(d)
+                    else:
+                        diffs.append(d)
+                        if fix.get("method") == "coarse_time":
+                            coarse_full.append(d)
                 if fix.get("pdop"):
                     err = float(np.linalg.norm(x - truth))
                     ratios.append(err / (noise_m * float(fix["pdop"])))
@@ -389,6 +402,9 @@ def analyse(
                 max(diffs) if diffs else None,
                 max(ratios) if ratios else None,
                 dict(declined),
+                first_method,
+                max(no_full) if no_full else None,
+                max(coarse_full) if coarse_full else None,
             )
         )
     return out
@@ -412,6 +428,13 @@ def summarize_sim(trials: list[SimTrial], location: dict[str, float]) -> dict[st
     for t in trials:
         declined.update(t.declined)
     doc["fast"]["declined_before_first_fix"] = dict(declined)
+    doc["fast"]["first_by_coarse_time"] = sum(t.first_method == "coarse_time" for t in trials)
+    no_full = [t.coarse_no_full_vs_spp_m for t in trials if t.coarse_no_full_vs_spp_m is not None]
+    if no_full:
+        doc["fast"]["coarse_no_full_max_diff_to_spp_m"] = round(max(no_full), 4)
+    c_full = [t.coarse_full_vs_spp_m for t in trials if t.coarse_full_vs_spp_m is not None]
+    if c_full:
+        doc["fast"]["coarse_full_max_diff_to_spp_m"] = max(c_full)
     doc["per_trial"] = [
         {"fast_s": t.fast_s, "conventional_s": t.conventional_s, "geo_only_s": t.geo_only_s}
         for t in trials

@@ -124,3 +124,25 @@ def test_outside_the_geo_area_the_fast_fix_declines_and_conventional_fixes():
     assert doc["fast"]["success_pct"] == 0.0
     reasons = doc["fast"]["declined_before_first_fix"]
     assert reasons and all(r.startswith("too few full measurements") for r in reasons), reasons
+
+
+def test_with_the_coarse_fix_the_first_fix_comes_at_once_outside_the_geo_area():
+    """Paris, no GEO in view, with the coarse-time first fix on: it fixes from the first
+    epochs on fractional ranges and Doppler alone (7 satellites above 5 deg at this time,
+    every satellite of the 2024 nav file simulated)."""
+    nav = DATA / "hk-polyu-f9p-ubx-2024" / "hksc269h.24f"
+    extra = ["--max-eph-age-s", "86400", "--start", "2024-09-25T06:10:00", "--coarse-fix"]
+    doc = _result(_ttff(48.86, 2.35, 4, 3, str(nav), *extra))
+    assert doc["coarse_fix"] is True
+    assert doc["fast"]["success_pct"] == 100.0
+    assert doc["fast"]["first_by_coarse_time"] == 4
+    for t in doc["per_trial"]:
+        assert t["fast_s"] < t["conventional_s"]
+    assert doc["fast"]["median_s"] <= 0.3
+    # with every range fractional the fix is the coarse-time solution, not SPP at the true
+    # time (docs/method.md): metres from it, never kilometres
+    assert doc["fast"]["coarse_no_full_max_diff_to_spp_m"] < 20.0
+    # once a range is full the integers are absolute and the fix is the SPP of the full
+    # ranges they make
+    assert doc["fast"]["max_diff_to_spp_m"] <= 5e-3
+    assert doc["fast"]["max_err_over_sigma_pdop"] <= 5.0
