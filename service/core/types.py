@@ -6,7 +6,8 @@ Per-satellite data travel as numpy columns (docs/architecture.md, "Types").
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -59,6 +60,21 @@ class MeasurementEpoch:
     def week_known(self) -> bool:
         """False while the source knows only the time of week (:data:`UNKNOWN_WEEK`)."""
         return self.gpst_week >= 0
+
+    def rows(self, idx: Sequence[int] | np.ndarray) -> MeasurementEpoch:
+        """This epoch with the rows ``idx`` only (in that order); every column taken alike."""
+        ii = np.asarray(idx, dtype=np.intp)
+        return replace(
+            self,
+            prn=tuple(self.prn[i] for i in ii.tolist()),
+            signal=tuple(self.signal[i] for i in ii.tolist()),
+            pr_m=self.pr_m[ii],
+            frac_pr_m=self.frac_pr_m[ii],
+            period_s=self.period_s[ii],
+            cn0_dbhz=self.cn0_dbhz[ii],
+            doppler_hz=self.doppler_hz[ii],
+            lock_s=self.lock_s[ii],
+        )
 
     @classmethod
     def from_columns(

@@ -685,18 +685,7 @@ def _solve_layouts(
 
 def _without(epoch: MeasurementEpoch, prn: str) -> MeasurementEpoch:
     """``epoch`` without satellite ``prn``."""
-    keep = np.array([p != prn for p in epoch.prn])
-    return replace(
-        epoch,
-        prn=tuple(p for p in epoch.prn if p != prn),
-        signal=tuple(s for s, k in zip(epoch.signal, keep, strict=True) if k),
-        pr_m=epoch.pr_m[keep],
-        frac_pr_m=epoch.frac_pr_m[keep],
-        period_s=epoch.period_s[keep],
-        cn0_dbhz=epoch.cn0_dbhz[keep],
-        doppler_hz=epoch.doppler_hz[keep],
-        lock_s=epoch.lock_s[keep],
-    )
+    return epoch.rows([i for i, p in enumerate(epoch.prn) if p != prn])
 
 
 def _exclude(

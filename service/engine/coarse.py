@@ -784,18 +784,8 @@ def _full_epoch(
 ) -> MeasurementEpoch:
     """``epoch`` with the full ranges ``pr_m`` of ``prns`` (the other rows dropped)."""
     where = {p: i for i, p in enumerate(epoch.prn)}
-    ii = np.array([where[p] for p in prns])
-    return replace(
-        epoch,
-        prn=prns,
-        signal=tuple(epoch.signal[i] for i in ii),
-        pr_m=np.asarray(pr_m, dtype=float),
-        frac_pr_m=epoch.frac_pr_m[ii],
-        period_s=epoch.period_s[ii],
-        cn0_dbhz=epoch.cn0_dbhz[ii],
-        doppler_hz=epoch.doppler_hz[ii],
-        lock_s=epoch.lock_s[ii],
-    )
+    kept = epoch.rows([where[p] for p in prns])
+    return replace(kept, pr_m=np.asarray(pr_m, dtype=float))
 
 
 def plain_chain(
