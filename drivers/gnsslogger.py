@@ -69,7 +69,13 @@ from service.core.bds_nav import b1i_subframe
 from service.core.constants import C_M_S
 from service.core.counters import Counters
 from service.core.errors import DecodeError
-from service.core.systems import GnssSystem, constants_of, sat_id, wavelength_m
+from service.core.systems import (
+    SYSTEM_CONSTANTS,
+    GnssSystem,
+    constants_of,
+    sat_id,
+    wavelength_m,
+)
 from service.core.timebase import gpst_from_utc
 from service.core.types import MeasurementEpoch, NavSubframe, ReceiverFix
 
@@ -418,7 +424,11 @@ class GnssLoggerReader:
         offset_ns = _float(f[c["TimeOffsetNanos"]])
         offset_ns = 0.0 if math.isnan(offset_ns) else offset_ns
         rx_int = tow_int_ns + (BDT_MINUS_GPST_NS if system is GnssSystem.BDS else 0)
-        prn = sat_id(system, int(f[c["Svid"]]))
+        svid = int(f[c["Svid"]])
+        if not 1 <= svid <= SYSTEM_CONSTANTS[system].prn_max:
+            self.counters["android_bad_svid"] += 1
+            return None
+        prn = sat_id(system, svid)
         rate = _float(f[c["PseudorangeRateMetersPerSecond"]])
         return _Row(
             prn=prn,
@@ -473,7 +483,10 @@ class GnssLoggerReader:
             cn0_dbhz=[r.cn0_dbhz for r in rows],
             doppler_hz=[r.doppler_hz for r in rows],
             source="android",
-            time_unc_s=bias_unc_ns * 1e-9,
+            # a phone that does not say how well it knows its time is not taken at its word:
+            # unknown (inf) keeps its fractional ranges out of the fast fix until a coarse-
+            # time fix or full ranges (the pipeline's 1 ms rule)
+            time_unc_s=math.inf if math.isnan(bias_unc_ns) else bias_unc_ns * 1e-9,
             restarted=restarted,
         )
 

@@ -285,7 +285,9 @@ class Pipeline:
             or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
         ):
             fix = self._coarse_fix(whole, fix)
-        if self.velocity:
+        if self.velocity and not (fix.method == "coarse_time" and not fix.full):
+            # (a coarse-time fix with every range fractional is at the tag plus its solved
+            # offset, which the Doppler rows at the tag do not know: no velocity for it)
             fix = with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
         if fix.ok and fix.x_ecef_m is not None:

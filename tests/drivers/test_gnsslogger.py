@@ -408,3 +408,25 @@ def test_a_log_needs_nav_unless_it_holds_bds_nav_rows(tmp_path):
     path = tmp_path / "with-bds-nav.txt"
     path.write_text("".join(_lines(BEIJING, 60)) + _android_nav_row(sub))
     assert not needs_nav(path)
+
+
+def test_a_blank_time_uncertainty_is_unknown_and_an_impossible_svid_is_no_row():
+    """Real Perth rows edited: BiasUncertaintyNanos left blank (the phone does not say how
+    well it knows its time) gives ``time_unc_s`` inf, not an exact time, so the pipeline
+    keeps the fractional ranges out of the fast fix; a Svid outside the system's PRNs (GPS
+    99) gives no row and is counted."""
+    head = _lines(PERTH, 400)
+    header = next(x for x in head if x.startswith("# Raw,"))[2:].strip().split(",")
+    u, sv, t = (header.index(k) for k in ("BiasUncertaintyNanos", "Svid", "TimeNanos"))
+    raws = [x.split(",") for x in head if x.startswith("Raw,")]
+    first_t = raws[0][t]
+    rows = [f for f in raws if f[t] == first_t]
+    for f in rows:
+        f[u] = ""
+    rows[0][sv] = "99"  # the first row is a GPS satellite at State 17 (docstring above)
+    lines = [x for x in head if x.startswith("#")] + [",".join(f) for f in rows]
+    counters = Counters()
+    (epoch,) = [e for e in GnssLoggerReader(lines, counters) if isinstance(e, MeasurementEpoch)]
+    assert epoch.time_unc_s == math.inf
+    assert counters["android_bad_svid"] == 1
+    assert len(epoch) == len(rows) - 1 and "G99" not in epoch.prn
