@@ -3,12 +3,14 @@ network and serial sinks share."""
 
 from __future__ import annotations
 
+import errno
 import ipaddress
+import socket
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
-from service.core.errors import ConfigError
+from service.core.errors import BindError, ConfigError
 
 RECORD_CLASSES = ("FIX", "SKY", "TRACK", "STATUS")
 """The record classes a sink may take (see :mod:`service.output.records`)."""
@@ -78,6 +80,29 @@ class Sink:
 
 SinkFactory = Callable[[str, SinkOptions], Sink]
 """Opens one sink from its spec string (``HOST:PORT``, a path, an endpoint ...)."""
+
+
+_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
+"""Bind failures that name the address (BindError); any other is a ConfigError."""
+
+
+def listening_socket(host: str, port: int, backlog: int, what: str) -> socket.socket:
+    """A non-blocking TCP socket listening on ``host:port`` (IPv6 when ``host`` has a colon,
+    SO_REUSEADDR) for a server sink named ``what`` in its errors: BindError for an address in
+    use, not available or not permitted, ConfigError for any other failure, one line."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    srv = socket.socket(family, socket.SOCK_STREAM)
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        srv.bind((host, port))
+        srv.listen(backlog)
+    except OSError as exc:
+        srv.close()
+        why = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror
+        error = BindError if exc.errno in _BIND_ERRNOS else ConfigError
+        raise error(f"{what} {host}:{port}: {why}") from exc
+    srv.setblocking(False)
+    return srv
 
 
 def is_loopback(host: str) -> bool:

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import errno
 import hashlib
 import ipaddress
 import logging
@@ -56,7 +55,7 @@ from typing import Any
 
 from service.core.bds import orbit_class
 from service.core.counters import Counters
-from service.core.errors import BindError, ConfigError, InputError
+from service.core.errors import ConfigError, InputError
 from service.output.records import dumps
 from service.output.sinks.base import (
     HTTP_MAX_CLIENTS,
@@ -64,6 +63,7 @@ from service.output.sinks.base import (
     Sink,
     SinkOptions,
     is_loopback,
+    listening_socket,
     parse_host_port,
 )
 from service.output.timeline import ORDER, Timeline
@@ -91,7 +91,6 @@ KEEPALIVE_S = 15.0
 """An SSE comment this often, so a vanished browser's connection is found."""
 LISTEN_BACKLOG = 64
 LOG_EVERY_S = 60.0
-_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
 
 _REQUEST_LINE = re.compile(rb"^([A-Z]{1,16}) (\S{1,8192}) HTTP/1\.[01]$")
 _ROUTES = frozenset({"/", "/events", "/fix.json", "/status.json"})
@@ -266,18 +265,7 @@ class HttpPageServer(Sink):
         self._loopback = is_loopback(host)
         if not self._loopback:
             log.warning("HTTP status page listens on %s:%d, not loopback", host, port)
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        self._srv = socket.socket(family, socket.SOCK_STREAM)
-        self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            self._srv.bind((host, port))
-            self._srv.listen(LISTEN_BACKLOG)
-        except OSError as exc:
-            self._srv.close()
-            why = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror
-            error = BindError if exc.errno in _BIND_ERRNOS else ConfigError
-            raise error(f"HTTP status page {host}:{port}: {why}") from exc
-        self._srv.setblocking(False)
+        self._srv = listening_socket(host, port, LISTEN_BACKLOG, "HTTP status page")
         self.address: tuple[str, int] = self._srv.getsockname()[:2]
         self._state = _PageState(timeline_offset_s)
         self._inbox: deque[tuple[str, Mapping[str, Any]]] = deque(maxlen=INBOX_RECORDS)

@@ -30,18 +30,18 @@ from collections import deque
 from collections.abc import Mapping
 
 from service.core.counters import Counters
-from service.core.errors import BindError, ConfigError
+from service.core.errors import ConfigError
 from service.output.sinks.base import (
     NMEA_TCP_MAX_CLIENTS,
     Sink,
     SinkOptions,
     is_loopback,
+    listening_socket,
     parse_host_port,
 )
 
 log = logging.getLogger(__name__)
 
-_BIND_ERRNOS = (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES)
 _RESOURCE_ERRNOS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
 
 MAX_CLIENTS_DEFAULT = NMEA_TCP_MAX_CLIENTS
@@ -87,18 +87,7 @@ class NmeaTcpServer(Sink):
         self._counters = Counters()
         if not is_loopback(host):
             log.warning("NMEA TCP server listens on %s:%d, not loopback", host, port)
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        self._srv = socket.socket(family, socket.SOCK_STREAM)
-        self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            self._srv.bind((host, port))
-            self._srv.listen(LISTEN_BACKLOG)
-        except OSError as exc:
-            self._srv.close()
-            why = "address already in use" if exc.errno == errno.EADDRINUSE else exc.strerror
-            error = BindError if exc.errno in _BIND_ERRNOS else ConfigError
-            raise error(f"NMEA TCP {host}:{port}: {why}") from exc
-        self._srv.setblocking(False)
+        self._srv = listening_socket(host, port, LISTEN_BACKLOG, "NMEA TCP")
         self.address: tuple[str, int] = self._srv.getsockname()[:2]
         self._sel = selectors.DefaultSelector()
         self._sel.register(self._srv, selectors.EVENT_READ, "listen")
