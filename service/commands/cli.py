@@ -282,7 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_flags(r, FullRuleConfig, "restart (--restart-at and the built-in scenario)")
     add_flags(r, SolverConfig, "solver")
     add_flags(r, SystemsConfig, "systems (RINEX observation and nav files)")
-    add_flags(r, CoarseConfig, "coarse-time first fix (fewer than 4 full ranges)")
+    add_flags(r, CoarseConfig, "coarse-time first fix (fewer full ranges than unknowns)")
 
     d = command(
         "run",

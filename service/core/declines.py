@@ -83,8 +83,9 @@ DECLINES: dict[Decline, DeclineText] = {
             "(need at least {need} full)",
             "mask": "too few full measurements above the {mask_deg:g} deg mask: {n_full}",
         },
-        "fewer than 4 full pseudoranges: the fast fix needs 4 GEOs in view, SPP waits for "
-        "each satellite's SOW",
+        "fewer full pseudoranges than unknowns (the position and one clock per satellite "
+        "system: 4 with BeiDou alone): the fast fix needs that many GEOs in view, SPP waits "
+        "for each satellite's SOW",
     ),
     Decline.SINGULAR: DeclineText(
         "singular geometry", {"": "singular geometry in the fast-fix iteration"}

@@ -252,8 +252,9 @@ class Velocity:
     the horizontal speed over ground and ``course_deg`` its direction, clockwise from true
     north in [0, 360); ``clock_drift_m_s`` is c times the receiver clock's rate. Every
     ``std_*`` is the 1-sigma of the value from the weighted least-squares covariance;
-    ``redundancy`` = Doppler rows used - 4, ``chi2``/``chi2_max`` the sanity test of their
-    residuals (None at redundancy 0), ``excluded`` the satellites whose Doppler it removed.
+    ``redundancy`` = Doppler rows used - unknowns (3 + one drift per system),
+    ``chi2``/``chi2_max`` the sanity test of their residuals (None at redundancy 0),
+    ``excluded`` the satellites whose Doppler it removed.
     """
 
     v_enu_m_s: tuple[float, float, float]

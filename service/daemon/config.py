@@ -330,7 +330,7 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
     add_flags(parser, DaemonConfig, "daemon")
     add_flags(parser, ReceiverSetup, "receiver set-up (with configure = true)", DAEMON_PREFIX)
     add_flags(parser, SolverConfig, "solver")
-    add_flags(parser, CoarseConfig, "coarse-time first fix (fewer than 4 full ranges)")
+    add_flags(parser, CoarseConfig, "coarse-time first fix (fewer full ranges than unknowns)")
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:

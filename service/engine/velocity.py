@@ -21,9 +21,10 @@ omega x (s - x) is perpendicular to e.
 
 The rows are weighted by 1/sigma_i^2 with sigma_i from elevation and C/N0
 (:class:`VelocityConfig`); the covariance (H^T W H)^-1 gives the sigmas. With redundancy
-r = rows - 4 >= 1, the residuals' weighted sum of squares is tested against the chi-square
-quantile (as :mod:`service.engine.raim` tests the position); while it fails, the row with
-the largest normalised residual (w-test, Baarda) is removed, up to ``max_exclusions``
+r = rows - unknowns >= 1 (velocity and one clock drift per system,
+:mod:`service.engine.layout`), the residuals' weighted sum of squares is tested against the
+chi-square quantile (as :mod:`service.engine.raim` tests the position); while it fails, the
+row with the largest normalised residual (w-test, Baarda) is removed, up to ``max_exclusions``
 times. A solution that still fails, or one without enough rows, is not reported (None).
 """
 
