@@ -40,7 +40,8 @@ def is_geo(sat: str) -> bool:
 IGSO_PRNS = frozenset([6, 7, 8, 9, 10, 13, 16, 31, 38, 39, 40, 56])
 """BDS PRN numbers of the inclined geosynchronous satellites (BDS-2 C06-C10, C13, C16; BDS-3
 C38-C40; the BDS-3 test satellites C31 and C56), as the constellation status of the China
-Satellite Navigation Office lists them; the other non-GEO PRNs are MEOs."""
+Satellite Navigation Office lists them; the other non-GEO PRNs are MEOs. The orbits broadcast
+in a 2024 nav file of the whole constellation agree (tests/core/test_systems.py)."""
 
 
 def orbit_class(sat: str) -> Literal["GEO", "IGSO", "MEO", ""]:

@@ -1,11 +1,12 @@
 """Satellite IDs name their system; each supported system has its ICD's constants."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from service.core.bds import is_geo, nav_type, subframe_period_s
+from service.core.bds import is_geo, nav_type, orbit_class, subframe_period_s
 from service.core.errors import BdsfixError
 from service.core.systems import (
     SYSTEM_CONSTANTS,
@@ -16,6 +17,7 @@ from service.core.systems import (
     system_of,
 )
 from service.core.types import MeasurementEpoch
+from tests.support.paths import DATA
 
 
 @pytest.mark.parametrize(
@@ -97,3 +99,39 @@ def test_an_epoch_without_periods_takes_each_systems_code_period():
     assert ep.period_s.tolist() == [1e-3, 1e-3, 4e-3]
     for i, t in enumerate((1e-3, 1e-3, 4e-3)):
         assert ep.frac_pr_m[i] == pytest.approx(math.fmod(pr[i], c * t), abs=1e-6)
+
+
+def _broadcast_orbits(path: Path) -> dict[str, tuple[float, float]]:
+    """Semi-major axis [km] and inclination [deg] of each BeiDou satellite's first record in
+    a RINEX 3 nav file, read here by column (RINEX 3.04 Table A8: sqrt(A) is the fourth
+    field of broadcast orbit 2, i0 the first of orbit 4), not by the project's reader."""
+    lines = path.read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if "END OF HEADER" in line) + 1
+    orbits: dict[str, tuple[float, float]] = {}
+    while i < len(lines):
+        if lines[i][:1] != "C":
+            i += 1
+            continue
+        sqrt_a = float(lines[i + 2][61:80].replace("D", "E"))
+        i0_rad = float(lines[i + 4][4:23].replace("D", "E"))
+        orbits.setdefault(lines[i][:3], (sqrt_a**2 / 1e3, math.degrees(i0_rad)))
+        i += 8
+    return orbits
+
+
+def test_orbit_classes_match_the_broadcast_orbits_of_the_2024_constellation():
+    """GEO_PRNS and IGSO_PRNS against the orbits the satellites fly: the real 2024 nav
+    file holds the whole BeiDou-2/-3 constellation (50 satellites). Geosynchronous means a
+    semi-major axis near 42,164 km; a GEO's inclination is a few degrees, an IGSO's about
+    55; the MEOs fly at about 27,906 km."""
+    orbits = _broadcast_orbits(DATA / "hk-polyu-f9p-ubx-2024" / "hksc269h.24f")
+    assert len(orbits) == 50
+    for prn, (a_km, inc_deg) in orbits.items():
+        if abs(a_km - 42164.0) < 100.0:
+            flown = "GEO" if inc_deg < 10.0 else "IGSO"
+        else:
+            assert abs(a_km - 27906.0) < 100.0, prn
+            flown = "MEO"
+        assert orbit_class(prn) == flown, (prn, a_km, inc_deg)
+        assert is_geo(prn) is (flown == "GEO")
+        assert nav_type(prn) == ("D2" if flown == "GEO" else "D1")
