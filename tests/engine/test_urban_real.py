@@ -28,6 +28,9 @@ from tests.support.paths import DATA
 
 TST = DATA / "hk-tst-urban-2019"
 TRUTH_EPOCHS = 485
+AVAILABILITY_MIN = 0.80  # measured 80.4 % (390 of 485)
+P50_MAX_M = 15.5  # measured 14.8 m
+P95_MAX_M = 112.0  # measured 109.5 m
 
 
 @cache
@@ -72,8 +75,3 @@ def test_urban_drive_availability_accuracy_and_protection_levels():
     assert availability >= AVAILABILITY_MIN, figures
     assert p50 <= P50_MAX_M and p95 <= P95_MAX_M, figures
     assert outside <= 0.01 * len(errs), figures
-
-
-AVAILABILITY_MIN = 0.80
-P50_MAX_M = 15.5
-P95_MAX_M = 112.0
