@@ -68,7 +68,7 @@ def main() -> None:
     print(f"bench_urban: {len(epochs)} TST epochs with ground truth, systems {sorted(systems)}")
     for solver in ("spp", "fast"):
         for name, cfg in configs.items():
-            errs, over = [], 0
+            errs, over, over_h = [], 0, 0
             for ep in epochs:
                 fix = solve(fractionalize(ep) if solver == "fast" else ep, store, iono, cfg, solver)
                 if not fix.ok:
@@ -78,13 +78,17 @@ def main() -> None:
                 if fix.hpl_m is not None and math.isfinite(fix.hpl_m):
                     lat, lon, _ = ecef_to_geodetic(t)
                     e = enu_rotation(lat, lon) @ np.subtract(fix.x_ecef_m, t)
-                    over += math.hypot(e[0], e[1]) > fix.hpl_m or abs(e[2]) > fix.vpl_m
+                    beyond_h = math.hypot(e[0], e[1]) > fix.hpl_m
+                    over_h += beyond_h
+                    over += beyond_h or abs(e[2]) > fix.vpl_m
             e = np.asarray(errs)
             p50, p95, p99 = np.percentile(e, [50, 95, 99]) if e.size else (math.nan,) * 3
+            rms = math.sqrt(float(np.mean(e**2))) if e.size else math.nan
             print(
                 f"  {solver:>4} {name:<29} availability {100 * len(e) / len(epochs):5.1f} %  3D "
                 f"error p50 {p50:6.1f}  p95 {p95:6.1f}  p99 {p99:6.1f}  max "
-                f"{e.max() if e.size else math.nan:6.1f} m; beyond HPL/VPL {over}"
+                f"{e.max() if e.size else math.nan:6.1f}  RMS {rms:6.1f}"
+                f" m; beyond HPL {over_h} ({100 * over_h / max(len(e), 1):.1f} %), HPL/VPL {over}"
             )
 
 

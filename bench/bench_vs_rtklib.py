@@ -21,14 +21,28 @@ Files:
   noise), solved with --mode both (SIM24) and --mode spp (SIM24s); truth the simulated
   position.
 - ONE: HKSC's first epoch alone: the start-up of `bdsfix solve`.
+- HKSC-GECs, TST-GECs (``--files hksc-gec,hksc-gec-strict,...``: each needs its base row):
+  bdsfix with :data:`STRICT` settings.
+- SBF-GEC (../shared/data/leuven-septentrio-sbf-2025): 12 epochs of a Septentrio mosaic,
+  BDS + GPS + Galileo. bdsfix replays the SBF file (`bdsfix replay --max-speed`, its nav
+  blocks the only ephemerides); rnx2rtkp reads the RINEX 3.04 obs and nav that RTKLIB's
+  convbin writes from it (``-r sbf``, done once, not timed). Truth: each epoch's
+  PVTGeodetic (the receiver's own SBAS-aided fix, metre level). bdsfix's SBF driver gives
+  BeiDou rows and BDSNav ephemerides only, and RTKLIB 2.4.3's convbin writes no BeiDou
+  ephemeris from SBF, so the two read different systems here; SBF-RNX runs `bdsfix solve`
+  on convbin's RINEX, the same input as rnx2rtkp.
+
+Rows with a truth per epoch also print the availability (fixes over the epochs with a
+truth: 205 HKSC, 485 TST, 300 3GEO, 12 SBF) and each side's 3D error p50/p95/max.
 
 bdsfix runs with Python's bytecode cache (as an installed package: pip compiles the modules
 at install); ONE is also timed without it (every module compiled at each start, as under
 PYTHONDONTWRITEBYTECODE=1). Each case has one untimed warm-up run of each program.
 
 Run: python bench/bench_vs_rtklib.py [--runs 15] [--files hksc,tst,sim24,one]
-(prints figures; no assertions). Needs rnx2rtkp (Debian package rtklib). The ``-GEC`` rows run
-both sides with BDS + GPS + Galileo (bdsfix ``--systems C,G,E``, rnx2rtkp navsys 41).
+(prints figures; no assertions). Needs rnx2rtkp and convbin (Debian package rtklib). The
+``-GEC`` rows run both sides with BDS + GPS + Galileo (bdsfix ``--systems C,G,E``,
+rnx2rtkp navsys 41).
 """
 
 from __future__ import annotations
@@ -83,6 +97,11 @@ and E1 are frequency 1 of GPS and Galileo)."""
 NAVSYS = {"G": 1, "E": 8, "C": 32}
 URBAN3 = DATA / "hk-urban-3geo-2020"
 URBAN3_LLH = (22.3198722, 114.209101778, 3.0)  # ../shared/data/README.md
+LEUVEN = DATA / "leuven-septentrio-sbf-2025" / "log_0000.sbf"
+STRICT = ("--sigma-cn0-m", "0.3", "--max-exclusions", "1", "--p-fa", "1e-3")
+"""bdsfix settings closer to RTKLIB's single point (a weaker C/N0 term, one exclusion, a
+1e-3 test): on the urban drive they trade availability for accuracy (docs/method.md,
+"Urban drive"); the -strict rows (HKSC-GECs, TST-GECs) run them beside the defaults."""
 
 Truth = Callable[[int, float], np.ndarray | None]
 
@@ -95,9 +114,14 @@ class Case:
     mode: str
     truth: Truth
     epochs: int
+    truth_epochs: int = 0  # epochs with a truth: the denominator of availability (0: not shown)
     exclusion: bool = True  # fault exclusion on both sides (bdsfix's default, RTKLIB RAIM FDE)
     systems: str = "C"  # bdsfix --systems; rnx2rtkp navsys from the same letters
     extra_nav: tuple[Path, ...] = ()  # further nav files (TST: the GPS one beside the BDS one)
+    # bdsfix's input when it is not the RINEX obs (SBF: `bdsfix replay` of the receiver's own
+    # file, its nav blocks the ephemerides; rnx2rtkp reads ``obs``/``nav``, converted by convbin)
+    raw: Path | None = None
+    bdsfix_flags: tuple[str, ...] = ()  # further bdsfix settings (the -strict rows)
 
 
 # ---- the simulated day ------------------------------------------------------------------------
@@ -250,6 +274,26 @@ def one_epoch(workdir: Path) -> Path:
     return path
 
 
+def sbf_case(workdir: Path) -> Case:
+    """The Leuven Septentrio capture: bdsfix replays the SBF file itself; rnx2rtkp reads
+    RINEX 3.04 obs and nav converted from it by RTKLIB's convbin (``-r sbf``). Truth per
+    epoch: the receiver's own PVTGeodetic (SBAS-aided, metre level)."""
+    from pysbf2 import SBFReader
+
+    obs, nav = workdir / "leuven.obs", workdir / "leuven.nav"
+    cmd = ["convbin", "-r", "sbf", "-v", "3.04", "-od", "-os", "-o", str(obs), "-n", str(nav)]
+    subprocess.run([*cmd, str(LEUVEN)], check=True, capture_output=True)
+    table: dict[int, np.ndarray] = {}
+    with open(LEUVEN, "rb") as fh:
+        for raw, msg in SBFReader(fh):
+            if msg.identity == "PVTGeodetic":
+                tow = round(int.from_bytes(raw[8:12], "little") / 1000)
+                table[tow] = geodetic_to_ecef(msg.Latitude, msg.Longitude, msg.Height)
+    truth: Truth = lambda w, t: table.get(round(t))  # noqa: E731
+    n = len(table)
+    return Case("SBF-GEC", obs, nav, "spp", truth, n, truth_epochs=n, systems="C,G,E", raw=LEUVEN)
+
+
 # ---- running and scoring ----------------------------------------------------------------------
 
 
@@ -281,17 +325,31 @@ def rms(errors: list[float]) -> float:
     return math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.nan
 
 
-def score_bdsfix(path: Path, truth: Truth) -> dict[str, dict[tuple[int, int], float]]:
+def score_bdsfix(
+    path: Path, truth: Truth, by_mode: bool = False
+) -> dict[str, dict[tuple[int, int], float]]:
     """Per solver: (week, round(tow)) -> 3D error of each fix."""
     out: dict[str, dict[tuple[int, int], float]] = {"fast": {}, "spp": {}}
     for line in path.read_text().splitlines():
         r = json.loads(line)
+        if r.get("class", "FIX") != "FIX":
+            continue
         if r.get("mode") in ("fast", "spp") and "x_ecef_m" in r:
             t = truth(r["gpst_week"], r["gpst_tow_s"])
             if t is not None:
                 key = (r["gpst_week"], round(r["gpst_tow_s"]))
-                out[r["solver"]][key] = float(np.linalg.norm(np.subtract(r["x_ecef_m"], t)))
+                # a replay's FIX records name the pipeline ("solver": "fast") and the solution
+                # ("mode": "spp" when the epoch's ranges were full): scored by the solution
+                err = float(np.linalg.norm(np.subtract(r["x_ecef_m"], t)))
+                out[r["mode"] if by_mode else r["solver"]][key] = err
     return out
+
+
+def _pcts(errors: list[float]) -> str:
+    if not errors:
+        return "-"
+    p50, p95 = np.percentile(errors, [50, 95])
+    return f"{p50:.1f}/{p95:.1f}/{max(errors):.1f} m"
 
 
 def score_rtklib(path: Path, truth: Truth) -> dict[tuple[int, int], float]:
@@ -312,18 +370,12 @@ def bench_case(
 ) -> None:
     bds_out, rtk_out = workdir / f"{case.name}.jsonl", workdir / f"{case.name}.pos"
     navs = [str(case.nav), *map(str, case.extra_nav)]
-    bds = [
-        *_bdsfix_cmd(),
-        "solve",
-        str(case.obs),
-        *navs,
-        "--mode",
-        case.mode,
-        "--out",
-        str(bds_out),
-        "--systems",
-        case.systems,
-    ]
+    if case.raw is None:
+        bds = [*_bdsfix_cmd(), "solve", str(case.obs), *navs, "--mode", case.mode]
+        bds += ["--out", str(bds_out), "--systems", case.systems, *case.bdsfix_flags]
+    else:
+        bds = [*_bdsfix_cmd(), "replay", str(case.raw), "--max-speed", "--nmea-out", os.devnull]
+        bds += ["--jsonl-out", str(bds_out), "--systems", case.systems]
     text = RTKLIB_CONF
     if not case.exclusion:
         bds += ["--max-exclusions", "0"]
@@ -341,14 +393,16 @@ def bench_case(
         t_bds.append(run_timed(bds, env))
         t_rtk.append(run_timed(rtk))
     mb, mr = statistics.median(t_bds), statistics.median(t_rtk)
+    how = "replay (SBF)" if case.raw is not None else f"solve --mode {case.mode}"
     print(
-        f"{case.name + label:<8} {case.epochs:5d} epochs  bdsfix solve --mode {case.mode:<4} "
+        f"{case.name + label:<8} {case.epochs:5d} epochs  bdsfix {how:<17} "
         f"{mb:7.3f} s (min {min(t_bds):.3f})  rnx2rtkp {mr:6.3f} s (min {min(t_rtk):.3f})  "
         f"ratio {mb / mr:5.1f}x   ({runs} alternating runs, medians)"
     )
     if case.name == "ONE":
         return
-    sb, sr = score_bdsfix(bds_out, case.truth), score_rtklib(rtk_out, case.truth)
+    sb = score_bdsfix(bds_out, case.truth, by_mode=case.raw is not None)
+    sr = score_rtklib(rtk_out, case.truth)
     for solver in ("spp", "fast") if case.mode == "both" else (case.mode,):
         mine = sb[solver]
         common = sorted(set(mine) & set(sr))
@@ -358,6 +412,13 @@ def bench_case(
             f"on the {len(common)} epochs both fixed: bdsfix "
             f"{rms([mine[k] for k in common]):.2f} m, rnx2rtkp {rms([sr[k] for k in common]):.2f} m"
         )
+        if case.truth_epochs:  # availability: fixes over the epochs that have a truth
+            print(
+                f"       availability of {case.truth_epochs} truth epochs: bdsfix {solver:<4} "
+                f"{100 * len(mine) / case.truth_epochs:5.1f} %, rnx2rtkp "
+                f"{100 * len(sr) / case.truth_epochs:5.1f} %; 3D error p50/p95/max: bdsfix "
+                f"{_pcts(list(mine.values()))}, rnx2rtkp {_pcts(list(sr.values()))}"
+            )
 
 
 def main() -> None:
@@ -365,7 +426,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=15, help="alternating runs per file")
     ap.add_argument(
         "--files",
-        default="one,hksc,tst,sim24,hksc-gec,tst-gec,3geo,3geo-gec",
+        default="one,hksc,tst,sim24,hksc-gec,tst-gec,3geo,3geo-gec,sbf-gec",
         help="which files, comma-separated (-gec: BDS + GPS + Galileo on both sides)",
     )
     ap.add_argument("--sim-hours", type=float, default=24.0, help="length of the simulated day")
@@ -389,6 +450,7 @@ def main() -> None:
                     "spp",
                     lambda w, t: HKSC_XYZ,
                     205,
+                    205,
                 )
             )
         if "tst" in want:
@@ -400,6 +462,7 @@ def main() -> None:
                     "spp",
                     tst_truth(),
                     1760,
+                    485,
                 )
             )
             cases.append(replace(cases[-1], name="TST-0", exclusion=False))
@@ -411,6 +474,7 @@ def main() -> None:
                     HKSC / "hksc1610.nav",
                     "spp",
                     lambda w, t: HKSC_XYZ,
+                    205,
                     205,
                     systems="C,G,E",
                 )
@@ -424,10 +488,15 @@ def main() -> None:
                     "spp",
                     tst_truth(),
                     1760,
+                    485,
                     systems="C,G,E",
                     extra_nav=(TST / "hksc1180.19n",),
                 )
             )
+        for name in ("hksc-gec", "tst-gec"):  # the same with RTKLIB-like strictness
+            if f"{name}-strict" in want:
+                base = next(c for c in cases if c.name == name.upper())
+                cases.append(replace(base, name=f"{base.name}s", bdsfix_flags=STRICT))
         if "3geo" in want or "3geo-gec" in want:
             llh = URBAN3_LLH
             xyz = geodetic_to_ecef(math.radians(llh[0]), math.radians(llh[1]), llh[2])
@@ -438,11 +507,16 @@ def main() -> None:
                 "spp",
                 lambda w, t: xyz,
                 300,
+                300,
             )
             if "3geo" in want:
                 cases.append(urban3)
             if "3geo-gec" in want:
                 cases.append(replace(urban3, name="3GEO-GEC", systems="C,G,E"))
+        if "sbf-gec" in want:
+            cases.append(sbf_case(workdir))
+            # bdsfix on convbin's RINEX as well: the very input rnx2rtkp reads
+            cases.append(replace(cases[-1], name="SBF-RNX", raw=None))
         if "sim24" in want:
             t0 = time.perf_counter()
             cases.append(make_sim_day(workdir, args.sim_hours))

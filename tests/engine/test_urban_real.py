@@ -1,0 +1,135 @@
+"""Multi-system SPP in a street canyon, against the drive's ground truth.
+
+The Hong Kong TST u-blox drive (``../shared/data/hk-tst-urban-2019``: 485 epochs with a
+SPAN ground truth, BeiDou + GPS with their nav files; its Galileo rows have no ephemeris)
+solved epoch by epoch with the daemon's default settings and ``systems`` C, G, E, as
+``bench/bench_urban.py --systems C,G,E`` does. The bounds are the figures measured on
+this branch (docs/method.md, "Urban drive"), rounded outward: they hold the error model and
+fault exclusion to what they achieve today, so that a change that loses accuracy,
+availability or integrity in the canyon fails here. They are NOT the issue's targets
+(availability >= 85 %, p50 <= 10 m, p95 <= 40 m), which today's snapshot SPP misses.
+The second test runs rnx2rtkp (GPS + Galileo + BDS single point) on the same files and
+holds bdsfix with settings near RTKLIB's to at least its availability and at most its RMS.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+from functools import cache
+
+import numpy as np
+import pytest
+
+from drivers.rinex import RinexObsReader
+from service.commands.solve import load_navigation
+from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from service.core.systems import parse_systems
+from service.engine.solver import SolverConfig, solve
+from tests.support.paths import DATA
+
+TST = DATA / "hk-tst-urban-2019"
+TRUTH_EPOCHS = 485
+AVAILABILITY_MIN = 0.80  # measured 80.4 % (390 of 485)
+P50_MAX_M = 15.5  # measured 14.8 m
+P95_MAX_M = 112.0  # measured 109.5 m
+
+
+NAVS = (TST / "hksc1180.19b", TST / "hksc1180.19n")
+OBS = TST / "COM3_190428_124409.obs"
+DEFAULTS = SolverConfig()
+STRICT = SolverConfig(sigma_cn0_m=0.3, max_exclusions=1, p_fa=1e-3)
+"""Settings near RTKLIB's single point (bench/bench_vs_rtklib.py STRICT)."""
+RTKLIB_CONF = """\
+pos1-posmode       =single
+pos1-frequency     =l1
+pos1-elmask        =10
+pos1-ionoopt       =brdc
+pos1-tropopt       =saas
+pos1-sateph        =brdc
+pos1-navsys        =41
+pos1-posopt5       =on
+out-solformat      =xyz
+out-timesys        =gpst
+out-timeform       =tow
+"""
+"""rnx2rtkp as bench/bench_vs_rtklib.py runs it: single point, GPS + Galileo + BDS (navsys
+1 + 8 + 32), 10 deg mask, broadcast ionosphere, Saastamoinen, RAIM FDE."""
+
+
+@cache
+def _truth() -> dict[tuple[int, int], np.ndarray]:
+    truth = {}
+    with open(TST / "groundTruth_TST.csv", encoding="ascii") as f:
+        for row in csv.reader(f):
+            week, tow, lat, lon, h = (float(v) for v in row[:5])
+            truth[(int(week), round(tow))] = geodetic_to_ecef(
+                math.radians(lat), math.radians(lon), h
+            )
+    return truth
+
+
+@cache
+def _errors(cfg: SolverConfig = DEFAULTS) -> tuple[int, np.ndarray, int]:
+    """(epochs with truth, 3D errors of the published fixes, fixes outside their HPL)."""
+    truth = _truth()
+    systems = parse_systems("C,G,E")
+    store, iono = load_navigation([str(p) for p in NAVS], systems=systems)
+    n, errs, outside = 0, [], 0
+    for ep in RinexObsReader(OBS, systems=systems):
+        t = truth.get((ep.gpst_week, round(ep.gpst_tow_s)))
+        if t is None:
+            continue
+        n += 1
+        fix = solve(ep, store, iono, cfg, "spp")
+        if not fix.ok:
+            continue
+        d = np.subtract(fix.x_ecef_m, t)
+        errs.append(float(np.linalg.norm(d)))
+        lat, lon, _ = ecef_to_geodetic(t)
+        enu = enu_rotation(lat, lon) @ d
+        assert fix.hpl_m is not None
+        outside += math.hypot(enu[0], enu[1]) > fix.hpl_m
+    return n, np.asarray(errs), outside
+
+
+@pytest.mark.slow
+def test_urban_drive_availability_accuracy_and_protection_levels():
+    n, errs, outside = _errors()
+    assert n == TRUTH_EPOCHS
+    availability = len(errs) / n
+    p50, p95 = np.percentile(errs, [50, 95])
+    figures = (availability, p50, p95, outside)
+    assert availability >= AVAILABILITY_MIN, figures
+    assert p50 <= P50_MAX_M and p95 <= P95_MAX_M, figures
+    assert outside <= 0.01 * len(errs), figures
+
+
+def _rms(errs: np.ndarray) -> float:
+    return math.sqrt(float(np.mean(np.square(errs))))
+
+
+@pytest.mark.slow
+@pytest.mark.needs("rnx2rtkp")
+def test_strict_settings_fix_as_often_as_rnx2rtkp_and_closer(tmp_path):
+    """With settings near RTKLIB's, bdsfix fixes at least as many of the drive's truth
+    epochs as rnx2rtkp with GPS + Galileo + BDS and its 3D RMS is no larger (measured:
+    199 fixes, 19.24 m against 198, 19.97 m); the defaults publish twice as many fixes with
+    a larger RMS (docs/method.md, "Urban drive")."""
+    conf, pos = tmp_path / "gec.conf", tmp_path / "gec.pos"
+    conf.write_text(RTKLIB_CONF, encoding="ascii")
+    cmd = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(pos), str(OBS), *map(str, NAVS)]
+    subprocess.run(cmd, check=True, capture_output=True)
+    truth, rtk = _truth(), []
+    for line in pos.read_text(encoding="ascii").splitlines():
+        if line.startswith("%") or not line.strip():
+            continue
+        f = line.split()
+        t = truth.get((int(f[0]), round(float(f[1]))))
+        if t is not None:
+            rtk.append(float(np.linalg.norm(np.array([float(v) for v in f[2:5]]) - t)))
+    n, mine, _ = _errors(STRICT)
+    figures = (len(mine), _rms(mine), len(rtk), _rms(np.asarray(rtk)))
+    assert n == TRUTH_EPOCHS and len(rtk) > 0.3 * n, figures
+    assert len(mine) >= len(rtk) and _rms(mine) <= _rms(np.asarray(rtk)), figures
