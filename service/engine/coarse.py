@@ -34,12 +34,16 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    ``-horizon_deg``. It is published only if no other plausible candidate has a statistic
    below ``uniqueness_margin`` times its own threshold; else the epoch is declined
    ``ambiguous``.
-5. **The fix.** The winner's integers make full ranges; a fix is then the solver's own SPP
-   of them (all of :func:`service.engine.solver.solve`'s corrections and integrity), at the
-   epoch's tag when full rows anchor the clock (so the fix equals SPP of the true full
-   ranges), else at tag + dt with the ranges less the solved clock (the millisecond common
-   to every range is not observable without a full range: the fix is then the coarse-time
-   solution, not SPP at the true time).
+5. **The fix.** Only a winner that passed steps 3-4 (or their fault exclusion) is
+   published. When its integers are absolute (a full row anchors them, or the solved time
+   leaves no doubt about the millisecond common to every range), they make full ranges and
+   the fix is the solver's own SPP of them (:func:`spp_at_receive_time`: all of
+   :func:`service.engine.solver.solve`'s corrections, FDE and protection levels) with tag
+   and ranges moved together to the receive time, the coarse offset first, then SPP's own
+   clock: the fix is SPP of the true full ranges at a correct tag (1e-7 m on HKSC, tags
+   +-2 s off), and the offset is SPP's, to nanoseconds. Else (every range fractional, the
+   common millisecond in doubt) the fix is the coarse-time solution itself: SPP needs the
+   transmit times to the microsecond, and a wrong millisecond moves them by 1 ms.
 """
 
 from __future__ import annotations
@@ -57,7 +61,7 @@ from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
 from service.core.settings import setting
-from service.core.timebase import gpst_to_bdt
+from service.core.timebase import gpst_to_bdt, normalize
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine.layout import Layout
 from service.engine.raim import assess, chi2_threshold
@@ -591,7 +595,7 @@ def _solve_coarse(
     fractional = tuple(p for p, f in zip(sats.prn, frac, strict=True) if f)
     integers = {p: int(k) for p, k, f in zip(sats.prn, n_best, frac, strict=True) if f}
     if absolute:
-        fix = solve(_full_epoch(epoch, sats.prn, p_full), store, iono, cfg, "spp")
+        fix, dt = spp_at_receive_time(_full_epoch(epoch, sats.prn, p_full), dt, store, iono, cfg)
         recovered = {
             p: float(z + k * c)
             for p, z, k, c, f in zip(sats.prn, sats.z_m, n_best, sats.ct_m, frac, strict=True)
@@ -777,6 +781,59 @@ def _coarse_fix(
         vpl_m=integ.vpl_m,
         cov_enu_m2=tuple((float(r[0]), float(r[1]), float(r[2])) for r in cov),
     )
+
+
+TIME_ITERATIONS = 3
+"""SPP solves at most of :func:`spp_at_receive_time` (the second leaves a clock of
+nanoseconds; the third is not reached on any recording)."""
+TIME_SETTLED_M = 1e-3
+"""A receiver clock [m] below which the tag plus the offset is the receive time: the last
+SPP's satellites are then within 1 mm / c x 4 km/s ~ 1e-8 mm of where they are at the truth."""
+
+
+def spp_at_receive_time(
+    full: MeasurementEpoch,
+    offset_s: float,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+) -> tuple[Fix, float]:
+    """The published fix of an accepted integer set: the solver's own SPP
+    (:func:`service.engine.solver.solve`, all its corrections, FDE and protection levels)
+    of the full ranges ``full`` (the fractional ranges plus their integers times c T),
+    evaluated at the receive time, and the time offset (true receive time = tag + offset).
+
+    The full ranges are on the receiver's clock, as the tag is: a transmit time is
+    tag - pr / c whatever the clock's error, so SPP at the tag alone is already the fix of
+    those ranges; but what depends on the receive time itself (the broadcast Klobuchar
+    model's local time, ~0.3 mm over 2 s on HKSC) would be taken at the wrong time. So tag
+    and ranges are moved together by S (tag + S, pr + c S: every transmit time unchanged),
+    first by the coarse-time offset ``offset_s``, then by the clock each SPP is left with
+    (S -= b / c) until it is below :data:`TIME_SETTLED_M`: the solve is then at the receive
+    time, where SPP of the true full ranges at a correct tag is. The fix carries the
+    epoch's tag, its clock relative to that tag (b - c S) and the offset S - b / c."""
+    shift = offset_s if math.isfinite(offset_s) else 0.0
+    fix = declined(full, Declined.of(Decline.NO_MEASUREMENTS))
+    for _ in range(TIME_ITERATIONS):
+        week, tow = normalize(full.gpst_week, full.gpst_tow_s + shift)
+        moved = replace(full, gpst_week=week, gpst_tow_s=tow, pr_m=full.pr_m + C_M_S * shift)
+        fix = solve(moved, store, iono, cfg, "spp")
+        if not fix.ok or fix.clock_bias_m is None:
+            return replace(fix, gpst_week=full.gpst_week, gpst_tow_s=full.gpst_tow_s), offset_s
+        b = fix.clock_bias_m
+        if abs(b) < TIME_SETTLED_M:
+            break
+        shift -= b / C_M_S
+    b = fix.clock_bias_m or 0.0
+    c_shift = C_M_S * shift
+    fix = replace(
+        fix,
+        gpst_week=full.gpst_week,
+        gpst_tow_s=full.gpst_tow_s,
+        clock_bias_m=b - c_shift,
+        clocks_m={k: v - c_shift for k, v in fix.clocks_m.items()},
+    )
+    return fix, shift - b / C_M_S
 
 
 def _full_epoch(
