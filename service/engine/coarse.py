@@ -836,6 +836,99 @@ def spp_at_receive_time(
     return fix, shift - b / C_M_S
 
 
+SOW_PRIOR_S = 0.02
+"""How well the first decoded SOW gives the receive time [s]: the transmit time it makes
+full, plus a flight time known to +-10 ms from the satellite's orbit radius alone."""
+_EARTH_RADIUS_M = 6_371e3
+
+
+def moved(epoch: MeasurementEpoch, shift_s: float) -> MeasurementEpoch:
+    """``epoch`` with its tag and every range moved together by ``shift_s`` (tag + S,
+    pr + c S, each fractional range + c S modulo its c T): every transmit time tag - pr / c
+    unchanged, the receiver's clock less c S (the receive time it describes is the same)."""
+    week, tow = normalize(epoch.gpst_week, epoch.gpst_tow_s + shift_s)
+    cs = C_M_S * shift_s
+    ct = C_M_S * epoch.period_s
+    return replace(
+        epoch,
+        gpst_week=week,
+        gpst_tow_s=tow,
+        pr_m=epoch.pr_m + cs,
+        frac_pr_m=np.mod(epoch.frac_pr_m + cs, ct),
+    )
+
+
+def sow_time_shift(epoch: MeasurementEpoch, store: EphemerisStore) -> float | None:
+    """The shift [s] that puts the tag of an epoch whose receiver time is unknown (a phone
+    before its first fix) at the receive time the first decoded SOW gives (issue 20's "first
+    decoded SOW of any satellite, within about 20 ms"): a full range's transmit time
+    tag - pr / c (on the satellite's clock, whatever the receiver clock's error) plus its
+    flight time, the middle of [a - R, sqrt(a^2 - R^2)] / c for the orbit's semi-major axis
+    a (MEO 72-86 ms, IGSO/GEO 119-139 ms: at most 10 ms off, :data:`SOW_PRIOR_S`). None
+    without a full BeiDou range whose satellite has an ephemeris."""
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    for i in np.flatnonzero(np.isfinite(epoch.pr_m)).tolist():
+        prn = epoch.prn[i]
+        eph = store.select(prn, bdt_week, bdt_sow) if prn.startswith("C") else None
+        if eph is None:
+            continue
+        a = eph.sqrt_a_sqrt_m**2
+        r = _EARTH_RADIUS_M
+        flight_s = 0.5 * ((a - r) + math.sqrt(max(a * a - r * r, 0.0))) / C_M_S
+        return flight_s - float(epoch.pr_m[i]) / C_M_S
+    return None
+
+
+def solve_coarse_at_sow(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    ccfg: CoarseConfig | None = None,
+) -> CoarseResult:
+    """:func:`solve_coarse` for an epoch whose time tag has no usable prior (its
+    ``time_unc_s`` beyond ``time_prior_s``, or unknown) but which has a full range: solved
+    with the epoch moved (:func:`moved`) to the time its first full range's SOW gives
+    (:func:`sow_time_shift`, well inside the prior), the fix then put back at the epoch's
+    tag: the same position, its clock relative to the tag, the offset from the tag, and the
+    recovered ranges and integers of the epoch's own fractional ranges. Declined
+    ``coarse_time`` (the reason to wait for the first SOW) without a full range."""
+    shift = sow_time_shift(epoch, store)
+    if shift is None:
+        why = Declined.of(
+            Decline.COARSE_TIME,
+            time_unc_s=epoch.time_unc_s,
+            n_frac=int((~np.isfinite(epoch.pr_m) & np.isfinite(epoch.frac_pr_m)).sum()),
+            n_full=0,
+            need=N_PARAMS - 1,
+        )
+        return CoarseResult(declined(epoch, why))
+    result = solve_coarse(moved(epoch, shift), store, iono, cfg, ccfg)
+    fix = replace(result.fix, gpst_week=epoch.gpst_week, gpst_tow_s=epoch.gpst_tow_s)
+    offset = None if result.time_offset_s is None else result.time_offset_s + shift
+    if fix.ok:
+        cs = C_M_S * shift
+        recovered = {p: pr - cs for p, pr in fix.recovered_pr_m.items()}
+        where = {p: i for i, p in enumerate(epoch.prn)}
+        ambiguity = {
+            p: round(
+                (pr - float(epoch.frac_pr_m[where[p]])) / (C_M_S * float(epoch.period_s[where[p]]))
+            )
+            for p, pr in recovered.items()
+        }
+        fix = replace(
+            fix,
+            clock_bias_m=None if fix.clock_bias_m is None else fix.clock_bias_m - cs,
+            clocks_m={k: v - cs for k, v in fix.clocks_m.items()},
+            recovered_pr_m=recovered,
+            ambiguity=ambiguity if fix.ambiguity else {},
+            time_offset_s=offset,
+        )
+        if result.absolute:
+            result = replace(result, integers=ambiguity)
+    return replace(result, fix=fix, time_offset_s=offset)
+
+
 def _full_epoch(
     epoch: MeasurementEpoch, prns: tuple[str, ...], pr_m: np.ndarray
 ) -> MeasurementEpoch:

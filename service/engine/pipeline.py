@@ -40,7 +40,12 @@ from service.core.types import (
     ReceiverFix,
     SatView,
 )
-from service.engine.coarse import CoarseConfig, solve_coarse
+from service.engine.coarse import (
+    CoarseConfig,
+    solve_coarse,
+    solve_coarse_at_sow,
+    sow_time_shift,
+)
 from service.engine.layout import BDS_ONLY
 from service.engine.solver import (
     IonoSet,
@@ -68,8 +73,10 @@ phone's BiasUncertaintyNanos) keeps its fractional ranges out of the fix: the fa
 the time tag as exact (a satellite's transmit time is the tag minus the flight time, its
 integer milliseconds resolved at that tag), and a 1 ms error moves a satellite by at most
 ~4 m along its orbit. Full ranges are unaffected (their transmit time is in the
-measurement; a tag error is common to all and goes into the clock). A coarse-time solution
-(time as a fifth unknown) would use them: not implemented yet."""
+measurement; a tag error is common to all and goes into the clock). The coarse-time fix
+(:mod:`service.engine.coarse`, time as a fifth unknown) uses them: with the tag as its prior
+while ``time_unc_s`` is within ``time_prior_s``, else with the time the first decoded SOW
+gives, and with neither it waits (declined ``coarse_time``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,9 +272,16 @@ class Pipeline:
         view, set_aside = without_coarse_fractions(view)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
         if set_aside and view.time_unc_s > self.coarse.time_prior_s:
-            # the receiver's time is coarser than even the coarse-time fix's prior
+            # the receiver's time is coarser than even the coarse-time fix's prior: its
+            # fractional ranges wait for the first decoded SOW, whose full range gives the
+            # time to ~10 ms (issue 20); with one, the coarse-time fix is tried at that time
             if fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
                 self.counters["coarse_time_epochs"] += 1
+                sow = (
+                    self.coarse.coarse_fix
+                    and fix.reason_code == Decline.TOO_FEW_FULL
+                    and sow_time_shift(whole, self.store) is not None
+                )
                 # the full ranges the solve needed (its layout's unknowns); with no row at all,
                 # one system's position and clock
                 figures = dict(fix.decline.fields) if fix.decline is not None else {}
@@ -280,6 +294,8 @@ class Pipeline:
                     need=need,
                 )
                 fix = declined(view, why)
+                if sow:  # its decline, if it has no candidates, is this one
+                    fix = self._coarse_fix(whole, fix, at_sow=True)
         elif self.coarse.coarse_fix and (
             fix.reason_code == Decline.TOO_FEW_FULL
             or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
@@ -311,12 +327,15 @@ class Pipeline:
             self._receiver_fix_near(epoch),
         )
 
-    def _coarse_fix(self, view: MeasurementEpoch, paper: Fix) -> Fix:
+    def _coarse_fix(self, view: MeasurementEpoch, paper: Fix, at_sow: bool = False) -> Fix:
         """The coarse-time fix (:mod:`service.engine.coarse`) of an epoch the paper's method
         declined for want of four full ranges: its fix, or its decline when it found
         candidates and none was safe to publish (``chi2``, ``ambiguous``, ``pdop_gate``);
-        else (too few rows, no Doppler) the paper's decline stands, the reason to wait."""
-        result = solve_coarse(view, self.store, self.iono, self.cfg, self.coarse)
+        else (too few rows, no Doppler) the paper's decline stands, the reason to wait.
+        ``at_sow``: the tag is no prior (``time_unc_s`` beyond ``time_prior_s``), the first
+        decoded SOW is (:func:`service.engine.coarse.solve_coarse_at_sow`)."""
+        solver = solve_coarse_at_sow if at_sow else solve_coarse
+        result = solver(view, self.store, self.iono, self.cfg, self.coarse)
         fix = result.fix
         if fix.ok:
             self.counters["coarse_fixes"] += 1
