@@ -607,14 +607,17 @@ def _solve_coarse(
         ref = fractional[0]
         integers = {p: k - integers[ref] for p, k in integers.items()}
     if fix.ok:
+        # a row SPP's own FDE left out keeps its integer unpublished (never checked, never
+        # a recovered range for the SOW check)
+        used = set(fix.used)
         fix = replace(
             fix,
             solver="fast",
             mode="fast",
             full=tuple(p for p in fix.used if p not in integers),
             fractional=fractional,
-            ambiguity=integers if absolute else {},
-            recovered_pr_m=recovered,
+            ambiguity={p: k for p, k in integers.items() if p in used} if absolute else {},
+            recovered_pr_m={p: v for p, v in recovered.items() if p in used},
             method=COARSE_TIME,
             time_offset_s=dt,
             excluded={**excluded, **fix.excluded},
