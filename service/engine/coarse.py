@@ -817,15 +817,13 @@ def spp_at_receive_time(
     epoch's tag, its clock relative to that tag (b - c S) and the offset S - b / c."""
     shift = offset_s if math.isfinite(offset_s) else 0.0
     fix = declined(full, Declined.of(Decline.NO_MEASUREMENTS))
-    for _ in range(TIME_ITERATIONS):
-        week, tow = normalize(full.gpst_week, full.gpst_tow_s + shift)
-        moved = replace(full, gpst_week=week, gpst_tow_s=tow, pr_m=full.pr_m + C_M_S * shift)
-        fix = solve(moved, store, iono, cfg, "spp")
+    for it in range(TIME_ITERATIONS):
+        fix = solve(moved(full, shift), store, iono, cfg, "spp")
         if not fix.ok or fix.clock_bias_m is None:
             return replace(fix, gpst_week=full.gpst_week, gpst_tow_s=full.gpst_tow_s), offset_s
         b = fix.clock_bias_m
-        if abs(b) < TIME_SETTLED_M:
-            break
+        if abs(b) < TIME_SETTLED_M or it == TIME_ITERATIONS - 1:
+            break  # (the clock and offset below are of this solve, at this shift)
         shift -= b / C_M_S
     b = fix.clock_bias_m or 0.0
     c_shift = C_M_S * shift
