@@ -25,6 +25,7 @@ from service.core.ephemeris import EphemerisStore
 from service.core.types import MeasurementEpoch
 from service.engine.coarse import moved
 from service.engine.pipeline import Pipeline
+from service.engine.solver import fractionalize
 from tests.support.paths import DATA
 
 OBS = DATA / "hksc-2021" / "hksc1610.obs"
@@ -155,3 +156,25 @@ def test_the_first_decoded_sow_is_the_time_prior_when_the_tag_is_none(n_full, ti
     for prn, pr in fix.recovered_pr_m.items():
         assert pr == pytest.approx(epoch.pr_m[epoch.prn.index(prn)] + C_M_S * clock_s, abs=1e-3)
     assert len(fix.recovered_pr_m) == len(epoch) - n_full
+
+
+@pytest.mark.parametrize("time_unc_s", [5e-9, 1e-5])
+def test_a_phone_time_known_to_microseconds_resolves_the_common_millisecond(time_unc_s):
+    """Every range fractional (no GEO full), the phone's time known to ``time_unc_s``
+    (BiasUncertaintyNanos, one sigma): the coarse-time fix's prior is 5 sigma of it, the
+    solved time leaves no doubt about the millisecond common to every range, and the fix is
+    SPP of the file's full ranges with every integer absolute (recovered ranges equal to the
+    file's). A file's tag says nothing of its uncertainty (NaN): the 2 s prior, the common
+    millisecond in doubt, and the fix is the coarse-time solution (centimetres from SPP)."""
+    epoch = _hksc_epoch()
+    spp = spp_of(epoch)
+    fractional = fractionalize(epoch, keep_full=())  # every range modulo 1 ms
+    fix = _pipeline(NAV).on_epoch(replace(fractional, time_unc_s=time_unc_s)).fix
+    assert fix.ok and fix.method == "coarse_time"
+    assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp.x_ecef_m)) <= 1e-3
+    assert len(fix.recovered_pr_m) == len(epoch)
+    for prn, pr in fix.recovered_pr_m.items():
+        assert pr == pytest.approx(epoch.pr_m[epoch.prn.index(prn)], abs=1e-3)
+    file_tag = _pipeline(NAV).on_epoch(fractional).fix
+    assert file_tag.ok and file_tag.method == "coarse_time" and not file_tag.recovered_pr_m
+    assert 1e-3 < np.linalg.norm(np.subtract(file_tag.x_ecef_m, spp.x_ecef_m)) < 1.0
