@@ -69,6 +69,7 @@ from typing import IO, Literal
 
 import numpy as np
 
+from service.core.bds_nav import klobuchar_on_grid
 from service.core.errors import ConfigError, FramingError
 from service.core.ntripurl import looks_like_url
 from service.core.systems import GnssSystem
@@ -762,7 +763,8 @@ def _iono(
                 raise FramingError(f"{path}:{lineno}: IONOSPHERIC CORR {key} has blank fields")
             vals[key] = (v[0], v[1], v[2], v[3])
     if a in vals and b in vals:
-        return KlobucharParams(alpha=vals[a], beta=vals[b], system=system)
+        # the header prints broadcast values to 4-5 digits: back on their LSBs, as decoded
+        return klobuchar_on_grid(KlobucharParams(alpha=vals[a], beta=vals[b], system=system))
     return None
 
 

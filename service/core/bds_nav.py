@@ -637,6 +637,31 @@ def klobuchar_from_raw(raw: Mapping[str, int]) -> KlobucharParams:
     return KlobucharParams(alpha=(v[0], v[1], v[2], v[3]), beta=(v[4], v[5], v[6], v[7]))
 
 
+KLOBUCHAR_GRID_TOLERANCE = 0.1
+"""A coefficient within this many LSBs of a whole LSB is a print of that broadcast value."""
+
+
+def klobuchar_on_grid(iono: KlobucharParams) -> KlobucharParams:
+    """Klobuchar coefficients read from print (a RINEX header's ``IONOSPHERIC CORR``,
+    4-5 digits) back on their broadcast values: each a whole ICD LSB (BDS-SIS-ICD-B1I-3.0
+    5.2.4.7, Table 5-9; IS-GPS-200 20.3.3.5.1 has the same scale factors), as a receiver
+    decodes them from the subframes. With 8-bit coefficients a 5-digit print is at most
+    0.07 LSB from its value; the print rounded back differs by up to ~5e-4 relative, 0.1 mm
+    of a slant delay. Unchanged unless every coefficient is within
+    :data:`KLOBUCHAR_GRID_TOLERANCE` LSB of the grid (not a print of broadcast values)."""
+    values = (*iono.alpha, *iono.beta)
+    raw = []
+    for name, value in zip(IONO_PARAMS, values, strict=True):
+        p = PARAMS[name]
+        n = round(value / p.lsb) if math.isfinite(value) else 0
+        half = 1 << (p.bits - 1)
+        if not (abs(value / p.lsb - n) <= KLOBUCHAR_GRID_TOLERANCE and -half <= n < half):
+            return iono
+        raw.append(n)
+    out = klobuchar_from_raw(dict(zip(IONO_PARAMS, raw, strict=True)))
+    return replace(out, system=iono.system)
+
+
 def quantise_ephemeris(eph: Ephemeris) -> Ephemeris:
     """The ephemeris as a receiver decodes it: every field rounded to its ICD LSB."""
     values: dict[str, Any] = {

@@ -34,12 +34,16 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    ``-horizon_deg``. It is published only if no other plausible candidate has a statistic
    below ``uniqueness_margin`` times its own threshold; else the epoch is declined
    ``ambiguous``.
-5. **The fix.** The winner's integers make full ranges; a fix is then the solver's own SPP
-   of them (all of :func:`service.engine.solver.solve`'s corrections and integrity), at the
-   epoch's tag when full rows anchor the clock (so the fix equals SPP of the true full
-   ranges), else at tag + dt with the ranges less the solved clock (the millisecond common
-   to every range is not observable without a full range: the fix is then the coarse-time
-   solution, not SPP at the true time).
+5. **The fix.** Only a winner that passed steps 3-4 (or their fault exclusion) is
+   published. When its integers are absolute (a full row anchors them, or the solved time
+   leaves no doubt about the millisecond common to every range), they make full ranges and
+   the fix is the solver's own SPP of them (:func:`spp_at_receive_time`: all of
+   :func:`service.engine.solver.solve`'s corrections, FDE and protection levels) with tag
+   and ranges moved together to the receive time, the coarse offset first, then SPP's own
+   clock: the fix is SPP of the true full ranges at a correct tag (1e-7 m on HKSC, tags
+   +-2 s off), and the offset is SPP's, to nanoseconds. Else (every range fractional, the
+   common millisecond in doubt) the fix is the coarse-time solution itself: SPP needs the
+   transmit times to the microsecond, and a wrong millisecond moves them by 1 ms.
 """
 
 from __future__ import annotations
@@ -57,7 +61,7 @@ from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
 from service.core.settings import setting
-from service.core.timebase import gpst_to_bdt
+from service.core.timebase import gpst_to_bdt, normalize
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine.layout import Layout
 from service.engine.raim import assess, chi2_threshold
@@ -591,7 +595,7 @@ def _solve_coarse(
     fractional = tuple(p for p, f in zip(sats.prn, frac, strict=True) if f)
     integers = {p: int(k) for p, k, f in zip(sats.prn, n_best, frac, strict=True) if f}
     if absolute:
-        fix = solve(_full_epoch(epoch, sats.prn, p_full), store, iono, cfg, "spp")
+        fix, dt = spp_at_receive_time(_full_epoch(epoch, sats.prn, p_full), dt, store, iono, cfg)
         recovered = {
             p: float(z + k * c)
             for p, z, k, c, f in zip(sats.prn, sats.z_m, n_best, sats.ct_m, frac, strict=True)
@@ -603,14 +607,17 @@ def _solve_coarse(
         ref = fractional[0]
         integers = {p: k - integers[ref] for p, k in integers.items()}
     if fix.ok:
+        # a row SPP's own FDE left out keeps its integer unpublished (never checked, never
+        # a recovered range for the SOW check)
+        used = set(fix.used)
         fix = replace(
             fix,
             solver="fast",
             mode="fast",
             full=tuple(p for p in fix.used if p not in integers),
             fractional=fractional,
-            ambiguity=integers if absolute else {},
-            recovered_pr_m=recovered,
+            ambiguity={p: k for p, k in integers.items() if p in used} if absolute else {},
+            recovered_pr_m={p: v for p, v in recovered.items() if p in used},
             method=COARSE_TIME,
             time_offset_s=dt,
             excluded={**excluded, **fix.excluded},
@@ -777,6 +784,150 @@ def _coarse_fix(
         vpl_m=integ.vpl_m,
         cov_enu_m2=tuple((float(r[0]), float(r[1]), float(r[2])) for r in cov),
     )
+
+
+TIME_ITERATIONS = 3
+"""SPP solves at most of :func:`spp_at_receive_time` (the second leaves a clock of
+nanoseconds; the third is not reached on any recording)."""
+TIME_SETTLED_M = 1e-3
+"""A receiver clock [m] below which the tag plus the offset is the receive time: the last
+SPP's satellites are then within 1 mm / c x 4 km/s ~ 1e-8 mm of where they are at the truth."""
+
+
+def spp_at_receive_time(
+    full: MeasurementEpoch,
+    offset_s: float,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+) -> tuple[Fix, float]:
+    """The published fix of an accepted integer set: the solver's own SPP
+    (:func:`service.engine.solver.solve`, all its corrections, FDE and protection levels)
+    of the full ranges ``full`` (the fractional ranges plus their integers times c T),
+    evaluated at the receive time, and the time offset (true receive time = tag + offset).
+
+    The full ranges are on the receiver's clock, as the tag is: a transmit time is
+    tag - pr / c whatever the clock's error, so SPP at the tag alone is already the fix of
+    those ranges; but what depends on the receive time itself (the broadcast Klobuchar
+    model's local time, ~0.3 mm over 2 s on HKSC) would be taken at the wrong time. So tag
+    and ranges are moved together by S (tag + S, pr + c S: every transmit time unchanged),
+    first by the coarse-time offset ``offset_s``, then by the clock each SPP is left with
+    (S -= b / c) until it is below :data:`TIME_SETTLED_M`: the solve is then at the receive
+    time, where SPP of the true full ranges at a correct tag is. The fix carries the
+    epoch's tag, its clock relative to that tag (b - c S) and the offset S - b / c."""
+    shift = offset_s if math.isfinite(offset_s) else 0.0
+    fix = declined(full, Declined.of(Decline.NO_MEASUREMENTS))
+    for it in range(TIME_ITERATIONS):
+        fix = solve(moved(full, shift), store, iono, cfg, "spp")
+        if not fix.ok or fix.clock_bias_m is None:
+            return replace(fix, gpst_week=full.gpst_week, gpst_tow_s=full.gpst_tow_s), offset_s
+        b = fix.clock_bias_m
+        if abs(b) < TIME_SETTLED_M or it == TIME_ITERATIONS - 1:
+            break  # (the clock and offset below are of this solve, at this shift)
+        shift -= b / C_M_S
+    b = fix.clock_bias_m or 0.0
+    c_shift = C_M_S * shift
+    fix = replace(
+        fix,
+        gpst_week=full.gpst_week,
+        gpst_tow_s=full.gpst_tow_s,
+        clock_bias_m=b - c_shift,
+        clocks_m={k: v - c_shift for k, v in fix.clocks_m.items()},
+    )
+    return fix, shift - b / C_M_S
+
+
+SOW_PRIOR_S = 0.02
+"""How well the first decoded SOW gives the receive time [s]: the transmit time it makes
+full, plus a flight time known to +-10 ms from the satellite's orbit radius alone."""
+_EARTH_RADIUS_M = 6_371e3
+
+
+def moved(epoch: MeasurementEpoch, shift_s: float) -> MeasurementEpoch:
+    """``epoch`` with its tag and every range moved together by ``shift_s`` (tag + S,
+    pr + c S, each fractional range + c S modulo its c T): every transmit time tag - pr / c
+    unchanged, the receiver's clock less c S (the receive time it describes is the same)."""
+    week, tow = normalize(epoch.gpst_week, epoch.gpst_tow_s + shift_s)
+    cs = C_M_S * shift_s
+    ct = C_M_S * epoch.period_s
+    return replace(
+        epoch,
+        gpst_week=week,
+        gpst_tow_s=tow,
+        pr_m=epoch.pr_m + cs,
+        frac_pr_m=np.mod(epoch.frac_pr_m + cs, ct),
+    )
+
+
+def sow_time_shift(epoch: MeasurementEpoch, store: EphemerisStore) -> float | None:
+    """The shift [s] that puts the tag of an epoch whose receiver time is unknown (a phone
+    before its first fix) at the receive time the first decoded SOW gives (issue 20's "first
+    decoded SOW of any satellite, within about 20 ms"): a full range's transmit time
+    tag - pr / c (on the satellite's clock, whatever the receiver clock's error) plus its
+    flight time, the middle of [a - R, sqrt(a^2 - R^2)] / c for the orbit's semi-major axis
+    a (MEO 72-86 ms, IGSO/GEO 119-139 ms: at most 10 ms off, :data:`SOW_PRIOR_S`). None
+    without a full BeiDou range whose satellite has an ephemeris."""
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    for i in np.flatnonzero(np.isfinite(epoch.pr_m)).tolist():
+        prn = epoch.prn[i]
+        eph = store.select(prn, bdt_week, bdt_sow) if prn.startswith("C") else None
+        if eph is None:
+            continue
+        a = eph.sqrt_a_sqrt_m**2
+        r = _EARTH_RADIUS_M
+        flight_s = 0.5 * ((a - r) + math.sqrt(max(a * a - r * r, 0.0))) / C_M_S
+        return flight_s - float(epoch.pr_m[i]) / C_M_S
+    return None
+
+
+def solve_coarse_at_sow(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    ccfg: CoarseConfig | None = None,
+) -> CoarseResult:
+    """:func:`solve_coarse` for an epoch whose time tag has no usable prior (its
+    ``time_unc_s`` beyond ``time_prior_s``, or unknown) but which has a full range: solved
+    with the epoch moved (:func:`moved`) to the time its first full range's SOW gives
+    (:func:`sow_time_shift`, well inside the prior), the fix then put back at the epoch's
+    tag: the same position, its clock relative to the tag, the offset from the tag, and the
+    recovered ranges and integers of the epoch's own fractional ranges. Declined
+    ``coarse_time`` (the reason to wait for the first SOW) without a full range."""
+    shift = sow_time_shift(epoch, store)
+    if shift is None:
+        why = Declined.of(
+            Decline.COARSE_TIME,
+            time_unc_s=epoch.time_unc_s,
+            n_frac=int((~np.isfinite(epoch.pr_m) & np.isfinite(epoch.frac_pr_m)).sum()),
+            n_full=0,
+            need=N_PARAMS - 1,
+        )
+        return CoarseResult(declined(epoch, why))
+    result = solve_coarse(moved(epoch, shift), store, iono, cfg, ccfg)
+    fix = replace(result.fix, gpst_week=epoch.gpst_week, gpst_tow_s=epoch.gpst_tow_s)
+    offset = None if result.time_offset_s is None else result.time_offset_s + shift
+    if fix.ok:
+        cs = C_M_S * shift
+        recovered = {p: pr - cs for p, pr in fix.recovered_pr_m.items()}
+        where = {p: i for i, p in enumerate(epoch.prn)}
+        ambiguity = {
+            p: round(
+                (pr - float(epoch.frac_pr_m[where[p]])) / (C_M_S * float(epoch.period_s[where[p]]))
+            )
+            for p, pr in recovered.items()
+        }
+        fix = replace(
+            fix,
+            clock_bias_m=None if fix.clock_bias_m is None else fix.clock_bias_m - cs,
+            clocks_m={k: v - cs for k, v in fix.clocks_m.items()},
+            recovered_pr_m=recovered,
+            ambiguity=ambiguity if fix.ambiguity else {},
+            time_offset_s=offset,
+        )
+        if result.absolute:
+            result = replace(result, integers=ambiguity)
+    return replace(result, fix=fix, time_offset_s=offset)
 
 
 def _full_epoch(

@@ -40,7 +40,12 @@ from service.core.types import (
     ReceiverFix,
     SatView,
 )
-from service.engine.coarse import CoarseConfig, solve_coarse
+from service.engine.coarse import (
+    CoarseConfig,
+    solve_coarse,
+    solve_coarse_at_sow,
+    sow_time_shift,
+)
 from service.engine.layout import BDS_ONLY
 from service.engine.solver import (
     IonoSet,
@@ -68,8 +73,10 @@ phone's BiasUncertaintyNanos) keeps its fractional ranges out of the fix: the fa
 the time tag as exact (a satellite's transmit time is the tag minus the flight time, its
 integer milliseconds resolved at that tag), and a 1 ms error moves a satellite by at most
 ~4 m along its orbit. Full ranges are unaffected (their transmit time is in the
-measurement; a tag error is common to all and goes into the clock). A coarse-time solution
-(time as a fifth unknown) would use them: not implemented yet."""
+measurement; a tag error is common to all and goes into the clock). The coarse-time fix
+(:mod:`service.engine.coarse`, time as a fifth unknown) uses them: with the tag as its prior
+while ``time_unc_s`` is within ``time_prior_s``, else with the time the first decoded SOW
+gives, and with neither it waits (declined ``coarse_time``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,6 +123,28 @@ def without_coarse_fractions(view: MeasurementEpoch) -> tuple[MeasurementEpoch, 
     if not n:
         return view, 0
     return replace(view, frac_pr_m=np.where(frac, np.nan, view.frac_pr_m)), n
+
+
+TIME_PRIOR_SIGMAS = 5.0
+"""The coarse-time fix's time prior from an epoch's own time uncertainty: this many times
+``time_unc_s`` (a phone's BiasUncertaintyNanos, one sigma)."""
+TIME_PRIOR_MIN_S = 1e-6
+"""The narrowest such prior [s] (a phone may say a few nanoseconds)."""
+
+
+def time_prior(view: MeasurementEpoch, coarse: CoarseConfig) -> CoarseConfig:
+    """The coarse-time fix's settings for ``view``: its time prior narrowed to
+    :data:`TIME_PRIOR_SIGMAS` times the epoch's ``time_unc_s`` where the epoch says its time
+    that well, and no worse than :data:`COARSE_TIME_S` (the trust the fast fix already
+    places in such a tag), else ``time_prior_s`` unchanged (the host clock's, a file's tag).
+    Within ~0.1 ms the solved time leaves no doubt about the millisecond common to every
+    range, and a fix with every range fractional is then SPP of the full ranges
+    (service.engine.coarse, step 5; 5.7e-9 m on an HKSC epoch with a 0.1 ms prior)."""
+    unc = view.time_unc_s
+    if not unc <= COARSE_TIME_S:  # NaN (not said), inf, or coarser
+        return coarse
+    prior = max(TIME_PRIOR_SIGMAS * unc, TIME_PRIOR_MIN_S)
+    return replace(coarse, time_prior_s=prior) if prior < coarse.time_prior_s else coarse
 
 
 def count_fix(counters: Counters, fix: Fix) -> None:
@@ -265,9 +294,16 @@ class Pipeline:
         view, set_aside = without_coarse_fractions(view)
         fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
         if set_aside and view.time_unc_s > self.coarse.time_prior_s:
-            # the receiver's time is coarser than even the coarse-time fix's prior
+            # the receiver's time is coarser than even the coarse-time fix's prior: its
+            # fractional ranges wait for the first decoded SOW, whose full range gives the
+            # time to ~10 ms (issue 20); with one, the coarse-time fix is tried at that time
             if fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
                 self.counters["coarse_time_epochs"] += 1
+                sow = (
+                    self.coarse.coarse_fix
+                    and fix.reason_code == Decline.TOO_FEW_FULL
+                    and sow_time_shift(whole, self.store) is not None
+                )
                 # the full ranges the solve needed (its layout's unknowns); with no row at all,
                 # one system's position and clock
                 figures = dict(fix.decline.fields) if fix.decline is not None else {}
@@ -280,6 +316,8 @@ class Pipeline:
                     need=need,
                 )
                 fix = declined(view, why)
+                if sow:  # its decline, if it has no candidates, is this one
+                    fix = self._coarse_fix(whole, fix, at_sow=True)
         elif self.coarse.coarse_fix and (
             fix.reason_code == Decline.TOO_FEW_FULL
             or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
@@ -311,12 +349,19 @@ class Pipeline:
             self._receiver_fix_near(epoch),
         )
 
-    def _coarse_fix(self, view: MeasurementEpoch, paper: Fix) -> Fix:
+    def _coarse_fix(self, view: MeasurementEpoch, paper: Fix, at_sow: bool = False) -> Fix:
         """The coarse-time fix (:mod:`service.engine.coarse`) of an epoch the paper's method
         declined for want of four full ranges: its fix, or its decline when it found
         candidates and none was safe to publish (``chi2``, ``ambiguous``, ``pdop_gate``);
-        else (too few rows, no Doppler) the paper's decline stands, the reason to wait."""
-        result = solve_coarse(view, self.store, self.iono, self.cfg, self.coarse)
+        else (too few rows, no Doppler) the paper's decline stands, the reason to wait.
+        ``at_sow``: the tag is no prior (``time_unc_s`` beyond ``time_prior_s``), the first
+        decoded SOW is (:func:`service.engine.coarse.solve_coarse_at_sow`)."""
+        if at_sow:
+            result = solve_coarse_at_sow(view, self.store, self.iono, self.cfg, self.coarse)
+        else:
+            result = solve_coarse(
+                view, self.store, self.iono, self.cfg, time_prior(view, self.coarse)
+            )
         fix = result.fix
         if fix.ok:
             self.counters["coarse_fixes"] += 1

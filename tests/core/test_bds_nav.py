@@ -735,3 +735,21 @@ def test_geo_subframes_are_d2_whatever_the_sigid():
     assert nav_subframe_from_sfrbx(_sfrbx_message(1, 2, words), 2333, 1.0) is None  # B2I
     bad = [words[0] ^ (1 << 29), *words[1:]]
     assert nav_subframe_from_sfrbx(_sfrbx_message(1, 1, bad), 2333, 1.0) is None
+
+
+def test_klobuchar_printed_values_go_back_on_their_lsbs_and_others_stay():
+    """A header's 4-digit print of broadcast coefficients is read back on the ICD grid (what
+    a receiver decodes from the same broadcast); coefficients that are not such a print
+    (one half an LSB off the grid) are kept as given."""
+    broadcast = KlobucharParams(
+        alpha=(15 * 2.0**-30, -5 * 2.0**-27, -2 * 2.0**-24, 4 * 2.0**-24),
+        beta=(49 * 2.0**11, -9 * 2.0**14, 9 * 2.0**16, 3 * 2.0**16),
+    )
+    printed = KlobucharParams(
+        alpha=tuple(float(f"{v:.3e}") for v in broadcast.alpha),  # type: ignore[arg-type]
+        beta=tuple(float(f"{v:.3e}") for v in broadcast.beta),  # type: ignore[arg-type]
+    )
+    assert printed != broadcast
+    assert bn.klobuchar_on_grid(printed) == broadcast
+    off = dataclasses.replace(broadcast, alpha=(15.5 * 2.0**-30, *broadcast.alpha[1:]))
+    assert bn.klobuchar_on_grid(off) is off

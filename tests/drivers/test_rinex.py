@@ -697,28 +697,40 @@ def test_rinex_305_glonass_five_line_records(tmp_path):
     assert old.ephemerides == orig.ephemerides and old.counters["records_R_odd_length"] == 154
 
 
+ALPHA_LSB = (2.0**-30, 2.0**-27, 2.0**-24, 2.0**-24)  # BDS-SIS-ICD 5.2.4.7, IS-GPS-200
+BETA_LSB = (2.0**11, 2.0**14, 2.0**16, 2.0**16)
+
+
+def assert_print(values, printed):
+    """The header's printed coefficients, read back as their broadcast values: each a whole
+    LSB, within the print's 4-5 digits of it."""
+    lsb = ALPHA_LSB if abs(printed[0]) < 1.0 else BETA_LSB
+    assert values == pytest.approx(printed, rel=1e-3, abs=1e-12)
+    assert all((v / q).is_integer() for v, q in zip(values, lsb, strict=True))
+
+
 def test_iono_and_leap_seconds_literal_header_values():
     nav = read_nav(DATA / "hksc-2021/hksc1610.nav")
     assert nav.iono_bds is not None and nav.iono_gps is not None
     assert nav.iono_bds.system == "BDS" and nav.iono_gps.system == "GPS"
-    assert nav.iono_bds.alpha == (0.9313e-08, 0.4470e-07, -0.3576e-06, 0.5961e-06)
-    assert nav.iono_bds.beta == (0.1188e06, 0.1638e06, -0.3277e06, 0.1966e06)
-    assert nav.iono_gps.alpha == (0.5588e-08, 0.1490e-07, -0.5961e-07, -0.1192e-06)
-    assert nav.iono_gps.beta == (0.8397e05, 0.9830e05, -0.6554e05, -0.5243e06)
+    assert_print(nav.iono_bds.alpha, (0.9313e-08, 0.4470e-07, -0.3576e-06, 0.5961e-06))
+    assert_print(nav.iono_bds.beta, (0.1188e06, 0.1638e06, -0.3277e06, 0.1966e06))
+    assert_print(nav.iono_gps.alpha, (0.5588e-08, 0.1490e-07, -0.5961e-07, -0.1192e-06))
+    assert_print(nav.iono_gps.beta, (0.8397e05, 0.9830e05, -0.6554e05, -0.5243e06))
     assert nav.leap_seconds == 18 and nav.version == 3.04
     tst = read_nav(DATA / "hk-tst-urban-2019/hksc1180.19b")
     assert tst.iono_bds is not None and tst.iono_gps is None
-    assert tst.iono_bds.alpha == (9.3132e-09, 8.9407e-08, -1.0133e-06, 2.0862e-06)
-    assert tst.iono_bds.beta == (1.2493e05, -6.8813e05, 6.8813e06, -7.4056e06)
+    assert_print(tst.iono_bds.alpha, (9.3132e-09, 8.9407e-08, -1.0133e-06, 2.0862e-06))
+    assert_print(tst.iono_bds.beta, (1.2493e05, -6.8813e05, 6.8813e06, -7.4056e06))
     # "     4     4   573     6": BDT - UTC = 4 s in a BDS-only file, i.e. GPST - UTC = 18 s
     assert tst.leap_seconds == 18
     urban = read_nav(DATA / "hk-urban-3geo-2020/navigation_message.nav")
     assert urban.iono_bds is not None
-    assert urban.iono_bds.alpha == (0.1397e-07, -0.3725e-07, -0.1192e-06, 0.2384e-06)
-    assert urban.iono_bds.beta == (0.1004e06, -0.1475e06, 0.5898e06, 0.1966e06)
+    assert_print(urban.iono_bds.alpha, (0.1397e-07, -0.3725e-07, -0.1192e-06, 0.2384e-06))
+    assert_print(urban.iono_bds.beta, (0.1004e06, -0.1475e06, 0.5898e06, 0.1966e06))
     perth = read_nav(DATA / "android-perth-s8-2017/PERT00AUS_R_20172780000_01D_MN.rnx")
     assert perth.iono_bds is None and perth.iono_gps is not None
-    assert perth.iono_gps.alpha == (0.1024e-07, 0.7451e-08, -0.5960e-07, -0.5960e-07)
+    assert_print(perth.iono_gps.alpha, (0.1024e-07, 0.7451e-08, -0.5960e-07, -0.5960e-07))
 
 
 def test_repeated_sets_keep_the_latest_transmission():

@@ -12,6 +12,7 @@ before its first fix) the pipeline keeps fractional ranges out and says why.
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -22,7 +23,9 @@ from drivers.source import open_source
 from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
 from service.core.types import MeasurementEpoch
+from service.engine.coarse import moved
 from service.engine.pipeline import Pipeline
+from service.engine.solver import fractionalize
 from tests.support.paths import DATA
 
 OBS = DATA / "hksc-2021" / "hksc1610.obs"
@@ -84,11 +87,14 @@ def spp_of(epoch):
 
 def test_a_coarse_time_keeps_fractional_ranges_out_and_says_why():
     epoch = _hksc_epoch()
-    # 3 full GEOs: with the phone's 5.97 s prior the fractional rows are set aside, and the
-    # decline names the prior (a coarse-time solution would use them)
-    fix = _pipeline(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5.968969500122643)).fix
+    # no full range: with the phone's 5.97 s prior (beyond the coarse-time fix's 2 s) the
+    # fractional rows are set aside and the decline names the prior: wait for the first SOW
+    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=5.968969500122643)).fix
     assert fix.reason_code == "coarse_time"
-    assert "+-5.97 s" in fix.reason and "13 fractional" in fix.reason and "3 full" in fix.reason
+    assert "+-5.97 s" in fix.reason and "16 fractional" in fix.reason and "0 full" in fix.reason
+    # so too with no time uncertainty given at all (a phone that does not say: inf)
+    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=math.inf)).fix
+    assert fix.reason_code == "coarse_time"
     # with a fine time the paper's fast fix still needs 4 full ranges (its 4 GEOs); the
     # coarse-time fix (service.engine.coarse) takes the epoch instead and gives SPP's position
     fine = _pipeline(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5e-9)).fix
@@ -127,3 +133,48 @@ def test_perth_replay_through_the_pipeline():
     lat = np.degrees(np.arctan2(ref[2], np.hypot(ref[0], ref[1])))
     lon = np.degrees(np.arctan2(ref[1], ref[0]))
     assert -32.5 < lat < -31.5 and 115.5 < lon < 116.5
+
+
+@pytest.mark.parametrize("n_full", [1, 2, 3])
+@pytest.mark.parametrize(("time_unc_s", "clock_s"), [(5.97, 0.0), (5.97, 5.97), (math.inf, -7.3)])
+def test_the_first_decoded_sow_is_the_time_prior_when_the_tag_is_none(n_full, time_unc_s, clock_s):
+    """A phone whose time is unknown or seconds off (time_unc_s beyond the coarse-time fix's
+    2 s prior), its tag and ranges on its own clock (here moved by ``clock_s`` together, as
+    the phone computes them): once one satellite's SOW has decoded (a full range), its
+    transmit time plus a flight time (+-10 ms) is the prior, and the coarse-time fix is SPP
+    of the file's full ranges at the true time, its offset the tag's error to 1 ns."""
+    epoch = _hksc_epoch()
+    spp = spp_of(epoch)
+    phone = moved(_partial(epoch, n_full, time_unc_s), clock_s)
+    fix = _pipeline(NAV).on_epoch(phone).fix
+    assert fix.ok and fix.method == "coarse_time"
+    assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp.x_ecef_m)) <= 1e-3
+    assert fix.gpst_tow_s == phone.gpst_tow_s
+    true_offset_s = -clock_s - spp.clock_bias_m / C_M_S
+    assert fix.time_offset_s == pytest.approx(true_offset_s, abs=1e-9)
+    # the recovered ranges are on the phone's clock (what its later SOWs are checked against)
+    for prn, pr in fix.recovered_pr_m.items():
+        assert pr == pytest.approx(epoch.pr_m[epoch.prn.index(prn)] + C_M_S * clock_s, abs=1e-3)
+    assert len(fix.recovered_pr_m) == len(epoch) - n_full
+
+
+@pytest.mark.parametrize("time_unc_s", [5e-9, 1e-5])
+def test_a_phone_time_known_to_microseconds_resolves_the_common_millisecond(time_unc_s):
+    """Every range fractional (no GEO full), the phone's time known to ``time_unc_s``
+    (BiasUncertaintyNanos, one sigma): the coarse-time fix's prior is 5 sigma of it, the
+    solved time leaves no doubt about the millisecond common to every range, and the fix is
+    SPP of the file's full ranges with every integer absolute (recovered ranges equal to the
+    file's). A file's tag says nothing of its uncertainty (NaN): the 2 s prior, the common
+    millisecond in doubt, and the fix is the coarse-time solution (centimetres from SPP)."""
+    epoch = _hksc_epoch()
+    spp = spp_of(epoch)
+    fractional = fractionalize(epoch, keep_full=())  # every range modulo 1 ms
+    fix = _pipeline(NAV).on_epoch(replace(fractional, time_unc_s=time_unc_s)).fix
+    assert fix.ok and fix.method == "coarse_time"
+    assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp.x_ecef_m)) <= 1e-3
+    assert len(fix.recovered_pr_m) == len(epoch)
+    for prn, pr in fix.recovered_pr_m.items():
+        assert pr == pytest.approx(epoch.pr_m[epoch.prn.index(prn)], abs=1e-3)
+    file_tag = _pipeline(NAV).on_epoch(fractional).fix
+    assert file_tag.ok and file_tag.method == "coarse_time" and not file_tag.recovered_pr_m
+    assert 1e-3 < np.linalg.norm(np.subtract(file_tag.x_ecef_m, spp.x_ecef_m)) < 1.0

@@ -126,23 +126,37 @@ def test_outside_the_geo_area_the_fast_fix_declines_and_conventional_fixes():
     assert reasons and all(r.startswith("too few full measurements") for r in reasons), reasons
 
 
+OUTSIDE = {  # 1, 2 and 3 GEOs above 5 deg at 2024-09-25 06:10 UTC (2024 nav)
+    "Paris": (48.86, 2.35),
+    "Abuja": (9.07, 7.4),
+    "Honolulu": (21.31, -157.86),
+}
+
+
 def test_with_the_coarse_fix_the_first_fix_comes_at_once_outside_the_geo_area():
-    """Paris, no GEO in view, with the coarse-time first fix on: it fixes from the first
-    epochs on fractional ranges and Doppler alone (7 satellites above 5 deg at this time,
-    every satellite of the 2024 nav file simulated)."""
+    """Paris, Abuja, Honolulu (1-3 GEOs), 4 restarts each, the coarse-time first fix on: it
+    fixes from the first epoch on fractional ranges and Doppler (12, 9 and 15 satellites
+    above 5 deg, every satellite of the 2024 nav file simulated), the conventional fix
+    (SOW rule) seconds later; once a range is full every fast fix is SPP of the true full
+    ranges to 1 mm (measured <= 0.09 mm with 20 restarts each: docs/method.md)."""
     nav = DATA / "hk-polyu-f9p-ubx-2024" / "hksc269h.24f"
     extra = ["--max-eph-age-s", "86400", "--start", "2024-09-25T06:10:00", "--coarse-fix"]
-    doc = _result(_ttff(48.86, 2.35, 4, 3, str(nav), *extra))
-    assert doc["coarse_fix"] is True
-    assert doc["fast"]["success_pct"] == 100.0
-    assert doc["fast"]["first_by_coarse_time"] == 4
-    for t in doc["per_trial"]:
-        assert t["fast_s"] < t["conventional_s"]
-    assert doc["fast"]["median_s"] <= 0.3
-    # with every range fractional the fix is the coarse-time solution, not SPP at the true
-    # time (docs/method.md): metres from it, never kilometres
-    assert doc["fast"]["coarse_no_full_max_diff_to_spp_m"] < 20.0
-    # once a range is full the integers are absolute and the fix is the SPP of the full
-    # ranges they make
-    assert doc["fast"]["max_diff_to_spp_m"] <= 5e-3
-    assert doc["fast"]["max_err_over_sigma_pdop"] <= 5.0
+    procs = {name: _ttff(lat, lon, 4, 3, str(nav), *extra) for name, (lat, lon) in OUTSIDE.items()}
+    for name, proc in procs.items():
+        doc = _result(proc)
+        assert doc["coarse_fix"] is True
+        assert doc["fast"]["success_pct"] == 100.0, name
+        assert doc["fast"]["first_by_coarse_time"] == 4, name
+        assert doc["conventional"]["success_pct"] == 100.0, name
+        for t in doc["per_trial"]:
+            assert t["fast_s"] < t["conventional_s"], name
+        assert doc["fast"]["median_s"] <= 0.3, name
+        assert doc["fast"]["p95_s"] <= 0.5, name
+        # with every range fractional the fix is the coarse-time solution, not SPP at the
+        # true time (docs/method.md): metres from it, never kilometres
+        assert doc["fast"]["coarse_no_full_max_diff_to_spp_m"] < 20.0, name
+        # once a range is full the integers are absolute and the fix is the SPP of the full
+        # ranges they make, at the receive time
+        assert doc["fast"]["coarse_full_max_diff_to_spp_m"] <= 1e-3, name
+        assert doc["fast"]["max_diff_to_spp_m"] <= 1e-3, name
+        assert doc["fast"]["max_err_over_sigma_pdop"] <= 5.0, name
