@@ -48,20 +48,28 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
 
 from service.core.constants import C_M_S
-from service.core.declines import Decline, Declined, excluded_why
+from service.core.declines import Decline, Declined
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine import linalg
-from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
+from service.engine.judge import (
+    Failed,
+    Outcome,
+    decline_fix,
+    exclude,
+    no_exclusion,
+    solution_fix,
+    verdict,
+)
 from service.engine.layout import BDS_ONLY, Layout, dop, layout_of
 from service.engine.raim import Integrity, assess_many
 from service.engine.solver import (
@@ -228,19 +236,7 @@ def _local(
     return lat, lon, alt, el, az
 
 
-@dataclass(frozen=True, slots=True)
-class _Failed:
-    """An epoch whose solution failed the chi-square test: what fault exclusion needs."""
-
-    chi2: float
-    chi2_max: float
-    redundancy: int
-    kept: tuple[str, ...]  # the PRNs the solution used, in row order
-    wtest: tuple[float, ...]  # their w-tests
-    fix: Fix  # the per-epoch solver's decline of this solution (reason_code chi2)
-
-
-_Outcome = Fix | _Failed | None
+_Outcome = Outcome
 """A fix or a decline, a failed chi-square test, or None: the per-epoch solver must decide
 (a singular system, an impossible range, no convergence, a solution not finite)."""
 
@@ -586,7 +582,7 @@ def _judged(
             return fix
         w = integ.w.tolist()
         wtest = tuple(w[i] for i in kk)
-        return _Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix)
+        return Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix)
     return solution_fix(
         solver=solver,
         gpst_week=ep.gpst_week,
@@ -689,73 +685,25 @@ def _without(epoch: MeasurementEpoch, prn: str) -> MeasurementEpoch:
 
 
 def _exclude(
-    failed: dict[int, _Failed],
+    failed: dict[int, Failed],
     epochs: Sequence[MeasurementEpoch],
     store: EphemerisStore,
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
 ) -> tuple[dict[int, Fix], set[int]]:
-    """Fault exclusion (:func:`service.engine.solver._exclude`) for the epochs that failed
-    the test, every candidate of every epoch of a stage in one batch: at each stage each
-    used satellite is excluded in turn; the passing candidate with the smallest chi2 /
-    threshold is taken, else the best-fitting failed one starts the next stage. Epochs with
-    no passing candidate after the last stage are returned apart (``hopeless``: their fix is
-    the failed solution's decline); an epoch with a candidate whose outcome is not certain is
-    in neither (the per-epoch solver decides it)."""
-    # per epoch: the failed solution, the epoch it came from, the satellites removed so far
-    current: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {
-        e: (f, epochs[e], {}) for e, f in failed.items()
-    }
-    out: dict[int, Fix] = {}
-    hopeless: set[int] = set()
-    for _stage in range(cfg.max_exclusions):
-        cands: list[MeasurementEpoch] = []
-        owner: list[tuple[int, int]] = []  # (epoch, index in its failed.kept)
-        for e, (f, ep, _) in current.items():
-            if f.redundancy >= 2:  # an exclusion must leave a testable solution
-                for k, prn in enumerate(f.kept):
-                    cands.append(_without(ep, prn))
-                    owner.append((e, k))
-        if not cands:
-            break  # every epoch left has redundancy < 2: hopeless (below)
-        results = _outcomes(cands, store, iono, cfg, solver)
-        passed: dict[int, tuple[float, Fix, int]] = {}
-        failing: dict[int, tuple[float, _Failed, int, MeasurementEpoch]] = {}
-        unsure: set[int] = set()
-        for (e, k), res, cand in zip(owner, results, cands, strict=True):
-            if res is None:
-                unsure.add(e)
-            elif isinstance(res, Fix) and res.ok:
-                ratio = fit_ratio(res.chi2, res.chi2_max)
-                if e not in passed or ratio < passed[e][0]:
-                    passed[e] = (ratio, res, k)
-            elif isinstance(res, _Failed):
-                ratio = fit_ratio(res.chi2, res.chi2_max)
-                if e not in failing or ratio < failing[e][0]:
-                    failing[e] = (ratio, res, k, cand)
-        nxt: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {}
-        for e, (f, _, removed) in current.items():
-            if e in unsure:
-                continue
-            if f.redundancy < 2:
-                hopeless.add(e)
-            elif e in passed:
-                _, fix, k = passed[e]
-                out[e] = replace(fix, excluded=removed | {f.kept[k]: _why(f, k)})
-            elif e in failing:
-                _, f2, k, cand = failing[e]
-                nxt[e] = (f2, cand, removed | {f.kept[k]: _why(f, k)})
-            else:
-                hopeless.add(e)
-        current = nxt
-    hopeless |= current.keys()  # every stage done, none passed
-    return out, hopeless
+    """Fault exclusion (:func:`service.engine.judge.exclude`, the loop the per-epoch solver
+    runs too) for the epochs that failed the test, every candidate of every epoch of a stage
+    solved in one batch (:func:`_outcomes`). Epochs with no passing candidate after the last
+    stage are returned apart (``hopeless``: their fix is the failed solution's decline); an
+    epoch with a candidate whose outcome is not certain is in neither (the per-epoch solver
+    decides it)."""
 
+    def solve(cands: list[MeasurementEpoch]) -> list[tuple[Outcome, MeasurementEpoch]]:
+        return list(zip(_outcomes(cands, store, iono, cfg, solver), cands, strict=True))
 
-def _why(f: _Failed, k: int) -> str:
-    """Why satellite ``f.kept[k]`` went (the per-epoch solver's words)."""
-    return excluded_why("chi2", chi2=f.chi2, chi2_max=f.chi2_max, w=f.wtest[k])
+    start = {e: (f, epochs[e]) for e, f in failed.items()}
+    return exclude(start, _without, solve, cfg.max_exclusions)
 
 
 def solve_many(
@@ -775,11 +723,11 @@ def solve_many(
     if cfg.x0_ecef_m is None and cfg.p_fa > 0.0:
         todo = [i for i, ep in enumerate(epochs) if ep.week_known]
         results = _outcomes([epochs[i] for i in todo], store, iono, cfg, solver)
-        failed: dict[int, _Failed] = {}
+        failed: dict[int, Failed] = {}
         for i, res in zip(todo, results, strict=True):
             if isinstance(res, Fix):
                 out[i] = res
-            elif isinstance(res, _Failed):
+            elif isinstance(res, Failed):
                 failed[i] = res
         if failed and cfg.max_exclusions > 0:
             passed, hopeless = _exclude(failed, epochs, store, iono, cfg, solver)
