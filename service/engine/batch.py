@@ -29,12 +29,16 @@ cost per epoch is paid once per chunk:
 - the unknowns are the chunk's rows' :class:`~service.engine.layout.Layout`: a receiver
   clock per satellite system (a chunk whose epochs differ in their systems is solved one
   layout at a time);
-- fault exclusion: every candidate of every failed epoch of a stage in one batch.
+- fault exclusion: the one loop both paths run (:func:`service.engine.judge.exclude`),
+  with every candidate of every failed epoch of a stage in one batch.
 
-A position far from the Earth (a gross fault can put phase 1 there) is judged as the
-per-epoch solver judges it: no mask, no corrections, one weight for every row. An epoch the
-batch cannot decide (no week, an impossible range, no convergence in phase 1, a singular
-system, a position not finite) is solved by
+An epoch without a GPS week is declined ``no_time`` here; with the test off (``p_fa=0``)
+the batch judges as with it (no failed test to exclude from). A position far from the Earth
+(a gross fault can put phase 1 there) is judged as the per-epoch solver judges it: no mask,
+no corrections, one weight for every row. An epoch the batch cannot decide (an impossible
+range, no convergence in phase 1, a singular system, a position not finite, the fast fix of
+rows of several systems) and every epoch when a start position is given
+(``SolverConfig.x0_ecef_m``: phase 2 alone) is solved by
 :func:`~service.engine.solver.solve`. A fix from the batch equals the per-epoch solver's to
 floating-point rounding (tests/engine/test_batch.py holds them to 1e-6 m on real files),
 and an epoch solved alone equals the same epoch inside a chunk (the same bits where the
@@ -76,6 +80,7 @@ from service.engine.solver import (
     GROSS_SPREAD_M,
     IonoSet,
     SolverConfig,
+    declined,
     measurement_sigma_m,
     ranges,
     sky_view,
@@ -719,8 +724,12 @@ def solve_many(
     the ephemeris selection cheapest; any order gives the same fixes."""
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
-    out: list[Fix | None] = [None] * len(epochs)
-    if cfg.x0_ecef_m is None and cfg.p_fa > 0.0:
+    # no GPS week: declined before any row is read, as the per-epoch solver declines it
+    out: list[Fix | None] = [
+        None if ep.week_known else declined(ep, Declined.of(Decline.NO_TIME), solver)
+        for ep in epochs
+    ]
+    if cfg.x0_ecef_m is None:  # (a known start: the per-epoch solver's phase 2 alone)
         todo = [i for i, ep in enumerate(epochs) if ep.week_known]
         results = _outcomes([epochs[i] for i in todo], store, iono, cfg, solver)
         failed: dict[int, Failed] = {}
