@@ -30,7 +30,10 @@ cost per epoch is paid once per chunk:
   clock per satellite system (a chunk whose epochs differ in their systems is solved one
   layout at a time);
 - fault exclusion: the one loop both paths run (:func:`service.engine.judge.exclude`),
-  with every candidate of every failed epoch of a stage in one batch.
+  with every candidate of every failed epoch of a stage in one batch, each starting where
+  the per-epoch solver's would (:attr:`~service.engine.judge.Failed.warm_start`); a
+  candidate the batch cannot decide is solved by the per-epoch solver's attempt at it
+  (:func:`~service.engine.solver.attempt`), not its whole epoch.
 
 An epoch without a GPS week is declined ``no_time`` here; with the test off (``p_fa=0``)
 the batch judges as with it (no failed test to exclude from). A position far from the Earth
@@ -51,6 +54,7 @@ arrives.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Literal
@@ -80,6 +84,7 @@ from service.engine.solver import (
     GROSS_SPREAD_M,
     IonoSet,
     SolverConfig,
+    attempt,
     declined,
     measurement_sigma_m,
     ranges,
@@ -262,9 +267,11 @@ def _solve_chunk(
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
 ) -> list[_Outcome]:
     """The outcome of each epoch of the chunk (:data:`_Outcome`), whose rows have the
-    unknowns ``layout`` (a clock per system among them)."""
+    unknowns ``layout`` (a clock per system among them). ``start`` (e, 3): where each
+    epoch's phase 1 starts (NaN, or None for every epoch: the Earth's centre)."""
     n_e, n_s = ch.z.shape
     ok = np.ones(n_e, dtype=bool)
     unsure = np.zeros(n_e, dtype=bool)
@@ -304,7 +311,7 @@ def _solve_chunk(
         declines.append((e, why, {}))
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
-    x = np.zeros((n_e, 3))
+    x = np.zeros((n_e, 3)) if start is None else np.where(np.isnan(start), 0.0, start)
     b = np.zeros((n_e, n_clk))
     n_int = np.zeros((n_e, n_s))
     iters = np.zeros(n_e, dtype=int)
@@ -587,7 +594,11 @@ def _judged(
             return fix
         w = integ.w.tolist()
         wtest = tuple(w[i] for i in kk)
-        return Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix)
+        x = numbers["x"][k]
+        # every row full and near the Earth: the candidates start here (Failed.warm_start)
+        near = 6.0e6 < math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]) < 8.5e6
+        warm = (x[0], x[1], x[2]) if near and not any(frac) else None
+        return Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix, warm)
     return solution_fix(
         solver=solver,
         gpst_week=ep.gpst_week,
@@ -641,14 +652,18 @@ def _outcomes(
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
 ) -> list[_Outcome]:
-    """:func:`_solve_chunk` over ``epochs`` chunk by chunk (a chunk that raises: None)."""
+    """:func:`_solve_chunk` over ``epochs`` chunk by chunk (a chunk that raises: None);
+    ``start`` (e, 3): where each epoch's phase 1 starts (NaN: the Earth's centre)."""
     out: list[_Outcome] = []
-    for start in range(0, len(epochs), CHUNK_EPOCHS):
-        part = epochs[start : start + CHUNK_EPOCHS]
+    for at in range(0, len(epochs), CHUNK_EPOCHS):
+        part = epochs[at : at + CHUNK_EPOCHS]
+        where = None if start is None else start[at : at + CHUNK_EPOCHS]
         try:
             with np.errstate(all="ignore"):
-                out += _solve_layouts(_Chunk(part, store, solver), store, iono, cfg, solver)
+                ch = _Chunk(part, store, solver)
+                out += _solve_layouts(ch, store, iono, cfg, solver, where)
         except (np.linalg.LinAlgError, ArithmeticError, ValueError):
             log.debug("batch solve failed on a chunk; its epochs go one by one", exc_info=True)
             out += [None] * len(part)
@@ -661,12 +676,13 @@ def _solve_layouts(
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
 ) -> list[_Outcome]:
     """:func:`_solve_chunk` of ``ch``; when its epochs' rows differ in their satellite
     systems (so in their clocks, :class:`~service.engine.layout.Layout`), each layout's
     epochs are solved as a chunk of their own."""
     if ch.layout is not None and (solver == "spp" or ch.layout.n_clocks == 1):
-        return _solve_chunk(ch, ch.layout, iono, cfg, solver)
+        return _solve_chunk(ch, ch.layout, iono, cfg, solver, start)
     groups: dict[Layout, list[int]] = {}
     for e, ps in enumerate(ch.prn):
         groups.setdefault(layout_of(ps) if ps else BDS_ONLY, []).append(e)
@@ -679,7 +695,8 @@ def _solve_layouts(
             # without full rows after the others' fix (solver._with_other_systems): the
             # per-epoch solver's (None: handed to it)
             continue
-        for e, res in zip(idx, _solve_chunk(sub, layout, iono, cfg, solver), strict=True):
+        where = None if start is None else start[idx]
+        for e, res in zip(idx, _solve_chunk(sub, layout, iono, cfg, solver, where), strict=True):
             out[e] = res
     return out
 
@@ -704,11 +721,31 @@ def _exclude(
     epoch with a candidate whose outcome is not certain is in neither (the per-epoch solver
     decides it)."""
 
-    def solve(cands: list[MeasurementEpoch]) -> list[tuple[Outcome, MeasurementEpoch]]:
-        return list(zip(_outcomes(cands, store, iono, cfg, solver), cands, strict=True))
+    def without(cand: _Candidate, prn: str) -> _Candidate:
+        return _without(cand[0], prn), cand[1]
 
-    start = {e: (f, epochs[e]) for e, f in failed.items()}
-    return exclude(start, _without, solve, cfg.max_exclusions)
+    def solve(cands: list[_Candidate]) -> list[tuple[Outcome, _Candidate]]:
+        start = np.array([(math.nan,) * 3 if s is None else s for _, s in cands])
+        res = _outcomes([ep for ep, _ in cands], store, iono, cfg, solver, start)
+        # a candidate the batch cannot decide (with a gross fault, no convergence of phase
+        # 1): the per-epoch solver's attempt at it, as its own exclusion would make it, so
+        # that its epoch's other candidates stay the batch's
+        res = [
+            attempt(ep, store, iono, cfg, solver, s) if r is None else r
+            for r, (ep, s) in zip(res, cands, strict=True)
+        ]
+        return [
+            (r, (ep, r.warm_start if isinstance(r, Failed) else None))
+            for r, (ep, _) in zip(res, cands, strict=True)
+        ]
+
+    first = {e: (f, (epochs[e], f.warm_start)) for e, f in failed.items()}
+    return exclude(first, without, solve, cfg.max_exclusions)
+
+
+_Candidate = tuple[MeasurementEpoch, tuple[float, float, float] | None]
+"""A candidate of fault exclusion: its epoch and where its phase 1 starts (None: the Earth's
+centre; :attr:`service.engine.judge.Failed.warm_start`)."""
 
 
 def solve_many(

@@ -142,6 +142,11 @@ class Failed:
     kept: tuple[str, ...]  # the satellites the solution used, in row order
     wtest: tuple[float, ...]  # their w-tests
     fix: Fix  # the solution's decline (reason_code chi2)
+    # where its exclusion candidates start phase 1: the solution, when every row is full
+    # and it lies near the Earth (no integers to resolve, so phase 1 converges to the same
+    # fixed point from there as from the Earth's centre, in 2-3 iterations instead of 6-8);
+    # None: the Earth's centre
+    warm_start: tuple[float, float, float] | None = None
 
     def why(self, k: int) -> str:
         """Why satellite ``kept[k]`` goes when it is excluded: the test and its w-test."""

@@ -723,15 +723,16 @@ def _exclude(failed: _Attempt, ctx: _Context) -> Fix:
         out: list[tuple[Outcome, _Candidate]] = []
         for rows, start in cands:
             att = _attempt(rows, ctx, start)
-            out.append((_outcome(att), (att.rows, _warm_start(att))))
+            res = _outcome(att)
+            warm = res.warm_start if isinstance(res, Failed) else None
+            out.append((res, (att.rows, None if warm is None else np.array(warm))))
         return out
 
     first = _outcome(failed)
     if not isinstance(first, Failed):  # (the caller asks only for a failed test)
         return failed.fix
-    passed, _ = exclude(
-        {0: (first, (failed.rows, _warm_start(failed)))}, without, solve, ctx.cfg.max_exclusions
-    )
+    start = None if first.warm_start is None else np.array(first.warm_start)
+    passed, _ = exclude({0: (first, (failed.rows, start))}, without, solve, ctx.cfg.max_exclusions)
     return passed[0] if passed else no_exclusion(failed.fix, ctx.cfg.max_exclusions)
 
 
@@ -741,7 +742,9 @@ def _outcome(att: _Attempt) -> Outcome:
     if i is None or i.chi2 is None or i.chi2_max is None or i.passed:
         return att.fix
     kept = tuple(att.rows.prn[j] for j in att.kept.tolist())
-    return Failed(i.chi2, i.chi2_max, i.redundancy, kept, tuple(i.w.tolist()), att.fix)
+    warm = _warm_start(att)
+    start = None if warm is None else (float(warm[0]), float(warm[1]), float(warm[2]))
+    return Failed(i.chi2, i.chi2_max, i.redundancy, kept, tuple(i.w.tolist()), att.fix, start)
 
 
 def _warm_start(failed: _Attempt) -> np.ndarray | None:
@@ -1149,6 +1152,30 @@ def solve(
             why = Declined.of(Decline.NUMERICAL, error=type(exc).__name__, message=str(exc))
             return declined(epoch, why, solver)
     return fix
+
+
+def attempt(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+    start: tuple[float, float, float] | None = None,
+) -> Outcome:
+    """One solve of ``epoch``'s rows as a candidate of fault exclusion solves it (phase 1
+    from ``start`` or the Earth's centre, phase 2, the judgement; no impossible-range check
+    and no exclusion of its own): its fix, its failed test, or None when it has no rows or
+    the numbers fail. The batch asks this of the candidates it cannot decide itself."""
+    with np.errstate(all="ignore"):
+        try:
+            rows, _ = select_rows(epoch, store, solver)
+            if rows is None:
+                return None
+            bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+            ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
+            return _outcome(_attempt(rows, ctx, None if start is None else np.array(start)))
+        except (np.linalg.LinAlgError, ArithmeticError, ValueError):
+            return None
 
 
 def fractionalize(

@@ -396,3 +396,38 @@ def test_no_week_and_no_test_are_decided_in_the_batch(monkeypatch, solver):
     assert {None, "too_few_full", "no_ephemeris"} <= set(codes)
     if solver == "spp":
         assert {"pdop_gate", "implausible"} <= set(codes)
+
+
+def test_a_wrong_millisecond_on_a_geo_is_excluded_in_the_batch(hksc, monkeypatch):
+    """1 ms (a wrong integer, 300 km) on GEO C01, fast fix: the batch's phase 1 converges
+    on the faulty epoch and its test fails; of the exclusion candidates, the one without
+    C01 passes, and those without another GEO (four GEOs left, one of them faulty) do not
+    converge in the batch. Those candidates alone are solved by the per-epoch solver's
+    attempt (solver.attempt), the epoch stays the batch's (the per-epoch solver, patched to
+    fail, is never asked), and it gets the per-epoch solver's fix: C01 excluded."""
+    from service.engine import batch
+
+    store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
+    epochs = []
+    for ep in hksc[::20]:
+        pr = ep.pr_m.copy()
+        pr[ep.prn.index("C01")] += C_M_S * 1e-3
+        epochs.append(fractionalize(replace(ep, pr_m=pr)))
+    ref = [solve(e, store, iono, solver="fast") for e in epochs]
+    asked: list[int] = []
+    real = batch.attempt
+
+    def counted(*args: object, **kwargs: object) -> object:
+        asked.append(1)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    def no_fallback(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the batch handed an epoch to the per-epoch solver")
+
+    monkeypatch.setattr(batch, "solve", no_fallback)
+    monkeypatch.setattr(batch, "attempt", counted)
+    got = batch.solve_many(epochs, store, iono, solver="fast")
+    for r, g in zip(ref, got, strict=True):
+        _same(r, g)
+        assert list(g.excluded) == ["C01"]
+    assert asked
