@@ -29,12 +29,19 @@ cost per epoch is paid once per chunk:
 - the unknowns are the chunk's rows' :class:`~service.engine.layout.Layout`: a receiver
   clock per satellite system (a chunk whose epochs differ in their systems is solved one
   layout at a time);
-- fault exclusion: every candidate of every failed epoch of a stage in one batch.
+- fault exclusion: the one loop both paths run (:func:`service.engine.judge.exclude`),
+  with every candidate of every failed epoch of a stage in one batch, each starting where
+  the per-epoch solver's would (:attr:`~service.engine.judge.Failed.warm_start`); a
+  candidate the batch cannot decide is solved by the per-epoch solver's attempt at it
+  (:func:`~service.engine.solver.attempt`), not its whole epoch.
 
-A position far from the Earth (a gross fault can put phase 1 there) is judged as the
-per-epoch solver judges it: no mask, no corrections, one weight for every row. An epoch the
-batch cannot decide (no week, an impossible range, no convergence in phase 1, a singular
-system, a position not finite) is solved by
+An epoch without a GPS week is declined ``no_time`` here; with the test off (``p_fa=0``)
+the batch judges as with it (no failed test to exclude from). A position far from the Earth
+(a gross fault can put phase 1 there) is judged as the per-epoch solver judges it: no mask,
+no corrections, one weight for every row. An epoch the batch cannot decide (an impossible
+range, no convergence in phase 1, a singular system, a position not finite, the fast fix of
+rows of several systems) and every epoch when a start position is given
+(``SolverConfig.x0_ecef_m``: phase 2 alone) is solved by
 :func:`~service.engine.solver.solve`. A fix from the batch equals the per-epoch solver's to
 floating-point rounding (tests/engine/test_batch.py holds them to 1e-6 m on real files),
 and an epoch solved alone equals the same epoch inside a chunk (the same bits where the
@@ -47,27 +54,38 @@ arrives.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
 
 from service.core.constants import C_M_S
-from service.core.declines import Decline, Declined, excluded_why
+from service.core.declines import Decline, Declined
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine import linalg
-from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
+from service.engine.judge import (
+    Failed,
+    Outcome,
+    decline_fix,
+    exclude,
+    no_exclusion,
+    solution_fix,
+    verdict,
+)
 from service.engine.layout import BDS_ONLY, Layout, dop, layout_of
 from service.engine.raim import Integrity, assess_many
 from service.engine.solver import (
     GROSS_SPREAD_M,
     IonoSet,
     SolverConfig,
+    attempt,
+    declined,
     measurement_sigma_m,
     ranges,
     sky_view,
@@ -228,19 +246,7 @@ def _local(
     return lat, lon, alt, el, az
 
 
-@dataclass(frozen=True, slots=True)
-class _Failed:
-    """An epoch whose solution failed the chi-square test: what fault exclusion needs."""
-
-    chi2: float
-    chi2_max: float
-    redundancy: int
-    kept: tuple[str, ...]  # the PRNs the solution used, in row order
-    wtest: tuple[float, ...]  # their w-tests
-    fix: Fix  # the per-epoch solver's decline of this solution (reason_code chi2)
-
-
-_Outcome = Fix | _Failed | None
+_Outcome = Outcome
 """A fix or a decline, a failed chi-square test, or None: the per-epoch solver must decide
 (a singular system, an impossible range, no convergence, a solution not finite)."""
 
@@ -261,9 +267,11 @@ def _solve_chunk(
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
 ) -> list[_Outcome]:
     """The outcome of each epoch of the chunk (:data:`_Outcome`), whose rows have the
-    unknowns ``layout`` (a clock per system among them)."""
+    unknowns ``layout`` (a clock per system among them). ``start`` (e, 3): where each
+    epoch's phase 1 starts (NaN, or None for every epoch: the Earth's centre)."""
     n_e, n_s = ch.z.shape
     ok = np.ones(n_e, dtype=bool)
     unsure = np.zeros(n_e, dtype=bool)
@@ -303,7 +311,7 @@ def _solve_chunk(
         declines.append((e, why, {}))
 
     # ---- phase 1: the paper's iteration from the Earth's centre -----------------------------
-    x = np.zeros((n_e, 3))
+    x = np.zeros((n_e, 3)) if start is None else np.where(np.isnan(start), 0.0, start)
     b = np.zeros((n_e, n_clk))
     n_int = np.zeros((n_e, n_s))
     iters = np.zeros(n_e, dtype=int)
@@ -586,7 +594,11 @@ def _judged(
             return fix
         w = integ.w.tolist()
         wtest = tuple(w[i] for i in kk)
-        return _Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix)
+        x = numbers["x"][k]
+        # every row full and near the Earth: the candidates start here (Failed.warm_start)
+        near = 6.0e6 < math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]) < 8.5e6
+        warm = (x[0], x[1], x[2]) if near and not any(frac) else None
+        return Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix, warm)
     return solution_fix(
         solver=solver,
         gpst_week=ep.gpst_week,
@@ -640,14 +652,18 @@ def _outcomes(
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
 ) -> list[_Outcome]:
-    """:func:`_solve_chunk` over ``epochs`` chunk by chunk (a chunk that raises: None)."""
+    """:func:`_solve_chunk` over ``epochs`` chunk by chunk (a chunk that raises: None);
+    ``start`` (e, 3): where each epoch's phase 1 starts (NaN: the Earth's centre)."""
     out: list[_Outcome] = []
-    for start in range(0, len(epochs), CHUNK_EPOCHS):
-        part = epochs[start : start + CHUNK_EPOCHS]
+    for at in range(0, len(epochs), CHUNK_EPOCHS):
+        part = epochs[at : at + CHUNK_EPOCHS]
+        where = None if start is None else start[at : at + CHUNK_EPOCHS]
         try:
             with np.errstate(all="ignore"):
-                out += _solve_layouts(_Chunk(part, store, solver), store, iono, cfg, solver)
+                ch = _Chunk(part, store, solver)
+                out += _solve_layouts(ch, store, iono, cfg, solver, where)
         except (np.linalg.LinAlgError, ArithmeticError, ValueError):
             log.debug("batch solve failed on a chunk; its epochs go one by one", exc_info=True)
             out += [None] * len(part)
@@ -660,12 +676,13 @@ def _solve_layouts(
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
 ) -> list[_Outcome]:
     """:func:`_solve_chunk` of ``ch``; when its epochs' rows differ in their satellite
     systems (so in their clocks, :class:`~service.engine.layout.Layout`), each layout's
     epochs are solved as a chunk of their own."""
     if ch.layout is not None and (solver == "spp" or ch.layout.n_clocks == 1):
-        return _solve_chunk(ch, ch.layout, iono, cfg, solver)
+        return _solve_chunk(ch, ch.layout, iono, cfg, solver, start)
     groups: dict[Layout, list[int]] = {}
     for e, ps in enumerate(ch.prn):
         groups.setdefault(layout_of(ps) if ps else BDS_ONLY, []).append(e)
@@ -678,7 +695,8 @@ def _solve_layouts(
             # without full rows after the others' fix (solver._with_other_systems): the
             # per-epoch solver's (None: handed to it)
             continue
-        for e, res in zip(idx, _solve_chunk(sub, layout, iono, cfg, solver), strict=True):
+        where = None if start is None else start[idx]
+        for e, res in zip(idx, _solve_chunk(sub, layout, iono, cfg, solver, where), strict=True):
             out[e] = res
     return out
 
@@ -689,73 +707,45 @@ def _without(epoch: MeasurementEpoch, prn: str) -> MeasurementEpoch:
 
 
 def _exclude(
-    failed: dict[int, _Failed],
+    failed: dict[int, Failed],
     epochs: Sequence[MeasurementEpoch],
     store: EphemerisStore,
     iono: IonoSet,
     cfg: SolverConfig,
     solver: Literal["fast", "spp"],
 ) -> tuple[dict[int, Fix], set[int]]:
-    """Fault exclusion (:func:`service.engine.solver._exclude`) for the epochs that failed
-    the test, every candidate of every epoch of a stage in one batch: at each stage each
-    used satellite is excluded in turn; the passing candidate with the smallest chi2 /
-    threshold is taken, else the best-fitting failed one starts the next stage. Epochs with
-    no passing candidate after the last stage are returned apart (``hopeless``: their fix is
-    the failed solution's decline); an epoch with a candidate whose outcome is not certain is
-    in neither (the per-epoch solver decides it)."""
-    # per epoch: the failed solution, the epoch it came from, the satellites removed so far
-    current: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {
-        e: (f, epochs[e], {}) for e, f in failed.items()
-    }
-    out: dict[int, Fix] = {}
-    hopeless: set[int] = set()
-    for _stage in range(cfg.max_exclusions):
-        cands: list[MeasurementEpoch] = []
-        owner: list[tuple[int, int]] = []  # (epoch, index in its failed.kept)
-        for e, (f, ep, _) in current.items():
-            if f.redundancy >= 2:  # an exclusion must leave a testable solution
-                for k, prn in enumerate(f.kept):
-                    cands.append(_without(ep, prn))
-                    owner.append((e, k))
-        if not cands:
-            break  # every epoch left has redundancy < 2: hopeless (below)
-        results = _outcomes(cands, store, iono, cfg, solver)
-        passed: dict[int, tuple[float, Fix, int]] = {}
-        failing: dict[int, tuple[float, _Failed, int, MeasurementEpoch]] = {}
-        unsure: set[int] = set()
-        for (e, k), res, cand in zip(owner, results, cands, strict=True):
-            if res is None:
-                unsure.add(e)
-            elif isinstance(res, Fix) and res.ok:
-                ratio = fit_ratio(res.chi2, res.chi2_max)
-                if e not in passed or ratio < passed[e][0]:
-                    passed[e] = (ratio, res, k)
-            elif isinstance(res, _Failed):
-                ratio = fit_ratio(res.chi2, res.chi2_max)
-                if e not in failing or ratio < failing[e][0]:
-                    failing[e] = (ratio, res, k, cand)
-        nxt: dict[int, tuple[_Failed, MeasurementEpoch, dict[str, str]]] = {}
-        for e, (f, _, removed) in current.items():
-            if e in unsure:
-                continue
-            if f.redundancy < 2:
-                hopeless.add(e)
-            elif e in passed:
-                _, fix, k = passed[e]
-                out[e] = replace(fix, excluded=removed | {f.kept[k]: _why(f, k)})
-            elif e in failing:
-                _, f2, k, cand = failing[e]
-                nxt[e] = (f2, cand, removed | {f.kept[k]: _why(f, k)})
-            else:
-                hopeless.add(e)
-        current = nxt
-    hopeless |= current.keys()  # every stage done, none passed
-    return out, hopeless
+    """Fault exclusion (:func:`service.engine.judge.exclude`, the loop the per-epoch solver
+    runs too) for the epochs that failed the test, every candidate of every epoch of a stage
+    solved in one batch (:func:`_outcomes`). Epochs with no passing candidate after the last
+    stage are returned apart (``hopeless``: their fix is the failed solution's decline); an
+    epoch with a candidate whose outcome is not certain is in neither (the per-epoch solver
+    decides it)."""
+
+    def without(cand: _Candidate, prn: str) -> _Candidate:
+        return _without(cand[0], prn), cand[1]
+
+    def solve(cands: list[_Candidate]) -> list[tuple[Outcome, _Candidate]]:
+        start = np.array([(math.nan,) * 3 if s is None else s for _, s in cands])
+        res = _outcomes([ep for ep, _ in cands], store, iono, cfg, solver, start)
+        # a candidate the batch cannot decide (with a gross fault, no convergence of phase
+        # 1): the per-epoch solver's attempt at it, as its own exclusion would make it, so
+        # that its epoch's other candidates stay the batch's
+        res = [
+            attempt(ep, store, iono, cfg, solver, s) if r is None else r
+            for r, (ep, s) in zip(res, cands, strict=True)
+        ]
+        return [
+            (r, (ep, r.warm_start if isinstance(r, Failed) else None))
+            for r, (ep, _) in zip(res, cands, strict=True)
+        ]
+
+    first = {e: (f, (epochs[e], f.warm_start)) for e, f in failed.items()}
+    return exclude(first, without, solve, cfg.max_exclusions)
 
 
-def _why(f: _Failed, k: int) -> str:
-    """Why satellite ``f.kept[k]`` went (the per-epoch solver's words)."""
-    return excluded_why("chi2", chi2=f.chi2, chi2_max=f.chi2_max, w=f.wtest[k])
+_Candidate = tuple[MeasurementEpoch, tuple[float, float, float] | None]
+"""A candidate of fault exclusion: its epoch and where its phase 1 starts (None: the Earth's
+centre; :attr:`service.engine.judge.Failed.warm_start`)."""
 
 
 def solve_many(
@@ -771,15 +761,19 @@ def solve_many(
     the ephemeris selection cheapest; any order gives the same fixes."""
     cfg = cfg or SolverConfig()
     iono = iono or IonoSet()
-    out: list[Fix | None] = [None] * len(epochs)
-    if cfg.x0_ecef_m is None and cfg.p_fa > 0.0:
+    # no GPS week: declined before any row is read, as the per-epoch solver declines it
+    out: list[Fix | None] = [
+        None if ep.week_known else declined(ep, Declined.of(Decline.NO_TIME), solver)
+        for ep in epochs
+    ]
+    if cfg.x0_ecef_m is None:  # (a known start: the per-epoch solver's phase 2 alone)
         todo = [i for i, ep in enumerate(epochs) if ep.week_known]
         results = _outcomes([epochs[i] for i in todo], store, iono, cfg, solver)
-        failed: dict[int, _Failed] = {}
+        failed: dict[int, Failed] = {}
         for i, res in zip(todo, results, strict=True):
             if isinstance(res, Fix):
                 out[i] = res
-            elif isinstance(res, _Failed):
+            elif isinstance(res, Failed):
                 failed[i] = res
         if failed and cfg.max_exclusions > 0:
             passed, hopeless = _exclude(failed, epochs, store, iono, cfg, solver)

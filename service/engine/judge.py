@@ -7,20 +7,22 @@ A converged, weighted solution is judged in the order of docs/method.md: the chi
 test of its residuals (:mod:`service.engine.raim`), the plausible shell (altitude, receiver
 clock), the PDOP gate. Its first failure is the decline (:func:`verdict`); a decline's words
 come from the one table (:mod:`service.core.declines`). Fault exclusion ranks candidate
-solutions by :func:`fit_ratio`.
+solutions by :func:`fit_ratio`, in the one exclusion loop both paths run (:func:`exclude`),
+each solving its candidates its own way (the per-epoch solver one set of rows at a time, the
+batch every candidate of every epoch of a stage in one chunk).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import replace
-from typing import Literal, Protocol
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Literal, Protocol, TypeVar
 
 import numpy as np
 
 from service.core.constants import C_M_S
-from service.core.declines import Decline, Declined
+from service.core.declines import Decline, Declined, excluded_why
 from service.core.systems import GnssSystem
 from service.core.types import Fix
 from service.engine.raim import Integrity
@@ -128,6 +130,108 @@ def fit_ratio(chi2: float | None, chi2_max: float | None) -> float:
     """chi2 / threshold of a candidate solution of fault exclusion (inf: no test): the
     smallest ranks first."""
     return chi2 / chi2_max if chi2 is not None and chi2_max else math.inf
+
+
+@dataclass(frozen=True, slots=True)
+class Failed:
+    """A solution that failed the chi-square test: what fault exclusion needs."""
+
+    chi2: float
+    chi2_max: float
+    redundancy: int
+    kept: tuple[str, ...]  # the satellites the solution used, in row order
+    wtest: tuple[float, ...]  # their w-tests
+    fix: Fix  # the solution's decline (reason_code chi2)
+    # where its exclusion candidates start phase 1: the solution, when every row is full
+    # and it lies near the Earth (no integers to resolve, so phase 1 converges to the same
+    # fixed point from there as from the Earth's centre, in 2-3 iterations instead of 6-8);
+    # None: the Earth's centre
+    warm_start: tuple[float, float, float] | None = None
+
+    def why(self, k: int) -> str:
+        """Why satellite ``kept[k]`` goes when it is excluded: the test and its w-test."""
+        return excluded_why("chi2", chi2=self.chi2, chi2_max=self.chi2_max, w=self.wtest[k])
+
+
+Outcome = Fix | Failed | None
+"""What solving one set of rows gives: a fix or a decline, a failed chi-square test, or None
+(the solver that was asked cannot decide it: the batch's epochs it hands over)."""
+
+Key = TypeVar("Key")
+State = TypeVar("State")
+
+
+def exclude(
+    failed: Mapping[Key, tuple[Failed, State]],
+    without: Callable[[State, str], State],
+    solve: Callable[[list[State]], list[tuple[Outcome, State]]],
+    max_exclusions: int,
+) -> tuple[dict[Key, Fix], set[Key]]:
+    """Fault exclusion (docs/method.md): up to ``max_exclusions`` satellites, one at a time,
+    for every solution of ``failed`` (its failed test and the rows it came from, ``State``:
+    what ``without(state, prn)`` removes a satellite from and ``solve`` solves, in one call
+    for every candidate of every solution of a stage, giving each candidate's outcome and
+    the state its own candidates are made from).
+
+    At each stage every used satellite is excluded in turn and the rest re-solved (phase 1
+    included: a fault on a full row can corrupt every integer). Of the candidates that pass
+    the chi-square test and the other checks, the one with the smallest chi2 / threshold
+    (:func:`fit_ratio`; the first of equals) is taken; when none passes, the best-fitting
+    failed candidate is the start of the next stage. An exclusion must leave a testable
+    solution (redundancy >= 1 after it), so it needs redundancy >= 2 before. Why a
+    satellite went is its w-test in the failed solution (:meth:`Failed.why`).
+
+    Returns the fixes of the solutions an exclusion resolved (``excluded`` says which
+    satellites went and why) and the keys with none (their fix is :func:`no_exclusion` of
+    the failed solution's); a key with a candidate whose outcome is None is in neither."""
+    current: dict[Key, tuple[Failed, State, dict[str, str]]] = {
+        key: (f, state, {}) for key, (f, state) in failed.items()
+    }
+    out: dict[Key, Fix] = {}
+    hopeless: set[Key] = set()
+    for _stage in range(max_exclusions):
+        cands: list[State] = []
+        owner: list[tuple[Key, int]] = []  # (solution, index in its failed.kept)
+        for key, (f, state, _) in current.items():
+            if f.redundancy >= 2:  # an exclusion must leave a testable solution
+                for k, prn in enumerate(f.kept):
+                    cands.append(without(state, prn))
+                    owner.append((key, k))
+        if not cands:
+            break  # every solution left has redundancy < 2: hopeless (below)
+        results = solve(cands)
+        passed: dict[Key, tuple[float, Fix, int]] = {}
+        failing: dict[Key, tuple[float, Failed, int, State]] = {}
+        unsure: set[Key] = set()
+        for (key, k), (res, after) in zip(owner, results, strict=True):
+            if res is None:
+                unsure.add(key)
+            elif isinstance(res, Fix):
+                if res.ok:
+                    ratio = fit_ratio(res.chi2, res.chi2_max)
+                    if key not in passed or ratio < passed[key][0]:
+                        passed[key] = (ratio, res, k)
+            else:
+                ratio = fit_ratio(res.chi2, res.chi2_max)
+                if key not in failing or ratio < failing[key][0]:
+                    failing[key] = (ratio, res, k, after)
+        nxt: dict[Key, tuple[Failed, State, dict[str, str]]] = {}
+        for key, (f, _, removed) in current.items():
+            if key in unsure:
+                continue
+            if f.redundancy < 2:
+                hopeless.add(key)
+            elif key in passed:
+                _, fix, k = passed[key]
+                out[key] = replace(fix, excluded=removed | {f.kept[k]: f.why(k)})
+            elif key in failing:
+                _, f2, k, after = failing[key]
+                nxt[key] = (f2, after, removed | {f.kept[k]: f.why(k)})
+            else:
+                hopeless.add(key)
+        current = nxt
+    hopeless |= current.keys()  # every stage done, none passed
+    return out, hopeless
 
 
 def solution_fix(

@@ -45,7 +45,15 @@ from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, constants_of
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 from service.engine import linalg
-from service.engine.judge import decline_fix, fit_ratio, no_exclusion, solution_fix, verdict
+from service.engine.judge import (
+    Failed,
+    Outcome,
+    decline_fix,
+    exclude,
+    no_exclusion,
+    solution_fix,
+    verdict,
+)
 from service.engine.layout import Layout, dop, layout_of
 from service.engine.raim import Integrity, assess
 
@@ -689,53 +697,54 @@ def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
                 excluded[rows.prn[i]] = excluded_why("gross", dev_km=dev[i] / 1e3)
             rows = rows.take(np.flatnonzero(~gross))
     att = _attempt(rows, ctx)
+    fix = att.fix
     if att.failed_test and ctx.cfg.max_exclusions > 0:
-        att, more = _exclude(att, ctx)
-        excluded |= more
+        fix = _exclude(att, ctx)
+        excluded |= fix.excluded
     if excluded:
-        return replace(att.fix, excluded=excluded)
-    return att.fix
+        return replace(fix, excluded=excluded)
+    return fix
 
 
-def _exclude(failed: _Attempt, ctx: _Context) -> tuple[_Attempt, dict[str, str]]:
-    """Fault exclusion: up to ``cfg.max_exclusions`` satellites, one at a time.
+_Candidate = tuple[_Rows, np.ndarray | None]
+"""A candidate of fault exclusion: its rows and where its phase 1 starts (:func:`_warm_start`)."""
 
-    At each stage every used satellite is excluded in turn and the rest re-solved (phase 1
-    included: a fault on a full row can corrupt every integer). Of the solutions that pass
-    the chi-square test and the other checks, the one with the smallest chi2 / threshold is
-    taken; when none passes, the stage's best-fitting failed solution is the start of the
-    next stage. An exclusion must leave a testable solution (redundancy >= 1 after it), so
-    it needs redundancy >= 2 before. Why a satellite went is its w-test (normalised
-    residual) in the failed solution."""
-    current = failed
-    removed: dict[str, str] = {}
-    for _stage in range(ctx.cfg.max_exclusions):
-        integ = current.integrity
-        if integ is None or integ.chi2 is None or integ.redundancy < 2:
-            break
-        passed: tuple[float, _Attempt, str, str] | None = None
-        failing: tuple[float, _Attempt, str, str] | None = None
-        every = np.arange(len(current.rows.prn))
-        start = _warm_start(current)
-        for k, i in enumerate(current.kept):
-            prn = current.rows.prn[int(i)]
-            why = excluded_why("chi2", chi2=integ.chi2, chi2_max=integ.chi2_max, w=integ.w[k])
-            cand = _attempt(current.rows.take(np.delete(every, int(i))), ctx, start)
-            ci = cand.integrity
-            ratio = math.inf if ci is None else fit_ratio(ci.chi2, ci.chi2_max)
-            if cand.fix.ok:
-                if passed is None or ratio < passed[0]:
-                    passed = (ratio, cand, prn, why)
-            elif cand.failed_test and (failing is None or ratio < failing[0]):
-                failing = (ratio, cand, prn, why)
-        if passed is not None:
-            _, cand, prn, why = passed
-            return cand, removed | {prn: why}
-        if failing is None:
-            break
-        _, current, prn, why = failing
-        removed[prn] = why
-    return replace(failed, fix=no_exclusion(failed.fix, ctx.cfg.max_exclusions)), {}
+
+def _exclude(failed: _Attempt, ctx: _Context) -> Fix:
+    """Fault exclusion of a solution that failed the test (:func:`service.engine.judge.
+    exclude`, the loop the batch runs too), each candidate solved by :func:`_attempt`: the
+    fix it resolves to, or the failed solution's decline when no exclusion passes."""
+
+    def without(cand: _Candidate, prn: str) -> _Candidate:
+        rows, start = cand
+        return rows.take(np.flatnonzero([p != prn for p in rows.prn])), start
+
+    def solve(cands: list[_Candidate]) -> list[tuple[Outcome, _Candidate]]:
+        out: list[tuple[Outcome, _Candidate]] = []
+        for rows, start in cands:
+            att = _attempt(rows, ctx, start)
+            res = _outcome(att)
+            warm = res.warm_start if isinstance(res, Failed) else None
+            out.append((res, (att.rows, None if warm is None else np.array(warm))))
+        return out
+
+    first = _outcome(failed)
+    if not isinstance(first, Failed):  # (the caller asks only for a failed test)
+        return failed.fix
+    start = None if first.warm_start is None else np.array(first.warm_start)
+    passed, _ = exclude({0: (first, (failed.rows, start))}, without, solve, ctx.cfg.max_exclusions)
+    return passed[0] if passed else no_exclusion(failed.fix, ctx.cfg.max_exclusions)
+
+
+def _outcome(att: _Attempt) -> Outcome:
+    """The fix of ``att``, or its failed test (:class:`service.engine.judge.Failed`)."""
+    i = att.integrity
+    if i is None or i.chi2 is None or i.chi2_max is None or i.passed:
+        return att.fix
+    kept = tuple(att.rows.prn[j] for j in att.kept.tolist())
+    warm = _warm_start(att)
+    start = None if warm is None else (float(warm[0]), float(warm[1]), float(warm[2]))
+    return Failed(i.chi2, i.chi2_max, i.redundancy, kept, tuple(i.w.tolist()), att.fix, start)
 
 
 def _warm_start(failed: _Attempt) -> np.ndarray | None:
@@ -1143,6 +1152,30 @@ def solve(
             why = Declined.of(Decline.NUMERICAL, error=type(exc).__name__, message=str(exc))
             return declined(epoch, why, solver)
     return fix
+
+
+def attempt(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+    start: tuple[float, float, float] | None = None,
+) -> Outcome:
+    """One solve of ``epoch``'s rows as a candidate of fault exclusion solves it (phase 1
+    from ``start`` or the Earth's centre, phase 2, the judgement; no impossible-range check
+    and no exclusion of its own): its fix, its failed test, or None when it has no rows or
+    the numbers fail. The batch asks this of the candidates it cannot decide itself."""
+    with np.errstate(all="ignore"):
+        try:
+            rows, _ = select_rows(epoch, store, solver)
+            if rows is None:
+                return None
+            bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+            ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
+            return _outcome(_attempt(rows, ctx, None if start is None else np.array(start)))
+        except (np.linalg.LinAlgError, ArithmeticError, ValueError):
+            return None
 
 
 def fractionalize(

@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from drivers.rinex import RinexObsReader
@@ -298,3 +298,136 @@ def test_one_epoch_alone_is_the_same_epoch_inside_a_chunk(hksc, urban, data):
             # hypothesis version's draws), the rest to 1e-9 relative
             tol = 1e-6 if name.endswith("_m") else 1e-9
             assert a == b or b == pytest.approx(a, rel=1e-9, abs=tol), name
+
+
+@pytest.fixture(scope="module")
+def scenario() -> tuple[list[MeasurementEpoch], object, object]:
+    """The built-in scenario's epochs (Table 1 constellation at Beijing, 10 Hz, 30 s) with
+    every range full, its ephemerides and no ionosphere coefficients (as the daemon runs
+    it)."""
+    from service.core.ephemeris import EphemerisStore
+    from service.engine.solver import IonoSet
+    from service.sim.keplerian import table1_ephemerides
+    from service.sim.scenario import scenario_config
+    from service.sim.simulator import Simulator
+
+    ephs = table1_ephemerides(0.0)
+    store = EphemerisStore()
+    store.add_all(ephs)
+    sim = Simulator(ephs, scenario_config(duration_s=30.0))
+    epochs = [
+        MeasurementEpoch.from_columns(
+            ep.tag_gpst_week,
+            ep.tag_gpst_tow_s,
+            list(ep.prn),
+            ["2I"] * len(ep.prn),
+            ep.pr_m,
+            cn0_dbhz=ep.cn0_dbhz,
+        )
+        for ep in sim.epochs()
+    ]
+    return epochs, store, IonoSet()
+
+
+# what a drawn fault adds to one satellite's range [m]: 1 ms (a wrong integer), 150 km
+# (phase 1 far from the Earth), 1 km, 300 m, 3 km down
+FAULTS_M = (C_M_S * 1e-3, 150e3, 1000.0, 300.0, -3000.0)
+
+
+@settings(max_examples=16, deadline=None, derandomize=True)
+@given(data=st.data())
+def test_one_faulted_epoch_alone_is_the_same_epoch_inside_a_chunk(hksc, scenario, data):
+    """The property with injected faults (none, one or two satellites, GEO or not, of the
+    sizes of :data:`FAULTS_M`) on real HKSC epochs and the built-in scenario's: fault
+    exclusion solves every candidate of every epoch of a stage in one chunk, and epochs the
+    batch hands to the per-epoch solver go there alone or not; an epoch alone and the same
+    epoch inside the chunk give the same bits (every epoch of these has the same
+    satellites, so the chunk has no padding slots)."""
+    solver = data.draw(st.sampled_from(["spp", "fast"]))
+    if data.draw(st.booleans()):
+        epochs, (store, iono) = hksc, load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
+    else:
+        epochs, store, iono = scenario
+    idx = data.draw(st.lists(st.integers(0, len(epochs) - 1), min_size=2, max_size=24, unique=True))
+    chunk = []
+    for i in idx:
+        ep = epochs[i]
+        pr = ep.pr_m.copy()
+        for _ in range(data.draw(st.integers(0, 2))):
+            sat = data.draw(st.integers(0, len(ep.prn) - 1))
+            pr[sat] += data.draw(st.sampled_from(FAULTS_M))
+        ep = replace(ep, pr_m=pr)
+        chunk.append(fractionalize(ep) if solver == "fast" else ep)
+    assert len({e.prn for e in chunk}) == 1
+    together = solve_many(chunk, store, iono, solver=solver)
+    for k in data.draw(st.lists(st.integers(0, len(chunk) - 1), min_size=1, max_size=3)):
+        alone = solve_many([chunk[k]], store, iono, solver=solver)[0]
+        assert _bits(alone) == _bits(together[k])
+        event(f"{alone.mode} {alone.reason_code} excluded {len(alone.excluded)}")
+
+
+@pytest.mark.parametrize("solver", ["spp", "fast"])
+def test_no_week_and_no_test_are_decided_in_the_batch(monkeypatch, solver):
+    """Epochs without a GPS week are declined ``no_time`` by the batch, and with the test
+    off (``p_fa=0``: the PDOP gate and the plausible shell only) the urban drive's declines
+    of every other kind too: the per-epoch solver, patched to fail, is never asked, and
+    gives the same fixes when asked itself."""
+    from service.core.types import UNKNOWN_WEEK
+    from service.engine import batch
+
+    d = DATA / "hk-tst-urban-2019"
+    store, iono = load_navigation([str(d / "hksc1180.19b")])
+    epochs = list(RinexObsReader(d / "COM3_190428_124409.obs"))[200:500]
+    epochs[:5] = [replace(e, gpst_week=UNKNOWN_WEEK) for e in epochs[:5]]
+    if solver == "fast":
+        epochs = [fractionalize(e) for e in epochs]
+    cfg = SolverConfig(p_fa=0.0, pdop_max=10.0)
+    ref = [solve(e, store, iono, cfg, solver) for e in epochs]  # type: ignore[arg-type]
+
+    def no_fallback(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the batch handed an epoch to the per-epoch solver")
+
+    monkeypatch.setattr(batch, "solve", no_fallback)
+    got = batch.solve_many(epochs, store, iono, cfg, solver)  # type: ignore[arg-type]
+    for r, g in zip(ref, got, strict=True):
+        _same(r, g)
+    codes = [f.reason_code for f in got]
+    assert codes[:5] == ["no_time"] * 5
+    assert {None, "too_few_full", "no_ephemeris"} <= set(codes)
+    if solver == "spp":
+        assert {"pdop_gate", "implausible"} <= set(codes)
+
+
+def test_a_wrong_millisecond_on_a_geo_is_excluded_in_the_batch(hksc, monkeypatch):
+    """1 ms (a wrong integer, 300 km) on GEO C01, fast fix: the batch's phase 1 converges
+    on the faulty epoch and its test fails; of the exclusion candidates, the one without
+    C01 passes, and those without another GEO (four GEOs left, one of them faulty) do not
+    converge in the batch. Those candidates alone are solved by the per-epoch solver's
+    attempt (solver.attempt), the epoch stays the batch's (the per-epoch solver, patched to
+    fail, is never asked), and it gets the per-epoch solver's fix: C01 excluded."""
+    from service.engine import batch
+
+    store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
+    epochs = []
+    for ep in hksc[::20]:
+        pr = ep.pr_m.copy()
+        pr[ep.prn.index("C01")] += C_M_S * 1e-3
+        epochs.append(fractionalize(replace(ep, pr_m=pr)))
+    ref = [solve(e, store, iono, solver="fast") for e in epochs]
+    asked: list[int] = []
+    real = batch.attempt
+
+    def counted(*args: object, **kwargs: object) -> object:
+        asked.append(1)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    def no_fallback(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the batch handed an epoch to the per-epoch solver")
+
+    monkeypatch.setattr(batch, "solve", no_fallback)
+    monkeypatch.setattr(batch, "attempt", counted)
+    got = batch.solve_many(epochs, store, iono, solver="fast")
+    for r, g in zip(ref, got, strict=True):
+        _same(r, g)
+        assert list(g.excluded) == ["C01"]
+    assert asked
