@@ -12,6 +12,7 @@ from typing import Literal
 
 import numpy as np
 
+from service.core.constants import WEEK_S
 from service.core.declines import Declined
 from service.core.systems import constants_of
 
@@ -209,6 +210,27 @@ class KlobucharParams:
     alpha: tuple[float, float, float, float]
     beta: tuple[float, float, float, float]
     system: Literal["BDS", "GPS"] = "BDS"
+
+
+@dataclass(frozen=True, slots=True)
+class TimeOffset:
+    """A broadcast offset between two system times (the GGTO, :mod:`service.core.gal_nav`):
+    ``pair`` as RINEX 3 names it (``GAGP``: GST - GPST), ``a0_s`` + ``a1_s_s`` (t -
+    ``t_ref_s``) seconds, the reference week ``week`` on the GPS week count (a week broadcast
+    modulo 64 resolved against the receiver's), ``source`` the input it came from."""
+
+    pair: str
+    a0_s: float
+    a1_s_s: float
+    t_ref_s: float
+    week: int
+    source: str = ""
+
+    def at_s(self, gps_week: int, gps_tow_s: float) -> float:
+        """The offset [s] at a GPST instant (OS SIS ICD 5.1.8)."""
+        return self.a0_s + self.a1_s_s * (
+            gps_tow_s - self.t_ref_s + WEEK_S * (gps_week - self.week)
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -39,6 +39,7 @@ from service.core.types import (
     NavSubframe,
     ReceiverFix,
     SatView,
+    TimeOffset,
 )
 from service.engine.coarse import CoarseConfig, solve_coarse
 from service.engine.layout import BDS_ONLY
@@ -164,6 +165,9 @@ class Pipeline:
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
     _receiver_fix: ReceiverFix | None = None
+    ggto: TimeOffset | None = None
+    """The latest broadcast GST - GPST offset (:mod:`service.core.gal_nav`): recorded, not
+    applied (each system has its own receiver clock, which absorbs it)."""
 
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
@@ -202,6 +206,32 @@ class Pipeline:
         the saved store."""
         self.iono = self.iono.with_params(params)
         self.store.iono = self.iono.preferred
+
+    def set_time_offset(self, offset: TimeOffset) -> None:
+        """A broadcast offset between system times (GGTO, ``GAGP``): kept as :attr:`ggto`
+        (STATUS ``ggto_ns``, :meth:`ggto_ns`), counted ``ggto_<source>``; never applied to
+        ranges: Galileo's own receiver clock absorbs it (docs/method.md)."""
+        self.counters[f"ggto_{offset.source or 'broadcast'}"] += 1
+        if offset.pair == "GAGP" and offset != self.ggto:
+            if self.ggto is None:
+                log.info(
+                    "GGTO (GST - GPST) from %s: A0 %.3g s, A1 %.3g s/s at GPS week %d + %.0f s; "
+                    "absorbed by Galileo's receiver clock",
+                    offset.source,
+                    offset.a0_s,
+                    offset.a1_s_s,
+                    offset.week,
+                    offset.t_ref_s,
+                )
+            self.ggto = offset
+
+    def ggto_ns(self) -> float | None:
+        """GST - GPST [ns] at the latest measurement epoch (or the broadcast's reference time
+        before one), None without a broadcast."""
+        if self.ggto is None:
+            return None
+        week, tow = self._latest or (self.ggto.week, self.ggto.t_ref_s)
+        return round(self.ggto.at_s(week, tow) * 1e9, 3)
 
     def on_receiver_fix(self, rf: ReceiverFix) -> None:
         """The receiver's own fix: kept for the next epochs' results (``receiver_fixes``)."""
