@@ -67,7 +67,13 @@ from service.core.bds_nav import b1i_subframe
 from service.core.constants import ICD_PI, URA_M, WEEK_S
 from service.core.counters import Counters
 from service.core.errors import DecodeError
-from service.core.gal_nav import WN0G_MODULUS, galileo_sisa_m, week_near
+from service.core.gal_nav import (
+    WN0G_MODULUS,
+    galileo_sisa_m,
+    inav_subframe,
+    inav_word_of_parts,
+    week_near,
+)
 from service.core.geometry import geodetic_to_ecef
 from service.core.gps_nav import lnav_subframe
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
@@ -124,9 +130,10 @@ FRAMING = BinaryFraming(
 MEAS_EPOCH, PVT_GEODETIC, BDS_RAW, BDS_NAV, BDS_ION = 4027, 4007, 4047, 4081, 4120
 GPS_NAV, GPS_ION, GAL_NAV, GAL_ION, GAL_GST_GPS = 5891, 5893, 4002, 4030, 4032
 GPS_RAW_CA = 4017
+GAL_RAW_INAV = 4023
 _PARSED = frozenset({PVT_GEODETIC, BDS_RAW, BDS_NAV, BDS_ION})
 _PARSED_GPS = frozenset({GPS_NAV, GPS_ION, GPS_RAW_CA})
-_PARSED_GAL = frozenset({GAL_NAV, GAL_ION, GAL_GST_GPS})
+_PARSED_GAL = frozenset({GAL_NAV, GAL_ION, GAL_GST_GPS, GAL_RAW_INAV})
 _OTHER_NAV = frozenset({GPS_NAV, GPS_ION, GAL_NAV, GAL_ION, GAL_GST_GPS})
 _NAV_BLOCKS = {GnssSystem.GPS: _PARSED_GPS, GnssSystem.GAL: _PARSED_GAL}
 """Navigation blocks of GPS and Galileo, parsed when the mapper's ``systems`` include the
@@ -145,6 +152,8 @@ OTHER_SIGNALS: dict[GnssSystem, tuple[int, str]] = {
 }
 """MeasEpoch signals of GPS (L1 C/A, signal 0) and Galileo (E1 B/C, signal 17, tracked on
 the pilot: RINEX ``1C``) read when the mapper's ``systems`` include them (issue 19)."""
+_GAL_RAW_SIGNALS = {17: "1B", 21: "7I"}
+"""GALRawINAV signals whose I/NAV words are read: E1-B (17) and E5b-I (21)."""
 GAL_SOURCE_INAV = 2
 """GALNav/GALIon/GALGstGps ``Source``: 2 I/NAV, 16 F/NAV (Reference Guide, GALNav)."""
 BGD_DNU = -2e10
@@ -464,6 +473,8 @@ class SbfMapper:
             return self._on_bds_raw(msg, wnc, tow * 1e-3)
         if number == GPS_RAW_CA:
             return self._on_gps_raw(msg, wnc, tow * 1e-3)
+        if number == GAL_RAW_INAV:
+            return self._on_gal_raw(msg, wnc, tow * 1e-3)
         return self._on_pvt(msg, wnc, tow * 1e-3)
 
     def flush(self) -> list[Event]:
@@ -569,6 +580,35 @@ class SbfMapper:
             return []
         self.counters["subframes"] += 1
         return [subframe]
+
+    def _on_gal_raw(self, msg: Any, wnc: int, tow_s: float) -> list[Event]:
+        """A GALRawINAV (E1-B signal 17, E5b-I signal 21) with CRCPassed: its I/NAV word.
+        NavBits is a stream of ten LE u4, MSB first: the even part without its tail (114
+        bits), then the odd part (the CRC-24Q is checked again here)."""
+        signal = _GAL_RAW_SIGNALS.get(int(msg.SigIdx))
+        if signal is None:
+            self.counters["galraw_other_signal"] += 1
+            return []
+        if not int(msg.CRCPassed):
+            self.counters["galraw_crc_failed"] += 1
+            return []
+        prn = gal_prn(int(msg.SVID))
+        navbits = bytes(msg.NavBits)
+        if prn is None or len(navbits) < 32:
+            self.counters["galraw_unmapped"] += 1
+            return []
+        stream = 0
+        for (w,) in struct.iter_unpack("<I", navbits[:32]):
+            stream = stream << 32 | w
+        even, odd = stream >> (256 - 114), (stream >> (256 - 220)) & ((1 << 106) - 1)
+        try:
+            word = inav_word_of_parts(even, odd)
+        except DecodeError as exc:
+            log.debug("E%02d GALRawINAV rejected: %s", prn, exc)
+            self.counters["galraw_unmapped"] += 1
+            return []
+        self.counters["subframes"] += 1
+        return [inav_subframe(sat_id(GnssSystem.GAL, prn), word, wnc, tow_s, signal)]
 
     def _on_other_nav(self, number: int, msg: Any, wnc: int) -> list[Event]:
         """GPSNav, GPSIon, GALNav, GALIon, GALGstGps of a system the mapper reads."""

@@ -239,11 +239,14 @@ class NavSubframe:
 
     ``nav_type`` ``D1``/``D2``: a BDS B1I subframe, ``sow_s`` its SOW (BDT). ``LNAV``: a GPS
     L1 C/A subframe (:mod:`service.core.gps_nav`), ``sow_s`` its HOW time (GPST of the next
-    subframe's start, IS-GPS-200 20.3.3.2) and ``fra_id`` its subframe ID.
+    subframe's start, IS-GPS-200 20.3.3.2) and ``fra_id`` its subframe ID. ``INAV``: a
+    Galileo I/NAV word of a nominal page (:mod:`service.core.gal_nav`), ``words`` the 128-bit
+    word alone, ``fra_id`` its word type, ``sow_s`` the GST time of week at its page's start
+    when the word carries one (types 0/5/6), else -1.
     """
 
     prn: str
-    nav_type: Literal["D1", "D2", "LNAV"]
+    nav_type: Literal["D1", "D2", "LNAV", "INAV"]
     fra_id: int
     sow_s: int
     words: tuple[int, ...]

@@ -28,6 +28,7 @@ from service.core.constants import C_M_S
 from service.core.counters import Counters
 from service.core.declines import Decline, Declined
 from service.core.ephemeris import EphemerisStore
+from service.core.gal_nav import InavAssembler
 from service.core.gps_nav import LnavAssembler
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s, gpst_to_bdt
@@ -164,6 +165,7 @@ class Pipeline:
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
+    _inav: InavAssembler = field(default_factory=InavAssembler)
     _receiver_fix: ReceiverFix | None = None
     ggto: TimeOffset | None = None
     """The latest broadcast GST - GPST offset (:mod:`service.core.gal_nav`): recorded, not
@@ -253,15 +255,20 @@ class Pipeline:
         return events
 
     def _feed_assembler(self, sf: NavSubframe) -> None:
+        items: list[Ephemeris | KlobucharParams | TimeOffset]
         if sf.nav_type == "LNAV":
-            items = self._lnav.feed(sf.prn, sf.words, sf.gpst_week)
+            items = list(self._lnav.feed(sf.prn, sf.words, sf.gpst_week))
+        elif sf.nav_type == "INAV":
+            items = list(self._inav.feed(sf.prn, sf.words[0], sf.gpst_week))
         else:
-            items = self._assembler.feed(sf.prn, sf.nav_type, sf.words)
+            items = list(self._assembler.feed(sf.prn, sf.nav_type, sf.words))
         for item in items:
             if isinstance(item, Ephemeris):
                 self.add_ephemeris(item)
             elif isinstance(item, KlobucharParams):
                 self.set_iono(item)
+            elif isinstance(item, TimeOffset):
+                self.set_time_offset(item)
 
     # --- measurements ---------------------------------------------------------------------
     def on_epoch(self, epoch: MeasurementEpoch) -> EpochResult:
