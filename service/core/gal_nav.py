@@ -23,6 +23,7 @@ from pygnssutils.rawnav_subframes_gal import (
     GAL_INAV_WORD_3,
     GAL_INAV_WORD_4,
     GAL_INAV_WORD_5,
+    GAL_INAV_WORD_6,
     GAL_INAV_WORD_10,
 )
 
@@ -290,3 +291,101 @@ class InavAssembler:
         self._last[prn] = eph
         self.counters["ephemerides"] += 1
         return [eph]
+
+
+# --- encoding (the virtual receiver) ---------------------------------------------------------
+E1B_SUBFRAME_WORDS = (2, 4, 6, 63, 63, 63, 63, 63, 0, 0, 1, 3, 5, 0, 63)
+"""Word type of each E1-B page of a 30 s sub-frame as the virtual receiver sends it: the
+broadcast schedule of :data:`E1B_TOW_PAGE_STARTS_S` (pages starting at GST 1, 3, ..., 29 s
+modulo 30), with word type 63 (dummy, ICD 4.3.5) where the real signal carries almanacs,
+FEC2 and reduced CED, which bdsfix does not read."""
+E1B_FIRST_PAGE_S = 1.0
+"""E1-B pages start on odd GST seconds (the PolyU capture)."""
+
+
+def sisa_index(sisa_m: float) -> int:
+    """The SISA index whose value is nearest ``sisa_m`` (Table 76), 255 (NAPA) for NaN."""
+    if not math.isfinite(sisa_m):
+        return 255
+    return min(range(126), key=lambda i: abs(galileo_sisa_m(i) - sisa_m))
+
+
+def pack_word(definition: dict[str, Any], values: dict[str, float]) -> int:
+    """A 128-bit I/NAV word from pygnssutils' transcription of its ICD table (fields in
+    order: (bits, U/S, scale)); each value divided by its scale and rounded, absent or
+    reserved fields zero."""
+    word = 0
+    used = 0
+    for name, spec in definition.items():
+        if not isinstance(spec, tuple):
+            continue
+        length, _encoding, scale = spec
+        raw = round(values.get(name, 0.0) / (scale if scale not in (0, 1) else 1))
+        word = word << length | (raw & ((1 << length) - 1))
+        used += length
+    if used != 128:
+        raise ValueError(f"a word definition of {used} bits")
+    return word
+
+
+def encode_word(
+    eph: Ephemeris, wtype: int, gst_week: int, tow_s: int, iono: tuple[float, ...] = ()
+) -> int:
+    """The 128-bit word of type ``wtype`` (0, 1-6 or 63) for ``eph`` (held on BDT, put back
+    on GST here), ``gst_week`` and ``tow_s`` the page start (types 0, 5, 6): the inverse of
+    :func:`ephemeris_from_words` and :func:`word_tow_s`."""
+    if wtype == 63:
+        return 63 << 122
+    if wtype == 0:  # Time '10': WN and TOW valid
+        return 2 << 120 | (gst_week % 4096) << 20 | (tow_s % int(WEEK_S))
+    sc = ICD_PI
+    toe = (eph.toe_sow_s + BDT_GPST_OFFSET_S) % WEEK_S
+    toc = (eph.toc_sow_s + BDT_GPST_OFFSET_S) % WEEK_S
+    values: dict[str, float] = {
+        "sid": wtype,
+        "iodn": eph.aode,
+        "toe": toe,
+        "m0": eph.m0_rad / sc,
+        "e": eph.e,
+        "sqrta": eph.sqrt_a_sqrt_m,
+        "omega0": eph.omega0_rad / sc,
+        "i0": eph.i0_rad / sc,
+        "omega": eph.omega_rad / sc,
+        "idot": eph.idot_rad_s / sc,
+        "omegadot": eph.omega_dot_rad_s / sc,
+        "deltan": eph.delta_n_rad_s / sc,
+        "cuc": eph.cuc_rad,
+        "cus": eph.cus_rad,
+        "crc": eph.crc_m,
+        "crs": eph.crs_m,
+        "sisa": sisa_index(eph.ura_m),
+        "sv": int(eph.prn[1:]),
+        "cic": eph.cic_rad,
+        "cis": eph.cis_rad,
+        "toc": toc,
+        "af0": eph.af0_s,
+        "af1": eph.af1_s_s,
+        "af2": eph.af2_s_s2,
+        "bgde5a": eph.tgd2_s,
+        "bgde5b": eph.tgd1_s,
+        "wn": gst_week % 4096,
+        "tow": tow_s % int(WEEK_S),
+    }
+    if wtype == 5:  # health by position (see ephemeris_from_words)
+        h = eph.health
+        values |= {"e5ahs": h >> 7 & 3, "e5bhs": h >> 1 & 3, "e5advs": h >> 6 & 1}
+        values |= {"e5bdvs": h & 1, "ai0": iono[0] if iono else 0.0}
+    definitions = {**_EPH_WORDS, 5: GAL_INAV_WORD_5, 6: GAL_INAV_WORD_6}
+    return pack_word(definitions[wtype], values)
+
+
+def encode_page(word: int) -> list[int]:
+    """The eight u-blox RXM-SFRBX dwords of a nominal page carrying ``word`` (the layout
+    :func:`inav_word` reads; reserved, SAR and spare fields zero, CRC-24Q computed)."""
+    even = word >> 16  # Even/Odd 0, Page Type 0, Data 1/2
+    odd106 = (1 << 105) | (word & 0xFFFF) << 88  # Even/Odd 1, Page Type 0, Data 2/2, zeros
+    crc = crc24q_bits(even << 82 | odd106 >> 24, 196)
+    page = (even << 6) << 8  # tail, pad
+    odd = (odd106 | crc) << 8 << 6  # SSP, tail
+    page = page << 128 | odd << 8  # pad
+    return [(page >> (32 * (7 - i))) & 0xFFFFFFFF for i in range(8)]

@@ -1,0 +1,141 @@
+"""The virtual receiver with GPS and Galileo satellites from a real mixed nav file (HKSC
+2021-06-10, ../shared/data/hksc-2021/hksc1610.nav), each with its own message timing:
+GPS LNAV subframes on 6 s of GPST with the HOW (IS-GPS-200 20.3.2, 20.3.3.2), Galileo E1-B
+I/NAV pages of 2 s on odd GST seconds, the time known at the end of a page of word type
+0/5/6 (OS SIS ICD 4.3.5).
+
+References: the nav file's own sets (the subframes and pages the stream carries decode back
+to them), the ICDs' boundaries, and the true position the stream was made at.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import numpy as np
+
+from drivers.rinex import read_nav
+from drivers.source import StreamDecoder
+from service.core.ephemeris import EphemerisStore
+from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
+from service.engine.pipeline import Pipeline
+from service.sim.scenario import default_start_gpst
+from service.sim.simulator import SimConfig, Simulator
+from tests.support.paths import DATA
+
+NAV = DATA / "hksc-2021" / "hksc1610.nav"
+C_M_S = 299_792_458.0
+
+
+@functools.cache
+def _ephs() -> tuple[Ephemeris, ...]:
+    nav = read_nav(NAV, "CGE")
+    return tuple(e for items in nav.ephemerides.values() for e in items)
+
+
+def _config(systems: str, duration_s: float = 40.0) -> SimConfig:
+    week, tow = default_start_gpst([e for e in _ephs() if e.prn[0] == "C"])
+    return SimConfig(
+        lat_deg=22.3,
+        lon_deg=114.2,
+        alt_m=20.0,
+        start_gpst_week=week,
+        start_gpst_tow_s=tow,
+        duration_s=duration_s,
+        rate_hz=10.0,
+        systems=systems,
+    )
+
+
+@functools.cache
+def _run(systems: str) -> tuple[Simulator, list, list, Pipeline, dict]:
+    sim = Simulator(_ephs(), _config(systems))
+    dec = StreamDecoder(mapper_options={"ubx": {"systems": frozenset(systems)}})
+    pipe = Pipeline(store=EphemerisStore())
+    sim_epochs, results = [], []
+    for ep, data in sim.ubx_epochs():
+        sim_epochs.append(ep)
+        for ev in dec.feed(data):
+            if isinstance(ev, NavSubframe):
+                pipe.on_subframe(ev)
+            elif isinstance(ev, MeasurementEpoch):
+                results.append(pipe.on_epoch(ev))
+    return sim, sim_epochs, results, pipe, dict(dec.counters)
+
+
+def test_beidou_stream_is_the_same_bytes_whatever_else_is_simulated():
+    """A BeiDou-only run (the default systems) gives the bytes it gave before GPS and Galileo
+    joined: other systems draw from their own random streams."""
+    cfg = _config("C", duration_s=5.0)
+    alone = Simulator([e for e in _ephs() if e.prn[0] == "C"], cfg)
+    given_all = Simulator(_ephs(), cfg)  # systems "C": the others are left out
+    assert alone.prns == given_all.prns and all(p[0] == "C" for p in alone.prns)
+    a = b"".join(d for _, d in alone.ubx_epochs())
+    b = b"".join(d for _, d in given_all.ubx_epochs())
+    assert a == b
+    with_others = Simulator(_ephs(), _config("CGE", duration_s=5.0))
+    bds_pr = [
+        ep.pr_m[[i for i, p in enumerate(ep.prn) if p[0] == "C"]]
+        for ep, _ in with_others.ubx_epochs()
+    ]
+    again = Simulator([e for e in _ephs() if e.prn[0] == "C"], cfg)  # (a run uses its draws)
+    assert all(
+        np.array_equal(x.pr_m, y) for (x, _), y in zip(again.ubx_epochs(), bds_pr, strict=True)
+    )
+
+
+def test_each_system_becomes_full_on_its_own_message_timing():
+    """GPS: 1.2 s after the first LNAV subframe start (a multiple of 6 s of GPST) after bit
+    sync; Galileo: at the end of the first E1-B page carrying a TOW that starts after page
+    sync (pages start on odd GST seconds; TOW pages at 5, 17, 19, 25, 27 s modulo 30); both
+    one flight time later (checked to 5 ms: a wrong boundary is seconds off)."""
+    sim, sim_epochs, _, _, _ = _run("CGE")
+    start = sim.cfg.start_gpst_tow_s
+    first: dict[str, tuple[float, float]] = {}
+    for ep in sim_epochs:
+        for i, prn in enumerate(ep.prn):
+            if ep.full[i] and prn not in first:
+                first[prn] = (ep.t_s, float(ep.pr_m[i]))
+    gps = [p for p in sim.prns if p[0] == "G"]
+    gal = [p for p in sim.prns if p[0] == "E"]
+    assert len(gps) >= 8 and len(gal) >= 5
+    for prn in gps + gal:
+        st = sim._sats[prn]
+        # transmit time it is known: the pseudorange less the receiver clock offset is the
+        # flight time to within the satellite clock (< 2 ms)
+        known_gpst = start + st.full_s - first[prn][1] / C_M_S + sim.cfg.clock_offset_s
+        assert first[prn][0] - 0.1 < st.full_s <= first[prn][0] + 1e-9
+        if prn[0] == "G":
+            assert math.isclose((known_gpst - 1.2) % 6.0, 0.0, abs_tol=5e-3) or math.isclose(
+                (known_gpst - 1.2) % 6.0, 6.0, abs_tol=5e-3
+            )
+        else:
+            page_start = (known_gpst - 2.0) % 30.0
+            assert min(abs(page_start - s) for s in (5, 17, 19, 25, 27)) < 5e-3, page_start
+
+
+def test_the_stream_carries_lnav_subframes_and_inav_pages_that_decode_to_the_nav_sets():
+    """Cold start (no held ephemerides): the GPS and Galileo sets come from the stream's own
+    SFRBX (LNAV subframes 1-3, I/NAV words 1-5), equal to the nav file's sets (GPS URA: the
+    index's bound, 2.4 m, where the file writes 2.0 m); then SPP with a clock per system."""
+    sim, _, results, pipe, counters = _run("CGE")
+    assert counters["sfrbx_gps"] > 40 and counters["sfrbx_gal"] > 100
+    assert counters.get("sfrbx_unmapped", 0) == 0
+    held = {e.prn: e for e in pipe.store.all()}
+    in_view = {e.prn: e for e in sim.ephemerides}
+    decoded = [p for p in held if p[0] in "GE"]
+    assert len([p for p in decoded if p[0] == "G"]) >= 8
+    assert len([p for p in decoded if p[0] == "E"]) >= 5
+    for prn in decoded:
+        got, want = held[prn], in_view[prn]
+        for f in dataclasses.fields(Ephemeris):
+            if f.name in ("prn", "source") or (f.name == "ura_m" and prn[0] == "G"):
+                continue
+            a, b = getattr(got, f.name), getattr(want, f.name)
+            assert math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-15), (prn, f.name, a, b)
+    fixes = [r.fix for r in results if r.fix.ok and set(r.fix.clocks_m) == {"C", "G", "E"}]
+    assert len(fixes) >= 50  # measured 60: the Galileo sets complete after ~34 s (words 1-5)
+    err = [np.linalg.norm(np.subtract(f.x_ecef_m, sim.x_ecef_m)) for f in fixes]
+    assert max(err) < 10.0, max(err)
