@@ -304,6 +304,11 @@ def build_parser() -> argparse.ArgumentParser:
         "file, stdout or a pty.",
     )
     m.add_argument("--nav", help="RINEX 3 nav file (default: the paper's Table 1 set)")
+    add_flags(
+        m,
+        SystemsConfig,
+        "systems (from --nav: GPS and Galileo satellites join, on their own LNAV/I/NAV timing)",
+    )
     m.add_argument("--lat-deg", type=float, default=39.9, help="true latitude [deg]")
     m.add_argument("--lon-deg", type=float, default=116.4, help="true longitude [deg]")
     m.add_argument("--alt-m", type=float, default=50.0, help="true ellipsoidal height [m]")
@@ -424,6 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(t, FullRuleConfig, "restart")
     add_flags(t, SolverConfig, "solver")
+    add_flags(t, SystemsConfig, "systems (--simulate with --nav: GPS and Galileo satellites join)")
 
     g = command(
         "configure",

@@ -139,9 +139,13 @@ class Simulator:
         ephemerides: Sequence[Ephemeris],
         cfg: SimConfig | None = None,
         iono: KlobucharParams | None = None,
+        iono_gps: KlobucharParams | None = None,
     ) -> None:
         self.cfg = cfg or SimConfig()
         self.iono = iono
+        self.iono_gps = iono_gps
+        """GPSA/GPSB: the delay of GPS and Galileo rows when given (a receiver corrects those
+        rows with them, as RTKLIB does), else ``iono`` for every row."""
         self.x_ecef_m = geodetic_to_ecef(
             math.radians(self.cfg.lat_deg), math.radians(self.cfg.lon_deg), self.cfg.alt_m
         )
@@ -173,6 +177,8 @@ class Simulator:
         self._arr = arr.take(vis)
         self._bds = np.array([p[0] == "C" for p in self._arr.prn], dtype=bool)
         self._wavelength_m = np.array([wavelength_m(p) for p in self._arr.prn])
+        other_idx = np.flatnonzero(~self._bds)
+        self._other_arr = self._arr.take(other_idx) if len(other_idx) else None
         self._sats = {}
         for group, g_rng in ((True, rng), (False, self._other_rng)):
             members = [e.prn for e in self.ephemerides if (e.prn[0] == "C") == group]
@@ -208,7 +214,21 @@ class Simulator:
                 tropo=cfg.tropo,
                 noise_m=0.0,
             )
-            pr_m = tr.pr_m
+            pr_m, carrier_rate_m_s = tr.pr_m, tr.carrier_rate_m_s
+            if self.iono_gps is not None and self._other_arr is not None:
+                other = ~self._bds
+                tr_o = true_ranges(
+                    self._other_arr,
+                    self.x_ecef_m,
+                    week,
+                    tow,
+                    cfg.clock_offset_s,
+                    iono=self.iono_gps,
+                    tropo=cfg.tropo,
+                    noise_m=0.0,
+                )
+                pr_m, carrier_rate_m_s = pr_m.copy(), carrier_rate_m_s.copy()
+                pr_m[other], carrier_rate_m_s[other] = tr_o.pr_m, tr_o.carrier_rate_m_s
             if cfg.noise_m > 0:
                 noise = np.empty(len(pr_m))
                 noise[self._bds] = self._rng.normal(0.0, cfg.noise_m, int(self._bds.sum()))
@@ -232,7 +252,7 @@ class Simulator:
             prev_t = t
             idx = np.asarray(tracked, dtype=int)
             cn0 = 45.0 - 10.0 * (1.0 - np.sin(np.clip(tr.el_rad[idx], 0, None)))
-            doppler = -tr.carrier_rate_m_s[idx] / self._wavelength_m[idx]
+            doppler = -carrier_rate_m_s[idx] / self._wavelength_m[idx]
             if cfg.doppler_noise_hz > 0:
                 bds = self._bds[idx]
                 dn = np.empty(len(idx))
