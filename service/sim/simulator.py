@@ -1,4 +1,5 @@
-"""Virtual BDS receiver: a real UBX byte stream with true D1/D2 subframe timing.
+"""Virtual receiver: a real UBX byte stream with true D1/D2 subframe timing (BeiDou) and,
+with ``SimConfig.systems``, GPS LNAV subframe and Galileo I/NAV page timing.
 
 For a true position, start time and receiver clock offset, each visible satellite is
 acquired after a random delay (code lock: fractional measurement, T = 1 ms), reaches bit sync
@@ -16,6 +17,14 @@ RXM-RAWX whose prMes is valid only for satellites that are full. Pseudoranges co
 :mod:`service.sim.rangegen` (light time, Sagnac, satellite clock with TGD1, Klobuchar,
 Saastamoinen, Gaussian noise) and are quantised to the MEASX code-phase step (2^-21 ms), so
 that the fractional value a decoder reads back is exactly the full one modulo 1 ms.
+
+GPS and Galileo satellites of the ephemerides given join when ``systems`` names them (issue
+19): GPS LNAV subframes of 6 s on GPST with the HOW (IS-GPS-200 20.3.2, 20.3.3.2: full 1.2 s
+into the first subframe after bit sync), Galileo E1-B I/NAV pages of 2 s on odd GST seconds
+(OS SIS ICD 4.3.2.2, 4.3.5: full at the end of the first page of word type 0/5/6 after page
+sync), RAWX gnssId 0 / 2 sigId 0, SFRBX LNAV subframes and I/NAV pages; MEASX stays
+BeiDou's (the driver reads BeiDou's). They draw from random streams of their own, so the
+BeiDou satellites' draws, and a BeiDou-only stream, are the same whatever else is simulated.
 """
 
 from __future__ import annotations
