@@ -15,6 +15,8 @@ import functools
 import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pyubx2 import UBXReader
 
 from drivers.source import open_source
@@ -171,3 +173,23 @@ def test_restart_emulator_waits_for_the_next_tow_page():
     week, tow = emu.full_at_tow_s("E05", pr_m)
     assert week == POLYU_WEEK and tow == pytest.approx(285919.075)
     assert emu.full_at_tow_s("G10", pr_m)[1] == pytest.approx(285906 + 1.2 + 0.075)
+
+
+@settings(deadline=None, max_examples=200, derandomize=True)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["E01", "E05", "E36"]),
+            st.sampled_from([0, 1, 2, 3, 4, 5, 6, 10, 16, 63]),
+            st.integers(0, (1 << 122) - 1),
+        ),
+        max_size=30,
+    )
+)
+def test_assembler_takes_any_words(items):
+    """Any word content of any type: the assembler returns sets and offsets only (judging a
+    set's values is the store's job)."""
+    asm = InavAssembler()
+    for prn, wtype, body in items:
+        out = asm.feed(prn, wtype << 122 | body, POLYU_WEEK)
+        assert all(isinstance(x, Ephemeris | TimeOffset) for x in out)
