@@ -209,3 +209,20 @@ def test_ggto_iono_and_gps_subframes():
         assert list(s.words) == words
         assert s.sow_s == int.from_bytes(r[8:12], "little") / 1000
     assert {s.fra_id for s in lnav} == {4, 5}
+
+
+def test_the_loop_records_the_ggto_in_status_and_solves_with_three_clocks():
+    """The capture through the daemon's loop: the GALGstGps reaches the pipeline (counted
+    ``ggto_sbf``), STATUS carries ``ggto_ns`` (0: this day's broadcast), and the fixes use a
+    clock per system, untouched by the GGTO (recorded, never applied)."""
+    from service.daemon.loop import Runner
+    from service.engine.pipeline import Pipeline
+    from service.output.publish import Publishers
+
+    results = []
+    with open_source(str(LOG), systems=frozenset("CGE")) as src:
+        runner = Runner(src, Pipeline(EphemerisStore()), Publishers(), on_result=results.append)
+        assert runner.run() == 12
+        counters = runner.counters()
+    assert counters["ggto_sbf"] == 1 and counters["ggto_ns"] == 0.0
+    assert all(set(r.fix.clocks_m) == {"C", "G", "E"} for r in results)
