@@ -1,4 +1,4 @@
-"""Galileo navigation data: SISA, GST-GPS time offset (GGTO).
+"""Galileo navigation data: SISA, the GST-GPS time offset (GGTO) and I/NAV words.
 
 SISA (OS SIS ICD 5.1.12, Table 76) is the accuracy class of a Galileo set, held as
 :attr:`~service.core.types.Ephemeris.ura_m` as URA is for BeiDou and GPS.
@@ -8,6 +8,14 @@ GGTO (OS SIS ICD 5.1.8, I/NAV word type 10, F/NAV page type 4; RINEX 3 ``TIME SY
 with the week WN0G broadcast modulo 64. bdsfix solves one receiver clock per system
 (:mod:`service.engine.layout`), so the offset between GST and GPST goes into Galileo's clock
 and needs no correction; it is recorded (STATUS ``ggto_ns``) for the user to see.
+
+I/NAV (OS SIS ICD 4.3.2.2, 4.3.5): a nominal page (2 s: even part, odd part, CRC-24Q) carries
+one 128-bit word whose first 6 bits are its type. :func:`inav_word` / :func:`inav_word_of_parts`
+check a page as u-blox RXM-SFRBX or SBF GALRawINAV deliver it; :func:`word_tow_s` reads the
+time of week of word types 0, 5 and 6 (the tracker's Galileo time); :class:`InavAssembler`
+makes ephemerides of word types 1-5 and the GGTO of word type 10, their fields read by
+pygnssutils' RawNav from its transcription of the ICD's word tables. :func:`encode_word` and
+:func:`encode_page` are the inverses, for the virtual receiver.
 """
 
 from __future__ import annotations
@@ -49,7 +57,7 @@ def galileo_sisa_m(index: int) -> float:
 
 
 WN0G_MODULUS = 64
-"""WN0G is broadcast in 6 bits (OS SIS ICD Table 71)."""
+"""WN0G is broadcast in 6 bits (OS SIS ICD 5.1.8, I/NAV word type 10)."""
 
 
 def week_near(broadcast: int, modulus: int, ref_week: int) -> int:
@@ -106,9 +114,10 @@ def inav_word_of_parts(even: int, odd: int) -> int:
     """The 128-bit data word of a nominal I/NAV page from its even part's first 114 bits
     (Even/Odd, Page Type, Data 1/2: 112 bits) and its odd part's first 82 + 24 bits (Even/Odd,
     Page Type, Data 2/2: 16 bits, Reserved 1 / OSNMA 40, SAR 22, Spare 2; then the CRC),
-    given as ``odd`` = its first 106 bits (ICD 4.3.2.2, Table 39). DecodeError for parts out
-    of order (even part's bit 0, odd's 1), an alert page (Page Type 1) or a CRC-24Q failure
-    over the 196 bits from the even part's first bit to the odd part's Spare (4.3.2.2.2)."""
+    given as ``odd`` = its first 106 bits (ICD 4.3.2.2, nominal page layout). DecodeError
+    for parts out of order (even part's bit 0, odd's 1), an alert page (Page Type 1) or a
+    CRC-24Q failure over the 196 bits from the even part's first bit to the odd part's Spare
+    (4.3.2.2.2)."""
     if even >> 113 != 0 or (odd >> 105) & 1 != 1:
         raise DecodeError("I/NAV page parts out of order (even/odd bits)")
     if (even >> 112) & 1 or (odd >> 104) & 1:
@@ -186,7 +195,7 @@ def _fields(prn: str, words: dict[int, int], defs: dict[int, dict[str, Any]]) ->
 
 
 def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Ephemeris:
-    """The ephemeris of I/NAV word types 1-4 (one IODnav) and 5 (ICD 4.3.5, Tables 40-44;
+    """The ephemeris of I/NAV word types 1-4 (one IODnav) and 5 (ICD 4.3.5, the word type tables;
     fields by pygnssutils' RawNav), on BDT (GST - 14 s, the GST week + 1024 on the GPS
     count, resolved against ``gpst_week``: ICD 5.1.2). The clock is for (E1, E5b): the E1
     group delay is BGD(E1,E5b) and the accuracy SISA(E1,E5b) (5.1.5, 5.1.12). Health as RINEX
@@ -237,7 +246,7 @@ def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Eph
 
 
 def ggto_from_word10(prn: str, word: int, gpst_week: int) -> TimeOffset:
-    """GGTO of word type 10 (ICD 4.3.5 Table 49: A0G 2^-35 s, A1G 2^-51 s/s, t0G 3600 s,
+    """GGTO of word type 10 (ICD 4.3.5: A0G 2^-35 s, A1G 2^-51 s/s, t0G 3600 s,
     WN0G modulo 64; fields by pygnssutils' RawNav)."""
     nav = _fields(prn, {10: word}, {10: GAL_INAV_WORD_10})
     return TimeOffset(
@@ -254,7 +263,7 @@ class InavAssembler:
     """Collects each Galileo satellite's I/NAV words (E1-B and E5b-I alike: the same words)
     into ephemerides, and word type 10 into the GGTO.
 
-    A set is words 1-4 of one IODnav (ICD 5.1.9.2: a new issue changes all four) with the
+    A set is words 1-4 of one IODnav (IODnav, ICD 5.1.9: a new issue changes all four) with the
     latest word 5 (health, BGD, WN/TOW); it is returned when complete and different from the
     last one returned for the satellite, the GGTO whenever it changes."""
 
