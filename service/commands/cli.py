@@ -224,7 +224,12 @@ def build_parser() -> argparse.ArgumentParser:
         "gnsslogger:log.txt, names the format); none: the built-in virtual receiver near "
         "Beijing",
     )
-    r.add_argument("--nav", action="append", help="RINEX 3 nav file(s): held ephemerides")
+    r.add_argument(
+        "--nav",
+        action="append",
+        help="RINEX 3 nav file(s): held ephemerides; with no FILE, the built-in virtual "
+        "receiver flies their satellites (GPS and Galileo too with --systems) instead of Table 1",
+    )
     r.add_argument(
         "--restart-at",
         type=float,

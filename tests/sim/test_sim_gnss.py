@@ -190,3 +190,28 @@ def test_ttff_study_includes_gps_and_galileo():
         assert doc["fast"]["success_pct"] == 100.0
         assert doc["fast"]["max_diff_to_spp_m"] < 1e-3
     assert docs["C,G,E"]["conventional"]["median_s"] < docs["C"]["conventional"]["median_s"]
+
+
+def test_builtin_scenario_flies_a_nav_files_gps_and_galileo_satellites(tmp_path, capsys):
+    """``bdsfix replay --nav NAV --systems C,G,E`` with no capture: the built-in virtual
+    receiver flies the nav file's satellites instead of Table 1, GPS and Galileo included on
+    their own message timing; every epoch fixes, the later ones with the three systems, and
+    every integer a fast fix recovered is confirmed. Without ``--nav`` it is Table 1 as
+    before (BeiDou only: the README's figures, tests/system/test_readme_walkthrough.py)."""
+    from service.commands.cli import main
+
+    out = tmp_path / "fixes.jsonl"
+    argv = ["replay", "--max-speed", "--nav", str(NAV), "--systems", "C,G,E"]
+    assert main([*argv, "--jsonl-out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warm start with the nav file's ephemerides" in err
+    assert "failures 0" in err and "integrity checks 0," not in err, err
+    import json
+
+    fixes = [
+        r
+        for r in (json.loads(line) for line in out.read_text().splitlines())
+        if r["class"] == "FIX"
+    ]
+    assert len(fixes) == 600 and all(r["mode"] in ("fast", "spp") for r in fixes)
+    assert set(fixes[-1]["used_by_system"]) == {"C", "G", "E"}
