@@ -42,11 +42,12 @@ from service.core.types import (
     MeasurementEpoch,
     NavSubframe,
     ReceiverFix,
+    TimeOffset,
 )
 
 log = logging.getLogger(__name__)
 
-Event = MeasurementEpoch | NavSubframe | Ephemeris | KlobucharParams | ReceiverFix
+Event = MeasurementEpoch | NavSubframe | Ephemeris | KlobucharParams | ReceiverFix | TimeOffset
 """What drivers emit: the event types of :mod:`service.core.types`."""
 
 DEFAULT_MAX_COMMENT = 8192

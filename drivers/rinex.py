@@ -80,7 +80,7 @@ from service.core.timebase import (
     gpst_from_utc,
     gpst_to_bdt,
 )
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch
+from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, TimeOffset
 
 log = logging.getLogger(__name__)
 
@@ -745,6 +745,8 @@ class NavData:
     iono_gps: KlobucharParams | None = None
     leap_seconds: int | None = None
     counters: dict[str, int] = field(default_factory=dict)
+    ggto: TimeOffset | None = None
+    """GST - GPST of the header's ``TIME SYSTEM CORR`` ``GAGP`` record, when it has one."""
 
 
 def _iono(
@@ -765,6 +767,24 @@ def _iono(
     if a in vals and b in vals:
         # the header prints broadcast values to 4-5 digits: back on their LSBs, as decoded
         return klobuchar_on_grid(KlobucharParams(alpha=vals[a], beta=vals[b], system=system))
+    return None
+
+
+def _ggto(lines: list[tuple[int, str]], path: Path) -> TimeOffset | None:
+    """GST - GPST from a ``TIME SYSTEM CORR`` ``GAGP`` record (RINEX 3.04 Table A5:
+    A4,1X,D17.10,D16.9,1X,I6,1X,I4: a0 [s], a1 [s/s], reference time [s of week] and week,
+    the Galileo week counted as the GPS week); the GGTO of OS SIS ICD 5.1.8."""
+    for lineno, text in lines:
+        if text[:4] != "GAGP":
+            continue
+        try:
+            a0, a1 = _float(text[5:22]), _float(text[22:38])
+            t_ref, week = int(text[38:45]), int(text[45:50])
+        except ValueError as exc:
+            raise FramingError(f"{path}:{lineno}: bad TIME SYSTEM CORR GAGP: {exc}") from exc
+        if math.isnan(a0) or math.isnan(a1):
+            raise FramingError(f"{path}:{lineno}: TIME SYSTEM CORR GAGP has blank fields")
+        return TimeOffset("GAGP", a0, a1, float(t_ref), week, "rinex")
     return None
 
 
@@ -933,6 +953,7 @@ def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
         iono_gps=_iono(h.records.get("IONOSPHERIC CORR", []), "GPSA", "GPSB", "GPS", path),
         leap_seconds=_leap_seconds(h, path),
         counters=dict(counters),
+        ggto=_ggto(h.records.get("TIME SYSTEM CORR", []), path),
     )
 
 
@@ -958,6 +979,7 @@ def merge_nav(*navs: NavData) -> NavData:
         iono_gps=next((n.iono_gps for n in navs if n.iono_gps), None),
         leap_seconds=next((n.leap_seconds for n in navs if n.leap_seconds is not None), None),
         counters=dict(counters),
+        ggto=next((n.ggto for n in navs if n.ggto is not None), None),
     )
 
 

@@ -47,6 +47,7 @@ from pyrtcm import RTCMReader
 from drivers.framing import BinaryFraming, Event, WeekContext
 from service.core.constants import C_M_S, ICD_PI, URA_M, WEEK_S
 from service.core.counters import Counters
+from service.core.gal_nav import galileo_sisa_m
 from service.core.rtcm1042 import EPH_1042_FIELDS, EPH_1042_INT_FIELDS
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
 from service.core.timebase import (
@@ -190,21 +191,6 @@ GAL_1046_FIELDS: tuple[tuple[str, str, bool], ...] = (
     ("crc_m", "DF309", False), ("crs_m", "DF297", False), ("cic_rad", "DF305", False),
     ("cis_rad", "DF307", False),
 )  # fmt: skip
-
-
-def galileo_sisa_m(index: int) -> float:
-    """SISA [m] of its index (Galileo OS SIS ICD 5.1.12, Table 76): 0-49 by 1 cm, 50-74 from
-    0.5 m by 2 cm, 75-99 from 1 m by 4 cm, 100-125 from 2 m by 16 cm; 126-254 spare and 255
-    NAPA (no accuracy prediction available): NaN, which the store refuses."""
-    if 0 <= index < 50:
-        return index * 0.01
-    if index < 75:
-        return 0.5 + (index - 50) * 0.02
-    if index < 100:
-        return 1.0 + (index - 75) * 0.04
-    if index < 126:
-        return 2.0 + (index - 100) * 0.16
-    return math.nan
 
 
 MSM_RANGE = range(1071, 1138)

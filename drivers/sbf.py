@@ -1,4 +1,4 @@
-"""Septentrio SBF blocks to bdsfix events: framing, the BeiDou blocks parsed and mapped.
+"""Septentrio SBF blocks to bdsfix events: framing; BeiDou, GPS and Galileo blocks mapped.
 
 Reference: Septentrio "mosaic-X5 Reference Guide" (firmware 4.x), section "SBF Outline"
 (block header, CRC, ID, length; "Do-Not-Use" values), "Signal Type" (signal numbers) and
@@ -43,7 +43,10 @@ Counter keys: ``sbf:<Name>`` per block, ``sbf_ignored``, ``epochs_sbf``, ``sbf_b
 ``meas_other_gnss``, ``meas_bds_other_signal``, ``meas_aux_antenna``, ``meas_pr_invalid``,
 ``meas_pr_implausible``, ``ephemerides_sbf``, ``eph_bad_prn``, ``iono_sbf``, ``subframes``,
 ``bdsraw_other_signal``, ``bdsraw_crc_failed``, ``bdsraw_unmapped``, ``sbf_pvt``,
-``sbf_pvt_no_fix``.
+``sbf_pvt_no_fix``; with GPS/Galileo: ``meas_G``, ``meas_E``, ``meas_G_other_signal``,
+``meas_E_other_signal``, ``ephemerides_sbf_G``, ``ephemerides_sbf_E``, ``galnav_fnav``,
+``eph_bad_week``, ``iono_sbf_G``, ``sbf_gal_ion_unused``, ``ggto_sbf``,
+``gpsraw_crc_failed``, ``gpsraw_unmapped``.
 """
 
 from __future__ import annotations
@@ -64,10 +67,24 @@ from service.core.bds_nav import b1i_subframe
 from service.core.constants import ICD_PI, URA_M, WEEK_S
 from service.core.counters import Counters
 from service.core.errors import DecodeError
+from service.core.gal_nav import (
+    WN0G_MODULUS,
+    galileo_sisa_m,
+    inav_subframe,
+    inav_word_of_parts,
+    week_near,
+)
 from service.core.geometry import geodetic_to_ecef
+from service.core.gps_nav import lnav_subframe
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
-from service.core.timebase import bdt_to_gpst
-from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, ReceiverFix
+from service.core.timebase import BDT_GPST_OFFSET_S, bdt_to_gpst, gpst_to_bdt
+from service.core.types import (
+    Ephemeris,
+    KlobucharParams,
+    MeasurementEpoch,
+    ReceiverFix,
+    TimeOffset,
+)
 
 log = logging.getLogger(__name__)
 
@@ -111,13 +128,35 @@ FRAMING = BinaryFraming(
 
 # --- block numbers -----------------------------------------------------------------------
 MEAS_EPOCH, PVT_GEODETIC, BDS_RAW, BDS_NAV, BDS_ION = 4027, 4007, 4047, 4081, 4120
+GPS_NAV, GPS_ION, GAL_NAV, GAL_ION, GAL_GST_GPS = 5891, 5893, 4002, 4030, 4032
+GPS_RAW_CA = 4017
+GAL_RAW_INAV = 4023
 _PARSED = frozenset({PVT_GEODETIC, BDS_RAW, BDS_NAV, BDS_ION})
+_PARSED_GPS = frozenset({GPS_NAV, GPS_ION, GPS_RAW_CA})
+_PARSED_GAL = frozenset({GAL_NAV, GAL_ION, GAL_GST_GPS, GAL_RAW_INAV})
+_OTHER_NAV = frozenset({GPS_NAV, GPS_ION, GAL_NAV, GAL_ION, GAL_GST_GPS})
+_NAV_BLOCKS = {GnssSystem.GPS: _PARSED_GPS, GnssSystem.GAL: _PARSED_GAL}
+"""Navigation blocks of GPS and Galileo, parsed when the mapper's ``systems`` include the
+system (else counted ``sbf_ignored``)."""
 
 TOW_DNU = 4294967295
 WNC_DNU = 65535
 
 # --- signals ("Signal Type" table) and satellites ("Satellite ID" table) ------------------
 SIG_B1I = 28
+SIG_GPS_L1CA = 0
+SIG_GAL_E1 = 17
+OTHER_SIGNALS: dict[GnssSystem, tuple[int, str]] = {
+    GnssSystem.GPS: (SIG_GPS_L1CA, "1C"),
+    GnssSystem.GAL: (SIG_GAL_E1, "1C"),
+}
+"""MeasEpoch signals of GPS (L1 C/A, signal 0) and Galileo (E1 B/C, signal 17, tracked on
+the pilot: RINEX ``1C``) read when the mapper's ``systems`` include them (issue 19)."""
+_GAL_RAW_SIGNALS = {17: "1B", 21: "7I"}
+"""GALRawINAV signals whose I/NAV words are read: E1-B (17) and E5b-I (21)."""
+GAL_SOURCE_INAV = 2
+"""GALNav/GALIon/GALGstGps ``Source``: 2 I/NAV, 16 F/NAV (Reference Guide, GALNav)."""
+BGD_DNU = -2e10
 SIG_CARRIER_HZ: dict[int, float] = {
     0: 1575.42e6,  # GPS L1CA
     1: 1575.42e6,  # GPS L1P
@@ -149,6 +188,28 @@ def bds_prn(svid: int) -> int | None:
         return svid - 140
     if 223 <= svid <= 245:
         return svid - 182
+    return None
+
+
+def gps_prn(svid: int) -> int | None:
+    """GPS PRN of an SBF SVID (1-37), else None."""
+    return svid if 1 <= svid <= 37 else None
+
+
+def gal_prn(svid: int) -> int | None:
+    """Galileo PRN of an SBF SVID (71-106: E01-E36), else None."""
+    return svid - 70 if 71 <= svid <= 106 else None
+
+
+_PRN_OF = {GnssSystem.BDS: bds_prn, GnssSystem.GPS: gps_prn, GnssSystem.GAL: gal_prn}
+
+
+def svid_system(svid: int) -> tuple[GnssSystem, int] | None:
+    """(system, PRN) of a BeiDou, GPS or Galileo SVID, else None."""
+    for system, of in _PRN_OF.items():
+        n = of(svid)
+        if n is not None:
+            return system, n
     return None
 
 
@@ -271,6 +332,77 @@ def ephemeris_from_bdsnav(msg: Any, prn: int) -> Ephemeris:
     )
 
 
+_KEPLER_SEMI = (
+    ("i0_rad", "i_0"), ("omega0_rad", "OMEGA_0"), ("omega_rad", "omega"), ("m0_rad", "M_0"),
+    ("delta_n_rad_s", "DEL_N"), ("omega_dot_rad_s", "OMEGADOT"), ("idot_rad_s", "IDOT"),
+)  # fmt: skip
+_KEPLER_PLAIN = (
+    ("sqrt_a_sqrt_m", "SQRT_A"), ("e", "e"), ("cuc_rad", "C_uc"), ("cus_rad", "C_us"),
+    ("crc_m", "C_rc"), ("crs_m", "C_rs"), ("cic_rad", "C_ic"), ("cis_rad", "C_is"),
+    ("af0_s", "a_f0"), ("af1_s_s", "a_f1"), ("af2_s_s2", "a_f2"),
+)  # fmt: skip
+"""GPSNav/GALNav fields (the same names in both blocks): angles in semicircles, times the
+ICD's pi (IS-GPS-200 20.3.3.4.3, OS SIS ICD 5.1.1)."""
+
+
+def _kepler(msg: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {name: float(getattr(msg, f)) * ICD_PI for name, f in _KEPLER_SEMI}
+    out.update({name: float(getattr(msg, f)) for name, f in _KEPLER_PLAIN})
+    return out
+
+
+def ephemeris_from_gpsnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
+    """A pysbf2 GPSNav block (IS-GPS-200 subframes 1-3 as the receiver decoded them) as an
+    :class:`Ephemeris` on BDT (GPST - 14 s, as every set is held). WNt_oe is the week
+    modulo 1024, resolved against the block's WNc; t_oc shares t_oe's week."""
+    week = week_near(int(msg.WNt_oe), 1024, wnc)
+    bdt_week, toe_bdt = gpst_to_bdt(week, float(msg.t_oe))
+    ura_index = int(msg.URA)
+    return Ephemeris(
+        prn=sat_id(GnssSystem.GPS, prn),
+        week=bdt_week,
+        toe_sow_s=toe_bdt,
+        toc_sow_s=(float(msg.t_oc) - BDT_GPST_OFFSET_S) % WEEK_S,
+        tgd1_s=float(msg.T_gd),
+        health=int(msg.health),
+        aode=int(msg.IODE2),
+        aodc=int(msg.IODC),
+        ura_m=URA_M[ura_index] if 0 <= ura_index < len(URA_M) else math.nan,
+        source="sbf",
+        **_kepler(msg),
+    )
+
+
+def ephemeris_from_galnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
+    """A pysbf2 GALNav block of I/NAV (Source 2) as an :class:`Ephemeris` on BDT (GST - 14 s,
+    GST = GPST to tens of ns, OS SIS ICD 5.1.8). The I/NAV clock is for (E1, E5b): an E1 user
+    takes BGD(E1,E5b) (5.1.5) and SISA(E1,E5b) (5.1.12). Health packed as RINEX 3.04 Table A8
+    does (bit 0 E1-B DVS, bits 1-2 E1-B HS, bit 6 E5b DVS, bits 7-8 E5b HS; each pair only
+    when the block flags it valid), as RTCM 1046 is. WNt_oe counts GPS weeks; one more than
+    a week from the block's WNc is refused (``eph_bad_week``, by the caller)."""
+    week = int(msg.WNt_oe)
+    bdt_week, toe_bdt = gpst_to_bdt(week, float(msg.t_oe))
+    health = 0
+    if int(getattr(msg, "L1-BHealth")):
+        health |= int(getattr(msg, "L1-Bdvs")) | int(getattr(msg, "L1-Bhs")) << 1
+    if int(msg.E5bHealth):
+        health |= int(msg.E5bdvs) << 6 | int(msg.E5bhs) << 7
+    bgd_e5b, bgd_e5a = float(msg.BGD_L1E5b), float(msg.BGD_L1E5a)
+    return Ephemeris(
+        prn=sat_id(GnssSystem.GAL, prn),
+        week=bdt_week,
+        toe_sow_s=toe_bdt,
+        toc_sow_s=(float(msg.t_oc) - BDT_GPST_OFFSET_S) % WEEK_S,
+        tgd1_s=math.nan if bgd_e5b == BGD_DNU else bgd_e5b,
+        tgd2_s=0.0 if bgd_e5a == BGD_DNU else bgd_e5a,
+        health=health,
+        aode=int(msg.IODnav),
+        ura_m=galileo_sisa_m(int(msg.SISA_L1E5b)),
+        source="sbf",
+        **_kepler(msg),
+    )
+
+
 def navbits_words(navbits: bytes) -> tuple[int, ...]:
     """The 10 words of 30 bits of a BDSRaw NavBits field (ten LE u4, bits MSB first)."""
     if len(navbits) < 40:
@@ -298,10 +430,16 @@ class SbfMapper:
         week: WeekContext | None = None,
         *,
         source: str = "sbf",
+        systems: frozenset[str] | str = GnssSystem.BDS.value,
     ) -> None:
         self.counters = counters if counters is not None else Counters()
         self.week = week if week is not None else WeekContext()
         self.source = source
+        wanted = frozenset(systems)
+        self._other = {s: sig for s, sig in OTHER_SIGNALS.items() if s.value in wanted}
+        self._parsed = _PARSED.union(
+            *(blocks for s, blocks in _NAV_BLOCKS.items() if s.value in wanted)
+        )
         self._held: list[Event] | None = []  # the first epoch; None once released
         self.receiver_fix: tuple[int, float, tuple[float, float, float]] | None = None
         """The latest PVTGeodetic with a position: (GPS week, TOW s, ECEF m)."""
@@ -312,7 +450,7 @@ class SbfMapper:
         self.counters[f"sbf:{block_name(number)}"] += 1
         if number == MEAS_EPOCH:
             return self._release(self._on_meas_epoch(raw))
-        if number not in _PARSED:
+        if number not in self._parsed:
             self.counters["sbf_ignored"] += 1
             return []
         if len(raw) < HEADER_LEN + 6:
@@ -321,6 +459,8 @@ class SbfMapper:
         tow, wnc = int.from_bytes(raw[8:12], "little"), int.from_bytes(raw[12:14], "little")
         if number == BDS_NAV:
             return self._on_bds_nav(msg)
+        if number in _OTHER_NAV:
+            return self._on_other_nav(number, msg, wnc)
         if number == BDS_ION:
             self.counters["iono_sbf"] += 1
             alpha = tuple(float(getattr(msg, f"alpha_{i}")) for i in range(4))
@@ -331,6 +471,10 @@ class SbfMapper:
             return []
         if number == BDS_RAW:
             return self._on_bds_raw(msg, wnc, tow * 1e-3)
+        if number == GPS_RAW_CA:
+            return self._on_gps_raw(msg, wnc, tow * 1e-3)
+        if number == GAL_RAW_INAV:
+            return self._on_gal_raw(msg, wnc, tow * 1e-3)
         return self._on_pvt(msg, wnc, tow * 1e-3)
 
     def flush(self) -> list[Event]:
@@ -356,14 +500,24 @@ class SbfMapper:
         tow = tow_ms * 1e-3
         self.week.set_exact(wnc, tow)
         sats: dict[str, tuple[float, float, float, float]] = {}
+        signals: dict[str, str] = {}
         for svid, sig, antenna, pr, dop, cn0, lock in rows:
-            prn = bds_prn(svid)
-            if prn is None:
+            found = svid_system(svid)
+            if found is None or (found[0] is not GnssSystem.BDS and found[0] not in self._other):
                 self.counters["meas_other_gnss"] += 1
                 continue
-            if sig != SIG_B1I:
-                self.counters["meas_bds_other_signal"] += 1
-                continue
+            system, prn = found
+            if system is GnssSystem.BDS:
+                if sig != SIG_B1I:
+                    self.counters["meas_bds_other_signal"] += 1
+                    continue
+                code = "2I"
+            else:
+                want_sig, code = self._other[system]
+                if sig != want_sig or prn > SYSTEM_CONSTANTS[system].prn_max:
+                    self.counters[f"meas_{system.value}_other_signal"] += 1
+                    continue
+                self.counters[f"meas_{system.value}"] += 1
             if antenna != 0:
                 self.counters["meas_aux_antenna"] += 1
                 continue
@@ -372,7 +526,8 @@ class SbfMapper:
             elif not 0.0 < pr < PR_MAX_M:
                 self.counters["meas_pr_implausible"] += 1
                 pr = math.nan
-            sats[sat_id(GnssSystem.BDS, prn)] = (pr, cn0, dop, lock)
+            sats[sat_id(system, prn)] = (pr, cn0, dop, lock)
+            signals[sat_id(system, prn)] = code
         keep = sorted(p for p, v in sats.items() if not math.isnan(v[0]))
         if not keep:
             return []
@@ -383,9 +538,8 @@ class SbfMapper:
                 wnc,
                 tow,
                 keep,
-                ["2I"] * len(keep),
+                [signals[p] for p in keep],
                 cols[:, 0],
-                period_s=_BDS.code_period_s,
                 cn0_dbhz=cols[:, 1],
                 doppler_hz=cols[:, 2],
                 lock_s=cols[:, 3],
@@ -404,6 +558,102 @@ class SbfMapper:
             gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
             self.week.set_approx(gps_week, gps_tow, "SBF BDSNav")
         self.counters["ephemerides_sbf"] += 1
+        return [eph]
+
+    def _on_gps_raw(self, msg: Any, wnc: int, tow_s: float) -> list[Event]:
+        """A GPSRawCA with CRCPassed: its LNAV subframe (each u4 of NavBits holds one word in
+        bits 29-0, in the form :mod:`service.core.gps_nav` checks, as u-blox delivers it)."""
+        if not int(msg.CRCPassed):
+            self.counters["gpsraw_crc_failed"] += 1
+            return []
+        prn = gps_prn(int(msg.SVID))
+        navbits = bytes(msg.NavBits)
+        if prn is None or prn > SYSTEM_CONSTANTS[GnssSystem.GPS].prn_max or len(navbits) < 40:
+            self.counters["gpsraw_unmapped"] += 1
+            return []
+        words = tuple(w & 0x3FFFFFFF for (w,) in struct.iter_unpack("<I", navbits[:40]))
+        try:
+            subframe = lnav_subframe(sat_id(GnssSystem.GPS, prn), words, wnc, tow_s)
+        except DecodeError as exc:
+            log.debug("G%02d GPSRawCA rejected: %s", prn, exc)
+            self.counters["gpsraw_unmapped"] += 1
+            return []
+        self.counters["subframes"] += 1
+        return [subframe]
+
+    def _on_gal_raw(self, msg: Any, wnc: int, tow_s: float) -> list[Event]:
+        """A GALRawINAV (E1-B signal 17, E5b-I signal 21) with CRCPassed: its I/NAV word.
+        NavBits is a stream of ten LE u4, MSB first: the even part without its tail (114
+        bits), then the odd part (the CRC-24Q is checked again here)."""
+        signal = _GAL_RAW_SIGNALS.get(int(msg.SigIdx))
+        if signal is None:
+            self.counters["galraw_other_signal"] += 1
+            return []
+        if not int(msg.CRCPassed):
+            self.counters["galraw_crc_failed"] += 1
+            return []
+        prn = gal_prn(int(msg.SVID))
+        navbits = bytes(msg.NavBits)
+        if prn is None or len(navbits) < 32:
+            self.counters["galraw_unmapped"] += 1
+            return []
+        stream = 0
+        for (w,) in struct.iter_unpack("<I", navbits[:32]):
+            stream = stream << 32 | w
+        even, odd = stream >> (256 - 114), (stream >> (256 - 220)) & ((1 << 106) - 1)
+        try:
+            word = inav_word_of_parts(even, odd)
+        except DecodeError as exc:
+            log.debug("E%02d GALRawINAV rejected: %s", prn, exc)
+            self.counters["galraw_unmapped"] += 1
+            return []
+        self.counters["subframes"] += 1
+        return [inav_subframe(sat_id(GnssSystem.GAL, prn), word, wnc, tow_s, signal)]
+
+    def _on_other_nav(self, number: int, msg: Any, wnc: int) -> list[Event]:
+        """GPSNav, GPSIon, GALNav, GALIon, GALGstGps of a system the mapper reads."""
+        if number == GPS_ION:
+            self.counters["iono_sbf_G"] += 1
+            alpha = tuple(float(getattr(msg, f"alpha_{i}")) for i in range(4))
+            beta = tuple(float(getattr(msg, f"beta_{i}")) for i in range(4))
+            return [KlobucharParams(alpha, beta, "GPS")]  # type: ignore[arg-type]
+        if number == GAL_ION:  # NeQuick-G coefficients: no NeQuick-G model here
+            self.counters["sbf_gal_ion_unused"] += 1
+            return []
+        if wnc == WNC_DNU:
+            self.counters["sbf_bad_time"] += 1
+            return []
+        if number == GAL_GST_GPS:
+            self.counters["ggto_sbf"] += 1
+            return [
+                TimeOffset(
+                    "GAGP",
+                    float(msg.A_0G),
+                    float(msg.A_1G),
+                    float(msg.t_oG),
+                    week_near(int(msg.WN_oG), WN0G_MODULUS, wnc),
+                    "sbf",
+                )
+            ]
+        if number == GPS_NAV:
+            prn = gps_prn(int(msg.PRN))
+            if prn is None or prn > SYSTEM_CONSTANTS[GnssSystem.GPS].prn_max:
+                self.counters["eph_bad_prn"] += 1
+                return []
+            eph = ephemeris_from_gpsnav(msg, prn, wnc)
+        else:
+            if int(msg.Source) != GAL_SOURCE_INAV:  # F/NAV: the E5a clock; E1 uses I/NAV's
+                self.counters["galnav_fnav"] += 1
+                return []
+            prn = gal_prn(int(msg.SVID))
+            if prn is None:
+                self.counters["eph_bad_prn"] += 1
+                return []
+            if abs(int(msg.WNt_oe) - wnc) > 1:
+                self.counters["eph_bad_week"] += 1
+                return []
+            eph = ephemeris_from_galnav(msg, prn, wnc)
+        self.counters[f"ephemerides_sbf_{eph.prn[0]}"] += 1
         return [eph]
 
     def _on_bds_raw(self, msg: Any, wnc: int, tow_s: float) -> list[Event]:

@@ -14,8 +14,15 @@ also covers receivers that report sigId 0 for every BDS subframe.
 
 GPS (gnssId 0) sigId 0, L1 C/A: the ten LNAV words as transmitted, one in bits 29-0 of each
 dword, parity included (IS-GPS-200 20.3.5; :mod:`service.core.gps_nav` checks the parity,
-and every word of the PolyU F9P capture passes). Other GPS signals (L2C CNAV, sigId 3/4) and
-Galileo I/NAV words are counted as unmapped: no library here decodes them.
+and every word of the PolyU F9P capture passes). Other GPS signals (L2C CNAV, sigId 3/4)
+are counted as unmapped.
+
+Galileo (gnssId 2) sigId 1 (E1-B) and 5 (E5b-I), 8 dwords: one nominal I/NAV page, even
+and odd part (Galileo OS SIS ICD 4.3.2.2; :func:`service.core.gal_nav.inav_word` checks the
+part order, the page type and the CRC-24Q, and every page of the PolyU F9P capture passes);
+its 128-bit word becomes an ``INAV`` :class:`NavSubframe` whose fields pygnssutils' RawNav
+reads (:class:`service.core.gal_nav.InavAssembler`). F/NAV (E5a, sigId 3) and E6 pages are
+counted as unmapped.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from typing import Any, Literal
 from service.core.bds import nav_type as bds_nav_type
 from service.core.bds_nav import b1i_subframe
 from service.core.errors import DecodeError
+from service.core.gal_nav import inav_subframe, inav_word
 from service.core.gps_nav import lnav_subframe
 from service.core.systems import GnssSystem, sat_id
 from service.core.types import NavSubframe
@@ -56,6 +64,8 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
     """
     if UBX_GNSS.get(int(msg.gnssId)) is GnssSystem.GPS:
         return _gps_lnav(msg, gpst_week, gpst_tow_s)
+    if UBX_GNSS.get(int(msg.gnssId)) is GnssSystem.GAL:
+        return _gal_inav(msg, gpst_week, gpst_tow_s)
     if UBX_GNSS.get(int(msg.gnssId)) is not GnssSystem.BDS or int(msg.numWords) != 10:
         return None
     sig_type = B1I_SIGIDS.get(int(msg.sigId))
@@ -98,3 +108,26 @@ def _gps_lnav(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavSubframe | None
     except DecodeError as exc:
         log.debug("%s SFRBX rejected: %s", prn, exc)
         return None
+
+
+GAL_INAV_SIGIDS = {1: "1B", 5: "7I"}
+"""u-blox sigId -> RINEX signal of the Galileo I/NAV pages: E1-B and E5b-I."""
+
+
+def _gal_inav(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavSubframe | None:
+    """The I/NAV word of a Galileo E1-B or E5b-I SFRBX (8 dwords), else None."""
+    signal = GAL_INAV_SIGIDS.get(int(msg.sigId))
+    if signal is None or int(msg.numWords) != 8 or not 1 <= int(msg.svId) <= 36:
+        return None
+    prn = sat_id(GnssSystem.GAL, int(msg.svId))
+    blocks = getattr(msg, "blocks", None)
+    if blocks is not None:
+        dwords = [int(b["dwrd"]) for b in blocks]
+    else:
+        dwords = [int(getattr(msg, f"dwrd_{i:02d}")) for i in range(1, 9)]
+    try:
+        word = inav_word(dwords)
+    except DecodeError as exc:
+        log.debug("%s SFRBX rejected: %s", prn, exc)
+        return None
+    return inav_subframe(prn, word, gpst_week, gpst_tow_s, signal)

@@ -371,7 +371,7 @@ def _nav_events(
         for ephs in data.ephemerides.values():
             events.extend(ephs)
             counters["nav_ephemerides"] += len(ephs)
-        for name in ("iono_bds", "iono_gps"):
+        for name in ("iono_bds", "iono_gps", "ggto"):
             params = getattr(data, name, None)
             if params is not None:
                 events.append(params)
@@ -428,8 +428,8 @@ def open_source(
     with :func:`pace`.
     ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`. ``systems`` (RINEX
     letters) are the systems read from RINEX observation and nav files, RTCM MSM and
-    ephemerides, UBX RXM-RAWX and the GPS LNAV subframes of UBX RXM-SFRBX (BeiDou alone
-    by default; UBX MEASX, SBF: BeiDou only so far).
+    ephemerides, UBX RXM-RAWX and the GPS LNAV subframes of UBX RXM-SFRBX, SBF MeasEpoch and the GPS
+    and Galileo navigation blocks (BeiDou alone by default; UBX MEASX: BeiDou only so far).
 
     The GPS week for RTCM MSM times of week comes from the stream (UBX RAWX / NAV-TIMEGPS /
     NAV-PVT, the ephemerides RTCM 1019/1042/1044/1045/1046), with ``gps_week`` or, for live
@@ -465,6 +465,7 @@ def open_source(
     if frozenset(systems) != frozenset(DEFAULT_SYSTEMS):  # RTCM MSM and ephemerides of these
         options.setdefault("rtcm", {})["systems"] = frozenset(systems)
         options.setdefault("ubx", {})["systems"] = frozenset(systems)
+        options.setdefault("sbf", {})["systems"] = frozenset(systems)
     decoder = StreamDecoder(
         gps_week=gps_week,
         max_payload=max_payload,

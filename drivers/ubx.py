@@ -29,7 +29,8 @@ section 5).
 - One :class:`MeasurementEpoch` per receive epoch combines RAWX and MEASX: ``pr_m`` from a
   valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
   exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
-- RXM-SFRBX (BDS, and GPS L1 C/A LNAV when the mapper's ``systems`` include GPS) becomes a
+- RXM-SFRBX (BDS; GPS L1 C/A LNAV and Galileo E1-B/E5b-I I/NAV pages when the mapper's
+  ``systems`` include them) becomes a
   :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
   the latest measurement time, or, in a stream without RAWX/MEASX, with the latest
   navigation epoch of UBX-NAV-TIMEGPS (week and time of week valid) or UBX-NAV-PVT (date
@@ -39,7 +40,8 @@ Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``rawx_meas_other_gnss``, ``rawx_bds_other_signal``, ``rawx_pr_invalid``,
 ``rawx_pr_implausible``, ``measx_invalid``, ``measx_only_sats``, ``measx_uncalibrated``,
 ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``, ``epoch_no_week``,
-``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_gps``, ``sfrbx_other_gnss``, ``sfrbx_no_time``,
+``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_gps``, ``sfrbx_gal``, ``sfrbx_other_gnss``,
+``sfrbx_no_time``,
 ``sfrbx_unmapped``, ``subframes``.
 """
 
@@ -673,6 +675,8 @@ class UbxMapper:
         system = UBX_GNSS.get(int(msg.gnssId))
         if system is GnssSystem.GPS and GnssSystem.GPS in self._other:
             self.counters["sfrbx_gps"] += 1
+        elif system is GnssSystem.GAL and GnssSystem.GAL in self._other:
+            self.counters["sfrbx_gal"] += 1
         elif system is not GnssSystem.BDS:
             self.counters["sfrbx_other_gnss"] += 1
             return []

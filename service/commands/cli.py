@@ -224,7 +224,12 @@ def build_parser() -> argparse.ArgumentParser:
         "gnsslogger:log.txt, names the format); none: the built-in virtual receiver near "
         "Beijing",
     )
-    r.add_argument("--nav", action="append", help="RINEX 3 nav file(s): held ephemerides")
+    r.add_argument(
+        "--nav",
+        action="append",
+        help="RINEX 3 nav file(s): held ephemerides; with no FILE, the built-in virtual "
+        "receiver flies their satellites (GPS and Galileo too with --systems) instead of Table 1",
+    )
     r.add_argument(
         "--restart-at",
         type=float,
@@ -304,6 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
         "file, stdout or a pty.",
     )
     m.add_argument("--nav", help="RINEX 3 nav file (default: the paper's Table 1 set)")
+    add_flags(
+        m,
+        SystemsConfig,
+        "systems (from --nav: GPS and Galileo satellites join, on their own LNAV/I/NAV timing)",
+    )
     m.add_argument("--lat-deg", type=float, default=39.9, help="true latitude [deg]")
     m.add_argument("--lon-deg", type=float, default=116.4, help="true longitude [deg]")
     m.add_argument("--alt-m", type=float, default=50.0, help="true ellipsoidal height [m]")
@@ -424,6 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(t, FullRuleConfig, "restart")
     add_flags(t, SolverConfig, "solver")
+    add_flags(t, SystemsConfig, "systems (--simulate with --nav: GPS and Galileo satellites join)")
 
     g = command(
         "configure",

@@ -382,10 +382,17 @@ def main_replay(args: argparse.Namespace) -> int:
         from service.sim.scenario import builtin_scenario
 
         events: Iterable[Any]
+        systems = systems_of(args)
+        nav = None
+        if args.nav:  # a real nav file's satellites (GPS and Galileo too, with --systems)
+            from service.commands.solve import load_navigation
+
+            nav_store, nav_iono = load_navigation(list(args.nav), systems=systems)
+            nav = (nav_store.all(), nav_iono)
         chunks, week, store, iono, offset, info = builtin_scenario(
-            seed=args.seed, full_rule=full_rule(args)
+            seed=args.seed, full_rule=full_rule(args), nav=nav, systems="".join(sorted(systems))
         )
-        events = decode_chunks(chunks, week)
+        events = decode_chunks(chunks, week, systems)
         speed = args.speed if args.speed is not None else None
         counters: dict[str, int] = {}
         print(f"bdsfix replay: built-in scenario: {info}", file=sys.stderr)
@@ -557,11 +564,15 @@ def _curve_client(sock: Any, server_key: str | None, client_key: str | None) -> 
     sock.curve_secretkey = secret
 
 
-def decode_chunks(chunks: Iterable[bytes], gps_week: int) -> Iterator[Any]:
-    """Events of a byte stream through the production stream decoder (as from a receiver)."""
+def decode_chunks(
+    chunks: Iterable[bytes], gps_week: int, systems: frozenset[str] = frozenset("C")
+) -> Iterator[Any]:
+    """Events of a byte stream through the production stream decoder (as from a receiver),
+    reading the UBX of ``systems``."""
     from drivers.source import StreamDecoder
 
-    dec = StreamDecoder(gps_week=gps_week)
+    options = {"ubx": {"systems": systems}} if systems != frozenset("C") else None
+    dec = StreamDecoder(gps_week=gps_week, mapper_options=options)
     for data in chunks:
         yield from dec.feed(data)
     yield from dec.flush()

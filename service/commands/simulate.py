@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
-from service.commands.options import check_range, full_rule, parse_start
+from service.commands.options import check_range, full_rule, parse_start, systems_of
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
 from service.core.timebase import gpst_from_utc, normalize
@@ -42,17 +42,22 @@ if TYPE_CHECKING:
     from service.output.publish import Publishers
 
 
-def _ephemerides(nav: str | None) -> tuple[list[Ephemeris], KlobucharParams | None]:
+def _ephemerides(
+    nav: str | None, systems: frozenset[str] = frozenset("C")
+) -> tuple[list[Ephemeris], KlobucharParams | None, KlobucharParams | None]:
+    """The ephemerides to simulate, the BDS Klobuchar set and, with other systems, the GPS one
+    (their rows' delay)."""
     if nav is None:
-        return broadcast_table1(), None
+        return broadcast_table1(), None, None
     from drivers.rinex import read_nav
     from service.core.ephemeris import ephemeris_problem
 
-    data = read_nav(nav)
+    data = read_nav(nav, systems)
+    iono_gps = data.iono_gps if systems != frozenset("C") else None
     ephs = [e for items in data.ephemerides.values() for e in items if ephemeris_problem(e) is None]
     if not ephs:
         raise InputError(f"{nav}: no healthy BDS ephemeris that passes the entry checks")
-    return ephs, data.iono_bds
+    return ephs, data.iono_bds, iono_gps
 
 
 def _serve_configurable(
@@ -234,7 +239,8 @@ def main_simulate(args: argparse.Namespace) -> int:
     check_range("--lat-deg", args.lat_deg, -90.0, 90.0)
     check_range("--lon-deg", args.lon_deg, -180.0, 360.0)
     check_range("--alt-m", args.alt_m, -1000.0, 1_100_000.0)
-    ephs, iono = _ephemerides(args.nav)
+    systems = systems_of(args)
+    ephs, iono, iono_gps = _ephemerides(args.nav, systems)
     if args.start:
         week, tow = gpst_from_utc(parse_start(args.start))
     else:
@@ -251,8 +257,9 @@ def main_simulate(args: argparse.Namespace) -> int:
         noise_m=args.noise_m,
         seed=args.seed,
         full_rule=full_rule(args),
+        systems="".join(sorted(systems)),
     )
-    sim = Simulator(ephs, cfg, iono)
+    sim = Simulator(ephs, cfg, iono, iono_gps)
     if not sim.prns:
         raise ConfigError("no satellite in view at that place and time")
     if args.wait_config:
@@ -282,7 +289,9 @@ def main_simulate(args: argparse.Namespace) -> int:
     else:
         fh = open_output(args.out, binary=True)  # InputError: unwritable or a symlink
         write = fh.write
-    sets = b"".join(frame_1042(e) for e in broadcast_sets(ephs, sim.prns, week, tow))
+    # RTCM 1042 carries BeiDou sets; GPS and Galileo ones reach a replay in the SFRBX
+    bds = [p for p in sim.prns if p[0] == "C"]
+    sets = b"".join(frame_1042(e) for e in broadcast_sets(ephs, bds, week, tow))
 
     def stream() -> Iterator[bytes]:
         """Write the scenario (paced as asked); each chunk written, for ``--output``."""

@@ -13,7 +13,13 @@ from typing import Any
 import numpy as np
 
 from drivers.source import file_epochs
-from service.commands.options import check_plot, full_rule, parse_start, solver_config
+from service.commands.options import (
+    check_plot,
+    full_rule,
+    parse_start,
+    solver_config,
+    systems_of,
+)
 from service.commands.solve import load_navigation
 from service.core.bds_nav import quantise_ephemeris
 from service.core.ephemeris import EphemerisStore
@@ -136,11 +142,13 @@ def _print(doc: dict[str, Any], as_json: bool) -> None:
 
 
 def _navigation(
-    nav: Sequence[str],
+    nav: Sequence[str], systems: frozenset[str] = frozenset("C")
 ) -> tuple[list[Ephemeris], EphemerisStore, IonoSet, KlobucharParams | None]:
     if nav:
-        store, iono = load_navigation(list(nav))
+        store, iono = load_navigation(list(nav), systems=systems)
         klob = iono.bds
+        if systems != frozenset("C"):  # GPS/Galileo rows: GPSA/GPSB, in the stream and here
+            return store.all(), store, IonoSet(bds=klob, gps=iono.gps), klob
         return store.all(), store, IonoSet(bds=klob), klob
 
     ephs = table1_ephemerides(0.0)
@@ -169,7 +177,8 @@ def run_simulated(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], 
     if args.rate_hz <= 0 or args.trials < 1 or args.trial_s < 2.0:
         raise ConfigError("--rate-hz > 0, --trials >= 1 and --trial-s >= 2 are required")
     nav = [p for p in (args.obs, *(args.nav or ())) if p]  # NAV files only, when simulating
-    ephs, store, iono, klob = _navigation(nav)
+    systems = systems_of(args)
+    ephs, store, iono, klob = _navigation(nav, systems)
     store.max_age_s = args.max_eph_age_s
     week, tow = _start_time(args.start, bool(nav), ephs)
     # the daemon applies the same ionosphere model as the simulator (none without a nav file)
@@ -182,9 +191,10 @@ def run_simulated(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], 
         noise_m=args.noise_m,
         elmask_deg=min(5.0, cfg.elmask_deg),
         full_rule=rule,
+        systems="".join(sorted(systems)),
     )
     plans = plan_trials(week, tow, args.trials, args.trial_s, args.seed)
-    stream = SimStream(ephs, klob, base, plans, args.trial_s, args.max_eph_age_s)
+    stream = SimStream(ephs, klob, base, plans, args.trial_s, args.max_eph_age_s, iono.gps)
     with tempfile.TemporaryDirectory(prefix="bdsfix-ttff-") as tmp:
         state = Path(tmp)
         if not nav:
@@ -197,6 +207,7 @@ def run_simulated(args: argparse.Namespace, rule: str) -> tuple[dict[str, Any], 
             nav=nav,
             max_eph_age_s=args.max_eph_age_s,
             coarse_fix=args.coarse_fix,
+            systems=systems,
         )
     trials = analyse(stream, records, store, iono, cfg, args.noise_m)
     location = {"lat_deg": args.lat_deg, "lon_deg": args.lon_deg, "alt_m": args.alt_m}

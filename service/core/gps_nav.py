@@ -301,3 +301,69 @@ class LnavAssembler:
         self._last[prn] = eph
         self.counters["ephemerides"] += 1
         return [eph]
+
+
+def _put(fields: list[tuple[int, int, int]], start: int, length: int, value: int) -> None:
+    fields.append((start, length, value & ((1 << length) - 1)))
+
+
+def _put_split(
+    fields: list[tuple[int, int, int]], hi: tuple[int, int], lo: tuple[int, int], value: int
+) -> None:
+    _put(fields, lo[0], lo[1], value)
+    _put(fields, hi[0], hi[1], value >> lo[1])
+
+
+def _ura_index(ura_m: float) -> int:
+    """The smallest URA index whose bound covers ``ura_m`` (20.3.3.3.1.3)."""
+    return next((i for i, bound in enumerate(URA_M) if ura_m <= bound + 1e-9), len(URA_M) - 1)
+
+
+def encode_subframe(eph: Ephemeris, subframe_id: int, tow_next_s: int, gps_week: int) -> int:
+    """The 240-bit data stream of LNAV subframe ``subframe_id`` (1-5) of ``eph`` (a set held
+    on BDT, put back on GPST here), with the HOW's TOW count of ``tow_next_s`` (the GPST of
+    the next subframe's start, 20.3.3.2) and WN = ``gps_week`` mod 1024: the inverse of
+    :func:`ephemeris_from_subframes` (the same field offsets, Tables 20-I, 20-III; values
+    rounded to their scale factors). Subframes 4 and 5 carry no data here (page ID 0).
+    Words as u-blox delivers them: :func:`subframe_words`."""
+    sc = ICD_PI
+    f: list[tuple[int, int, int]] = []
+    _put(f, 0, 8, PREAMBLE)
+    _put(f, 24, 17, (tow_next_s % int(WEEK_S)) // 6)
+    _put(f, 43, 3, subframe_id)
+    toe_gpst = (eph.toe_sow_s + BDT_GPST_OFFSET_S) % WEEK_S
+    toc_gpst = (eph.toc_sow_s + BDT_GPST_OFFSET_S) % WEEK_S
+    if subframe_id == 1:
+        _put(f, 48, 10, gps_week % 1024)
+        _put(f, 60, 4, _ura_index(eph.ura_m))
+        _put(f, 64, 6, eph.health)
+        _put_split(f, (70, 2), (168, 8), eph.aodc if eph.aodc else eph.aode)
+        _put(f, 160, 8, round(eph.tgd1_s / 2.0**-31))
+        _put(f, 176, 16, round(toc_gpst / 16.0))
+        _put(f, 192, 8, round(eph.af2_s_s2 / 2.0**-55))
+        _put(f, 200, 16, round(eph.af1_s_s / 2.0**-43))
+        _put(f, 216, 22, round(eph.af0_s / 2.0**-31))
+    elif subframe_id == 2:
+        _put(f, 48, 8, eph.aode)
+        _put(f, 56, 16, round(eph.crs_m / 2.0**-5))
+        _put(f, 72, 16, round(eph.delta_n_rad_s / sc / 2.0**-43))
+        _put_split(f, (88, 8), (96, 24), round(eph.m0_rad / sc / 2.0**-31))
+        _put(f, 120, 16, round(eph.cuc_rad / 2.0**-29))
+        _put_split(f, (136, 8), (144, 24), round(eph.e / 2.0**-33))
+        _put(f, 168, 16, round(eph.cus_rad / 2.0**-29))
+        _put_split(f, (184, 8), (192, 24), round(eph.sqrt_a_sqrt_m / 2.0**-19))
+        _put(f, 216, 16, round(toe_gpst / 16.0))
+    elif subframe_id == 3:
+        _put(f, 48, 16, round(eph.cic_rad / 2.0**-29))
+        _put_split(f, (64, 8), (72, 24), round(eph.omega0_rad / sc / 2.0**-31))
+        _put(f, 96, 16, round(eph.cis_rad / 2.0**-29))
+        _put_split(f, (112, 8), (120, 24), round(eph.i0_rad / sc / 2.0**-31))
+        _put(f, 144, 16, round(eph.crc_m / 2.0**-5))
+        _put_split(f, (160, 8), (168, 24), round(eph.omega_rad / sc / 2.0**-31))
+        _put(f, 192, 24, round(eph.omega_dot_rad_s / sc / 2.0**-43))
+        _put(f, 216, 8, eph.aode)
+        _put(f, 224, 14, round(eph.idot_rad_s / sc / 2.0**-43))
+    data = 0
+    for start, length, value in f:
+        data |= value << (DATA_BITS - start - length)
+    return data

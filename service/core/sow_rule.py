@@ -20,6 +20,11 @@ GPS L1 C/A LNAV (IS-GPS-200 20.3.2, 20.3.3.2) has the same timing as D1: 300-bit
 50 bps, the time of week in the HOW (word 2), so 1.2 s into a subframe (``time_known_after_s``
 of ``"LNAV"``); its subframe boundaries are on GPST (service.engine.tracker).
 
+Galileo I/NAV (OS SIS ICD 4.3.2.2, 4.3.5) gives the time of week in whole 2 s pages of word
+types 0, 5 and 6, whose TOW field ends in the odd part and is checked by the page's CRC at its
+end: ``time_known_after_s("INAV")`` is the page, 2 s, under both rules (which pages carry it:
+:data:`service.core.gal_nav.E1B_TOW_PAGE_STARTS_S`).
+
 ``sow`` is this rule, the default everywhere a time to first fix is made or measured (the
 virtual receiver's RAWX prMes validity, emulated restarts of ``replay --restart-at`` and
 ``ttff``, the built-in scenario). ``subframe``, the rule used before, waits for the end of that
@@ -45,6 +50,9 @@ D1_SOW_DECODED_S = SOW_WORDS * WORD_BITS / D1_BIT_RATE_BPS
 D2_SOW_DECODED_S = SOW_WORDS * WORD_BITS / D2_BIT_RATE_BPS
 """0.12 s: the SOW of a D2 subframe is known this long after its preamble's first bit."""
 
+INAV_PAGE_S = 2.0
+"""A Galileo I/NAV page, even and odd part (OS SIS ICD 4.3.2.2)."""
+
 FULL_RULES = ("sow", "subframe")
 DEFAULT_FULL_RULE = "sow"
 
@@ -56,6 +64,8 @@ def time_known_after_s(nav_type: str, rule: str = DEFAULT_FULL_RULE) -> float:
     and LNAV 6 s)."""
     if rule not in FULL_RULES:
         raise ValueError(f"unknown full rule {rule!r}: one of {', '.join(FULL_RULES)}")
+    if nav_type == "INAV":
+        return INAV_PAGE_S
     rate = D2_BIT_RATE_BPS if nav_type == "D2" else D1_BIT_RATE_BPS
     words = SOW_WORDS if rule == "sow" else SUBFRAME_WORDS
     return words * WORD_BITS / rate

@@ -12,6 +12,7 @@ from typing import Literal
 
 import numpy as np
 
+from service.core.constants import WEEK_S
 from service.core.declines import Declined
 from service.core.systems import constants_of
 
@@ -212,16 +213,40 @@ class KlobucharParams:
 
 
 @dataclass(frozen=True, slots=True)
+class TimeOffset:
+    """A broadcast offset between two system times (the GGTO, :mod:`service.core.gal_nav`):
+    ``pair`` as RINEX 3 names it (``GAGP``: GST - GPST), ``a0_s`` + ``a1_s_s`` (t -
+    ``t_ref_s``) seconds, the reference week ``week`` on the GPS week count (a week broadcast
+    modulo 64 resolved against the receiver's), ``source`` the input it came from."""
+
+    pair: str
+    a0_s: float
+    a1_s_s: float
+    t_ref_s: float
+    week: int
+    source: str = ""
+
+    def at_s(self, gps_week: int, gps_tow_s: float) -> float:
+        """The offset [s] at a GPST instant (OS SIS ICD 5.1.8)."""
+        return self.a0_s + self.a1_s_s * (
+            gps_tow_s - self.t_ref_s + WEEK_S * (gps_week - self.week)
+        )
+
+
+@dataclass(frozen=True, slots=True)
 class NavSubframe:
     """One navigation subframe: 10 words of 30 bits as received (parity included).
 
     ``nav_type`` ``D1``/``D2``: a BDS B1I subframe, ``sow_s`` its SOW (BDT). ``LNAV``: a GPS
     L1 C/A subframe (:mod:`service.core.gps_nav`), ``sow_s`` its HOW time (GPST of the next
-    subframe's start, IS-GPS-200 20.3.3.2) and ``fra_id`` its subframe ID.
+    subframe's start, IS-GPS-200 20.3.3.2) and ``fra_id`` its subframe ID. ``INAV``: a
+    Galileo I/NAV word of a nominal page (:mod:`service.core.gal_nav`), ``words`` the 128-bit
+    word alone, ``fra_id`` its word type, ``sow_s`` the GST time of week at its page's start
+    when the word carries one (types 0/5/6), else -1.
     """
 
     prn: str
-    nav_type: Literal["D1", "D2", "LNAV"]
+    nav_type: Literal["D1", "D2", "LNAV", "INAV"]
     fra_id: int
     sow_s: int
     words: tuple[int, ...]

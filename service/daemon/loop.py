@@ -50,6 +50,7 @@ from service.core.types import (
     MeasurementEpoch,
     NavSubframe,
     ReceiverFix,
+    TimeOffset,
 )
 from service.daemon.netnav import NetNavGate, Networked
 from service.daemon.store_writer import StoreWriter
@@ -140,6 +141,9 @@ class Runner:
         out: dict[str, int | float] = {f"source_{k}": v for k, v in src.items()}
         out.update(self.pipeline.counters)
         out.update(self._latency.counters())
+        ggto_ns = self.pipeline.ggto_ns()
+        if ggto_ns is not None:
+            out["ggto_ns"] = ggto_ns
         for i, (_name, _events, counters) in enumerate(self.nav_sources):
             prefix = "ntrip_" if i == 0 else f"ntrip{i + 1}_"
             # a copy first (one C call): the source's thread may add a key meanwhile
@@ -353,6 +357,8 @@ class Runner:
             self.pipeline.set_iono(ev)
         elif isinstance(ev, ReceiverFix):
             self.pipeline.on_receiver_fix(ev)
+        elif isinstance(ev, TimeOffset):
+            self.pipeline.set_time_offset(ev)
         return 0
 
     def _write_epoch_times(self, path: Path) -> None:

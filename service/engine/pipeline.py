@@ -28,6 +28,7 @@ from service.core.constants import C_M_S
 from service.core.counters import Counters
 from service.core.declines import Decline, Declined
 from service.core.ephemeris import EphemerisStore
+from service.core.gal_nav import InavAssembler
 from service.core.gps_nav import LnavAssembler
 from service.core.sow_rule import DEFAULT_FULL_RULE
 from service.core.timebase import diff_s, gpst_to_bdt
@@ -39,6 +40,7 @@ from service.core.types import (
     NavSubframe,
     ReceiverFix,
     SatView,
+    TimeOffset,
 )
 from service.engine.coarse import (
     CoarseConfig,
@@ -192,7 +194,11 @@ class Pipeline:
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
+    _inav: InavAssembler = field(default_factory=InavAssembler)
     _receiver_fix: ReceiverFix | None = None
+    ggto: TimeOffset | None = None
+    """The latest broadcast GST - GPST offset (:mod:`service.core.gal_nav`): recorded, not
+    applied (each system has its own receiver clock, which absorbs it)."""
 
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
@@ -232,6 +238,32 @@ class Pipeline:
         self.iono = self.iono.with_params(params)
         self.store.iono = self.iono.preferred
 
+    def set_time_offset(self, offset: TimeOffset) -> None:
+        """A broadcast offset between system times (GGTO, ``GAGP``): kept as :attr:`ggto`
+        (STATUS ``ggto_ns``, :meth:`ggto_ns`), counted ``ggto_<source>``; never applied to
+        ranges: Galileo's own receiver clock absorbs it (docs/method.md)."""
+        self.counters[f"ggto_{offset.source or 'broadcast'}"] += 1
+        if offset.pair == "GAGP" and offset != self.ggto:
+            if self.ggto is None:
+                log.info(
+                    "GGTO (GST - GPST) from %s: A0 %.3g s, A1 %.3g s/s at GPS week %d + %.0f s; "
+                    "absorbed by Galileo's receiver clock",
+                    offset.source,
+                    offset.a0_s,
+                    offset.a1_s_s,
+                    offset.week,
+                    offset.t_ref_s,
+                )
+            self.ggto = offset
+
+    def ggto_ns(self) -> float | None:
+        """GST - GPST [ns] at the latest measurement epoch (or the broadcast's reference time
+        before one), None without a broadcast."""
+        if self.ggto is None:
+            return None
+        week, tow = self._latest or (self.ggto.week, self.ggto.t_ref_s)
+        return round(self.ggto.at_s(week, tow) * 1e9, 3)
+
     def on_receiver_fix(self, rf: ReceiverFix) -> None:
         """The receiver's own fix: kept for the next epochs' results (``receiver_fixes``)."""
         self.counters["receiver_fixes"] += 1
@@ -252,15 +284,20 @@ class Pipeline:
         return events
 
     def _feed_assembler(self, sf: NavSubframe) -> None:
+        items: list[Ephemeris | KlobucharParams | TimeOffset]
         if sf.nav_type == "LNAV":
-            items = self._lnav.feed(sf.prn, sf.words, sf.gpst_week)
+            items = list(self._lnav.feed(sf.prn, sf.words, sf.gpst_week))
+        elif sf.nav_type == "INAV":
+            items = list(self._inav.feed(sf.prn, sf.words[0], sf.gpst_week))
         else:
-            items = self._assembler.feed(sf.prn, sf.nav_type, sf.words)
+            items = list(self._assembler.feed(sf.prn, sf.nav_type, sf.words))
         for item in items:
             if isinstance(item, Ephemeris):
                 self.add_ephemeris(item)
             elif isinstance(item, KlobucharParams):
                 self.set_iono(item)
+            elif isinstance(item, TimeOffset):
+                self.set_time_offset(item)
 
     # --- measurements ---------------------------------------------------------------------
     def on_epoch(self, epoch: MeasurementEpoch) -> EpochResult:

@@ -10,8 +10,13 @@ GPS L1 C/A (IS-GPS-200 20.3.2, 20.3.3.2): LNAV subframes of 6 s at 50 bps start 
 of 6 s of GPST, and the HOW (word 2) gives the time of week, so a GPS satellite's time is
 known, like a D1 satellite's, 60 bits = 1.2 s after the preamble (``sow`` rule), but on
 GPST's subframe boundaries, which lie 2 s off BDT's (GPST = BDT + 14 s). A decoded LNAV
-subframe marks it known as a B1I subframe does. Galileo I/NAV word timing is not modelled:
-a Galileo satellite is emulated as a D1 one.
+subframe marks it known as a B1I subframe does.
+
+Galileo I/NAV (OS SIS ICD 4.3.5): the time of week comes in the 2 s pages of word types 0, 5
+and 6 (``INAV`` subframes from :mod:`service.core.gal_nav`, ``sow_s`` the GST at the page's
+start); a word without a TOW says nothing of the time. After an emulated restart a Galileo
+satellite becomes full at the end of the first E1-B page carrying a TOW that starts after
+page sync (:func:`service.core.gal_nav.next_tow_page_start_s`, on GST = GPST).
 
 The tracker trusts the receiver: a measurement the driver reports as full (u-blox prValid,
 RINEX, RTCM with integer milliseconds) is full. After a restart, real or emulated
@@ -36,6 +41,7 @@ import numpy as np
 from service.core.bds import nav_type, subframe_period_s
 from service.core.bds_nav import SubframeHeader, subframe_start_sow_s
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
+from service.core.gal_nav import next_tow_page_start_s
 from service.core.gps_nav import SUBFRAME_S as LNAV_SUBFRAME_S
 from service.core.gps_nav import LnavHeader
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
@@ -52,9 +58,14 @@ assumed receiver behaviour: code lock and bit sync within half a second)."""
 
 
 def message_of(prn: str) -> str:
-    """The navigation message whose subframes give ``prn``'s time: ``LNAV`` for GPS, else
-    BeiDou's D1/D2 (:func:`service.core.bds.nav_type`; Galileo as D1, see the module)."""
-    return "LNAV" if system_of(prn) is GnssSystem.GPS else nav_type(prn)
+    """The navigation message whose subframes give ``prn``'s time: ``LNAV`` for GPS,
+    ``INAV`` for Galileo, else BeiDou's D1/D2 (:func:`service.core.bds.nav_type`)."""
+    system = system_of(prn)
+    if system is GnssSystem.GPS:
+        return "LNAV"
+    if system is GnssSystem.GAL:
+        return "INAV"
+    return nav_type(prn)
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,8 +77,9 @@ class TrackEvent:
     gpst_week: int
     gpst_tow_s: float
     since_start_s: float
-    nav_type: str  # D1, D2 (BeiDou) or LNAV (GPS)
-    sow_s: float | None = None  # start of the subframe: BDT SOW (BeiDou), GPST tow (GPS)
+    nav_type: str  # D1, D2 (BeiDou), LNAV (GPS) or INAV (Galileo)
+    # start of the subframe: BDT SOW (BeiDou), GPST tow (GPS), GST tow of the page (Galileo)
+    sow_s: float | None = None
     full_since_s: float | None = None  # data time since start at which it became full
 
 
@@ -79,7 +91,8 @@ class SubframeEmulator:
     preamble: the first subframe that starts after sync (a receiver synced mid-subframe has
     not seen that subframe's preamble). Subframe boundaries are multiples of 0.6 s (D2) or
     6 s (D1) of BDT transmit time (ICD 5.2.2, 5.3.1), of 6 s of GPST for GPS LNAV
-    (IS-GPS-200 20.3.2), seen one flight time later. The
+    (IS-GPS-200 20.3.2), seen one flight time later; a Galileo satellite waits for the next
+    E1-B page carrying a TOW (:func:`service.core.gal_nav.next_tow_page_start_s`). The
     satellite's time is known ``time_known_after_s(nav_type, rule)`` after that boundary:
     rule ``sow`` once words 1-2 have decoded (D2 0.12 s, D1 1.2 s), rule ``subframe`` at the
     end of the subframe (0.6 s, 6 s).
@@ -121,6 +134,11 @@ class SubframeEmulator:
         known_s = time_known_after_s(message, self.rule)
         flight_s = pr_m / C_M_S if math.isfinite(pr_m) else NOMINAL_FLIGHT_TIME_S
         delay = self.sync_delay_s.get(prn, self.default_sync_delay_s)
+        if message == "INAV":  # pages on GST (= GPST to tens of ns, OS SIS ICD 5.1.8)
+            tx_sync = self.restart_gpst_tow_s + delay - flight_s
+            start = next_tow_page_start_s(tx_sync)
+            known_rx = start + known_s + flight_s
+            return self.restart_gpst_week, known_rx
         if message == "LNAV":  # subframes on GPST
             period, t_sys = LNAV_SUBFRAME_S, self.restart_gpst_tow_s
         else:  # on BDT
@@ -166,9 +184,13 @@ class FrameSyncTracker:
         self.seen_subframes = True
         if self._start is None:
             self._start = (sf.gpst_week, sf.gpst_tow_s)
+        if sf.nav_type == "INAV" and sf.sow_s < 0:
+            return []  # a word without a time of week (ICD 4.3.5)
         self._sow_after_restart.add(sf.prn)
         since = self.since_start_s(sf.gpst_week, sf.gpst_tow_s)
-        if sf.nav_type == "LNAV":  # the HOW's time is the next subframe's (IS-GPS-200 20.3.3.2)
+        if sf.nav_type == "INAV":
+            start_s = float(sf.sow_s)
+        elif sf.nav_type == "LNAV":  # the HOW's time is the next subframe's (IS-GPS-200 20.3.3.2)
             start_s = LnavHeader(sf.fra_id, int(sf.sow_s)).start_tow_s
         else:
             start_s = subframe_start_sow_s(

@@ -518,7 +518,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "class": {"const": "TRACK"},
             "prn": _PRN,
             "event": {"enum": list(TRACK_EVENTS)},
-            "nav_type": {"enum": ["D1", "D2", "LNAV"]},
+            "nav_type": {"enum": ["D1", "D2", "LNAV", "INAV"]},
             "gpst_week": _WEEK,
             "gpst_tow_s": _TOW,
             "since_start_s": _NUM,

@@ -32,8 +32,14 @@ def scenario_config(
     alt_m: float = BEIJING[2],
     start_offset_s: float = 0.0,
     full_rule: str = DEFAULT_FULL_RULE,
+    start_gpst: tuple[int, float] | None = None,
+    systems: str = "C",
 ) -> SimConfig:
-    week, tow = gpst_from_utc(dt.datetime(*TABLE1_EPOCH_UTC) + dt.timedelta(seconds=start_offset_s))
+    if start_gpst is None:
+        start = dt.datetime(*TABLE1_EPOCH_UTC) + dt.timedelta(seconds=start_offset_s)
+        week, tow = gpst_from_utc(start)
+    else:
+        week, tow = start_gpst
     return SimConfig(
         lat_deg=lat_deg,
         lon_deg=lon_deg,
@@ -44,27 +50,51 @@ def scenario_config(
         rate_hz=rate_hz,
         seed=seed,
         full_rule=full_rule,
+        systems=systems,
     )
 
 
 def builtin_scenario(
-    seed: int = 0, duration_s: float = 60.0, full_rule: str = DEFAULT_FULL_RULE
+    seed: int = 0,
+    duration_s: float = 60.0,
+    full_rule: str = DEFAULT_FULL_RULE,
+    nav: tuple[Sequence[Ephemeris], IonoSet] | None = None,
+    systems: str = "C",
 ) -> tuple[Iterator[bytes], int, EphemerisStore, IonoSet, float, str]:
     """The UBX byte chunks, the GPS week of the stream, the held ephemeris store,
     ionosphere, first-epoch offset [s] and a summary. Each satellite's prMes is valid once
-    its time is known by ``full_rule`` (:mod:`service.core.sow_rule`)."""
-    cfg = scenario_config(seed=seed, duration_s=duration_s, full_rule=full_rule)
-    ephs = table1_ephemerides(0.0)
-    sim = Simulator(ephs, cfg)
+    its time is known by ``full_rule`` (:mod:`service.core.sow_rule`).
+
+    ``nav`` (the sets and ionosphere of a real nav file) replaces Table 1: the scenario
+    starts 10 min after the t_oe most of its BeiDou satellites share
+    (:func:`default_start_gpst`), and the GPS and Galileo satellites of ``systems`` join, on
+    their own LNAV / I/NAV message timing (:mod:`service.sim.simulator`)."""
+    if nav is None:
+        cfg = scenario_config(seed=seed, duration_s=duration_s, full_rule=full_rule)
+        ephs: list[Ephemeris] = table1_ephemerides(0.0)
+        iono, what = IonoSet(), "Table 1"
+        sim = Simulator(ephs, cfg)
+    else:
+        ephs, iono = list(nav[0]), nav[1]
+        start = default_start_gpst([e for e in ephs if e.prn[0] == "C"] or ephs)
+        cfg = scenario_config(
+            seed=seed,
+            duration_s=duration_s,
+            full_rule=full_rule,
+            start_gpst=start,
+            systems=systems,
+        )
+        sim = Simulator(ephs, cfg, iono.bds, iono.gps if systems != "C" else None)
+        what = "the nav file's"
     store = EphemerisStore()
     store.add_all(ephs)
     info = (
         f"virtual receiver at {cfg.lat_deg} N {cfg.lon_deg} E, {cfg.rate_hz:g} Hz, "
-        f"{cfg.duration_s:g} s, warm start with Table 1 ephemerides, "
+        f"{cfg.duration_s:g} s, warm start with {what} ephemerides, "
         f"{len(sim.prns)} satellites in view ({', '.join(sim.prns)})"
     )
     chunks = (data for _ep, data in sim.ubx_epochs())
-    return chunks, cfg.start_gpst_week, store, IonoSet(), 1.0 / cfg.rate_hz, info
+    return chunks, cfg.start_gpst_week, store, iono, 1.0 / cfg.rate_hz, info
 
 
 def default_start_gpst(ephs: Sequence[Ephemeris] | None) -> tuple[int, float]:

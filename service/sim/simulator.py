@@ -1,4 +1,5 @@
-"""Virtual BDS receiver: a real UBX byte stream with true D1/D2 subframe timing.
+"""Virtual receiver: a real UBX byte stream with true D1/D2 subframe timing (BeiDou) and,
+with ``SimConfig.systems``, GPS LNAV subframe and Galileo I/NAV page timing.
 
 For a true position, start time and receiver clock offset, each visible satellite is
 acquired after a random delay (code lock: fractional measurement, T = 1 ms), reaches bit sync
@@ -16,6 +17,14 @@ RXM-RAWX whose prMes is valid only for satellites that are full. Pseudoranges co
 :mod:`service.sim.rangegen` (light time, Sagnac, satellite clock with TGD1, Klobuchar,
 Saastamoinen, Gaussian noise) and are quantised to the MEASX code-phase step (2^-21 ms), so
 that the fractional value a decoder reads back is exactly the full one modulo 1 ms.
+
+GPS and Galileo satellites of the ephemerides given join when ``systems`` names them (issue
+19): GPS LNAV subframes of 6 s on GPST with the HOW (IS-GPS-200 20.3.2, 20.3.3.2: full 1.2 s
+into the first subframe after bit sync), Galileo E1-B I/NAV pages of 2 s on odd GST seconds
+(OS SIS ICD 4.3.2.2, 4.3.5: full at the end of the first page of word type 0/5/6 after page
+sync), RAWX gnssId 0 / 2 sigId 0, SFRBX LNAV subframes and I/NAV pages; MEASX stays
+BeiDou's (the driver reads BeiDou's). They draw from random streams of their own, so the
+BeiDou satellites' draws, and a BeiDou-only stream, are the same whatever else is simulated.
 """
 
 from __future__ import annotations
@@ -28,15 +37,33 @@ from typing import Any
 
 import numpy as np
 
-from service.core.bds import is_geo, nav_type, subframe_period_s
+from service.core.bds import is_geo, subframe_period_s
 from service.core.bds_nav import D1_SUBFRAME_S, D2_SUBFRAME_S, encode_d1_subframes, encode_d2_frame
 from service.core.constants import C_M_S, WEEK_S
+from service.core.gal_nav import (
+    E1B_FIRST_PAGE_S,
+    E1B_SUBFRAME_WORDS,
+    INAV_PAGE_S,
+    encode_page,
+    next_tow_page_start_s,
+)
+from service.core.gal_nav import encode_word as encode_inav_word
 from service.core.geometry import geodetic_to_ecef
+from service.core.gps_nav import SUBFRAME_S as LNAV_SUBFRAME_S
+from service.core.gps_nav import encode_subframe as encode_lnav
+from service.core.gps_nav import subframe_words as lnav_words
 from service.core.orbit import EphemerisArrays
 from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
 from service.core.systems import prn_number, wavelength_m
-from service.core.timebase import BDT_GPST_OFFSET_S, diff_s, gpst_to_bdt, normalize
+from service.core.timebase import (
+    BDT_GPST_OFFSET_S,
+    GST_GPS_WEEK_OFFSET,
+    diff_s,
+    gpst_to_bdt,
+    normalize,
+)
 from service.core.types import Ephemeris, KlobucharParams
+from service.engine.tracker import message_of
 from service.sim.rangegen import true_ranges
 from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
 
@@ -47,6 +74,9 @@ PR_LSB_M = C_M_S * 1e-3 * CODE_PHASE_LSB_MS
 B1I_WAVELENGTH_M = wavelength_m("C01")
 LEAP_S = 18
 UBX_OUTPUTS = ("RXM-SFRBX", "RXM-MEASX", "RXM-RAWX")
+_GNSS_ID = {"C": 3, "G": 0, "E": 2}
+"""u-blox gnssId of each simulated system (F9 HPG Interface Description)."""
+_SIMULATED = frozenset(_GNSS_ID)
 """The UBX messages of an epoch, in the order the virtual receiver sends them."""
 
 
@@ -71,6 +101,7 @@ class SimConfig:
     d1_sync_delay_s: tuple[float, float] = (0.1, 0.5)  # 20 ms bits behind the NH code
     tropo: bool = True
     full_rule: str = DEFAULT_FULL_RULE  # when prMes becomes valid (service.core.sow_rule)
+    systems: str = "C"  # RINEX letters of the systems simulated from the ephemerides given
 
 
 @dataclass(slots=True)
@@ -88,8 +119,8 @@ class SimSubframe:
 
     prn: str
     nav_type: str
-    index: int  # subframe number since BDT week start
-    start_bdt_sow_s: float
+    index: int  # subframe (I/NAV: page) number since the week start of its system's time
+    start_bdt_sow_s: float  # its start: BDT sow; GPST (LNAV) or GST (I/NAV) tow
     received_s: float  # receiver time since start
 
 
@@ -117,9 +148,13 @@ class Simulator:
         ephemerides: Sequence[Ephemeris],
         cfg: SimConfig | None = None,
         iono: KlobucharParams | None = None,
+        iono_gps: KlobucharParams | None = None,
     ) -> None:
         self.cfg = cfg or SimConfig()
         self.iono = iono
+        self.iono_gps = iono_gps
+        """GPSA/GPSB: the delay of GPS and Galileo rows when given (a receiver corrects those
+        rows with them, as RTKLIB does), else ``iono`` for every row."""
         self.x_ecef_m = geodetic_to_ecef(
             math.radians(self.cfg.lat_deg), math.radians(self.cfg.lon_deg), self.cfg.alt_m
         )
@@ -129,8 +164,15 @@ class Simulator:
         # simulated position) does not depend on whether Doppler is generated
         self._doppler_rng = np.random.default_rng([self.cfg.seed, 1])
         bw, bs = gpst_to_bdt(self.cfg.start_gpst_week, self.cfg.start_gpst_tow_s)
+        # other systems draw from their own streams: the BeiDou satellites' draws (and so a
+        # BeiDou-only stream) are the same whatever else is simulated
+        self._other_rng = np.random.default_rng([self.cfg.seed, 2])
+        self._other_doppler_rng = np.random.default_rng([self.cfg.seed, 3])
+        wanted = set(self.cfg.systems.replace(",", "").upper()) | {"C"}
         chosen: dict[str, Ephemeris] = {}
         for e in ephemerides:
+            if e.prn[0] not in wanted or e.prn[0] not in _SIMULATED:
+                continue
             best = chosen.get(e.prn)
             if best is None or abs(diff_s(bw, bs, e.week, e.toe_sow_s)) < abs(
                 diff_s(bw, bs, best.week, best.toe_sow_s)
@@ -142,17 +184,22 @@ class Simulator:
         vis = np.flatnonzero(tr.el_rad >= math.radians(self.cfg.elmask_deg))
         self.ephemerides = [ephs[i] for i in vis]
         self._arr = arr.take(vis)
-        self._sats = {
-            e.prn: _SatState(
-                prn=e.prn,
-                acq_s=float(rng.uniform(*self.cfg.acq_delay_s)),
-                sync_s=0.0,
-            )
-            for e in self.ephemerides
-        }
-        for s in self._sats.values():
-            span = self.cfg.d2_sync_delay_s if is_geo(s.prn) else self.cfg.d1_sync_delay_s
-            s.sync_s = s.acq_s + float(rng.uniform(*span))
+        self._bds = np.array([p[0] == "C" for p in self._arr.prn], dtype=bool)
+        self._wavelength_m = np.array([wavelength_m(p) for p in self._arr.prn])
+        other_idx = np.flatnonzero(~self._bds)
+        self._other_arr = self._arr.take(other_idx) if len(other_idx) else None
+        self._sats = {}
+        for group, g_rng in ((True, rng), (False, self._other_rng)):
+            members = [e.prn for e in self.ephemerides if (e.prn[0] == "C") == group]
+            for prn in members:
+                self._sats[prn] = _SatState(
+                    prn=prn, acq_s=float(g_rng.uniform(*self.cfg.acq_delay_s)), sync_s=0.0
+                )
+            for prn in members:
+                st = self._sats[prn]
+                # GPS: 20 ms bits (as D1); Galileo E1: page sync on its 250 sps symbols
+                span = self.cfg.d2_sync_delay_s if is_geo(prn) else self.cfg.d1_sync_delay_s
+                st.sync_s = st.acq_s + float(g_rng.uniform(*span))
 
     @property
     def prns(self) -> list[str]:
@@ -174,10 +221,30 @@ class Simulator:
                 cfg.clock_offset_s,
                 iono=self.iono,
                 tropo=cfg.tropo,
-                noise_m=cfg.noise_m,
-                rng=self._rng,
+                noise_m=0.0,
             )
-            pr_q = np.round(tr.pr_m / PR_LSB_M) * PR_LSB_M
+            pr_m, carrier_rate_m_s = tr.pr_m, tr.carrier_rate_m_s
+            if self.iono_gps is not None and self._other_arr is not None:
+                other = ~self._bds
+                tr_o = true_ranges(
+                    self._other_arr,
+                    self.x_ecef_m,
+                    week,
+                    tow,
+                    cfg.clock_offset_s,
+                    iono=self.iono_gps,
+                    tropo=cfg.tropo,
+                    noise_m=0.0,
+                )
+                pr_m, carrier_rate_m_s = pr_m.copy(), carrier_rate_m_s.copy()
+                pr_m[other], carrier_rate_m_s[other] = tr_o.pr_m, tr_o.carrier_rate_m_s
+            if cfg.noise_m > 0:
+                noise = np.empty(len(pr_m))
+                noise[self._bds] = self._rng.normal(0.0, cfg.noise_m, int(self._bds.sum()))
+                other = ~self._bds
+                noise[other] = self._other_rng.normal(0.0, cfg.noise_m, int(other.sum()))
+                pr_m = pr_m + noise
+            pr_q = np.round(pr_m / PR_LSB_M) * PR_LSB_M
             flight_s = tr.geometric_m / C_M_S
             subframes: list[SimSubframe] = []
             tracked, full = [], []
@@ -194,9 +261,15 @@ class Simulator:
             prev_t = t
             idx = np.asarray(tracked, dtype=int)
             cn0 = 45.0 - 10.0 * (1.0 - np.sin(np.clip(tr.el_rad[idx], 0, None)))
-            doppler = -tr.carrier_rate_m_s[idx] / B1I_WAVELENGTH_M
+            doppler = -carrier_rate_m_s[idx] / self._wavelength_m[idx]
             if cfg.doppler_noise_hz > 0:
-                doppler = doppler + self._doppler_rng.normal(0.0, cfg.doppler_noise_hz, len(idx))
+                bds = self._bds[idx]
+                dn = np.empty(len(idx))
+                dn[bds] = self._doppler_rng.normal(0.0, cfg.doppler_noise_hz, int(bds.sum()))
+                dn[~bds] = self._other_doppler_rng.normal(
+                    0.0, cfg.doppler_noise_hz, int((~bds).sum())
+                )
+                doppler = doppler + dn
             yield SimEpoch(
                 t_s=t,
                 tag_gpst_week=tr.tag_gpst_week,
@@ -222,11 +295,15 @@ class Simulator:
         if "RXM-SFRBX" in outputs:
             eph_of = {e.prn: e for e in self.ephemerides}
             parts = [
-                _sfrbx(sf.prn, sf.nav_type, subframe_words(eph_of[sf.prn], sf, self.iono))
+                _sfrbx(
+                    sf.prn,
+                    sf.nav_type,
+                    subframe_words(eph_of[sf.prn], sf, self.iono, ep.tag_gpst_week),
+                )
                 for sf in ep.subframes
             ]
         if "RXM-MEASX" in outputs:
-            parts.append(_measx(ep))
+            parts.append(_measx(epoch_subset(ep, lambda p: p[0] == "C", ep.subframes)))
         if "RXM-RAWX" in outputs:
             parts.append(_rawx(ep, [is_geo(p) for p in ep.prn]))
         return b"".join(parts)
@@ -234,34 +311,66 @@ class Simulator:
     def _completed_subframes(
         self, st: _SatState, t0: float, t1: float, bdt_sow_rx: float, flight_s: float
     ) -> list[SimSubframe]:
-        """Subframes of ``st`` whose last bit arrived in (t0, t1] after bit sync."""
-        period = subframe_period_s(st.prn)
-        # receiver time since start <-> BDT transmit time: tx = bdt_sow_rx - (t1 - t) - flight
-        tx_of = lambda t: bdt_sow_rx - (t1 - t) - flight_s  # noqa: E731
+        """Subframes (I/NAV: pages) of ``st`` whose last bit arrived in (t0, t1] after sync.
+
+        BeiDou D1/D2 subframes start on multiples of 6 s / 0.6 s of BDT, GPS LNAV subframes on
+        multiples of 6 s of GPST (IS-GPS-200 20.3.2), Galileo E1-B pages on odd seconds of GST
+        (= GPST; 2 s pages, OS SIS ICD 4.3.2.2). The time is known by the rule of
+        :mod:`service.core.sow_rule` after the first subframe whose start follows sync; for
+        Galileo at the end of the first page carrying a TOW (word types 0/5/6) that starts
+        after sync (:func:`service.core.gal_nav.next_tow_page_start_s`)."""
+        message = message_of(st.prn)
+        if message in ("D1", "D2"):
+            period, offset, t_sys_rx = subframe_period_s(st.prn), 0.0, bdt_sow_rx
+        elif message == "LNAV":
+            period, offset, t_sys_rx = LNAV_SUBFRAME_S, 0.0, bdt_sow_rx + BDT_GPST_OFFSET_S
+        else:
+            period, offset = INAV_PAGE_S, E1B_FIRST_PAGE_S
+            t_sys_rx = bdt_sow_rx + BDT_GPST_OFFSET_S
+        # receiver time since start <-> system transmit time: tx = t_sys_rx - (t1 - t) - flight
+        tx_of = lambda t: t_sys_rx - (t1 - t) - flight_s  # noqa: E731
         if st.next_subframe_k is None:
             if t1 < st.sync_s:
                 return []
-            # the first preamble after bit sync; the time is known once the rule says so
-            k0 = math.ceil(round(tx_of(st.sync_s) / period, 9))
+            # the first preamble (page) after sync; the time is known once the rule says so
+            k0 = math.ceil(round((tx_of(st.sync_s) - offset) / period, 9))
             st.next_subframe_k = k0
-            known_s = time_known_after_s(nav_type(st.prn), self.cfg.full_rule)
-            st.full_s = t1 + (k0 * period + known_s - tx_of(t1))
+            if message == "INAV":
+                known_tx = next_tow_page_start_s(k0 * period + offset) + INAV_PAGE_S
+            else:
+                known_tx = k0 * period + time_known_after_s(message, self.cfg.full_rule)
+            st.full_s = t1 + (known_tx - tx_of(t1))
         out = []
         while True:
             k = st.next_subframe_k
-            end_tx = (k + 1) * period
+            end_tx = (k + 1) * period + offset
             end_rx = t1 + (end_tx - tx_of(t1))
             if end_rx > t1 + 1e-9:
                 break
             if end_rx > t0 - 1e-9:
-                nav = nav_type(st.prn)
-                out.append(SimSubframe(st.prn, nav, k, k * period, end_rx))
+                out.append(SimSubframe(st.prn, message, k, k * period + offset, end_rx))
             st.next_subframe_k = k + 1
         return out
 
 
-def subframe_words(eph: Ephemeris, sf: SimSubframe, iono: KlobucharParams | None) -> list[int]:
-    """The ten BCH-coded 30-bit words of a completed subframe, in ICD word order (5.1.3)."""
+def subframe_words(
+    eph: Ephemeris, sf: SimSubframe, iono: KlobucharParams | None, gpst_week: int = 0
+) -> list[int]:
+    """The words of a completed subframe as RXM-SFRBX carries them: BeiDou's ten BCH-coded
+    30-bit words in ICD order (5.1.3); GPS LNAV's ten parity-coded words (subframes 1-3 from
+    the set, 4-5 empty; HOW = the next subframe's start, IS-GPS-200 20.3.3.2); a Galileo
+    E1-B page's eight dwords (word type by :data:`service.core.gal_nav.E1B_SUBFRAME_WORDS`,
+    TOW = the page's start). ``gpst_week`` is the week the subframe started in (LNAV's WN,
+    I/NAV's WN)."""
+    if sf.nav_type == "LNAV":
+        sfid = sf.index % 5 + 1
+        tow_next = round(sf.start_bdt_sow_s + LNAV_SUBFRAME_S)
+        return lnav_words(encode_lnav(eph, sfid, tow_next, gpst_week))
+    if sf.nav_type == "INAV":
+        start = round(sf.start_bdt_sow_s)
+        wtype = E1B_SUBFRAME_WORDS[int((start - E1B_FIRST_PAGE_S) % 30) // 2]
+        gst_week = gpst_week - GST_GPS_WEEK_OFFSET
+        return encode_page(encode_inav_word(eph, wtype, gst_week, start % int(WEEK_S)))
     frame, fra_id = divmod(sf.index, 5)
     if sf.nav_type == "D1":
         sow = round(frame * 5 * D1_SUBFRAME_S)
@@ -275,9 +384,9 @@ def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
     meas = [
         RawxMeas(
             pr_m=float(ep.pr_m[i]),
-            gnss_id=3,
+            gnss_id=_GNSS_ID[prn[0]],
             sv_id=prn_number(prn),
-            sig_id=1 if geo[i] else 0,
+            sig_id=1 if geo[i] else 0,  # GPS L1 C/A and Galileo E1 C: sigId 0
             locktime_ms=1000,
             cn0_dbhz=int(ep.cn0_dbhz[i]),
             doppler_hz=float(ep.doppler_hz[i]),
@@ -315,9 +424,9 @@ def _sfrbx(prn: str, nav_type: str, words: Sequence[int]) -> bytes:
     from pyubx2 import GET, UBXMessage
 
     kw: dict[str, Any] = {
-        "gnssId": 3,
+        "gnssId": _GNSS_ID[prn[0]],
         "svId": prn_number(prn),
-        "sigId": 1 if nav_type == "D2" else 0,
+        "sigId": 1 if nav_type in ("D2", "INAV") else 0,  # Galileo I/NAV on E1-B: sigId 1
         "numWords": len(words),
         "chn": 0,
         "version": 2,

@@ -129,8 +129,10 @@ class SimStream:
         plans: Sequence[SimTrialPlan],
         trial_s: float,
         max_eph_age_s: float,
+        iono_gps: KlobucharParams | None = None,
     ) -> None:
         self.ephs, self.iono, self.base, self.plans, self.trial_s = ephs, iono, base, plans, trial_s
+        self.iono_gps = iono_gps  # GPS/Galileo rows' delay (Simulator)
         self.max_eph_age_s = max_eph_age_s
         self.epochs: dict[tuple[int, int], tuple[int, SimEpoch]] = {}
         self.by_trial: list[list[SimEpoch]] = [[] for _ in plans]
@@ -154,12 +156,13 @@ class SimStream:
                 seed=plan.seed,
                 elmask_deg=self.base.elmask_deg,
                 full_rule=self.base.full_rule,
+                systems=self.base.systems,
             )
             bw, bs = gpst_to_bdt(plan.start_gpst_week, plan.start_gpst_tow_s)
             # the satellites whose ephemeris the daemon's store accepts (max age |t - toe|)
             age_ok = self.max_eph_age_s
             fresh = [e for e in self.ephs if abs(diff_s(bw, bs, e.week, e.toe_sow_s)) <= age_ok]
-            sim = Simulator(fresh, cfg, self.iono)
+            sim = Simulator(fresh, cfg, self.iono, self.iono_gps)
             for ep, data in sim.ubx_epochs():
                 key = _time_key(ep.tag_gpst_week, ep.tag_gpst_tow_s)
                 self.epochs[key] = (plan.index, ep)
@@ -191,6 +194,7 @@ def run_daemon_on_pty(
     max_eph_age_s: float = 7200.0,
     timeout_s: float = 900.0,
     coarse_fix: bool = False,
+    systems: frozenset[str] = frozenset("C"),
 ) -> list[dict[str, Any]]:
     """Feed the stream to ``bdsfix run`` through a pty; the records of its JSONL output."""
     master, slave = os.openpty()
@@ -225,6 +229,8 @@ def run_daemon_on_pty(
         # the paper's method and SPP are timed here; the coarse-time fix only when asked
         "--coarse-fix",
         "true" if coarse_fix else "false",
+        "--systems",
+        ",".join(sorted(systems)),
     ]
     for path in nav:
         cmd += ["--nav", str(path)]
@@ -365,7 +371,11 @@ def analyse(
                 if fast is None:
                     fast = ep.t_s
                     first_method = fix.get("method")
-                ref = _spp(ep, ep.prn, store, iono, ref_cfg)
+                # the rows the daemon had: BeiDou's (full, or fractional from MEASX) and
+                # those of other systems with prMes valid (the virtual receiver's MEASX is
+                # BeiDou's)
+                rows = [p for i, p in enumerate(ep.prn) if p[0] == "C" or ep.full[i]]
+                ref = _spp(ep, rows, store, iono, ref_cfg)
                 x = np.asarray(fix["x_ecef_m"])
                 if ref.ok and ref.x_ecef_m is not None:
                     d = float(np.linalg.norm(x - np.asarray(ref.x_ecef_m)))

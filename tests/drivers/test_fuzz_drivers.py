@@ -59,6 +59,7 @@ from service.core.types import (
     MeasurementEpoch,
     NavSubframe,
     ReceiverFix,
+    TimeOffset,
 )
 from tests.support.paths import DATA
 
@@ -69,7 +70,14 @@ FUZZ = settings(
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
-EVENT_TYPES = (MeasurementEpoch, NavSubframe, Ephemeris, KlobucharParams, ReceiverFix)
+EVENT_TYPES = (
+    MeasurementEpoch,
+    NavSubframe,
+    Ephemeris,
+    KlobucharParams,
+    ReceiverFix,
+    TimeOffset,
+)
 CAPTURES = (
     "hk-polyu-f9p-ubx-2024/COM18___9600_240925_072456.ubx",
     "ublox-logs/ublox-zed-f9r.log",

@@ -365,10 +365,11 @@ sbf_stream = st.lists(
 ).map(b"".join)
 
 
+@pytest.mark.parametrize("systems", ["C", "CGE"])
 @FUZZ
 @given(sbf_stream, st.lists(st.integers(0, 20000), max_size=8))
-def test_stream_decoder_never_raises_on_sbf(data, cuts):
-    dec = StreamDecoder()
+def test_stream_decoder_never_raises_on_sbf(systems, data, cuts):
+    dec = StreamDecoder(mapper_options={"sbf": {"systems": frozenset(systems)}})
     events = feed_in_chunks(dec, data, cuts)
     assert all(isinstance(e, EVENT_TYPES) for e in events)
     for e in events:
@@ -376,10 +377,11 @@ def test_stream_decoder_never_raises_on_sbf(data, cuts):
             assert np.all((e.pr_m > 0) & (e.pr_m < 1e8))
 
 
+@pytest.mark.parametrize("systems", ["C", "CGE"])
 @FUZZ
 @given(st.lists(resealed, min_size=1, max_size=6))
-def test_sbf_mapper_raises_at_most_decode_error_on_blocks_pysbf2_parses(frames):
-    mapper = SbfMapper()
+def test_sbf_mapper_raises_at_most_decode_error_on_blocks_pysbf2_parses(systems, frames):
+    mapper = SbfMapper(systems=systems)
     for raw in frames:
         is_meas_epoch = int.from_bytes(raw[4:6], "little") & 0x1FFF == 4027  # parsed here
         if not is_meas_epoch and library_parse(SBFReader, raw) is None:
