@@ -60,9 +60,8 @@ def load_navigation(
     check_navigation(paths, navs, first)
     store = EphemerisStore(max_age_s=max_age_s)
     params = []
-    for nav in navs:
-        for ephs in nav.ephemerides.values():
-            store.add_all(ephs)
+    for nav in navs:  # every set of a file in one add_all (its checks vectorised)
+        store.add_all(e for ephs in nav.ephemerides.values() for e in ephs)
         params += [nav.iono_bds, nav.iono_gps]
     if len(store) == 0:  # every set refused by the store's sanity checks
         raise InputError(f"no usable BDS ephemeris in {', '.join(paths)}")

@@ -133,7 +133,7 @@ def _finite(value: object) -> bool:
         return False
 
 
-def ephemeris_problem(eph: Ephemeris, radius_m: float | None = None) -> EphemerisProblem | None:
+def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
     """What is wrong with ``eph`` for positioning, or None when it is usable.
 
     Checks, in order, with the ``check`` names used as counter keys:
@@ -160,13 +160,15 @@ def ephemeris_problem(eph: Ephemeris, radius_m: float | None = None) -> Ephemeri
       [R_MIN_M, R_MAX_M]; this also catches absurd harmonic corrections.
 
     Computed with numpy warnings silenced, so a bad set never prints a RuntimeWarning.
-    ``radius_m``: the radius at t_oe when the caller computed it (:func:`radii_at_toe_m`
-    over many sets at once, :meth:`EphemerisStore.add_all`); None: computed here.
     """
     problem = _field_problem(eph)
     if problem is not None:
         return problem
-    r_m = float(radii_at_toe_m([eph])[0]) if radius_m is None else radius_m
+    return _radius_problem(float(radii_at_toe_m([eph])[0]))
+
+
+def _radius_problem(r_m: float) -> EphemerisProblem | None:
+    """The ``radius`` check of :func:`ephemeris_problem` on the radius at t_oe."""
     if not R_MIN_M <= r_m <= R_MAX_M:  # also NaN
         return EphemerisProblem(
             "radius",
@@ -370,8 +372,9 @@ class EphemerisStore:
         and logged, and never replaces a set already held. A set with the (week, t_oe) of
         one held replaces it, except an outside copy of an own set (kept as it is, True);
         beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``).
-        ``radius_m``: :func:`ephemeris_problem`'s, when computed for many sets at once."""
-        problem = ephemeris_problem(eph, radius_m)
+        ``radius_m``: the set's radius at t_oe from :meth:`add_all`, which has run the other
+        checks of :func:`ephemeris_problem` and found nothing (None: every check here)."""
+        problem = ephemeris_problem(eph) if radius_m is None else _radius_problem(radius_m)
         sets = self._by_prn.get(eph.prn)
         if problem is None and sets is not None:
             problem = self._settle(sets, eph)
@@ -472,10 +475,10 @@ class EphemerisStore:
         return arr
 
     def add_all(self, ephs: Iterable[Ephemeris]) -> int:
-        """:meth:`add` of each set in turn; returns how many were kept. The radius check of
-        the sets that pass the others is computed for all of them in one vectorised call
-        (:func:`radii_at_toe_m`): one orbit per set, one numpy call per nav file, instead
-        of a numpy call per set (a day's mixed nav file: 0.1 ms a set)."""
+        """:meth:`add` of each set in turn; returns how many were kept. The checks of
+        :func:`ephemeris_problem` run first on every set, the radius one for all the sets
+        that pass the others in one vectorised call (:func:`radii_at_toe_m`): one numpy
+        call per nav file instead of one per set (a day's mixed nav file: 0.1 ms a set)."""
         ephs = list(ephs)
         checked = [e for e in ephs if _field_problem(e) is None]
         radius = dict(zip(map(id, checked), radii_at_toe_m(checked).tolist(), strict=True))
