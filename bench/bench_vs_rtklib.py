@@ -39,7 +39,15 @@ bdsfix runs with Python's bytecode cache (as an installed package: pip compiles 
 at install); ONE is also timed without it (every module compiled at each start, as under
 PYTHONDONTWRITEBYTECODE=1). Each case has one untimed warm-up run of each program.
 
-Run: python bench/bench_vs_rtklib.py [--runs 15] [--files hksc,tst,sim24,one]
+Each run's CPU time (user + system of the process, from wait4) is printed beside its wall
+time, with the ratio of the CPU medians: on a machine shared with other work the wall time
+also counts the time a process waited for a core, the CPU time does not.
+
+``--root DIR`` (repeatable) times bdsfix from another source tree too (``python -m service``
+run in DIR, e.g. an export of the commit before a change): the trees and rnx2rtkp alternate
+(A, B, rnx2rtkp, A, B, ...), so a before/after comparison is made in one sitting.
+
+Run: python bench/bench_vs_rtklib.py [--runs 15] [--files hksc,tst,sim24,one] [--root DIR ...]
 (prints figures; no assertions). Needs rnx2rtkp and convbin (Debian package rtklib). The
 ``-GEC`` rows run both sides with BDS + GPS + Galileo (bdsfix ``--systems C,G,E``,
 rnx2rtkp navsys 41).
@@ -302,10 +310,20 @@ def _bdsfix_cmd() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "service"]
 
 
-def run_timed(cmd: list[str], env: dict[str, str] | None = None) -> float:
+def run_timed(
+    cmd: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
+) -> tuple[float, float]:
+    """Wall time and CPU time (user + system, of the process and its children) [s]."""
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
-    return time.perf_counter() - t0
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=cwd
+    )
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode:
+        raise subprocess.CalledProcessError(proc.returncode, cmd)
+    return wall, usage.ru_utime + usage.ru_stime
 
 
 def bdsfix_env(workdir: Path, bytecode: bool) -> dict[str, str]:
@@ -366,19 +384,28 @@ def score_rtklib(path: Path, truth: Truth) -> dict[tuple[int, int], float]:
 
 
 def bench_case(
-    case: Case, runs: int, workdir: Path, conf: Path, env: dict[str, str], label: str = ""
+    case: Case,
+    runs: int,
+    workdir: Path,
+    conf: Path,
+    env: dict[str, str],
+    label: str = "",
+    roots: list[Path] | None = None,
 ) -> None:
+    """Time ``case`` on both sides (with ``roots``: bdsfix from each source tree, in turn)."""
     bds_out, rtk_out = workdir / f"{case.name}.jsonl", workdir / f"{case.name}.pos"
     navs = [str(case.nav), *map(str, case.extra_nav)]
     if case.raw is None:
-        bds = [*_bdsfix_cmd(), "solve", str(case.obs), *navs, "--mode", case.mode]
-        bds += ["--out", str(bds_out), "--systems", case.systems, *case.bdsfix_flags]
+        args = ["solve", str(case.obs), *navs, "--mode", case.mode, "--systems", case.systems]
+        args += list(case.bdsfix_flags)
+        out_flag = "--out"
     else:
-        bds = [*_bdsfix_cmd(), "replay", str(case.raw), "--max-speed", "--nmea-out", os.devnull]
-        bds += ["--jsonl-out", str(bds_out), "--systems", case.systems]
+        args = ["replay", str(case.raw), "--max-speed", "--nmea-out", os.devnull]
+        args += ["--systems", case.systems]
+        out_flag = "--jsonl-out"
     text = RTKLIB_CONF
     if not case.exclusion:
-        bds += ["--max-exclusions", "0"]
+        args += ["--max-exclusions", "0"]
         text = text.replace("pos1-posopt5       =on\n", "")
     navsys = sum(NAVSYS[s] for s in case.systems.split(","))
     text = text.replace("pos1-navsys        =32", f"pos1-navsys        ={navsys}")
@@ -386,22 +413,45 @@ def bench_case(
         conf = conf.with_name(f"{case.name}.conf")
         conf.write_text(text, encoding="ascii")
     rtk = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(rtk_out), str(case.obs), *navs]
-    run_timed(bds, env)  # warm-up (file cache, bytecode cache), not timed
+    # (name, command, working directory) of each bdsfix tree
+    outs = [bds_out]
+    trees: list[tuple[str, list[str], Path | None]] = [
+        ("", [*_bdsfix_cmd(), *args, out_flag, str(bds_out)], None)
+    ]
+    if roots:  # each tree writes its own output; the last tree's is scored
+        outs = [bds_out.with_suffix(f".{k}.jsonl") for k in range(len(roots))]
+        trees = [
+            (str(r), [sys.executable, "-m", "service", *args, out_flag, str(out)], r)
+            for r, out in zip(roots, outs, strict=True)
+        ]
+    for _, cmd, cwd in trees:  # warm-up (file cache, bytecode cache), not timed
+        run_timed(cmd, env, cwd)
     run_timed(rtk)
-    t_bds, t_rtk = [], []
+    t_bds: list[list[tuple[float, float]]] = [[] for _ in trees]
+    t_rtk: list[tuple[float, float]] = []
     for _ in range(runs):
-        t_bds.append(run_timed(bds, env))
+        for k, (_, cmd, cwd) in enumerate(trees):
+            t_bds[k].append(run_timed(cmd, env, cwd))
         t_rtk.append(run_timed(rtk))
-    mb, mr = statistics.median(t_bds), statistics.median(t_rtk)
+    mr = statistics.median(w for w, _ in t_rtk)
+    cr = statistics.median(c for _, c in t_rtk)
     how = "replay (SBF)" if case.raw is not None else f"solve --mode {case.mode}"
-    print(
-        f"{case.name + label:<8} {case.epochs:5d} epochs  bdsfix {how:<17} "
-        f"{mb:7.3f} s (min {min(t_bds):.3f})  rnx2rtkp {mr:6.3f} s (min {min(t_rtk):.3f})  "
-        f"ratio {mb / mr:5.1f}x   ({runs} alternating runs, medians)"
-    )
+    for (tree, _, _), times in zip(trees, t_bds, strict=True):
+        mb = statistics.median(w for w, _ in times)
+        cb = statistics.median(c for _, c in times)
+        print(
+            f"{case.name + label:<8} {case.epochs:5d} epochs  bdsfix {how:<17} "
+            f"{mb:7.3f} s (min {min(w for w, _ in times):.3f})  rnx2rtkp {mr:6.3f} s "
+            f"(min {min(w for w, _ in t_rtk):.3f})  ratio {mb / mr:5.1f}x   ({runs} "
+            f"alternating runs, medians); CPU {cb:6.3f} s vs {cr:6.3f} s, ratio {cb / cr:4.1f}x"
+            + (f"  [{tree}]" if tree else "")
+        )
+    if len(outs) > 1:
+        same = all(o.read_bytes() == outs[0].read_bytes() for o in outs[1:])
+        print(f"       outputs of the {len(outs)} trees byte-identical: {same}")
     if case.name == "ONE":
         return
-    sb = score_bdsfix(bds_out, case.truth, by_mode=case.raw is not None)
+    sb = score_bdsfix(outs[-1], case.truth, by_mode=case.raw is not None)
     sr = score_rtklib(rtk_out, case.truth)
     for solver in ("spp", "fast") if case.mode == "both" else (case.mode,):
         mine = sb[solver]
@@ -430,6 +480,13 @@ def main() -> None:
         help="which files, comma-separated (-gec: BDS + GPS + Galileo on both sides)",
     )
     ap.add_argument("--sim-hours", type=float, default=24.0, help="length of the simulated day")
+    ap.add_argument(
+        "--root",
+        type=Path,
+        action="append",
+        help="source tree to run bdsfix from (python -m service in it; repeatable, runs "
+        "alternate); default: the installed bdsfix",
+    )
     args = ap.parse_args()
     if shutil.which("rnx2rtkp") is None:
         sys.exit("bench_vs_rtklib: rnx2rtkp not found (sudo apt-get install rtklib)")
@@ -528,10 +585,12 @@ def main() -> None:
             f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start"
         )
         env = bdsfix_env(workdir, bytecode=True)
+        roots = [r.resolve() for r in args.root] if args.root else None
         for case in cases:
-            bench_case(case, args.runs, workdir, conf, env)
+            bench_case(case, args.runs, workdir, conf, env, roots=roots)
         if "one" in want:  # start-up when every module is compiled at each start
-            bench_case(cases[0], args.runs, workdir, conf, bdsfix_env(workdir, False), "*")
+            no_cache = bdsfix_env(workdir, False)
+            bench_case(cases[0], args.runs, workdir, conf, no_cache, "*", roots=roots)
             print("       (ONE*: no bytecode cache, PYTHONDONTWRITEBYTECODE=1)")
         print(f"load average {os.getloadavg()[0]:.1f} at the end")
 

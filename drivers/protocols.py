@@ -15,6 +15,11 @@ bytes, tried in registry order before the protocols) and gives its reader (path 
 Adding a protocol or a file format is one module that defines its parts, plus one line
 here. The registry is read when a source opens (``drivers.protocols.PROTOCOLS`` /
 ``FILE_FORMATS`` at that moment), so a test can add an entry with ``monkeypatch.setattr``.
+
+The stream protocols' modules (and pyubx2, pyrtcm, pysbf2, pynmeagps under them) are
+imported when :data:`PROTOCOLS` is first read (PEP 562 module ``__getattr__``), not with
+this module: ``bdsfix solve`` of a RINEX file never frames a stream, and their imports were
+about 30 ms of its start-up.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from drivers import gnsslogger, nmea, rinex, rtcm, sbf, ubx
+from drivers import gnsslogger, rinex
 from drivers.framing import Event, Framing
 from service.core.counters import Counters
 
@@ -57,12 +62,26 @@ class ProtocolSpec:
     mapper: MapperFactory | None
 
 
-PROTOCOLS: tuple[ProtocolSpec, ...] = (
-    ProtocolSpec("ubx", ubx.FRAMING, ubx.UbxMapper),
-    ProtocolSpec("rtcm", rtcm.FRAMING, rtcm.RtcmMapper),
-    ProtocolSpec("sbf", sbf.FRAMING, sbf.SbfMapper),
-    ProtocolSpec("nmea", nmea.FRAMING, None),
-)
+def _protocols() -> tuple[ProtocolSpec, ...]:
+    """The stream protocols: :data:`PROTOCOLS`."""
+    from drivers import nmea, rtcm, sbf, ubx
+
+    return (
+        ProtocolSpec("ubx", ubx.FRAMING, ubx.UbxMapper),
+        ProtocolSpec("rtcm", rtcm.FRAMING, rtcm.RtcmMapper),
+        ProtocolSpec("sbf", sbf.FRAMING, sbf.SbfMapper),
+        ProtocolSpec("nmea", nmea.FRAMING, None),
+    )
+
+
+def __getattr__(name: str) -> tuple[ProtocolSpec, ...]:
+    """``PROTOCOLS``, the stream protocols (UBX, RTCM3, SBF, NMEA), made at its first read
+    and kept as a plain module attribute from then on (module docstring)."""
+    if name == "PROTOCOLS":
+        value = _protocols()
+        globals()["PROTOCOLS"] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 FileReader = Callable[[Path, Counters, bool, frozenset[str]], Iterable[Event]]

@@ -838,12 +838,21 @@ def _nav_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> tuple[E
             toc_sow = gpst_to_bdt(toc_gps_week, dow * 86400 + sod)[1]
         for k, names in enumerate(_RECORDS[system]):
             start = 23 if k == 0 else 4
+            # the D exponents of a line read as E in one pass, so that ``float`` takes each
+            # field at the first try (the number is the same; _float's second look, once a
+            # field, was half of reading a nav file); anything else goes to _float as written
+            line = rec[k]
+            read = line.replace("D", "E").replace("d", "e")
             for j, name in enumerate(names):
                 if name is not None:
-                    text = rec[k][start + 19 * j : start + 19 * (j + 1)]
-                    values[name] = _float(text)
-                    if not text.strip():
-                        blank.add(name)
+                    a, b = start + 19 * j, start + 19 * (j + 1)
+                    try:
+                        values[name] = float(read[a:b])
+                    except ValueError:
+                        text = line[a:b]
+                        values[name] = _float(text)
+                        if not text.strip():
+                            blank.add(name)
     except ValueError as exc:
         raise FramingError(f"{path}:{lineno + k}: bad {name_of} record for {prn}: {exc}") from exc
     kwargs: dict[str, float | int] = {}

@@ -125,6 +125,8 @@ class EphemerisProblem:
 
 
 def _finite(value: object) -> bool:
+    if type(value) is float:  # nearly every field: without the ABC check of Real (slow)
+        return math.isfinite(value)
     try:
         return isinstance(value, Real) and math.isfinite(value)
     except OverflowError:  # an int beyond any float
@@ -159,6 +161,35 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
 
     Computed with numpy warnings silenced, so a bad set never prints a RuntimeWarning.
     """
+    problem = _field_problem(eph)
+    if problem is not None:
+        return problem
+    return _radius_problem(float(radii_at_toe_m([eph])[0]))
+
+
+def _radius_problem(r_m: float) -> EphemerisProblem | None:
+    """The ``radius`` check of :func:`ephemeris_problem` on the radius at t_oe."""
+    if not R_MIN_M <= r_m <= R_MAX_M:  # also NaN
+        return EphemerisProblem(
+            "radius",
+            f"radius at toe {r_m / 1e3:.0f} km outside "
+            f"[{R_MIN_M / 1e3:.0f}, {R_MAX_M / 1e3:.0f}] km",
+        )
+    return None
+
+
+def radii_at_toe_m(ephs: Sequence[Ephemeris]) -> np.ndarray:
+    """|position| [m] of each set at its own t_oe by its system's user algorithm (the
+    ``radius`` check of :func:`ephemeris_problem`), in one vectorised call; sets that pass
+    the other checks only (a set refused by them may not compute)."""
+    with np.errstate(all="ignore"):
+        arrays = EphemerisArrays.from_ephemerides(ephs)
+        pos_m, _ = sat_pos_clock(arrays, arrays.week, arrays.toe_sow_s)
+        return np.asarray(np.linalg.norm(pos_m, axis=-1))
+
+
+def _field_problem(eph: Ephemeris) -> EphemerisProblem | None:
+    """:func:`ephemeris_problem`'s checks before the radius one, in its order."""
     try:
         prn_max = constants_of(eph.prn).prn_max
         number = prn_number(eph.prn)
@@ -198,17 +229,6 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
         return EphemerisProblem(
             "inclination",
             f"i0 {math.degrees(eph.i0_rad):.2f} deg outside [0, {math.degrees(I0_MAX_RAD):g}] deg",
-        )
-    with np.errstate(all="ignore"):
-        pos_m, _ = sat_pos_clock(
-            EphemerisArrays.from_ephemerides([eph]), eph.week, np.array([eph.toe_sow_s])
-        )
-        r_m = float(np.linalg.norm(pos_m[0]))
-    if not R_MIN_M <= r_m <= R_MAX_M:  # also NaN
-        return EphemerisProblem(
-            "radius",
-            f"radius at toe {r_m / 1e3:.0f} km outside "
-            f"[{R_MIN_M / 1e3:.0f}, {R_MAX_M / 1e3:.0f}] km",
         )
     return None
 
@@ -345,14 +365,16 @@ class EphemerisStore:
     def prns(self) -> list[str]:
         return sorted(self._by_prn)
 
-    def add(self, eph: Ephemeris) -> bool:
+    def add(self, eph: Ephemeris, radius_m: float | None = None) -> bool:
         """Hold ``eph`` unless :func:`ephemeris_problem` refuses it or a held set of the
         receiver's own contradicts it (check ``inconsistent``, see :meth:`_settle`); returns
         whether it was kept. A refused set is counted (``refused``, ``refused_by_reason``)
         and logged, and never replaces a set already held. A set with the (week, t_oe) of
         one held replaces it, except an outside copy of an own set (kept as it is, True);
-        beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``)."""
-        problem = ephemeris_problem(eph)
+        beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``).
+        ``radius_m``: the set's radius at t_oe from :meth:`add_all`, which has run the other
+        checks of :func:`ephemeris_problem` and found nothing (None: every check here)."""
+        problem = ephemeris_problem(eph) if radius_m is None else _radius_problem(radius_m)
         sets = self._by_prn.get(eph.prn)
         if problem is None and sets is not None:
             problem = self._settle(sets, eph)
@@ -453,7 +475,14 @@ class EphemerisStore:
         return arr
 
     def add_all(self, ephs: Iterable[Ephemeris]) -> int:
-        return sum(self.add(e) for e in ephs)
+        """:meth:`add` of each set in turn; returns how many were kept. The checks of
+        :func:`ephemeris_problem` run first on every set, the radius one for all the sets
+        that pass the others in one vectorised call (:func:`radii_at_toe_m`): one numpy
+        call per nav file instead of one per set (a day's mixed nav file: 0.1 ms a set)."""
+        ephs = list(ephs)
+        checked = [e for e in ephs if _field_problem(e) is None]
+        radius = dict(zip(map(id, checked), radii_at_toe_m(checked).tolist(), strict=True))
+        return sum(self.add(e, radius.get(id(e))) for e in ephs)
 
     def select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
         """Healthy ephemeris of ``prn`` with t_oe nearest the BDT time, or None if too old.

@@ -192,6 +192,45 @@ def test_non_finite_health_is_not_finite(c08):
     assert _check(dataclasses.replace(c08, health=math.nan)) == "not_finite"
 
 
+def test_add_all_keeps_and_refuses_as_add_one_by_one():
+    """add_all runs the checks of a whole file at once (the radius one vectorised): the same
+    sets kept, the same refusals by check and the same last refusal as add() of each set in
+    turn, on a real mixed nav file (BDS, GPS, Galileo) with damaged copies of real sets of
+    each check interleaved (the damaged values are the ones the tests above refuse)."""
+    nav = read_nav(DATA / "hksc-2021/hksc1610.nav", ("C", "G", "E"))
+    sets = [e for items in nav.ephemerides.values() for e in items]
+    damage = (
+        {"sqrt_a_sqrt_m": 0.0},
+        {"e": 2.0},
+        {"health": 1},
+        {"m0_rad": math.nan},
+        {"toe_sow_s": 700_000.0},
+        {"e": 0.0, "m0_rad": 0.0, "omega_rad": 0.0, "crs_m": 0.0, "crc_m": 3e7},  # radius
+        {"prn": "C99"},
+    )
+    mixed = list(sets)
+    for k, change in enumerate(damage):
+        mixed.insert(7 * k + 3, dataclasses.replace(sets[11 * k], **change))
+    clean, one, every = EphemerisStore(), EphemerisStore(), EphemerisStore()
+    for e in sets:  # the file's own refusals (its unhealthy sets)
+        clean.add(e)
+    kept_one = [one.add(e) for e in mixed]
+    assert every.add_all(mixed) == sum(kept_one)
+    assert one.all() == every.all() == clean.all()
+    assert one.refused == every.refused == clean.refused + len(damage)
+    assert one.refused_by_reason == every.refused_by_reason
+    assert set(one.refused_by_reason) == {
+        "eccentricity",
+        "not_finite",
+        "prn",
+        "radius",
+        "sqrt_a",
+        "time_of_week",
+        "unhealthy",
+    }
+    assert str(one.last_refusal) == str(every.last_refusal)
+
+
 def test_refused_set_never_replaces_the_good_one(c08):
     store = EphemerisStore()
     assert store.add(c08)

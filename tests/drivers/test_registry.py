@@ -9,6 +9,8 @@ RINEX file itself.
 from __future__ import annotations
 
 import itertools
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -22,7 +24,7 @@ from service.core.errors import InputError
 from service.core.types import MeasurementEpoch
 from service.engine.pipeline import Pipeline
 from tests.support import toy_protocol, toy_text
-from tests.support.paths import DATA
+from tests.support.paths import DATA, ROOT
 
 OBS = DATA / "hksc-2021" / "hksc1610.obs"
 NAV = DATA / "hksc-2021" / "hksc1610.nav"
@@ -111,3 +113,24 @@ def test_a_scheme_names_the_format_whatever_the_content(tmp_path):
     with open_source(f"gnsslogger:{path}") as src:
         got = [e for e in src if isinstance(e, MeasurementEpoch)]
     assert len(got) == 3 and got[0].prn[0] == "G02"
+
+
+def test_a_rinex_file_is_read_without_the_stream_protocols(tmp_path):
+    """``bdsfix solve`` of a RINEX file frames no stream: reading it through the registry
+    (drivers.source.file_epochs) imports none of the stream protocols' modules or their
+    libraries; reading ``PROTOCOLS`` brings them (a fresh interpreter, as at start-up)."""
+    code = (
+        "import sys\n"
+        "from drivers.source import file_epochs\n"
+        f"events, _ = file_epochs({str(OBS)!r})\n"
+        "n = sum(1 for _ in events)\n"
+        "libs = ('pyubx2', 'pyrtcm', 'pysbf2', 'pynmeagps', 'drivers.ubx', 'drivers.rtcm',\n"
+        "        'drivers.sbf', 'drivers.nmea')\n"
+        "print(n, [m for m in libs if m in sys.modules])\n"
+        "from drivers.protocols import PROTOCOLS\n"
+        "print([p.name for p in PROTOCOLS], [m for m in libs if m not in sys.modules])\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    ).stdout.splitlines()
+    assert out == ["205 []", "['ubx', 'rtcm', 'sbf', 'nmea'] []"]
