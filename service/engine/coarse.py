@@ -47,6 +47,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -55,7 +56,7 @@ from service.core.corrections import sagnac_rotate
 from service.core.declines import Decline, Declined, excluded_why
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
+from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
@@ -82,6 +83,16 @@ COARSE_LAYOUT = Layout(coarse_time=True)
 N_PARAMS = 5
 """Unknowns of a candidate's solve: x, y, z, the clock and the coarse-time offset (the
 position layout with ``coarse_time=True``, BeiDou alone: :class:`service.engine.layout.Layout`)."""
+PRIOR_ROWS = 1
+"""Pseudo-observations of a candidate's solve: the time prior dt = 0 +- ``time_prior_s``
+(the host clock's tag, an observation with its own sigma). Its term is in the chi-square
+statistic, so it counts in the redundancy: rows + PRIOR_ROWS - N_PARAMS."""
+
+
+def min_rows(ccfg: CoarseConfig | None = None) -> int:
+    """Range rows the coarse-time fix needs: redundancy ``min_redundancy`` with the time
+    prior's row (6 satellites at the default 2)."""
+    return N_PARAMS + (ccfg or CoarseConfig()).min_redundancy - PRIOR_ROWS
 
 
 @dataclass(frozen=True, slots=True)
@@ -226,11 +237,9 @@ def _sats(
     arr = store.arrays(ephs)
     t0 = bdt_sow - NOMINAL_FLIGHT_TIME_S
     h = max(span_s, 0.5)
-    n = len(idx)
-    (pm, cm), (pz, cz), (pp, cp) = (
-        sat_pos_clock(arr, bdt_week, np.full(n, t0 + k * h)) for k in (-1.0, 0.0, 1.0)
-    )
-    _, _, _, drift = sat_pos_vel_clock(arr, bdt_week, np.full(n, t0))
+    # the three times in one call (the ephemeris' arrays broadcast over the first axis)
+    pos3, clk3 = sat_pos_clock(arr, bdt_week, t0 + h * np.array([-1.0, 0.0, 1.0])[:, None])
+    (pm, pz, pp), (cm, cz, cp) = pos3, clk3
     return _Sats(
         prn=tuple(epoch.prn[i] for i in idx),
         z_m=np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii]),
@@ -245,7 +254,7 @@ def _sats(
         c0=cz,
         c1=(cp - cm) / (2 * h),
         c2=(cp - 2 * cz + cm) / (2 * h * h),
-        drift_s_s=drift,
+        drift_s_s=(cp - cm) / (2 * h),  # exact for the clock polynomial (ICD 5.2.4.10)
     )
 
 
@@ -442,12 +451,12 @@ def _solve_candidates(
         los, pred, _ = ranges(pos, clk, x, omega)
         vel = sagnac_rotate(vel, tau, omega)
         rdot = np.einsum("kni,kni->kn", los, vel)
-        lat, lon, alt = ecef_to_geodetic(x)
+        lat, lon, alt = _geodetic(x)
         rot = enu_rotation(lat, lon)  # (k, 3, 3)
         enu = np.einsum("kij,knj->kni", rot, los)
         el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
         az = np.arctan2(enu[..., 0], enu[..., 1])
-        near = it >= 2
+        near = it >= 1
         if near:
             io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
             corr = total_delay(io, tr)
@@ -472,9 +481,22 @@ def _solve_candidates(
         x = x + step[:, :3]
         b = b + step[:, 3]
         dt = dt + step[:, 4]
+        # converged with the corrections on (their change with a sub-mm step is nil): stop
+        moved = np.abs(step[:, :4]).max(initial=0.0) + 1e3 * np.abs(step[:, 4]).max(initial=0.0)
+        if it >= 2 and moved < 1e-4:
+            break
     t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
-    dof = (w > 0).sum(axis=1) - N_PARAMS
+    dof = (w > 0).sum(axis=1) + PRIOR_ROWS - N_PARAMS
     return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), el.min(axis=1), normal, h, v, w)
+
+
+def _geodetic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`ecef_to_geodetic` of points ``x`` (k, 3): point by point (its scalar path)
+    when they are few, where numpy's per-call cost is most of the time."""
+    if len(x) > 8:
+        return ecef_to_geodetic(x)
+    out = np.array([[float(v) for v in ecef_to_geodetic(p)] for p in x]).reshape(-1, 3)
+    return out[:, 0], out[:, 1], out[:, 2]
 
 
 def _inv_diag(m: np.ndarray) -> np.ndarray:
@@ -518,7 +540,7 @@ def _solve_coarse(
 ) -> CoarseResult:
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s)
-    need = N_PARAMS + ccfg.min_redundancy
+    need = min_rows(ccfg)
     if sats is None or len(sats.prn) < need:
         have = 0 if sats is None else len(sats.prn)
         why = Declined.of(Decline.TOO_FEW_ROWS, rows=have, need=need)
@@ -537,12 +559,11 @@ def _solve_coarse(
     cand, first = np.unique(n_all, axis=0, return_index=True)
     x0 = pts[first]
     ev = _evaluate(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
-    base = CoarseResult(
-        declined(epoch, Declined.of(Decline.NUMERICAL, error="", message="")),  # replaced below
-        prior=prior,
-        candidates=len(cand),
-        passing=int(ev.passing.sum()),
-    )
+    n_cand, n_pass = len(cand), int(ev.passing.sum())
+
+    def result(fix: Fix, **found: Any) -> CoarseResult:
+        return CoarseResult(fix, prior=prior, candidates=n_cand, passing=n_pass, **found)
+
     excluded: dict[str, str] = {}
     if not ev.passing.any() and ccfg.coarse_max_exclusions > 0 and len(sats.prn) - 1 >= need:
         # fault exclusion: each row left out in turn, every candidate again; published only
@@ -550,7 +571,7 @@ def _solve_coarse(
         outcome = _exclude_one(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
         if isinstance(outcome, str):
             why = Declined.of(Decline.AMBIGUOUS, passing=0, rivals=outcome)
-            return replace(base, fix=declined(epoch, why))
+            return result(declined(epoch, why))
         if outcome is not None:
             j, sats, cand, ev = outcome
             excluded = {prn: excluded_why("coarse") for prn in j}
@@ -559,17 +580,19 @@ def _solve_coarse(
     if not passing.any():
         best_dof = int(solved.dof.max())
         if best_dof < ccfg.min_redundancy:
-            why = Declined.of(Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS, need=need)
-            return replace(base, fix=declined(epoch, why))
+            why = Declined.of(
+                Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS - PRIOR_ROWS, need=need
+            )
+            return result(declined(epoch, why))
         why = Declined.of(Decline.CHI2, "coarse", candidates=len(cand))
-        return replace(base, fix=declined(epoch, why))
+        return result(declined(epoch, why))
     ratio = np.where(passing, solved.t_stat / t_max, np.inf)
     best = int(np.argmin(ratio))
     if int(rivals.sum()) > 1:
         why = Declined.of(
             Decline.AMBIGUOUS, passing=int(passing.sum()), rivals=int(rivals.sum()) - 1
         )
-        return replace(base, fix=declined(epoch, why))
+        return result(declined(epoch, why))
     n_best = cand[best]
     p_full = sats.z_m + n_best * sats.ct_m
     dt = float(solved.dt[best])
@@ -615,7 +638,7 @@ def _solve_coarse(
             time_offset_s=dt,
             excluded={**excluded, **fix.excluded},
         )
-    return replace(base, fix=fix, time_offset_s=dt, integers=integers, absolute=absolute)
+    return result(fix, time_offset_s=dt, integers=integers, absolute=absolute)
 
 
 @dataclass(slots=True, eq=False)
