@@ -290,7 +290,11 @@ def doppler_position(
     v_rx = np.zeros(3)
     cov: np.ndarray = np.eye(7)
     moving = False
-    for _ in range(40):
+    # the moving phase backtracks: a step that raises the weighted cost is halved (the
+    # position-velocity trade-off of a few rows makes plain Gauss-Newton cycle there)
+    last: tuple[float, np.ndarray, float, np.ndarray, np.ndarray] | None = None
+    halvings = 0
+    for _ in range(60):
         tau = np.linalg.norm(pos - x, axis=1) / C_M_S
         s = sagnac_rotate(pos, tau, omega)
         v = sagnac_rotate(vel, tau, omega)
@@ -308,11 +312,10 @@ def doppler_position(
         r[:n] = rr - pred
         w[:n] = 1.0 / ccfg.doppler_sigma_m_s**2
         if np.linalg.norm(x) > 1e6:
-            alt, up = _up(x)
-            r[n] = -float(alt)
-            h[n, :3] = up
-            lat, lon, _ = ecef_to_geodetic(x)
+            lat, lon, alt = ecef_to_geodetic(x)
             rot = enu_rotation(float(lat), float(lon))
+            r[n] = -float(alt)
+            h[n, :3] = rot[2]  # the local up
         else:  # from the centre: the sphere's radius, the velocity held at 0
             nx = max(float(np.linalg.norm(x)), 1.0)
             r[n] = 6_371e3 - nx
@@ -323,12 +326,31 @@ def doppler_position(
         r[n + 1 :] = -(rot @ v_rx)
         sig = (sv, sv, ccfg.vertical_speed_sigma_m_s) if moving and sv > 0 else (1e-3,) * 3
         w[n + 1 :] = 1.0 / np.square(sig)
+        cost = float(np.sum(w * r * r))
+        if moving and last is not None and cost > last[0]:
+            _, x0, d0, v0, half = last
+            if halvings >= 8 or float(np.linalg.norm(half[:3])) < 10.0:
+                # no descent left: the cost's minimum (along the ill-determined direction
+                # its covariance, computed there, is wide); the Jacobian's approximations
+                # put the Gauss-Newton fixed point a little off it
+                x, d, v_rx = x0, d0, v0
+                break
+            halvings += 1
+            last = (last[0], x0, d0, v0, 0.5 * half)
+            x, d, v_rx = x0 + half[:3], d0 + float(half[3]), v0 + half[4:]
+            continue
         hw = h.T * w
         try:
             cov = np.asarray(np.linalg.inv(hw @ h), dtype=float)
         except np.linalg.LinAlgError:
             return None
         step = cov @ (hw @ r)
+        if moving:
+            if last is not None and last[0] - cost < 1e-2:
+                # the cost no more than 0.01 above its minimum here: within 0.1 sigma of it
+                # (Mahalanobis) along the flat valley where plain steps zig-zag
+                break
+            last, halvings = (cost, x, d, v_rx, 0.5 * step), 0
         x = x + step[:3]
         d += float(step[3])
         v_rx = v_rx + step[4:]
@@ -378,6 +400,17 @@ def hypotheses(
     pts = prior_ecef_m + enu @ rot
     glat, glon, _ = ecef_to_geodetic(pts)
     return geodetic_to_ecef(glat, glon, np.zeros_like(glat))
+
+
+def _unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``a`` in lexicographic order and the index of each one's first
+    occurrence (``np.unique(a, axis=0, return_index=True)``, without its per-call cost)."""
+    first: dict[tuple[float, ...], int] = {}
+    for i, row in enumerate(map(tuple, a.tolist())):
+        first.setdefault(row, i)
+    keys = sorted(first)
+    idx = np.array([first[k] for k in keys], dtype=int)
+    return a[idx], idx
 
 
 def _round(sats: _Sats, pts: np.ndarray) -> np.ndarray:
@@ -556,7 +589,7 @@ def _solve_coarse(
     frac = sats.ct_m > 0
     if not (~frac).any():  # the common millisecond goes into the clock (module docstring)
         n_all = n_all - n_all[:, :1]
-    cand, first = np.unique(n_all, axis=0, return_index=True)
+    cand, first = _unique_rows(n_all)
     x0 = pts[first]
     ev = _evaluate(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
     n_cand, n_pass = len(cand), int(ev.passing.sum())
@@ -715,7 +748,7 @@ def _exclude_one(
         cj = cand[:, keep]
         if not (sub.ct_m == 0).any():
             cj = cj - cj[:, :1]
-        cj, first = np.unique(cj, axis=0, return_index=True)
+        cj, first = _unique_rows(cj)
         ev = _evaluate(sub, cj, x0[first], bdt_sow, iono, cfg, ccfg)
         found.append((j, keep, sub, cj, ev))
     best = None
