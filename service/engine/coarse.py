@@ -514,9 +514,10 @@ def _solve_candidates(
         x = x + step[:, :3]
         b = b + step[:, 3]
         dt = dt + step[:, 4]
-        # converged with the corrections on (their change with a sub-mm step is nil): stop
+        # converged with the corrections on: the steps shrink quadratically (HKSC: 30 km,
+        # 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is below 0.1 mm
         moved = np.abs(step[:, :4]).max(initial=0.0) + 1e3 * np.abs(step[:, 4]).max(initial=0.0)
-        if it >= 2 and moved < 1e-4:
+        if it >= 2 and moved < 0.05:
             break
     t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
     dof = (w > 0).sum(axis=1) + PRIOR_ROWS - N_PARAMS
