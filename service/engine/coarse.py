@@ -163,6 +163,9 @@ class DopplerPrior:
     drift_m_s: float
     q_en_m2: np.ndarray  # horizontal (east, north) covariance [m^2]
     n_rows: int
+    cost: float = math.nan
+    """Weighted squared residuals at the solution (Doppler rows and the height and velocity
+    pseudo-observations)."""
 
     @property
     def sigma_h_m(self) -> float:
@@ -333,7 +336,7 @@ def doppler_position(
                 # no descent left: the cost's minimum (along the ill-determined direction
                 # its covariance, computed there, is wide); the Jacobian's approximations
                 # put the Gauss-Newton fixed point a little off it
-                x, d, v_rx = x0, d0, v0
+                x, d, v_rx, cost = x0, d0, v0, last[0]
                 break
             halvings += 1
             last = (last[0], x0, d0, v0, 0.5 * half)
@@ -364,8 +367,13 @@ def doppler_position(
         return None
     lat, lon, _ = ecef_to_geodetic(x)
     rot2 = enu_rotation(float(lat), float(lon))[:2]
-    q = rot2 @ cov[:3, :3] @ rot2.T
-    return DopplerPrior(x, d, q, int(ok.sum()))
+    # the a posteriori variance factor: Doppler rows noisier than doppler_sigma_m_s (a
+    # moving receiver's multipath, a slipped row) widen the covariance, and so the search,
+    # instead of centring a narrow one hundreds of km off (n rows, the height and three
+    # velocity pseudo-observations, seven unknowns: n - 3 degrees of freedom)
+    factor = max(1.0, cost / (n - 3)) if n > 3 and math.isfinite(cost) else 1.0
+    q = factor * (rot2 @ cov[:3, :3] @ rot2.T)
+    return DopplerPrior(x, d, q, int(ok.sum()), cost)
 
 
 def hypotheses(

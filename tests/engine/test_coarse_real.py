@@ -214,6 +214,32 @@ def test_tst_whole_drive_availability_and_never_a_wrong_integer():
     assert beyond <= 0.01 * with_truth
 
 
+def test_a_noisy_doppler_widens_the_search_instead_of_missing_the_truth():
+    """Drive epochs whose Doppler position is 600-950 km off the truth (a moving receiver's
+    multipath on a few Doppler rows): the Doppler residuals are far above their sigma, so
+    the a posteriori variance factor widens the covariance to cover the truth within the
+    4.5 sigma the search spans; each epoch is then fixed with the right integers (before,
+    the narrow search centred hundreds of km off held no passing candidate: chi2)."""
+    store, iono = load_navigation([str(TST / "hksc1180.19b")])
+    cfg = SolverConfig()
+    picked = {46234, 46500, 46662, 47410}  # GPST seconds of the week (rounded)
+    seen = 0
+    for ep in RinexObsReader(TST / "COM3_190428_124409.obs"):
+        if round(ep.gpst_tow_s) not in picked:
+            continue
+        seen += 1
+        ref = solve(ep, store, iono, cfg, "spp")
+        fe, _ = _restarted(ep, 0)
+        res = solve_coarse(fe, store, iono, cfg)
+        off_m = float(np.linalg.norm(res.prior.x_ecef_m - np.asarray(ref.x_ecef_m)))
+        assert off_m > 500e3  # the Doppler position is far off
+        assert res.prior.cost > 10.0 * (res.prior.n_rows - 3)  # and says so
+        assert off_m < CoarseConfig().search_sigmas * res.prior.sigma_h_m
+        assert res.fix.ok
+        assert not _wrong(res, _true_integers(ep, fe))
+    assert seen == len(picked)
+
+
 def test_the_plain_chain_publishes_wrong_integers_on_the_drive(tst):
     """Why the search and the tests exist: rounding once at the Doppler position of a
     moving receiver gives wrong integers (the fixes hundreds of km off) on the same
