@@ -7,8 +7,9 @@ receiver clock 2 s wrong; the fractional ranges do not change with a whole-milli
 shift). The true integers are read from the file's full ranges, never from the code under
 test: absolute where the fix claims them (full rows anchor the clock), else relative to the
 first fractional satellite (the millisecond common to every range is then not observable).
-The full sweep of every epoch is bench/bench_coarse.py; here one epoch in four (HKSC) and
-the epochs with ground truth (TST drive).
+The full sweep of every epoch is bench/bench_coarse.py; here one epoch in four (HKSC), the
+epochs with ground truth (TST drive, k = 0-2) and every epoch where SPP fixes (TST drive,
+k = 0: the issue's availability denominator).
 """
 
 from __future__ import annotations
