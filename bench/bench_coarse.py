@@ -15,7 +15,16 @@ The plain chain (Pocket SDR `pocket_snap.py`, van Diggelen): the same Doppler po
 (height pseudo-observation 0), one rounding of every integer at it against the nearest
 satellite, the same five-state least squares, published without a test.
 
-Run: python bench/bench_coarse.py [--quick]   (prints figures; no assertions)
+The whole drive (`whole_drive`): every epoch where SPP of the file's full ranges fixes, k = 0,
+the issue's availability denominator; the fixes and declines tabulated by the number of
+satellites SPP used, wrong integers, and fixes with ground truth beyond their HPL.
+
+Times: wall (perf_counter) and CPU (process_time) per epoch of solve_coarse, the search and,
+with a full row, the SPP of the full ranges it makes; the machine is shared, so the wall
+time's tail is mostly other processes (the CPU time is this process's own).
+
+Run: python bench/bench_coarse.py [--quick] [--drive]   (prints figures; no assertions;
+--drive: the whole drive only)
 """
 
 from __future__ import annotations
@@ -56,6 +65,7 @@ class Tally:
     diff_m: list[float] = field(default_factory=list)
     err_h_m: list[float] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
+    cpu_ms: list[float] = field(default_factory=list)
     declines: dict[str, int] = field(default_factory=dict)
     plain_fixes: int = 0
     plain_wrong: int = 0
@@ -102,9 +112,10 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
         t.epochs += 1
         fe = restarted(ep, k, shift_s)
         tru = true_integers(ep, fe, shift_s)
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         res = solve_coarse(fe, store, iono, cfg, ccfg)
         t.ms.append(1e3 * (time.perf_counter() - t0))
+        t.cpu_ms.append(1e3 * (time.process_time() - c0))
         plain = plain_chain(fe, store, iono, cfg, ccfg)
         if plain is not None:
             t.plain_fixes += 1
@@ -147,14 +158,15 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
             t.err_h_m.append(eh)
             t.beyond_hpl += fix.hpl_m is not None and eh > fix.hpl_m
     d = np.asarray(t.diff_m) if t.diff_m else np.asarray([math.nan])
-    ms = np.asarray(t.ms)
+    ms, cpu = np.asarray(t.ms), np.asarray(t.cpu_ms)
     pe = np.asarray(t.plain_err_km) if t.plain_err_km else np.asarray([math.nan])
     print(
         f"{name:6} k={k} shift {shift_s:+.0f} s: {t.fixes}/{t.epochs} fixed "
         f"({100 * t.fixes / max(t.epochs, 1):.1f} %), wrong integers {t.wrong}, absolute "
         f"{t.absolute}, = SPP <= 1 mm {t.eq_1mm}, |fix - SPP| p50 {np.median(d):.3g} max "
-        f"{d.max():.3g} m; declines {t.declines}; {np.median(ms):.1f} ms p50, "
-        f"{np.percentile(ms, 99):.1f} ms p99"
+        f"{d.max():.3g} m; declines {t.declines}; wall {np.median(ms):.1f} ms p50, "
+        f"{np.percentile(ms, 99):.1f} ms p99; CPU {np.median(cpu):.1f} ms p50, "
+        f"{np.percentile(cpu, 99):.1f} ms p99"
     )
     if t.err_h_m:
         eh = np.asarray(t.err_h_m)
@@ -169,9 +181,54 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
     return t
 
 
+def whole_drive(truth: dict, quick: bool = False) -> None:
+    """Every epoch of the TST drive where SPP fixes, k = 0 (module docstring)."""
+    store, iono = load_navigation([str(TST / "hksc1180.19b")])
+    cfg, ccfg = SolverConfig(), CoarseConfig()
+    n = fixed = wrong = with_truth = beyond = 0
+    epochs: dict[int, int] = {}
+    fixes: dict[int, int] = {}
+    declines: dict[tuple[str, int], int] = {}
+    for i, ep in enumerate(RinexObsReader(TST / "COM3_190428_124409.obs")):
+        if quick and i % 10:
+            continue
+        ref = solve(ep, store, iono, cfg, "spp")
+        if not ref.ok:
+            continue
+        n += 1
+        m = min(len(ref.used), 12)
+        epochs[m] = epochs.get(m, 0) + 1
+        fe = restarted(ep, 0, 0.0)
+        res = solve_coarse(fe, store, iono, cfg, ccfg)
+        if not res.fix.ok:
+            key = (res.fix.reason_code or "?", m)
+            declines[key] = declines.get(key, 0) + 1
+            continue
+        fixed += 1
+        fixes[m] = fixes.get(m, 0) + 1
+        wrong += integers_wrong(res, true_integers(ep, fe, 0.0))
+        x_true = truth.get((ep.gpst_week, round(ep.gpst_tow_s)))
+        if x_true is not None:
+            with_truth += 1
+            lat, lon, _ = ecef_to_geodetic(x_true)
+            e = enu_rotation(lat, lon) @ np.subtract(res.fix.x_ecef_m, x_true)
+            beyond += res.fix.hpl_m is not None and math.hypot(e[0], e[1]) > res.fix.hpl_m
+    print(
+        f"TST whole drive k=0: {fixed}/{n} fixed ({100 * fixed / max(n, 1):.1f} %), wrong "
+        f"integers {wrong}, {beyond} of {with_truth} fixes with truth beyond HPL"
+    )
+    print("  satellites SPP used: epochs / fixed / declines")
+    for m in sorted(epochs):
+        why = {c: k for (c, mm), k in sorted(declines.items()) if mm == m}
+        print(f"  {m:>2}{'+' if m == 12 else ' '} {epochs[m]:5d} {fixes.get(m, 0):5d}  {why}")
+
+
 def main() -> None:
     quick = "--quick" in sys.argv
     truth = ground_truth()
+    whole_drive(truth, quick)
+    if "--drive" in sys.argv:
+        return
 
     def tst_truth(ep):
         return truth.get((ep.gpst_week, round(ep.gpst_tow_s)))

@@ -38,6 +38,15 @@ def main() -> None:
     for key, value in summary.figures().items():
         print(f"  {key:<16} {value:.4g}" if isinstance(value, float) else f"  {key:<16} {value}")
     print(f"  declines         {summary.declines()}")
+    print("  satellites above the mask: trials / fixed / wrong / declines")
+    for m in sorted({min(t.n_sats, 12) for t in summary.trials}):
+        at = [t for t in summary.trials if min(t.n_sats, 12) == m]
+        why: dict[str, int] = {}
+        for t in at:
+            if not t.fixed:
+                why[t.reason_code or "?"] = why.get(t.reason_code or "?", 0) + 1
+        fixed, wrong = sum(t.fixed for t in at), sum(t.wrong for t in at)
+        print(f"  {m:>2}{'+' if m == 12 else ' '} {len(at):6d} {fixed:6d} {wrong:3d}  {why}")
     slow = [t for t in summary.trials if t.speed_m_s <= 50.0 and t.n_sats >= 7]
     print(f"  <= 50 m/s with >= 7 satellites: {sum(t.fixed for t in slow)}/{len(slow)} fixed")
     for t in summary.trials:

@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument(
         "--first-fix",
         action="store_true",
-        help="compare the paper's method with the coarse-time first fix (>= 7 BeiDou "
+        help="compare the paper's method with the coarse-time first fix (>= 6 BeiDou "
         "satellites above the mask) over the surface x time, every satellite of Table 1 or "
         "of --nav",
     )

@@ -51,6 +51,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -59,7 +60,7 @@ from service.core.corrections import sagnac_rotate
 from service.core.declines import Decline, Declined, excluded_why
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from service.core.orbit import EphemerisArrays, sat_pos_clock, sat_pos_vel_clock
+from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.timebase import gpst_to_bdt, normalize
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
@@ -86,6 +87,16 @@ COARSE_LAYOUT = Layout(coarse_time=True)
 N_PARAMS = 5
 """Unknowns of a candidate's solve: x, y, z, the clock and the coarse-time offset (the
 position layout with ``coarse_time=True``, BeiDou alone: :class:`service.engine.layout.Layout`)."""
+PRIOR_ROWS = 1
+"""Pseudo-observations of a candidate's solve: the time prior dt = 0 +- ``time_prior_s``
+(the host clock's tag, an observation with its own sigma). Its term is in the chi-square
+statistic, so it counts in the redundancy: rows + PRIOR_ROWS - N_PARAMS."""
+
+
+def min_rows(ccfg: CoarseConfig | None = None) -> int:
+    """Range rows the coarse-time fix needs: redundancy ``min_redundancy`` with the time
+    prior's row (6 satellites at the default 2)."""
+    return N_PARAMS + (ccfg or CoarseConfig()).min_redundancy - PRIOR_ROWS
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,6 +167,9 @@ class DopplerPrior:
     drift_m_s: float
     q_en_m2: np.ndarray  # horizontal (east, north) covariance [m^2]
     n_rows: int
+    cost: float = math.nan
+    """Weighted squared residuals at the solution (Doppler rows and the height and velocity
+    pseudo-observations)."""
 
     @property
     def sigma_h_m(self) -> float:
@@ -230,11 +244,9 @@ def _sats(
     arr = store.arrays(ephs)
     t0 = bdt_sow - NOMINAL_FLIGHT_TIME_S
     h = max(span_s, 0.5)
-    n = len(idx)
-    (pm, cm), (pz, cz), (pp, cp) = (
-        sat_pos_clock(arr, bdt_week, np.full(n, t0 + k * h)) for k in (-1.0, 0.0, 1.0)
-    )
-    _, _, _, drift = sat_pos_vel_clock(arr, bdt_week, np.full(n, t0))
+    # the three times in one call (the ephemeris' arrays broadcast over the first axis)
+    pos3, clk3 = sat_pos_clock(arr, bdt_week, t0 + h * np.array([-1.0, 0.0, 1.0])[:, None])
+    (pm, pz, pp), (cm, cz, cp) = pos3, clk3
     return _Sats(
         prn=tuple(epoch.prn[i] for i in idx),
         z_m=np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii]),
@@ -249,7 +261,7 @@ def _sats(
         c0=cz,
         c1=(cp - cm) / (2 * h),
         c2=(cp - 2 * cz + cm) / (2 * h * h),
-        drift_s_s=drift,
+        drift_s_s=(cp - cm) / (2 * h),  # exact for the clock polynomial (ICD 5.2.4.10)
     )
 
 
@@ -285,7 +297,11 @@ def doppler_position(
     v_rx = np.zeros(3)
     cov: np.ndarray = np.eye(7)
     moving = False
-    for _ in range(40):
+    # the moving phase backtracks: a step that raises the weighted cost is halved (the
+    # position-velocity trade-off of a few rows makes plain Gauss-Newton cycle there)
+    last: tuple[float, np.ndarray, float, np.ndarray, np.ndarray] | None = None
+    halvings = 0
+    for _ in range(60):
         tau = np.linalg.norm(pos - x, axis=1) / C_M_S
         s = sagnac_rotate(pos, tau, omega)
         v = sagnac_rotate(vel, tau, omega)
@@ -303,11 +319,10 @@ def doppler_position(
         r[:n] = rr - pred
         w[:n] = 1.0 / ccfg.doppler_sigma_m_s**2
         if np.linalg.norm(x) > 1e6:
-            alt, up = _up(x)
-            r[n] = -float(alt)
-            h[n, :3] = up
-            lat, lon, _ = ecef_to_geodetic(x)
+            lat, lon, alt = ecef_to_geodetic(x)
             rot = enu_rotation(float(lat), float(lon))
+            r[n] = -float(alt)
+            h[n, :3] = rot[2]  # the local up
         else:  # from the centre: the sphere's radius, the velocity held at 0
             nx = max(float(np.linalg.norm(x)), 1.0)
             r[n] = 6_371e3 - nx
@@ -318,12 +333,31 @@ def doppler_position(
         r[n + 1 :] = -(rot @ v_rx)
         sig = (sv, sv, ccfg.vertical_speed_sigma_m_s) if moving and sv > 0 else (1e-3,) * 3
         w[n + 1 :] = 1.0 / np.square(sig)
+        cost = float(np.sum(w * r * r))
+        if moving and last is not None and cost > last[0]:
+            _, x0, d0, v0, half = last
+            if halvings >= 8 or float(np.linalg.norm(half[:3])) < 10.0:
+                # no descent left: the cost's minimum (along the ill-determined direction
+                # its covariance, computed there, is wide); the Jacobian's approximations
+                # put the Gauss-Newton fixed point a little off it
+                x, d, v_rx, cost = x0, d0, v0, last[0]
+                break
+            halvings += 1
+            last = (last[0], x0, d0, v0, 0.5 * half)
+            x, d, v_rx = x0 + half[:3], d0 + float(half[3]), v0 + half[4:]
+            continue
         hw = h.T * w
         try:
             cov = np.asarray(np.linalg.inv(hw @ h), dtype=float)
         except np.linalg.LinAlgError:
             return None
         step = cov @ (hw @ r)
+        if moving:
+            if last is not None and last[0] - cost < 1e-2:
+                # the cost no more than 0.01 above its minimum here: within 0.1 sigma of it
+                # (Mahalanobis) along the flat valley where plain steps zig-zag
+                break
+            last, halvings = (cost, x, d, v_rx, 0.5 * step), 0
         x = x + step[:3]
         d += float(step[3])
         v_rx = v_rx + step[4:]
@@ -337,8 +371,13 @@ def doppler_position(
         return None
     lat, lon, _ = ecef_to_geodetic(x)
     rot2 = enu_rotation(float(lat), float(lon))[:2]
-    q = rot2 @ cov[:3, :3] @ rot2.T
-    return DopplerPrior(x, d, q, int(ok.sum()))
+    # the a posteriori variance factor: Doppler rows noisier than doppler_sigma_m_s (a
+    # moving receiver's multipath, a slipped row) widen the covariance, and so the search,
+    # instead of centring a narrow one hundreds of km off (n rows, the height and three
+    # velocity pseudo-observations, seven unknowns: n - 3 degrees of freedom)
+    factor = max(1.0, cost / (n - 3)) if n > 3 and math.isfinite(cost) else 1.0
+    q = factor * (rot2 @ cov[:3, :3] @ rot2.T)
+    return DopplerPrior(x, d, q, int(ok.sum()), cost)
 
 
 def hypotheses(
@@ -373,6 +412,17 @@ def hypotheses(
     pts = prior_ecef_m + enu @ rot
     glat, glon, _ = ecef_to_geodetic(pts)
     return geodetic_to_ecef(glat, glon, np.zeros_like(glat))
+
+
+def _unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``a`` in lexicographic order and the index of each one's first
+    occurrence (``np.unique(a, axis=0, return_index=True)``, without its per-call cost)."""
+    first: dict[tuple[float, ...], int] = {}
+    for i, row in enumerate(map(tuple, a.tolist())):
+        first.setdefault(row, i)
+    keys = sorted(first)
+    idx = np.array([first[k] for k in keys], dtype=int)
+    return a[idx], idx
 
 
 def _round(sats: _Sats, pts: np.ndarray) -> np.ndarray:
@@ -446,12 +496,12 @@ def _solve_candidates(
         los, pred, _ = ranges(pos, clk, x, omega)
         vel = sagnac_rotate(vel, tau, omega)
         rdot = np.einsum("kni,kni->kn", los, vel)
-        lat, lon, alt = ecef_to_geodetic(x)
+        lat, lon, alt = _geodetic(x)
         rot = enu_rotation(lat, lon)  # (k, 3, 3)
         enu = np.einsum("kij,knj->kni", rot, los)
         el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
         az = np.arctan2(enu[..., 0], enu[..., 1])
-        near = it >= 2
+        near = it >= 1
         if near:
             io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
             corr = total_delay(io, tr)
@@ -476,9 +526,23 @@ def _solve_candidates(
         x = x + step[:, :3]
         b = b + step[:, 3]
         dt = dt + step[:, 4]
+        # converged with the corrections on: the steps shrink quadratically (HKSC: 30 km,
+        # 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is below 0.1 mm
+        moved = np.abs(step[:, :4]).max(initial=0.0) + 1e3 * np.abs(step[:, 4]).max(initial=0.0)
+        if it >= 2 and moved < 0.05:
+            break
     t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
-    dof = (w > 0).sum(axis=1) - N_PARAMS
+    dof = (w > 0).sum(axis=1) + PRIOR_ROWS - N_PARAMS
     return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), el.min(axis=1), normal, h, v, w)
+
+
+def _geodetic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`ecef_to_geodetic` of points ``x`` (k, 3): point by point (its scalar path)
+    when they are few, where numpy's per-call cost is most of the time."""
+    if len(x) > 8:
+        return ecef_to_geodetic(x)
+    out = np.array([[float(v) for v in ecef_to_geodetic(p)] for p in x]).reshape(-1, 3)
+    return out[:, 0], out[:, 1], out[:, 2]
 
 
 def _inv_diag(m: np.ndarray) -> np.ndarray:
@@ -522,7 +586,7 @@ def _solve_coarse(
 ) -> CoarseResult:
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s)
-    need = N_PARAMS + ccfg.min_redundancy
+    need = min_rows(ccfg)
     if sats is None or len(sats.prn) < need:
         have = 0 if sats is None else len(sats.prn)
         why = Declined.of(Decline.TOO_FEW_ROWS, rows=have, need=need)
@@ -538,15 +602,14 @@ def _solve_coarse(
     frac = sats.ct_m > 0
     if not (~frac).any():  # the common millisecond goes into the clock (module docstring)
         n_all = n_all - n_all[:, :1]
-    cand, first = np.unique(n_all, axis=0, return_index=True)
+    cand, first = _unique_rows(n_all)
     x0 = pts[first]
     ev = _evaluate(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
-    base = CoarseResult(
-        declined(epoch, Declined.of(Decline.NUMERICAL, error="", message="")),  # replaced below
-        prior=prior,
-        candidates=len(cand),
-        passing=int(ev.passing.sum()),
-    )
+    n_cand, n_pass = len(cand), int(ev.passing.sum())
+
+    def result(fix: Fix, **found: Any) -> CoarseResult:
+        return CoarseResult(fix, prior=prior, candidates=n_cand, passing=n_pass, **found)
+
     excluded: dict[str, str] = {}
     if not ev.passing.any() and ccfg.coarse_max_exclusions > 0 and len(sats.prn) - 1 >= need:
         # fault exclusion: each row left out in turn, every candidate again; published only
@@ -554,7 +617,7 @@ def _solve_coarse(
         outcome = _exclude_one(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
         if isinstance(outcome, str):
             why = Declined.of(Decline.AMBIGUOUS, passing=0, rivals=outcome)
-            return replace(base, fix=declined(epoch, why))
+            return result(declined(epoch, why))
         if outcome is not None:
             j, sats, cand, ev = outcome
             excluded = {prn: excluded_why("coarse") for prn in j}
@@ -563,17 +626,19 @@ def _solve_coarse(
     if not passing.any():
         best_dof = int(solved.dof.max())
         if best_dof < ccfg.min_redundancy:
-            why = Declined.of(Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS, need=need)
-            return replace(base, fix=declined(epoch, why))
+            why = Declined.of(
+                Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS - PRIOR_ROWS, need=need
+            )
+            return result(declined(epoch, why))
         why = Declined.of(Decline.CHI2, "coarse", candidates=len(cand))
-        return replace(base, fix=declined(epoch, why))
+        return result(declined(epoch, why))
     ratio = np.where(passing, solved.t_stat / t_max, np.inf)
     best = int(np.argmin(ratio))
     if int(rivals.sum()) > 1:
         why = Declined.of(
             Decline.AMBIGUOUS, passing=int(passing.sum()), rivals=int(rivals.sum()) - 1
         )
-        return replace(base, fix=declined(epoch, why))
+        return result(declined(epoch, why))
     n_best = cand[best]
     p_full = sats.z_m + n_best * sats.ct_m
     dt = float(solved.dt[best])
@@ -622,7 +687,7 @@ def _solve_coarse(
             time_offset_s=dt,
             excluded={**excluded, **fix.excluded},
         )
-    return replace(base, fix=fix, time_offset_s=dt, integers=integers, absolute=absolute)
+    return result(fix, time_offset_s=dt, integers=integers, absolute=absolute)
 
 
 @dataclass(slots=True, eq=False)
@@ -699,7 +764,7 @@ def _exclude_one(
         cj = cand[:, keep]
         if not (sub.ct_m == 0).any():
             cj = cj - cj[:, :1]
-        cj, first = np.unique(cj, axis=0, return_index=True)
+        cj, first = _unique_rows(cj)
         ev = _evaluate(sub, cj, x0[first], bdt_sow, iono, cfg, ccfg)
         found.append((j, keep, sub, cj, ev))
     best = None

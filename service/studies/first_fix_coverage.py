@@ -6,7 +6,8 @@ time, at every grid point and epoch:
 - **the paper's method** (Zhao, Cui, Lu): at least four GEOs at or above the elevation
   mask, with GDOP_full < beta (eqs. 12, 20, 21; :func:`service.studies.coverage.geo_gdop`);
 - **the coarse-time first fix** (:mod:`service.engine.coarse`): at least
-  ``N_PARAMS + min_redundancy`` = 7 BeiDou satellites at or above the mask, every one with
+  :func:`service.engine.coarse.min_rows` = 6 BeiDou satellites at or above the mask (five
+  unknowns, redundancy 2 with the time prior's row), every one with
   a Doppler (the virtual receiver and the receivers bdsfix reads give one per tracked
   satellite). This is the method's *geometric condition*, the rule it declines
   ``too_few_rows`` by; whether it then fixes is measured by running :func:`solve_coarse`
@@ -38,7 +39,7 @@ from service.core.files import PLOT_HINT
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import sat_pos_clock
 from service.core.timebase import gpst_to_bdt, normalize
-from service.engine.coarse import N_PARAMS, CoarseConfig
+from service.engine.coarse import CoarseConfig, min_rows
 from service.engine.solver import IonoSet, SolverConfig
 from service.studies.coverage import geo_gdop
 
@@ -55,7 +56,7 @@ class FirstFixConfig:
     grid_deg: float = 2.0
     beta: float = 3000.0
     elmask_deg: float = 10.0  # the solver's default mask (SolverConfig.elmask_deg)
-    min_sats: int = N_PARAMS + CoarseConfig().min_redundancy
+    min_sats: int = min_rows()
 
     @property
     def n_epochs(self) -> int:
@@ -297,7 +298,7 @@ def first_fix_document(res: FirstFixResult) -> dict[str, Any]:
 
 LABELS = {
     "paper": "paper (>= 4 GEOs, GDOP_full < beta)",
-    "coarse_time": "coarse time (>= 7 BDS above mask)",
+    "coarse_time": "coarse time (>= 6 BDS above mask)",
     "either": "either",
 }
 
