@@ -166,8 +166,7 @@ class DaemonConfig:
     systems: str = setting(
         EVERY_SYSTEM,
         "satellite systems to position with, RINEX letters separated by commas: C (BeiDou "
-        "B1I), G (GPS L1 C/A), E (Galileo E1), read from RINEX observation and nav files "
-        "(the binary drivers give BeiDou rows only so far)",
+        "B1I), G (GPS L1 C/A), E (Galileo E1); by default every system the input carries",
         kind="str",
     )
     solver: SolverConfig = field(default_factory=SolverConfig)
