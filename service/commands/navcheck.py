@@ -38,12 +38,15 @@ def check_navigation(
 ) -> None:
     """Refuse (:class:`InputError`, exit 3) nav files with no BDS ephemeris, or whose BDS
     ephemerides are all more than :data:`NAV_DAY_S` from ``first`` (GPST week, tow of the
-    observations' first dated epoch; None: unknown, not checked)."""
+    observations' first dated epoch; None: unknown, not checked). Only the BDS sets count
+    (the ones the message names): a mixed file's GPS and Galileo sets, read when those
+    systems are selected, include sets of odd weeks from satellites marked unhealthy."""
     names = ", ".join(str(p) for p in paths)
     toes = [
         bdt_to_gpst(e.week, e.toe_sow_s)
         for nav in navs
-        for ephs in nav.ephemerides.values()
+        for prn, ephs in nav.ephemerides.items()
+        if prn.startswith("C")
         for e in ephs
     ]
     if not toes:

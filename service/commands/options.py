@@ -26,7 +26,7 @@ def solver_config(args: argparse.Namespace, **overrides: Any) -> SolverConfig:
 
 def systems_of(args: argparse.Namespace) -> frozenset[str]:
     """``--systems`` (:class:`service.core.systems.SystemsConfig`): the RINEX letters of the
-    systems to position with; BeiDou alone unless given."""
+    systems to position with; every system the input carries unless given."""
     return parse_systems(build(SystemsConfig, given(args, SystemsConfig), {}).systems)
 
 

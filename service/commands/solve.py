@@ -63,7 +63,9 @@ def load_navigation(
     for nav in navs:  # every set of a file in one add_all (its checks vectorised)
         store.add_all(e for ephs in nav.ephemerides.values() for e in ephs)
         params += [nav.iono_bds, nav.iono_gps]
-    if len(store) == 0:  # every set refused by the store's sanity checks
+    if not any(prn.startswith("C") for prn in store.prns):
+        # every BDS set refused by the store's sanity checks (GPS/Galileo sets do not stand
+        # in for them: the nav file is refused without a BDS set, as check_navigation does)
         raise InputError(f"no usable BDS ephemeris in {', '.join(paths)}")
     iono = IonoSet.of(params)
     if iono.bds is None and iono.gps is not None:

@@ -155,8 +155,11 @@ def wavelength_m(sat: str) -> float:
 POSITIONING_SYSTEMS = (GnssSystem.BDS, GnssSystem.GPS, GnssSystem.GAL)
 """The systems whose measurements and ephemerides the readers give (RINEX 3 so far)."""
 DEFAULT_SYSTEMS = "C"
-"""BeiDou alone until the goldens of the captures that carry GPS/Galileo are regenerated
-(issue 19: the default is to become every system the input carries)."""
+"""The systems of a library call that names none (readers, nav loading): BeiDou alone."""
+EVERY_SYSTEM = ",".join(s.value for s in POSITIONING_SYSTEMS)
+"""The default of the ``systems`` setting (flag ``--systems``, TOML key ``systems``): every
+system the input carries among :data:`POSITIONING_SYSTEMS` (issue 19, "Selection"); a
+system the input lacks simply gives no rows, and ``--systems C`` is BeiDou alone."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -165,7 +168,7 @@ class SystemsConfig:
     ``systems``)."""
 
     systems: str = setting(
-        DEFAULT_SYSTEMS,
+        EVERY_SYSTEM,
         "satellite systems to position with, RINEX letters separated by commas: C (BeiDou "
         "B1I), G (GPS L1 C/A), E (Galileo E1); each gets its own receiver clock",
         kind="str",

@@ -43,7 +43,7 @@ from service.core.settings import (
     settings_of,
     unknown_key_message,
 )
-from service.core.systems import DEFAULT_SYSTEMS, parse_systems
+from service.core.systems import EVERY_SYSTEM, parse_systems
 from service.engine.coarse import CoarseConfig
 from service.engine.solver import SolverConfig
 from service.output.sinks import SINKS
@@ -164,10 +164,9 @@ class DaemonConfig:
         kind="bool",
     )
     systems: str = setting(
-        DEFAULT_SYSTEMS,
+        EVERY_SYSTEM,
         "satellite systems to position with, RINEX letters separated by commas: C (BeiDou "
-        "B1I), G (GPS L1 C/A), E (Galileo E1), read from RINEX observation and nav files "
-        "(the binary drivers give BeiDou rows only so far)",
+        "B1I), G (GPS L1 C/A), E (Galileo E1); by default every system the input carries",
         kind="str",
     )
     solver: SolverConfig = field(default_factory=SolverConfig)

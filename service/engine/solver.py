@@ -1052,9 +1052,10 @@ def _with_other_systems(
     no full row (which :func:`select_rows` left out): each one's integer N (paper eq. 11)
     from the range predicted at the fix with the fix's BeiDou clock, N = round((rho - c
     dt_sat + b - z) / cT), then every row solved again with those integers held (the rows
-    become full, and the fix reports them fractional with their N). ``fix`` itself when there
-    are none, when a prediction is ambiguous (:data:`AMBIGUITY_MARGIN`) or the joined solve
-    fails."""
+    become full, and the fix reports them fractional with their N; its ``gdop_full`` stays
+    ``fix``'s, the GDOP of eq. (20) over the full rows it reports, not over the joined rows
+    held full). ``fix`` itself when there are none, when a prediction is ambiguous
+    (:data:`AMBIGUITY_MARGIN`) or the joined solve fails."""
     have = set(rows.prn)
     todo = [
         i
@@ -1102,6 +1103,7 @@ def _with_other_systems(
         full=tuple(p for p in again.full if p not in recovered),
         fractional=again.fractional + tuple(p for p in recovered if p in again.used),
         ambiguity={**again.ambiguity, **{p: k for p, k in recovered.items() if p in again.used}},
+        gdop_full=fix.gdop_full,
     )
 
 

@@ -16,19 +16,21 @@ NAV = PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx"
 
 
 def test_solve_of_the_perth_log_gives_the_streams_fixes(tmp_path, capsys):
-    """With the phone's own states (``--fractional none``), the batch solver fixes the same
-    418 epochs as the stream (replay's pipeline), at the same positions within 1 mm (the
-    record keeps 0.1 mm; the stream warm-starts its SPP at the last fix)."""
+    """With the phone's own states (``--fractional none``) and every system (the command's
+    default), the batch solver fixes the same 433 epochs as the stream (replay's pipeline;
+    418 with BeiDou alone), at the same positions within 1 mm (the record keeps 0.1 mm; the
+    stream warm-starts its SPP at the last fix)."""
     out = tmp_path / "perth.jsonl"
     args = ["solve", str(LOG), str(NAV), "--fractional", "none", "--mode", "fast"]
     assert main([*args, "--format", "jsonl", "--out", str(out)]) == 0
     assert "445 epochs" in capsys.readouterr().err
     batch = [json.loads(x) for x in out.read_text().splitlines()]
-    pipe = _pipeline(NAV)
-    with open_source(str(LOG)) as src:
+    every = ("C", "G", "E")
+    pipe = _pipeline(NAV, every)
+    with open_source(str(LOG), systems=frozenset(every)) as src:
         stream = [pipe.on_epoch(e).fix for e in src if isinstance(e, MeasurementEpoch)]
     assert len(batch) == len(stream) == 445
-    assert sum(r["mode"] != "none" for r in batch) == sum(f.ok for f in stream) == 418
+    assert sum(r["mode"] != "none" for r in batch) == sum(f.ok for f in stream) == 433
     for rec, fix in zip(batch, stream, strict=True):
         assert rec["mode"] == fix.mode
         if fix.ok:

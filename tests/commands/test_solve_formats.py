@@ -52,6 +52,9 @@ def test_nmea_sentences_parse_and_checksum(tmp_path):
         assert msg is not None
     first = pynmeagps.NMEAReader.parse(gga[0])
     assert abs(first.lat - 22.3222) < 1e-3 and abs(first.lon - 114.1412) < 1e-3
-    assert first.quality == 1 and first.numSV == 16
+    # every system by default: the first fix uses 16 BeiDou, 11 GPS and 6 Galileo satellites
+    assert first.quality == 1 and first.numSV == 16 + 11 + 6
+    for talker in ("GP", "GB", "GA"):  # one GSA per system (NMEA 4.11 system IDs 1, 4, 3)
+        assert any(ln.startswith(f"${talker}GSA") for ln in lines), talker
     assert any(ln.startswith("$GBGSV") and ln.split("*")[0].endswith(",1") for ln in lines)
     assert any(ln.startswith("$GNZDA,033536.00,10,06,2021") for ln in lines)

@@ -74,19 +74,22 @@ def test_hksc_records_follow_the_contract(hksc):
 
 
 def test_hksc_recovered_ambiguities_are_exact(hksc):
-    """Every recovered N equals floor(P / c*1ms) of the full pseudorange in the file."""
+    """Every recovered N equals floor(P / cT) of the full pseudorange in the file, T the
+    code period: 1 ms for BeiDou B1I and GPS C/A, 4 ms for Galileo E1 (every system by
+    default)."""
     from drivers.rinex import RinexObsReader
 
     _, by_epoch = hksc
-    c_ms = 299_792.458
-    n_checked = 0
-    for ep in RinexObsReader(DATA / "hksc-2021" / "hksc1610.obs"):
+    c_m_s = 299_792_458.0
+    period_s = {"C": 1e-3, "G": 1e-3, "E": 4e-3}
+    n_checked = dict.fromkeys(period_s, 0)
+    for ep in RinexObsReader(DATA / "hksc-2021" / "hksc1610.obs", systems=period_s):
         fast = by_epoch[(ep.gpst_week, ep.gpst_tow_s)]["fast"]
         for prn, n in fast["ambiguity"].items():
             pr = float(ep.pr_m[ep.prn.index(prn)])
-            assert n == int(pr // c_ms)
-            n_checked += 1
-    assert n_checked > 2000
+            assert n == int(pr // (c_m_s * period_s[prn[0]])), prn
+            n_checked[prn[0]] += 1
+    assert n_checked["C"] > 2000 and n_checked["G"] > 1000 and n_checked["E"] > 500, n_checked
 
 
 def test_three_geos_fast_declines_with_reason_spp_fixes(tmp_path):
@@ -165,10 +168,12 @@ def test_solve_and_replay_skip_an_epoch_with_an_unknown_flag_alike(tmp_path, cap
 
 
 def test_default_pdop_mask_is_u_blox_25_on_the_f9p_rover(tmp_path):
-    # the F9P rover (no GEOs) has SPP epochs with PDOP between 10 and 25: the default mask
-    # (u-blox's 25) publishes them and still declines none at or below it
+    # the F9P rover (no GEOs) has SPP epochs with PDOP between 10 and 25 with BeiDou alone
+    # (with GPS and Galileo too its PDOP stays below 10): the default mask (u-blox's 25)
+    # publishes them and still declines none at or below it
     d = DATA / "hksc-2021"
-    recs, _ = _solve(tmp_path, d / "20210610.klt1.ublox.f9p.obs", [d / "hksc1610.nav"])
+    obs, nav = d / "20210610.klt1.ublox.f9p.obs", [d / "hksc1610.nav"]
+    recs, _ = _solve(tmp_path, obs, nav, "--systems", "C")
     spp = [r for r in recs if r["solver"] == "spp" and r["mode"] == "spp"]
     pdops = [r["pdop"] for r in spp]
     assert any(10.0 < p <= 25.0 for p in pdops)

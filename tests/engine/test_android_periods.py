@@ -34,11 +34,11 @@ PERTH = DATA / "android-perth-s8-2017"
 PERIODS_S = (1e-3, 2e-3, 0.02, 0.1, 0.6, 2.0, 6.0)
 
 
-def _pipeline(nav) -> Pipeline:
-    """A pipeline holding the nav file's ephemerides and ionosphere, as replay's stream
-    head gives them."""
+def _pipeline(nav, systems: tuple[str, ...] = ("C",)) -> Pipeline:
+    """A pipeline holding the nav file's ephemerides of ``systems`` and its ionosphere, as
+    replay's stream head gives them."""
     pipe = Pipeline(EphemerisStore())
-    data = read_nav(nav)
+    data = read_nav(nav, systems)
     for ephs in data.ephemerides.values():
         for eph in ephs:
             pipe.add_ephemeris(eph)

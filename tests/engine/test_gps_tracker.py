@@ -90,7 +90,8 @@ def test_hiroshima_restart_confirms_recovered_gps_integers(capsys, tmp_path):
     integers recovered from the GEOs' fix; the GPS satellites become full at 8 s (the next
     GPST subframe boundary at 6 s after the 0.1-0.5 s sync, + 1.2 s), and every recovered
     integer is confirmed then: 23 checks (14 BeiDou IGSO/MEO + 9 GPS), 0 failures. BeiDou
-    alone gives the 14 BeiDou checks."""
+    alone (``--systems C``) gives the 14 BeiDou checks; every system (the default) 32, the
+    9 Galileo satellites' integers confirmed too."""
     rtcm = DATA / "hiroshima-oem729-rtcm-2022" / "20221213-010900.rtcm"
     recs, n, bad = _replay(capsys, tmp_path, rtcm, "--systems", "C,G", "--restart-at", "20")
     assert (n, bad) == (23, 0)
@@ -108,8 +109,10 @@ def test_hiroshima_restart_confirms_recovered_gps_integers(capsys, tmp_path):
     }
     assert gps_full == {8.0}
     assert restart_tow % 6 == 0  # GPST 176988: boundary 176994, HOW known ~176995.3
-    _, n, bad = _replay(capsys, tmp_path, rtcm, "--restart-at", "20")
+    _, n, bad = _replay(capsys, tmp_path, rtcm, "--systems", "C", "--restart-at", "20")
     assert (n, bad) == (14, 0)
+    _, n, bad = _replay(capsys, tmp_path, rtcm, "--restart-at", "20")
+    assert (n, bad) == (14 + 9 + 9, 0)
 
 
 def test_polyu_restart_under_the_subframe_rule_follows_the_lnav_subframes(capsys, tmp_path):

@@ -23,6 +23,14 @@ frame boundaries found by pyubx2's own stream reader, never by the code under te
   not touch, and the replay keep >= 80 % of the fixes whose measurement frame is intact;
 - RINEX: a broken epoch costs that epoch only, is logged with file:line and counted, and
   every other epoch gives exactly the clean fix.
+
+A fix that survived is compared with the clean run's fix where one frame carries an epoch's
+measurements (a UBX RXM-RAWX). The F9R capture is RTCM MSM7, one frame per system and epoch
+(1075 GPS, 1095 Galileo, 1125 BeiDou, every system selected): damage that takes one of them
+leaves a fix of the other systems (a different position), and damage to the epoch's last
+MSM (DF393 = 0) closes the epoch only at the next one, after ephemerides that followed it.
+There the reference is the replay of exactly the frames the damage left intact (as
+pyubx2 splits the clean capture): the damaged run must give that run's fixes, no other.
 """
 
 from __future__ import annotations
@@ -233,8 +241,21 @@ def make_damaged(name: str, workdir: Path) -> Damaged:
         damaged = false_headers(data, frames, 20 if capture == "polyu" else 8, SEED)
     else:
         damaged = cut_tail(data, frames)
+        info["cut_at"] = len(damaged)
     out.write_bytes(damaged)
     return Damaged(out, info)
+
+
+def intact(frame: LibFrame, info: dict) -> bool:
+    """Whether the damage described by ``info`` left ``frame`` whole."""
+    end = frame.offset + len(frame.raw)
+    if "hit" in info:
+        return not any(i in info["hit"] for i in range(frame.offset, end))
+    if "at" in info:  # a block inserted before byte p splits the frames around p
+        return not any(frame.offset < p < end for p in info["at"])
+    if "cut_at" in info:
+        return end <= info["cut_at"]
+    return True
 
 
 @pytest.fixture(scope="module")
@@ -250,6 +271,30 @@ def runs(tmp_path_factory) -> dict[str, tuple[Damaged, Run]]:
     with ThreadPoolExecutor(max_workers=2) as pool:  # two cores
         results = dict(zip(CASES, pool.map(one, CASES), strict=True))
     return results
+
+
+MULTI_FRAME = ("f9r-garbage", "f9r-cut", "f9r-flip")
+"""Damaged RTCM MSM cases whose reference is the replay of their intact frames."""
+
+
+@pytest.fixture(scope="module")
+def intact_runs(runs, tmp_path_factory) -> dict[str, Run]:
+    """For :data:`MULTI_FRAME`: the replay of the clean capture's frames that the damage
+    left intact, concatenated in their order."""
+    workdir = tmp_path_factory.mktemp("intact")
+
+    def one(name: str) -> Run:
+        damaged, _ = runs[name]
+        capture = CASES[name][0]
+        frames: tuple[LibFrame, ...] = damaged.info["frames"]
+        path = workdir / f"{name}-intact{SOURCES[capture][0].suffix}"
+        path.write_bytes(b"".join(f.raw for f in frames if intact(f, damaged.info)))
+        sub = workdir / name
+        sub.mkdir()
+        return replay(path, SOURCES[capture][1], sub)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return dict(zip(MULTI_FRAME, pool.map(one, MULTI_FRAME), strict=True))
 
 
 def _key(fix: dict) -> tuple[int, float]:
@@ -290,7 +335,7 @@ def test_damaged_replay_exits_cleanly_and_counts_what_it_skipped(runs, name):
     "name",
     ["polyu-garbage", "polyu-false64k", "polyu-cut", "f9r-garbage", "f9r-false64k", "f9r-cut"],
 )
-def test_damaged_binary_replay_keeps_the_fixes(runs, name):
+def test_damaged_binary_replay_keeps_the_fixes(runs, intact_runs, name):
     capture = CASES[name][0]
     _, run = runs[name]
     clean = runs[f"{capture}-clean"][1]
@@ -301,10 +346,12 @@ def test_damaged_binary_replay_keeps_the_fixes(runs, name):
         # damage between frames or after the last fix loses nothing before it
         last = max(got) if name.endswith("cut") else max(clean_fix)
         assert [k for k in clean_fix if k <= last] == list(got)
-    # every fix that survived is the clean run's fix, not a fix from damaged data
+    # every fix that survived is the clean run's fix (or, for an epoch of several frames,
+    # the fix of the intact frames), not a fix from damaged data
+    ref_fix = _fix_table(intact_runs[name]) if name in MULTI_FRAME else clean_fix
+    assert set(got) == set(ref_fix) if name in MULTI_FRAME else set(got) <= set(ref_fix)
     for k, f in got.items():
-        assert k in clean_fix
-        assert f["x_ecef_m"] == pytest.approx(clean_fix[k]["x_ecef_m"], abs=1e-3)
+        assert f["x_ecef_m"] == pytest.approx(ref_fix[k]["x_ecef_m"], abs=1e-3)
 
 
 def _intact(frame: LibFrame, hit: set[int]) -> bool:
@@ -324,7 +371,7 @@ def test_bit_flips_at_0_01_percent_keep_80_percent_of_the_clean_fixes(runs):
 
 
 @pytest.mark.parametrize("name", ["polyu-flip", "f9r-flip", "polyu-flip-1e-4"])
-def test_bit_flips_lose_no_frame_that_survived_intact(runs, name):
+def test_bit_flips_lose_no_frame_that_survived_intact(runs, intact_runs, name):
     """0.5 % (and 0.01 %) of the bytes with one bit flipped: the framer recovers every frame
     the flips did not touch, at its offset, and the replay keeps >= 80 % of the clean fixes
     whose measurement frame is intact (at 0.5 % hardly any RAWX frame is: see the top)."""
@@ -348,6 +395,12 @@ def test_bit_flips_lose_no_frame_that_survived_intact(runs, name):
     print(f"{name}: {kind} frames intact {survived:.1%}, fixes expected ~{expected:.1f}")
     assert len(run.fixes) >= 0.8 * expected - 1  # -1: one epoch of rounding on tiny counts
     clean_fix = _fix_table(clean)
+    if name in MULTI_FRAME:  # exactly the fixes of the intact frames' replay
+        ref_fix, got = _fix_table(intact_runs[name]), _fix_table(run)
+        assert set(got) == set(ref_fix)
+        for k, f in got.items():
+            assert f["x_ecef_m"] == pytest.approx(ref_fix[k]["x_ecef_m"], abs=1e-3)
+        return
     for k in _fix_table(run):
         assert k in clean_fix  # no fix at a time the clean run did not have
 

@@ -43,6 +43,9 @@ SCHEMA = {
             "lon_deg": float,
             "alt_m": float,
             "clock_bias_m": float,
+            # a fix of rows from several systems (issue 19): each system's clock and count
+            "clocks_m": dict,
+            "used_by_system": dict,
             "gdop_full": float,
             "pdop": float,
             "ambiguity": dict,
