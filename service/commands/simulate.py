@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 from service.commands.options import check_range, full_rule, parse_start, systems_of
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
+from service.core.systems import GnssSystem, system_of
 from service.core.timebase import gpst_from_utc, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rtcm import broadcast_sets, frame_1042
@@ -55,7 +56,7 @@ def _ephemerides(
     data = read_nav(nav, systems)
     iono_gps = data.iono_gps if systems != frozenset("C") else None
     ephs = [e for items in data.ephemerides.values() for e in items if ephemeris_problem(e) is None]
-    if not ephs:
+    if not any(system_of(e.prn) is GnssSystem.BDS for e in ephs):  # a BeiDou receiver first
         raise InputError(f"{nav}: no healthy BDS ephemeris that passes the entry checks")
     return ephs, data.iono_bds, iono_gps
 

@@ -54,7 +54,9 @@ def test_simulated_capture_replays_fast_then_spp(tmp_path, rule):
         assert 0.6 <= first_fast <= 1.5 and first_spp >= 6.0
     assert first_any <= first_fast < first_spp
     sows = [r for r in recs if r["class"] == "TRACK" and r["event"] == "sow"]
-    assert {r["nav_type"] for r in sows} == {"D1", "D2"}
+    # the nav file carries GPS and Galileo too, and every system is simulated by default:
+    # their LNAV subframes and I/NAV pages decode beside BeiDou's D1/D2
+    assert {r["nav_type"] for r in sows} == {"D1", "D2", "LNAV", "INAV"}
 
 
 def test_simulate_rejects_a_bad_start(tmp_path, capsys):
