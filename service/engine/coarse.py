@@ -39,8 +39,8 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    leaves no doubt about the millisecond common to every range), they make full ranges and
    the fix is the solver's own SPP of them (:func:`spp_at_receive_time`: all of
    :func:`service.engine.solver.solve`'s corrections, FDE and protection levels) with tag
-   and ranges moved together to the receive time, the coarse offset first, then SPP's own
-   clock: the fix is SPP of the true full ranges at a correct tag (1e-7 m on HKSC, tags
+   and ranges moved together to the receive time, the coarse solution's clock first, then
+   SPP's own clock while that is above 1 km (never, on the recordings): the fix is SPP of the true full ranges at a correct tag (1e-7 m on HKSC, tags
    +-2 s off), and the offset is SPP's, to nanoseconds. Else (every range fractional, the
    common millisecond in doubt) the fix is the coarse-time solution itself: SPP needs the
    transmit times to the microsecond, and a wrong millisecond moves them by 1 ms.
@@ -657,10 +657,12 @@ def _solve_coarse(
             absolute = True
             n_best = n_best - shift * frac
             p_full = sats.z_m + n_best * sats.ct_m
+            b -= shift * ct  # the clock of these full ranges
     fractional = tuple(p for p, f in zip(sats.prn, frac, strict=True) if f)
     integers = {p: int(k) for p, k, f in zip(sats.prn, n_best, frac, strict=True) if f}
     if absolute:
-        fix, dt = spp_at_receive_time(_full_epoch(epoch, sats.prn, p_full), dt, store, iono, cfg)
+        full = _full_epoch(epoch, sats.prn, p_full)
+        fix, dt = spp_at_receive_time(full, dt, store, iono, cfg, start_s=-b / C_M_S)
         recovered = {
             p: float(z + k * c)
             for p, z, k, c, f in zip(sats.prn, sats.z_m, n_best, sats.ct_m, frac, strict=True)
@@ -852,11 +854,17 @@ def _coarse_fix(
 
 
 TIME_ITERATIONS = 3
-"""SPP solves at most of :func:`spp_at_receive_time` (the second leaves a clock of
-nanoseconds; the third is not reached on any recording)."""
-TIME_SETTLED_M = 1e-3
-"""A receiver clock [m] below which the tag plus the offset is the receive time: the last
-SPP's satellites are then within 1 mm / c x 4 km/s ~ 1e-8 mm of where they are at the truth."""
+"""SPP solves at most of :func:`spp_at_receive_time` (started at the coarse solution's
+clock, the first leaves a clock below :data:`TIME_SETTLED_M` on every recording: HKSC
+0.014 m at most, the TST drive 258 m; from a worse start the second leaves nanoseconds)."""
+TIME_SETTLED_M = 1e3
+"""A receiver clock [m] below which the tag plus the offset is the receive time as far as
+the fix is concerned: the tag moved (ranges with it) moves only what depends on the
+receive time itself, the Klobuchar model's local time, by at most 2 pi / 72,000 s x 150 m
+(its shortest period and a large slant delay) = 0.013 m/s; measured 1.4e-4 m/s on HKSC,
+7e-4 m/s on the TST drive. 1 km is 3.3 us: the fix moves < 5e-8 m (measured < 3e-9 m),
+below the solver's own convergence noise (a second solve moves it by 3e-8 m on HKSC,
+1.1e-7 m on the drive, bench/bench_coarse.py's figures unchanged)."""
 
 
 def spp_at_receive_time(
@@ -865,6 +873,7 @@ def spp_at_receive_time(
     store: EphemerisStore,
     iono: IonoSet,
     cfg: SolverConfig,
+    start_s: float | None = None,
 ) -> tuple[Fix, float]:
     """The published fix of an accepted integer set: the solver's own SPP
     (:func:`service.engine.solver.solve`, all its corrections, FDE and protection levels)
@@ -876,11 +885,16 @@ def spp_at_receive_time(
     those ranges; but what depends on the receive time itself (the broadcast Klobuchar
     model's local time, ~0.3 mm over 2 s on HKSC) would be taken at the wrong time. So tag
     and ranges are moved together by S (tag + S, pr + c S: every transmit time unchanged),
-    first by the coarse-time offset ``offset_s``, then by the clock each SPP is left with
-    (S -= b / c) until it is below :data:`TIME_SETTLED_M`: the solve is then at the receive
-    time, where SPP of the true full ranges at a correct tag is. The fix carries the
-    epoch's tag, its clock relative to that tag (b - c S) and the offset S - b / c."""
-    shift = offset_s if math.isfinite(offset_s) else 0.0
+    first by ``start_s`` (None: the coarse-time offset ``offset_s``; :func:`solve_coarse`
+    gives -b / c, the coarse solution's clock, which puts the tag at the receive time to
+    nanoseconds where the offset, solved from range rates, is off by up to 0.2 s on the
+    drive), then by the clock each SPP is left with (S -= b / c) until it is below
+    :data:`TIME_SETTLED_M`: the solve is then at the receive time, where SPP of the true
+    full ranges at a correct tag is (one solve on every recording). The fix carries the
+    epoch's tag, its clock relative to that tag (b - c S) and the offset S - b / c; a
+    declined SPP, ``offset_s``."""
+    shift = offset_s if start_s is None else start_s
+    shift = shift if math.isfinite(shift) else 0.0
     fix = declined(full, Declined.of(Decline.NO_MEASUREMENTS))
     for it in range(TIME_ITERATIONS):
         fix = solve(moved(full, shift), store, iono, cfg, "spp")
