@@ -40,10 +40,12 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    the fix is the solver's own SPP of them (:func:`spp_at_receive_time`: all of
    :func:`service.engine.solver.solve`'s corrections, FDE and protection levels) with tag
    and ranges moved together to the receive time, the coarse solution's clock first, then
-   SPP's own clock while that is above 1 km (never, on the recordings): the fix is SPP of the true full ranges at a correct tag (1e-7 m on HKSC, tags
-   +-2 s off), and the offset is SPP's, to nanoseconds. Else (every range fractional, the
-   common millisecond in doubt) the fix is the coarse-time solution itself: SPP needs the
-   transmit times to the microsecond, and a wrong millisecond moves them by 1 ms.
+   SPP's own clock while that is above 1 km (never, on the recordings), SPP's phase 2
+   alone from the winner's position: the fix is SPP of the true full ranges at a correct
+   tag (1e-7 m on HKSC, tags +-2 s off), and the offset is SPP's, to nanoseconds. Else
+   (every range fractional, the common millisecond in doubt) the fix is the coarse-time
+   solution itself: SPP needs the transmit times to the microsecond, and a wrong
+   millisecond moves them by 1 ms.
 """
 
 from __future__ import annotations
@@ -662,7 +664,11 @@ def _solve_coarse(
     integers = {p: int(k) for p, k, f in zip(sats.prn, n_best, frac, strict=True) if f}
     if absolute:
         full = _full_epoch(epoch, sats.prn, p_full)
-        fix, dt = spp_at_receive_time(full, dt, store, iono, cfg, start_s=-b / C_M_S)
+        # phase 2 alone from the winner's position (every range full: conventional SPP, the
+        # same solution as from the Earth's centre, SolverConfig.x0_ecef_m)
+        x0 = tuple(float(v) for v in solved.x[best])
+        spp_cfg = replace(cfg, x0_ecef_m=x0) if all(map(math.isfinite, x0)) else cfg
+        fix, dt = spp_at_receive_time(full, dt, store, iono, spp_cfg, start_s=-b / C_M_S)
         recovered = {
             p: float(z + k * c)
             for p, z, k, c, f in zip(sats.prn, sats.z_m, n_best, sats.ct_m, frac, strict=True)
