@@ -498,12 +498,13 @@ def _solve_candidates(
         los, pred, _ = ranges(pos, clk, x, omega)
         vel = sagnac_rotate(vel, tau, omega)
         rdot = np.einsum("kni,kni->kn", los, vel)
-        lat, lon, alt = _geodetic(x)
-        rot = enu_rotation(lat, lon)  # (k, 3, 3)
-        enu = np.einsum("kij,knj->kni", rot, los)
-        el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
-        az = np.arctan2(enu[..., 0], enu[..., 1])
         near = it >= 1
+        if near or it == ccfg.iterations - 1:  # (the first, from afar: no mask, no delays)
+            lat, lon, alt = _geodetic(x)
+            rot = enu_rotation(lat, lon)  # (k, 3, 3)
+            enu = np.einsum("kij,knj->kni", rot, los)
+            el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
+            az = np.arctan2(enu[..., 0], enu[..., 1])
         if near:
             io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
             corr = total_delay(io, tr)
