@@ -275,6 +275,12 @@ def _up(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(alt), up
 
 
+def _norm3(v: np.ndarray) -> float:
+    """``np.linalg.norm`` of a vector (its own sqrt of the dot product, without its
+    per-call cost)."""
+    return math.sqrt(float(v @ v))
+
+
 def doppler_position(
     sats: _Sats, ccfg: CoarseConfig, speed_sigma_m_s: float | None = None
 ) -> DopplerPrior | None:
@@ -320,13 +326,13 @@ def doppler_position(
         h[:n, 4:] = -e
         r[:n] = rr - pred
         w[:n] = 1.0 / ccfg.doppler_sigma_m_s**2
-        if np.linalg.norm(x) > 1e6:
+        if _norm3(x) > 1e6:
             lat, lon, alt = ecef_to_geodetic(x)
             rot = enu_rotation(float(lat), float(lon))
             r[n] = -float(alt)
             h[n, :3] = rot[2]  # the local up
         else:  # from the centre: the sphere's radius, the velocity held at 0
-            nx = max(float(np.linalg.norm(x)), 1.0)
+            nx = max(_norm3(x), 1.0)
             r[n] = 6_371e3 - nx
             h[n, :3] = x / nx if nx > 1.0 else 0.0
             rot = np.eye(3)
@@ -338,7 +344,7 @@ def doppler_position(
         cost = float(np.sum(w * r * r))
         if moving and last is not None and cost > last[0]:
             _, x0, d0, v0, half = last
-            if halvings >= 8 or float(np.linalg.norm(half[:3])) < 10.0:
+            if halvings >= 8 or _norm3(half[:3]) < 10.0:
                 # no descent left: the cost's minimum (along the ill-determined direction
                 # its covariance, computed there, is wide); the Jacobian's approximations
                 # put the Gauss-Newton fixed point a little off it
@@ -363,7 +369,7 @@ def doppler_position(
         x = x + step[:3]
         d += float(step[3])
         v_rx = v_rx + step[4:]
-        if float(np.linalg.norm(step[:3])) < 10.0:
+        if _norm3(step[:3]) < 10.0:
             if moving or sv <= 0:
                 break
             moving = True
@@ -412,7 +418,7 @@ def hypotheses(
     keep |= (i == 0) & (j == 0)
     enu = np.stack([east[keep], north[keep], np.zeros(int(keep.sum()))], axis=-1)
     pts = prior_ecef_m + enu @ rot
-    glat, glon, _ = ecef_to_geodetic(pts)
+    glat, glon, _ = _geodetic(pts)
     return geodetic_to_ecef(glat, glon, np.zeros_like(glat))
 
 
@@ -501,7 +507,7 @@ def _solve_candidates(
         near = it >= 1
         if near or it == ccfg.iterations - 1:  # (the first, from afar: no mask, no delays)
             lat, lon, alt = _geodetic(x)
-            rot = enu_rotation(lat, lon)  # (k, 3, 3)
+            rot = _enu_rotations(lat, lon)  # (k, 3, 3)
             enu = np.einsum("kij,knj->kni", rot, los)
             el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
             az = np.arctan2(enu[..., 0], enu[..., 1])
@@ -546,6 +552,15 @@ def _geodetic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return ecef_to_geodetic(x)
     out = np.array([[float(v) for v in ecef_to_geodetic(p)] for p in x]).reshape(-1, 3)
     return out[:, 0], out[:, 1], out[:, 2]
+
+
+def _enu_rotations(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """:func:`enu_rotation` (k, 3, 3) of points at ``lat``, ``lon`` (k,): point by point
+    (its scalar path) when they are few, as :func:`_geodetic`."""
+    if len(lat) > 8:
+        return enu_rotation(lat, lon)
+    rots = [enu_rotation(a, o) for a, o in zip(lat.tolist(), lon.tolist(), strict=True)]
+    return np.array(rots).reshape(-1, 3, 3)
 
 
 def _inv_diag(m: np.ndarray) -> np.ndarray:
