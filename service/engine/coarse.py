@@ -477,8 +477,16 @@ def _solve_candidates(
     iono: IonoSet,
     cfg: SolverConfig,
     ccfg: CoarseConfig,
+    row_mask: np.ndarray | None = None,
+    group: np.ndarray | None = None,
 ) -> _Solved:
-    """The coarse-time solve (module docstring, step 3) of every candidate at once."""
+    """The coarse-time solve (module docstring, step 3) of every candidate at once.
+
+    ``row_mask`` (k, n), True where a candidate uses a row, and ``group`` (k,), the start
+    index of each candidate's group in the (contiguous) groups: several row subsets in one
+    batch (fault exclusion), each group as if solved alone: its clock started from its own
+    rows, its own convergence test, frozen once it has converged; a left-out row weighs 0
+    and counts nowhere (redundancy, elevation, statistic)."""
     k, n = n_int.shape
     p = sats.z_m + n_int * sats.ct_m  # (k, n)
     omega = np.broadcast_to(sats.eph.omega_e_rad_s, (k, n))
@@ -489,7 +497,17 @@ def _solve_candidates(
     # the clock from the first geometry
     pos, _, clk = sats.at(np.full((k, n), rel - NOMINAL_FLIGHT_TIME_S))
     _, pred, _ = ranges(pos, clk, x, omega)
-    b = np.median(p - pred, axis=1)
+    if row_mask is None or group is None:
+        b = np.median(p - pred, axis=1)
+        starts = np.zeros(1, dtype=int)
+    else:
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        b = np.empty(k)
+        for s0, s1 in zip(starts.tolist(), [*starts[1:].tolist(), k], strict=True):
+            cols = np.flatnonzero(row_mask[s0])
+            b[s0:s1] = np.median((p - pred)[s0:s1][:, cols], axis=1)
+    batched = len(starts) > 1 or row_mask is not None
+    active = np.ones(k, dtype=bool)
     w_prior = 1.0 / ccfg.time_prior_s**2
     mask_sin = math.sin(math.radians(cfg.elmask_deg))
     carrier = sats.eph.carrier_hz
@@ -520,6 +538,9 @@ def _solve_candidates(
             corr = 0.0
             w = np.full((k, n), 1e-2)
         v = p - pred - b[:, None] - corr
+        if row_mask is not None:
+            w = np.where(row_mask, w, 0.0)
+            v = np.where(row_mask, v, 0.0)
         h = np.concatenate([-los, np.ones((k, n, 1)), rdot[..., None]], axis=-1)
         hw = h * w[..., None]
         normal = np.einsum("kni,knj->kij", hw, h)
@@ -532,17 +553,45 @@ def _solve_candidates(
             step = np.stack(
                 [np.linalg.lstsq(a, r, rcond=None)[0] for a, r in zip(normal, rhs, strict=True)]
             )
+        if not batched:
+            x = x + step[:, :3]
+            b = b + step[:, 3]
+            dt = dt + step[:, 4]
+            # converged with the corrections on: the steps shrink quadratically (HKSC:
+            # 30 km, 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is < 0.1 mm
+            moved = np.abs(step[:, :4]).max(initial=0.0)
+            moved += 1e3 * np.abs(step[:, 4]).max(initial=0.0)
+            if it >= 2 and moved < 0.05:
+                break
+            continue
+        # several groups: the frozen ones keep their state and last figures
+        step = np.where(active[:, None], step, 0.0)
         x = x + step[:, :3]
         b = b + step[:, 3]
         dt = dt + step[:, 4]
-        # converged with the corrections on: the steps shrink quadratically (HKSC: 30 km,
-        # 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is below 0.1 mm
-        moved = np.abs(step[:, :4]).max(initial=0.0) + 1e3 * np.abs(step[:, 4]).max(initial=0.0)
-        if it >= 2 and moved < 0.05:
-            break
+        if it == 0:
+            out = [v, w, h, normal, el, np.asarray(alt)]
+        else:
+            now = [v, w, h, normal, el, np.asarray(alt)]
+            out = [np.where(_cast(active, o), a, o) for a, o in zip(now, out, strict=True)]
+        if it >= 2:
+            moved_g = np.maximum.reduceat(np.abs(step[:, :4]).max(axis=1), starts)
+            moved_g = moved_g + 1e3 * np.maximum.reduceat(np.abs(step[:, 4]), starts)
+            done = np.repeat(moved_g < 0.05, np.diff(np.r_[starts, k]))
+            active &= ~done
+            if not active.any():
+                break
+    if batched:
+        v, w, h, normal, el, alt = out
     t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
     dof = (w > 0).sum(axis=1) + PRIOR_ROWS - N_PARAMS
-    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), el.min(axis=1), normal, h, v, w)
+    min_el = el.min(axis=1) if row_mask is None else np.where(row_mask, el, np.inf).min(axis=1)
+    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), min_el, normal, h, v, w)
+
+
+def _cast(active: np.ndarray, like: np.ndarray) -> np.ndarray:
+    """``active`` (k,) shaped to broadcast against ``like`` (k, ...)."""
+    return active.reshape((-1,) + (1,) * (like.ndim - 1))
 
 
 def _geodetic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -732,7 +781,11 @@ def _evaluate(
     ccfg: CoarseConfig,
 ) -> _Evaluation:
     """Solve and judge every candidate (module docstring, steps 3-4)."""
-    solved = _solve_candidates(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
+    return _judge(_solve_candidates(sats, cand, x0, bdt_sow, iono, cfg, ccfg), cfg, ccfg)
+
+
+def _judge(solved: _Solved, cfg: SolverConfig, ccfg: CoarseConfig) -> _Evaluation:
+    """Judge every solved candidate (module docstring, step 4)."""
     t_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r >= 1 else np.inf for r in solved.dof])
     plausible = (
         (solved.alt >= ccfg.alt_min_m)
@@ -781,7 +834,7 @@ def _exclude_one(
     a passing or rival solution of any subset whose integers differ from the winner's on
     the rows both use (relative to a common fractional row when no row is full)."""
     n = len(sats.prn)
-    found = []
+    subsets = []
     for j in range(n):
         keep = np.array([i for i in range(n) if i != j])
         sub = _take(sats, keep)
@@ -789,8 +842,36 @@ def _exclude_one(
         if not (sub.ct_m == 0).any():
             cj = cj - cj[:, :1]
         cj, first = _unique_rows(cj)
-        ev = _evaluate(sub, cj, x0[first], bdt_sow, iono, cfg, ccfg)
-        found.append((j, keep, sub, cj, ev))
+        subsets.append((j, keep, sub, cj, first))
+    # every subset's candidates in one batch (each group solved as if alone), the left-out
+    # row's integer 0 and its weight 0
+    sizes = [len(cj) for _, _, _, cj, _ in subsets]
+    ends = np.cumsum(sizes)
+    n_all = np.zeros((int(ends[-1]), n))
+    mask = np.ones((int(ends[-1]), n), dtype=bool)
+    group = np.repeat(ends - np.asarray(sizes), sizes)
+    for (j, keep, _, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
+        n_all[e - m : e][:, keep] = cj
+        mask[e - m : e, j] = False
+    x_all = np.concatenate([x0[first] for _, _, _, _, first in subsets])
+    batch = _solve_candidates(sats, n_all, x_all, bdt_sow, iono, cfg, ccfg, mask, group)
+    found = []
+    for (j, keep, sub, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
+        rows = slice(e - m, e)
+        solved = _Solved(
+            batch.x[rows],
+            batch.b[rows],
+            batch.dt[rows],
+            batch.t_stat[rows],
+            batch.dof[rows],
+            batch.alt[rows],
+            batch.min_el_rad[rows],
+            batch.normal[rows],
+            batch.design[rows][:, keep],
+            batch.resid_m[rows][:, keep],
+            batch.weight[rows][:, keep],
+        )
+        found.append((j, keep, sub, cj, _judge(solved, cfg, ccfg)))
     best = None
     for j, keep, sub, cj, ev in found:
         if ev.passing.any():
