@@ -39,11 +39,13 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    leaves no doubt about the millisecond common to every range), they make full ranges and
    the fix is the solver's own SPP of them (:func:`spp_at_receive_time`: all of
    :func:`service.engine.solver.solve`'s corrections, FDE and protection levels) with tag
-   and ranges moved together to the receive time, the coarse offset first, then SPP's own
-   clock: the fix is SPP of the true full ranges at a correct tag (1e-7 m on HKSC, tags
-   +-2 s off), and the offset is SPP's, to nanoseconds. Else (every range fractional, the
-   common millisecond in doubt) the fix is the coarse-time solution itself: SPP needs the
-   transmit times to the microsecond, and a wrong millisecond moves them by 1 ms.
+   and ranges moved together to the receive time, the coarse solution's clock first, then
+   SPP's own clock while that is above 1 km (never, on the recordings), SPP's phase 2
+   alone from the winner's position: the fix is SPP of the true full ranges at a correct
+   tag (1e-7 m on HKSC, tags +-2 s off), and the offset is SPP's, to nanoseconds. Else
+   (every range fractional, the common millisecond in doubt) the fix is the coarse-time
+   solution itself: SPP needs the transmit times to the microsecond, and a wrong
+   millisecond moves them by 1 ms.
 """
 
 from __future__ import annotations
@@ -273,6 +275,12 @@ def _up(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(alt), up
 
 
+def _norm3(v: np.ndarray) -> float:
+    """``np.linalg.norm`` of a vector (its own sqrt of the dot product, without its
+    per-call cost)."""
+    return math.sqrt(float(v @ v))
+
+
 def doppler_position(
     sats: _Sats, ccfg: CoarseConfig, speed_sigma_m_s: float | None = None
 ) -> DopplerPrior | None:
@@ -318,13 +326,13 @@ def doppler_position(
         h[:n, 4:] = -e
         r[:n] = rr - pred
         w[:n] = 1.0 / ccfg.doppler_sigma_m_s**2
-        if np.linalg.norm(x) > 1e6:
+        if _norm3(x) > 1e6:
             lat, lon, alt = ecef_to_geodetic(x)
             rot = enu_rotation(float(lat), float(lon))
             r[n] = -float(alt)
             h[n, :3] = rot[2]  # the local up
         else:  # from the centre: the sphere's radius, the velocity held at 0
-            nx = max(float(np.linalg.norm(x)), 1.0)
+            nx = max(_norm3(x), 1.0)
             r[n] = 6_371e3 - nx
             h[n, :3] = x / nx if nx > 1.0 else 0.0
             rot = np.eye(3)
@@ -336,7 +344,7 @@ def doppler_position(
         cost = float(np.sum(w * r * r))
         if moving and last is not None and cost > last[0]:
             _, x0, d0, v0, half = last
-            if halvings >= 8 or float(np.linalg.norm(half[:3])) < 10.0:
+            if halvings >= 8 or _norm3(half[:3]) < 10.0:
                 # no descent left: the cost's minimum (along the ill-determined direction
                 # its covariance, computed there, is wide); the Jacobian's approximations
                 # put the Gauss-Newton fixed point a little off it
@@ -361,7 +369,7 @@ def doppler_position(
         x = x + step[:3]
         d += float(step[3])
         v_rx = v_rx + step[4:]
-        if float(np.linalg.norm(step[:3])) < 10.0:
+        if _norm3(step[:3]) < 10.0:
             if moving or sv <= 0:
                 break
             moving = True
@@ -410,7 +418,7 @@ def hypotheses(
     keep |= (i == 0) & (j == 0)
     enu = np.stack([east[keep], north[keep], np.zeros(int(keep.sum()))], axis=-1)
     pts = prior_ecef_m + enu @ rot
-    glat, glon, _ = ecef_to_geodetic(pts)
+    glat, glon, _ = _geodetic(pts)
     return geodetic_to_ecef(glat, glon, np.zeros_like(glat))
 
 
@@ -469,8 +477,16 @@ def _solve_candidates(
     iono: IonoSet,
     cfg: SolverConfig,
     ccfg: CoarseConfig,
+    row_mask: np.ndarray | None = None,
+    group: np.ndarray | None = None,
 ) -> _Solved:
-    """The coarse-time solve (module docstring, step 3) of every candidate at once."""
+    """The coarse-time solve (module docstring, step 3) of every candidate at once.
+
+    ``row_mask`` (k, n), True where a candidate uses a row, and ``group`` (k,), the start
+    index of each candidate's group in the (contiguous) groups: several row subsets in one
+    batch (fault exclusion), each group as if solved alone: its clock started from its own
+    rows, its own convergence test, frozen once it has converged; a left-out row weighs 0
+    and counts nowhere (redundancy, elevation, statistic)."""
     k, n = n_int.shape
     p = sats.z_m + n_int * sats.ct_m  # (k, n)
     omega = np.broadcast_to(sats.eph.omega_e_rad_s, (k, n))
@@ -481,7 +497,17 @@ def _solve_candidates(
     # the clock from the first geometry
     pos, _, clk = sats.at(np.full((k, n), rel - NOMINAL_FLIGHT_TIME_S))
     _, pred, _ = ranges(pos, clk, x, omega)
-    b = np.median(p - pred, axis=1)
+    if row_mask is None or group is None:
+        b = np.median(p - pred, axis=1)
+        starts = np.zeros(1, dtype=int)
+    else:
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        b = np.empty(k)
+        for s0, s1 in zip(starts.tolist(), [*starts[1:].tolist(), k], strict=True):
+            cols = np.flatnonzero(row_mask[s0])
+            b[s0:s1] = np.median((p - pred)[s0:s1][:, cols], axis=1)
+    batched = len(starts) > 1 or row_mask is not None
+    active = np.ones(k, dtype=bool)
     w_prior = 1.0 / ccfg.time_prior_s**2
     mask_sin = math.sin(math.radians(cfg.elmask_deg))
     carrier = sats.eph.carrier_hz
@@ -496,12 +522,13 @@ def _solve_candidates(
         los, pred, _ = ranges(pos, clk, x, omega)
         vel = sagnac_rotate(vel, tau, omega)
         rdot = np.einsum("kni,kni->kn", los, vel)
-        lat, lon, alt = _geodetic(x)
-        rot = enu_rotation(lat, lon)  # (k, 3, 3)
-        enu = np.einsum("kij,knj->kni", rot, los)
-        el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
-        az = np.arctan2(enu[..., 0], enu[..., 1])
         near = it >= 1
+        if near or it == ccfg.iterations - 1:  # (the first, from afar: no mask, no delays)
+            lat, lon, alt = _geodetic(x)
+            rot = _enu_rotations(lat, lon)  # (k, 3, 3)
+            enu = np.einsum("kij,knj->kni", rot, los)
+            el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
+            az = np.arctan2(enu[..., 0], enu[..., 1])
         if near:
             io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
             corr = total_delay(io, tr)
@@ -511,6 +538,9 @@ def _solve_candidates(
             corr = 0.0
             w = np.full((k, n), 1e-2)
         v = p - pred - b[:, None] - corr
+        if row_mask is not None:
+            w = np.where(row_mask, w, 0.0)
+            v = np.where(row_mask, v, 0.0)
         h = np.concatenate([-los, np.ones((k, n, 1)), rdot[..., None]], axis=-1)
         hw = h * w[..., None]
         normal = np.einsum("kni,knj->kij", hw, h)
@@ -523,17 +553,45 @@ def _solve_candidates(
             step = np.stack(
                 [np.linalg.lstsq(a, r, rcond=None)[0] for a, r in zip(normal, rhs, strict=True)]
             )
+        if not batched:
+            x = x + step[:, :3]
+            b = b + step[:, 3]
+            dt = dt + step[:, 4]
+            # converged with the corrections on: the steps shrink quadratically (HKSC:
+            # 30 km, 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is < 0.1 mm
+            moved = np.abs(step[:, :4]).max(initial=0.0)
+            moved += 1e3 * np.abs(step[:, 4]).max(initial=0.0)
+            if it >= 2 and moved < 0.05:
+                break
+            continue
+        # several groups: the frozen ones keep their state and last figures
+        step = np.where(active[:, None], step, 0.0)
         x = x + step[:, :3]
         b = b + step[:, 3]
         dt = dt + step[:, 4]
-        # converged with the corrections on: the steps shrink quadratically (HKSC: 30 km,
-        # 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is below 0.1 mm
-        moved = np.abs(step[:, :4]).max(initial=0.0) + 1e3 * np.abs(step[:, 4]).max(initial=0.0)
-        if it >= 2 and moved < 0.05:
-            break
+        if it == 0:
+            out = [v, w, h, normal, el, np.asarray(alt)]
+        else:
+            now = [v, w, h, normal, el, np.asarray(alt)]
+            out = [np.where(_cast(active, o), a, o) for a, o in zip(now, out, strict=True)]
+        if it >= 2:
+            moved_g = np.maximum.reduceat(np.abs(step[:, :4]).max(axis=1), starts)
+            moved_g = moved_g + 1e3 * np.maximum.reduceat(np.abs(step[:, 4]), starts)
+            done = np.repeat(moved_g < 0.05, np.diff(np.r_[starts, k]))
+            active &= ~done
+            if not active.any():
+                break
+    if batched:
+        v, w, h, normal, el, alt = out
     t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
     dof = (w > 0).sum(axis=1) + PRIOR_ROWS - N_PARAMS
-    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), el.min(axis=1), normal, h, v, w)
+    min_el = el.min(axis=1) if row_mask is None else np.where(row_mask, el, np.inf).min(axis=1)
+    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), min_el, normal, h, v, w)
+
+
+def _cast(active: np.ndarray, like: np.ndarray) -> np.ndarray:
+    """``active`` (k,) shaped to broadcast against ``like`` (k, ...)."""
+    return active.reshape((-1,) + (1,) * (like.ndim - 1))
 
 
 def _geodetic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -543,6 +601,15 @@ def _geodetic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return ecef_to_geodetic(x)
     out = np.array([[float(v) for v in ecef_to_geodetic(p)] for p in x]).reshape(-1, 3)
     return out[:, 0], out[:, 1], out[:, 2]
+
+
+def _enu_rotations(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """:func:`enu_rotation` (k, 3, 3) of points at ``lat``, ``lon`` (k,): point by point
+    (its scalar path) when they are few, as :func:`_geodetic`."""
+    if len(lat) > 8:
+        return enu_rotation(lat, lon)
+    rots = [enu_rotation(a, o) for a, o in zip(lat.tolist(), lon.tolist(), strict=True)]
+    return np.array(rots).reshape(-1, 3, 3)
 
 
 def _inv_diag(m: np.ndarray) -> np.ndarray:
@@ -657,10 +724,16 @@ def _solve_coarse(
             absolute = True
             n_best = n_best - shift * frac
             p_full = sats.z_m + n_best * sats.ct_m
+            b -= shift * ct  # the clock of these full ranges
     fractional = tuple(p for p, f in zip(sats.prn, frac, strict=True) if f)
     integers = {p: int(k) for p, k, f in zip(sats.prn, n_best, frac, strict=True) if f}
     if absolute:
-        fix, dt = spp_at_receive_time(_full_epoch(epoch, sats.prn, p_full), dt, store, iono, cfg)
+        full = _full_epoch(epoch, sats.prn, p_full)
+        # phase 2 alone from the winner's position (every range full: conventional SPP, the
+        # same solution as from the Earth's centre, SolverConfig.x0_ecef_m)
+        x0 = tuple(float(v) for v in solved.x[best])
+        spp_cfg = replace(cfg, x0_ecef_m=x0) if all(map(math.isfinite, x0)) else cfg
+        fix, dt = spp_at_receive_time(full, dt, store, iono, spp_cfg, start_s=-b / C_M_S)
         recovered = {
             p: float(z + k * c)
             for p, z, k, c, f in zip(sats.prn, sats.z_m, n_best, sats.ct_m, frac, strict=True)
@@ -708,7 +781,11 @@ def _evaluate(
     ccfg: CoarseConfig,
 ) -> _Evaluation:
     """Solve and judge every candidate (module docstring, steps 3-4)."""
-    solved = _solve_candidates(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
+    return _judge(_solve_candidates(sats, cand, x0, bdt_sow, iono, cfg, ccfg), cfg, ccfg)
+
+
+def _judge(solved: _Solved, cfg: SolverConfig, ccfg: CoarseConfig) -> _Evaluation:
+    """Judge every solved candidate (module docstring, step 4)."""
     t_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r >= 1 else np.inf for r in solved.dof])
     plausible = (
         (solved.alt >= ccfg.alt_min_m)
@@ -757,7 +834,7 @@ def _exclude_one(
     a passing or rival solution of any subset whose integers differ from the winner's on
     the rows both use (relative to a common fractional row when no row is full)."""
     n = len(sats.prn)
-    found = []
+    subsets = []
     for j in range(n):
         keep = np.array([i for i in range(n) if i != j])
         sub = _take(sats, keep)
@@ -765,8 +842,36 @@ def _exclude_one(
         if not (sub.ct_m == 0).any():
             cj = cj - cj[:, :1]
         cj, first = _unique_rows(cj)
-        ev = _evaluate(sub, cj, x0[first], bdt_sow, iono, cfg, ccfg)
-        found.append((j, keep, sub, cj, ev))
+        subsets.append((j, keep, sub, cj, first))
+    # every subset's candidates in one batch (each group solved as if alone), the left-out
+    # row's integer 0 and its weight 0
+    sizes = [len(cj) for _, _, _, cj, _ in subsets]
+    ends = np.cumsum(sizes)
+    n_all = np.zeros((int(ends[-1]), n))
+    mask = np.ones((int(ends[-1]), n), dtype=bool)
+    group = np.repeat(ends - np.asarray(sizes), sizes)
+    for (j, keep, _, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
+        n_all[e - m : e][:, keep] = cj
+        mask[e - m : e, j] = False
+    x_all = np.concatenate([x0[first] for _, _, _, _, first in subsets])
+    batch = _solve_candidates(sats, n_all, x_all, bdt_sow, iono, cfg, ccfg, mask, group)
+    found = []
+    for (j, keep, sub, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
+        rows = slice(e - m, e)
+        solved = _Solved(
+            batch.x[rows],
+            batch.b[rows],
+            batch.dt[rows],
+            batch.t_stat[rows],
+            batch.dof[rows],
+            batch.alt[rows],
+            batch.min_el_rad[rows],
+            batch.normal[rows],
+            batch.design[rows][:, keep],
+            batch.resid_m[rows][:, keep],
+            batch.weight[rows][:, keep],
+        )
+        found.append((j, keep, sub, cj, _judge(solved, cfg, ccfg)))
     best = None
     for j, keep, sub, cj, ev in found:
         if ev.passing.any():
@@ -852,11 +957,17 @@ def _coarse_fix(
 
 
 TIME_ITERATIONS = 3
-"""SPP solves at most of :func:`spp_at_receive_time` (the second leaves a clock of
-nanoseconds; the third is not reached on any recording)."""
-TIME_SETTLED_M = 1e-3
-"""A receiver clock [m] below which the tag plus the offset is the receive time: the last
-SPP's satellites are then within 1 mm / c x 4 km/s ~ 1e-8 mm of where they are at the truth."""
+"""SPP solves at most of :func:`spp_at_receive_time` (started at the coarse solution's
+clock, the first leaves a clock below :data:`TIME_SETTLED_M` on every recording: HKSC
+0.014 m at most, the TST drive 258 m; from a worse start the second leaves nanoseconds)."""
+TIME_SETTLED_M = 1e3
+"""A receiver clock [m] below which the tag plus the offset is the receive time as far as
+the fix is concerned: the tag moved (ranges with it) moves only what depends on the
+receive time itself, the Klobuchar model's local time, by at most 2 pi / 72,000 s x 150 m
+(its shortest period and a large slant delay) = 0.013 m/s; measured 1.4e-4 m/s on HKSC,
+7e-4 m/s on the TST drive. 1 km is 3.3 us: the fix moves < 5e-8 m (measured < 3e-9 m),
+below the solver's own convergence noise (a second solve moves it by 3e-8 m on HKSC,
+1.1e-7 m on the drive, bench/bench_coarse.py's figures unchanged)."""
 
 
 def spp_at_receive_time(
@@ -865,6 +976,7 @@ def spp_at_receive_time(
     store: EphemerisStore,
     iono: IonoSet,
     cfg: SolverConfig,
+    start_s: float | None = None,
 ) -> tuple[Fix, float]:
     """The published fix of an accepted integer set: the solver's own SPP
     (:func:`service.engine.solver.solve`, all its corrections, FDE and protection levels)
@@ -876,11 +988,16 @@ def spp_at_receive_time(
     those ranges; but what depends on the receive time itself (the broadcast Klobuchar
     model's local time, ~0.3 mm over 2 s on HKSC) would be taken at the wrong time. So tag
     and ranges are moved together by S (tag + S, pr + c S: every transmit time unchanged),
-    first by the coarse-time offset ``offset_s``, then by the clock each SPP is left with
-    (S -= b / c) until it is below :data:`TIME_SETTLED_M`: the solve is then at the receive
-    time, where SPP of the true full ranges at a correct tag is. The fix carries the
-    epoch's tag, its clock relative to that tag (b - c S) and the offset S - b / c."""
-    shift = offset_s if math.isfinite(offset_s) else 0.0
+    first by ``start_s`` (None: the coarse-time offset ``offset_s``; :func:`solve_coarse`
+    gives -b / c, the coarse solution's clock, which puts the tag at the receive time to
+    nanoseconds where the offset, solved from range rates, is off by up to 0.2 s on the
+    drive), then by the clock each SPP is left with (S -= b / c) until it is below
+    :data:`TIME_SETTLED_M`: the solve is then at the receive time, where SPP of the true
+    full ranges at a correct tag is (one solve on every recording). The fix carries the
+    epoch's tag, its clock relative to that tag (b - c S) and the offset S - b / c; a
+    declined SPP, ``offset_s``."""
+    shift = offset_s if start_s is None else start_s
+    shift = shift if math.isfinite(shift) else 0.0
     fix = declined(full, Declined.of(Decline.NO_MEASUREMENTS))
     for it in range(TIME_ITERATIONS):
         fix = solve(moved(full, shift), store, iono, cfg, "spp")
