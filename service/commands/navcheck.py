@@ -34,23 +34,30 @@ NAV_HINT = (
 
 
 def check_navigation(
-    paths: Sequence[str | Path], navs: Sequence[NavData], first: tuple[int, float] | None
+    paths: Sequence[str | Path],
+    navs: Sequence[NavData],
+    first: tuple[int, float] | None,
+    systems: Iterable[str] = DEFAULT_SYSTEMS,
 ) -> None:
     """Refuse (:class:`InputError`, exit 3) nav files with no BDS ephemeris, or whose BDS
     ephemerides are all more than :data:`NAV_DAY_S` from ``first`` (GPST week, tow of the
     observations' first dated epoch; None: unknown, not checked). Only the BDS sets count
     (the ones the message names): a mixed file's GPS and Galileo sets, read when those
-    systems are selected, include sets of odd weeks from satellites marked unhealthy."""
+    systems are selected, include sets of odd weeks from satellites marked unhealthy. With
+    BeiDou not among ``systems`` (RINEX letters, e.g. ``--systems G,E``) the sets of the
+    selected systems count instead (:func:`anchor_systems`)."""
     names = ", ".join(str(p) for p in paths)
+    anchor = anchor_systems(systems)
     toes = [
         bdt_to_gpst(e.week, e.toe_sow_s)
         for nav in navs
         for prn, ephs in nav.ephemerides.items()
-        if prn.startswith("C")
+        if prn[:1] in anchor
         for e in ephs
     ]
     if not toes:
-        raise InputError(f"no usable BDS ephemeris in {names}: {NAV_HINT}")
+        what = "BDS" if anchor == {"C"} else "/".join(sorted(anchor))
+        raise InputError(f"no usable {what} ephemeris in {names}: {NAV_HINT}")
     if first is None or first[0] == UNKNOWN_WEEK:
         return
     if min(abs(diff_s(*first, *toe)) for toe in toes) <= NAV_DAY_S:
@@ -58,10 +65,18 @@ def check_navigation(
     days = sorted({datetime_from_gpst(*toe).date() for toe in toes})
     span = str(days[0]) if len(days) == 1 else f"{days[0]} to {days[-1]}"
     start = datetime_from_gpst(*first).replace(microsecond=0)
+    what = "BDS" if anchor == {"C"} else "/".join(sorted(anchor))
     raise InputError(
-        f"{names}: BDS ephemerides of {span} (GPST), but the observations start "
+        f"{names}: {what} ephemerides of {span} (GPST), but the observations start "
         f"{start:%Y-%m-%d %H:%M:%S} GPST: {NAV_HINT}"
     )
+
+
+def anchor_systems(systems: Iterable[str]) -> set[str]:
+    """The systems whose sets a nav file must hold to be used: BeiDou where it is selected
+    (bdsfix is BeiDou-first; the fast fix needs its GEOs), else every selected system."""
+    selected = set(systems)
+    return {"C"} if "C" in selected else selected
 
 
 def read_navigation(

@@ -117,7 +117,7 @@ def _check_nav(
     first = None
     if _is_regular_file(spec):
         first = first_epoch_time(spec.removeprefix("file:"), gps_week)
-    check_navigation(nav, navs, first)
+    check_navigation(nav, navs, first, systems)
     return navs
 
 

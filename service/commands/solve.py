@@ -54,19 +54,21 @@ def load_navigation(
     """Ephemeris store and broadcast ionosphere from one or more RINEX 3 nav files, refused
     (exit 3) without a BDS ephemeris or, given the observations' ``first`` epoch (GPST
     week, tow), when they are of another day (:mod:`service.commands.navcheck`)."""
-    from service.commands.navcheck import check_navigation, read_navigation
+    from service.commands.navcheck import anchor_systems, check_navigation, read_navigation
 
     navs = read_navigation(paths, systems)
-    check_navigation(paths, navs, first)
+    check_navigation(paths, navs, first, systems)
     store = EphemerisStore(max_age_s=max_age_s)
     params = []
     for nav in navs:  # every set of a file in one add_all (its checks vectorised)
         store.add_all(e for ephs in nav.ephemerides.values() for e in ephs)
         params += [nav.iono_bds, nav.iono_gps]
-    if not any(prn.startswith("C") for prn in store.prns):
-        # every BDS set refused by the store's sanity checks (GPS/Galileo sets do not stand
-        # in for them: the nav file is refused without a BDS set, as check_navigation does)
-        raise InputError(f"no usable BDS ephemeris in {', '.join(paths)}")
+    anchor = anchor_systems(systems)
+    if not any(prn[:1] in anchor for prn in store.prns):
+        # every BDS set refused by the store's sanity checks (with BeiDou selected, GPS and
+        # Galileo sets do not stand in for them, as in check_navigation)
+        what = "BDS" if anchor == {"C"} else "/".join(sorted(anchor))
+        raise InputError(f"no usable {what} ephemeris in {', '.join(paths)}")
     iono = IonoSet.of(params)
     if iono.bds is None and iono.gps is not None:
         log.warning(

@@ -178,3 +178,21 @@ def test_default_pdop_mask_is_u_blox_25_on_the_f9p_rover(tmp_path):
     pdops = [r["pdop"] for r in spp]
     assert any(10.0 < p <= 25.0 for p in pdops)
     assert max(pdops) <= 25.0
+
+
+@pytest.mark.parametrize("systems", ["G", "G,E"])
+def test_a_selection_without_beidou_solves_from_the_systems_selected(tmp_path, systems):
+    """``--systems G`` (or ``G,E``) takes its ephemerides from the nav file's GPS (and
+    Galileo) sets: the file is not refused for want of a BeiDou set, every epoch fixes near
+    the station's surveyed position, and a fix of several systems names only those
+    selected."""
+    d = DATA / "hksc-2021"
+    out = tmp_path / "fixes.jsonl"
+    args = ["solve", str(d / "hksc1610.obs"), str(d / "hksc1610.nav"), "--mode", "spp"]
+    assert main([*args, "--systems", systems, "--out", str(out)]) == 0
+    fixes = [r for r in map(json.loads, out.read_text().splitlines()) if r["class"] == "FIX"]
+    spp = [f for f in fixes if f["mode"] == "spp"]
+    assert len(spp) == 205
+    err_m = [np.linalg.norm(np.array(f["x_ecef_m"]) - HKSC_TRUTH_ECEF_M) for f in spp]
+    assert max(err_m) < 10.0
+    assert all(set(f.get("used_by_system", {})) <= set(systems.split(",")) for f in spp)
