@@ -773,7 +773,9 @@ def _iono(
 def _ggto(lines: list[tuple[int, str]], path: Path) -> TimeOffset | None:
     """GST - GPST from a ``TIME SYSTEM CORR`` ``GAGP`` record (RINEX 3.04 Table A5:
     A4,1X,D17.10,D16.9,1X,I6,1X,I4: a0 [s], a1 [s/s], reference time [s of week] and week,
-    the Galileo week counted as the GPS week); the GGTO of OS SIS ICD 5.1.8."""
+    the Galileo week counted as the GPS week); the GGTO of OS SIS ICD 5.1.8. It is only
+    recorded (never applied), so an unreadable record is logged and skipped (None) rather
+    than refusing the file's ephemerides."""
     for lineno, text in lines:
         if text[:4] != "GAGP":
             continue
@@ -781,9 +783,11 @@ def _ggto(lines: list[tuple[int, str]], path: Path) -> TimeOffset | None:
             a0, a1 = _float(text[5:22]), _float(text[22:38])
             t_ref, week = int(text[38:45]), int(text[45:50])
         except ValueError as exc:
-            raise FramingError(f"{path}:{lineno}: bad TIME SYSTEM CORR GAGP: {exc}") from exc
+            log.warning("%s:%d: unreadable TIME SYSTEM CORR GAGP skipped: %s", path, lineno, exc)
+            return None
         if math.isnan(a0) or math.isnan(a1):
-            raise FramingError(f"{path}:{lineno}: TIME SYSTEM CORR GAGP has blank fields")
+            log.warning("%s:%d: TIME SYSTEM CORR GAGP has blank fields: skipped", path, lineno)
+            return None
         return TimeOffset("GAGP", a0, a1, float(t_ref), week, "rinex")
     return None
 

@@ -22,13 +22,24 @@ HKSC_NAV = DATA / "hksc-2021" / "hksc1610.nav"
 GAGP = "GAGP  2.3283064365D-09-4.440892099D-15 345600 2161          TIME SYSTEM CORR    \n"
 
 
-def _with_gagp(tmp_path: Path) -> Path:
+def _with_gagp(tmp_path: Path, record: str = GAGP) -> Path:
     """The real HKSC nav file with one GAGP record added to its header."""
     lines = HKSC_NAV.read_text().splitlines(keepends=True)
     at = next(i for i, line in enumerate(lines) if "TIME SYSTEM CORR" in line)
     path = tmp_path / "hksc1610-gagp.nav"
-    path.write_text("".join([*lines[:at], GAGP, *lines[at:]]))
+    path.write_text("".join([*lines[:at], record, *lines[at:]]))
     return path
+
+
+@pytest.mark.parametrize("damage", [(38, 45, "  x4560"), (5, 22, " " * 17)])
+def test_an_unreadable_gagp_record_is_skipped_not_the_file(tmp_path: Path, damage):
+    """The GGTO is only recorded: a garbled reference time or blank a0 loses it alone; the
+    file's ephemerides are read as without the record."""
+    start, end, text = damage
+    record = GAGP[:start] + text + GAGP[end:]
+    nav = read_nav(_with_gagp(tmp_path, record), "CGE")
+    assert nav.ggto is None
+    assert nav.ephemerides == read_nav(HKSC_NAV, "CGE").ephemerides
 
 
 def test_the_real_file_has_no_gagp_and_gives_none():
