@@ -349,6 +349,9 @@ class EphemerisStore:
         """Sets dropped to keep MAX_SETS_PER_PRN (not counting :meth:`prune`)."""
         self.dropped_inconsistent = 0
         """Outside sets dropped because the receiver's own set contradicted them."""
+        self.dropped_unhealthy = 0
+        """Held sets dropped because the same set (PRN, week, t_oe) came again marked
+        unhealthy (:meth:`add`)."""
         self._refusal_log = RateLimitedLog(log, LOG_INTERVAL_S, clock)  # per (PRN, check)
         # column form of recently used ephemeris sets (the same set serves many epochs);
         # keyed by object identity, the entry holds the objects so identities stay unique
@@ -369,7 +372,11 @@ class EphemerisStore:
         """Hold ``eph`` unless :func:`ephemeris_problem` refuses it or a held set of the
         receiver's own contradicts it (check ``inconsistent``, see :meth:`_settle`); returns
         whether it was kept. A refused set is counted (``refused``, ``refused_by_reason``)
-        and logged, and never replaces a set already held. A set with the (week, t_oe) of
+        and logged, and never replaces a set already held, with one exception: a set
+        refused as ``unhealthy`` drops the held set of the same (week, t_oe)
+        (``dropped_unhealthy``), since the satellite has since flagged that very set (Galileo
+        raises HS/DVS in I/NAV word type 5 without a new IODnav, OS SIS ICD 5.1.9.3; GPS and
+        BeiDou may do the same with their health words). A set with the (week, t_oe) of
         one held replaces it, except an outside copy of an own set (kept as it is, True);
         beyond ``max_sets_per_prn`` the satellite's oldest t_oe goes (``evicted``).
         ``radius_m``: the set's radius at t_oe from :meth:`add_all`, which has run the other
@@ -387,6 +394,13 @@ class EphemerisStore:
             self.refused_by_reason[problem.check] += 1
             self.last_refusal = problem
             self._log_refusal(eph, problem)
+            key = (eph.week, eph.toe_sow_s)
+            if problem.check == "unhealthy" and sets is not None and key in sets.by_key:
+                sets.remove(key)  # never use a set its satellite now flags
+                if not sets.order:
+                    del self._by_prn[eph.prn]
+                self._spans.pop(eph.prn, None)
+                self.dropped_unhealthy += 1
             return False
         if sets is None:
             sets = self._by_prn[eph.prn] = _Sets()

@@ -346,10 +346,11 @@ class Runner:
             return 1
         if isinstance(ev, NavSubframe):
             store = self.pipeline.store
-            before = (len(store), store.dropped_inconsistent)
+            before = (len(store), store.dropped_inconsistent, store.dropped_unhealthy)
             self.pipeline.on_subframe(ev)
             # a decoded set that dropped the outside set it contradicts keeps the count
-            self._store_dirty |= (len(store), store.dropped_inconsistent) != before
+            after = (len(store), store.dropped_inconsistent, store.dropped_unhealthy)
+            self._store_dirty |= after != before
         elif isinstance(ev, Ephemeris):
             self.pipeline.add_ephemeris(ev)
             self._store_dirty = True

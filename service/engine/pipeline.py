@@ -207,8 +207,10 @@ class Pipeline:
         ``inconsistent``: an outside set that the receiver's own contradicts);
         ``ephemeris_evicted`` counts the sets the store's count bound let go,
         ``ephemeris_dropped_inconsistent`` the outside sets held that the receiver's own set
-        contradicted (service.core.ephemeris)."""
+        contradicted, ``ephemeris_dropped_unhealthy`` the held sets that came again marked
+        unhealthy (service.core.ephemeris)."""
         evicted, dropped = self.store.evicted, self.store.dropped_inconsistent
+        unhealthy = self.store.dropped_unhealthy
         if self.store.add(eph):
             self.counters[f"ephemeris_{eph.source}"] += 1
             if self.store.evicted != evicted:
@@ -221,6 +223,8 @@ class Pipeline:
             self.counters["ephemeris_refused"] += 1
             if self.store.last_refusal is not None:
                 self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
+            if self.store.dropped_unhealthy != unhealthy:
+                self.counters["ephemeris_dropped_unhealthy"] += 1
 
     def prune_store(self) -> int:
         """Drop ephemerides a day older than the latest measurement and their satellite's

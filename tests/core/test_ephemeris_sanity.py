@@ -283,7 +283,9 @@ def test_pipeline_counts_refusals_by_check(c08):
         "ephemeris_refused_sqrt_a": 1,
         "ephemeris_refused_not_finite": 1,
         "ephemeris_refused_unhealthy": 1,
+        "ephemeris_dropped_unhealthy": 1,  # the same set flagged: the held copy goes too
     }
+    assert len(pipe.store) == 0
 
 
 @pytest.mark.parametrize(

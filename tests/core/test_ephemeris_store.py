@@ -245,3 +245,27 @@ def test_a_damaged_store_is_moved_aside_with_one_warning(tmp_path, caplog):
     assert caplog.records[0].levelno == logging.WARNING
     path.write_text("{}")
     assert EphemerisStore.set_aside(path, "again") != target  # the same second: a new name
+
+
+@pytest.mark.parametrize("prn_system", ["E", "G", "C"])
+def test_a_set_broadcast_again_as_unhealthy_is_no_longer_used(prn_system):
+    """Galileo flags a satellite in I/NAV word type 5 without a new IODnav (and GPS/BeiDou
+    may re-send a set with its health raised): the same (PRN, week, t_oe) arriving
+    unhealthy takes the held copy out of use, through the pipeline's counter too; a later
+    healthy set of another t_oe is taken again."""
+    from service.engine.pipeline import Pipeline
+
+    nav = read_nav(DATA / "hksc-2021" / "hksc1610.nav", "CGE")
+    prn, sets = next((p, s) for p, s in sorted(nav.ephemerides.items()) if p[0] == prn_system)
+    eph = next(e for e in sets if e.health == 0)
+    pipe = Pipeline(store=EphemerisStore(max_age_s=7200.0))
+    pipe.add_ephemeris(eph)
+    assert pipe.store.select(prn, eph.week, eph.toe_sow_s) == eph
+    pipe.add_ephemeris(dataclasses.replace(eph, health=1))
+    assert pipe.store.select(prn, eph.week, eph.toe_sow_s) is None
+    assert pipe.counters["ephemeris_dropped_unhealthy"] == 1
+    assert pipe.counters["ephemeris_refused_unhealthy"] == 1
+    later = next((e for e in sets if e.health == 0 and e.toe_sow_s != eph.toe_sow_s), None)
+    if later is not None:
+        pipe.add_ephemeris(later)
+        assert pipe.store.select(prn, later.week, later.toe_sow_s) == later
