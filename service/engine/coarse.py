@@ -107,8 +107,8 @@ class CoarseConfig:
 
     coarse_fix: bool = setting(
         True,
-        "coarse-time first fix when fewer than 4 ranges are full (Doppler prior, coarse "
-        "time, validated integer search)",
+        "coarse-time first fix when fewer ranges are full than the paper's fast fix needs "
+        "(Doppler prior, coarse time, validated integer search)",
         kind="bool",
     )
     time_prior_s: float = setting(
@@ -753,7 +753,7 @@ def _solve_coarse(
             solver="fast",
             mode="fast",
             full=tuple(p for p in fix.used if p not in integers),
-            fractional=fractional,
+            fractional=tuple(p for p in fractional if p in used),
             ambiguity={p: k for p, k in integers.items() if p in used} if absolute else {},
             recovered_pr_m={p: v for p, v in recovered.items() if p in used},
             method=COARSE_TIME,
@@ -1019,9 +1019,6 @@ def spp_at_receive_time(
     return fix, shift - b / C_M_S
 
 
-SOW_PRIOR_S = 0.02
-"""How well the first decoded SOW gives the receive time [s]: the transmit time it makes
-full, plus a flight time known to +-10 ms from the satellite's orbit radius alone."""
 _EARTH_RADIUS_M = 6_371e3
 
 
@@ -1047,8 +1044,9 @@ def sow_time_shift(epoch: MeasurementEpoch, store: EphemerisStore) -> float | No
     decoded SOW of any satellite, within about 20 ms"): a full range's transmit time
     tag - pr / c (on the satellite's clock, whatever the receiver clock's error) plus its
     flight time, the middle of [a - R, sqrt(a^2 - R^2)] / c for the orbit's semi-major axis
-    a (MEO 72-86 ms, IGSO/GEO 119-139 ms: at most 10 ms off, :data:`SOW_PRIOR_S`). None
-    without a full BeiDou range whose satellite has an ephemeris."""
+    a (MEO 72-91 ms, IGSO/GEO 119-139 ms: at most 10 ms off; the search then keeps the
+    configured time prior, which holds that well inside). None without a full BeiDou range
+    whose satellite has an ephemeris."""
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     for i in np.flatnonzero(np.isfinite(epoch.pr_m)).tolist():
         prn = epoch.prn[i]
