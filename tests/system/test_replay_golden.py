@@ -40,9 +40,10 @@ NO_FIXES = "no fixes: known defect "
 """No FIX record, because of the known defect named after this (and its issue)."""
 SUBFRAMES_ONLY = "no fixes: no measurements in the capture; TRACK from its B1I subframes"
 """No FIX record (nothing to solve), but TRACK records: the capture's B1I subframes decode."""
-GPS_SUBFRAMES_ONLY = (
+GPS_GAL_SUBFRAMES_ONLY = (
     "no fixes: no measurements in the capture, and no B1I subframe (its BDS subframes are "
-    "B3I D1 and B-CNAV, not mapped); TRACK from its GPS LNAV subframes"
+    "B3I D1 and B-CNAV, not mapped); TRACK from its GPS LNAV subframes and Galileo I/NAV "
+    "pages"
 )
 """No FIX record, and TRACK records of GPS satellites only: the capture's GPS LNAV
 subframes decode (every system is selected by default), its BDS subframes are not B1I."""
@@ -51,7 +52,7 @@ NAV_ONLY = (
     "ephemerides and ionosphere only"
 )
 """Neither FIX nor TRACK records: the capture carries navigation data only."""
-NO_RECORDS = (SUBFRAMES_ONLY, GPS_SUBFRAMES_ONLY, NAV_ONLY)
+NO_RECORDS = (SUBFRAMES_ONLY, GPS_GAL_SUBFRAMES_ONLY, NAV_ONLY)
 
 
 @dataclass(frozen=True)
@@ -75,8 +76,8 @@ CASES = {
         ["ublox-logs/ublox-x20p.log"],
         "X20P SFRBX (gpsd regression log), time from NAV-TIMEGPS: its BDS subframes are "
         "B3I D1 (sigId 4) and B-CNAV, counted as unmapped (the service decodes B1I); its GPS "
-        "LNAV subframes decode",
-        GPS_SUBFRAMES_ONLY,
+        "LNAV subframes and Galileo I/NAV pages decode",
+        GPS_GAL_SUBFRAMES_ONLY,
     ),
     "ublox-zed-f9p-sfrbx": Case(
         ["ublox-logs/ublox-zed-f9p-sfrbx.log"],
@@ -278,10 +279,10 @@ def test_replay_matches_golden(name, tmp_path, request, final_counters, capsys):
     if head["fixes"].startswith(NO_FIXES) or head["fixes"] in NO_RECORDS:
         assert not fixes, f"{name}: FIX in a golden whose header says {head['fixes']!r}"
         if head["fixes"] in NO_RECORDS:
-            with_tracks = (SUBFRAMES_ONLY, GPS_SUBFRAMES_ONLY)
+            with_tracks = (SUBFRAMES_ONLY, GPS_GAL_SUBFRAMES_ONLY)
             assert bool(tracks) == (head["fixes"] in with_tracks), (name, len(tracks))
-            if head["fixes"] == GPS_SUBFRAMES_ONLY:
-                assert {r["prn"][0] for r in tracks} == {"G"}, name
+            if head["fixes"] == GPS_GAL_SUBFRAMES_ONLY:
+                assert {r["prn"][0] for r in tracks} == {"G", "E"}, name
     else:
         assert fixes, f"{name}: empty golden (no FIX) although its header expects fixes"
         assert head["fixes"] in (POSITIONED, DECLINED), head["fixes"]
