@@ -45,8 +45,10 @@ Counter keys: ``sbf:<Name>`` per block, ``sbf_ignored``, ``epochs_sbf``, ``sbf_b
 ``bdsraw_other_signal``, ``bdsraw_crc_failed``, ``bdsraw_unmapped``, ``sbf_pvt``,
 ``sbf_pvt_no_fix``; with GPS/Galileo: ``meas_G``, ``meas_E``, ``meas_G_other_signal``,
 ``meas_E_other_signal``, ``ephemerides_sbf_G``, ``ephemerides_sbf_E``, ``galnav_fnav``,
-``eph_bad_week``, ``iono_sbf_G``, ``sbf_gal_ion_unused``, ``ggto_sbf``,
-``gpsraw_crc_failed``, ``gpsraw_unmapped``.
+``galnav_no_e1b_health`` (a GALNav block whose E1-B health is flagged not available:
+refused), ``eph_bad_week``, ``iono_sbf_G``, ``sbf_gal_ion_unused``, ``ggto_sbf``,
+``gpsraw_crc_failed``, ``gpsraw_unmapped``, ``galraw_other_signal``, ``galraw_crc_failed``,
+``galraw_unmapped``.
 """
 
 from __future__ import annotations
@@ -651,6 +653,9 @@ class SbfMapper:
                 return []
             if abs(int(msg.WNt_oe) - wnc) > 1:
                 self.counters["eph_bad_week"] += 1
+                return []
+            if not int(getattr(msg, "L1-BHealth")):  # E1-B health unknown: not for an E1 user
+                self.counters["galnav_no_e1b_health"] += 1
                 return []
             eph = ephemeris_from_galnav(msg, prn, wnc)
         self.counters[f"ephemerides_sbf_{eph.prn[0]}"] += 1

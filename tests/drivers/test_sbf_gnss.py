@@ -18,8 +18,10 @@ import numpy as np
 import pytest
 from pysbf2 import SBFReader
 
+from drivers.sbf import GAL_NAV, SbfMapper
 from drivers.source import open_source
 from service.core.constants import C_M_S
+from service.core.counters import Counters
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -226,3 +228,21 @@ def test_the_loop_records_the_ggto_in_status_and_solves_with_three_clocks():
         counters = runner.counters()
     assert counters["ggto_sbf"] == 1 and counters["ggto_ns"] == 0.0
     assert all(set(r.fix.clocks_m) == {"C", "G", "E"} for r in results)
+
+
+def test_a_galnav_block_without_e1b_health_is_refused():
+    """A GALNav block whose E1-B health is flagged not available (``L1-BHealth`` 0) gives no
+    set: an E1 user would take a satellite of unknown health as healthy (RINEX Table A8 has
+    no 'unknown'); the real block, flag set, gives its set."""
+    raw_msg = next(m for _, m in _blocks() if m.identity == "GALNav")
+    wnc = int(raw_msg.WNc)
+    mapper = SbfMapper(Counters(), systems="CGE")
+    assert len(mapper._on_other_nav(GAL_NAV, raw_msg, wnc)) == 1
+
+    class _Unknown:  # the real block with its E1-B health flag cleared (pysbf2's is frozen)
+        def __getattr__(self, name: str) -> object:
+            return 0 if name == "L1-BHealth" else getattr(raw_msg, name)
+
+    unknown = _Unknown()
+    assert mapper._on_other_nav(GAL_NAV, unknown, wnc) == []
+    assert mapper.counters["galnav_no_e1b_health"] == 1
