@@ -110,8 +110,10 @@ def test_hksc_restarts_every_recovered_ambiguity_confirmed_by_d1_sow():
 
 
 def test_hksc_restart_jsonl_integers_match_the_full_pseudoranges(tmp_path):
-    """Independently of the pipeline's check: every integer of every fast fix, applied to
-    the epoch's fractional value, gives the RINEX full pseudorange within c T / 2."""
+    """Independently of the pipeline's check: every integer of every BeiDou fast fix,
+    applied to the epoch's fractional value, gives the RINEX full pseudorange within
+    c T / 2 (georinex's B1I C2I; the integers of every system, each with its own code
+    period, are checked in tests/commands/test_solve_real.py)."""
     import georinex
 
     out = tmp_path / "fixes.jsonl"
@@ -126,6 +128,8 @@ def test_hksc_restart_jsonl_integers_match_the_full_pseudoranges(tmp_path):
             str(HK / "hksc1610.nav"),
             "--restart-at",
             "60",
+            "--systems",
+            "C",
             "--max-speed",
             "--jsonl-out",
             str(out),
