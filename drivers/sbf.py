@@ -158,7 +158,7 @@ _GAL_RAW_SIGNALS = {17: "1B", 21: "7I"}
 """GALRawINAV signals whose I/NAV words are read: E1-B (17) and E5b-I (21)."""
 GAL_SOURCE_INAV = 2
 """GALNav/GALIon/GALGstGps ``Source``: 2 I/NAV, 16 F/NAV (Reference Guide, GALNav)."""
-BGD_DNU = -2e10
+BGD_DNU_S = -2e10
 SIG_CARRIER_HZ: dict[int, float] = {
     0: 1575.42e6,  # GPS L1CA
     1: 1575.42e6,  # GPS L1P
@@ -395,8 +395,8 @@ def ephemeris_from_galnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
         week=bdt_week,
         toe_sow_s=toe_bdt,
         toc_sow_s=(float(msg.t_oc) - BDT_GPST_OFFSET_S) % WEEK_S,
-        tgd1_s=math.nan if bgd_e5b == BGD_DNU else bgd_e5b,
-        tgd2_s=0.0 if bgd_e5a == BGD_DNU else bgd_e5a,
+        tgd1_s=math.nan if bgd_e5b == BGD_DNU_S else bgd_e5b,
+        tgd2_s=0.0 if bgd_e5a == BGD_DNU_S else bgd_e5a,
         health=health,
         aode=int(msg.IODnav),
         ura_m=galileo_sisa_m(int(msg.SISA_L1E5b)),

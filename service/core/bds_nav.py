@@ -637,7 +637,7 @@ def klobuchar_from_raw(raw: Mapping[str, int]) -> KlobucharParams:
     return KlobucharParams(alpha=(v[0], v[1], v[2], v[3]), beta=(v[4], v[5], v[6], v[7]))
 
 
-KLOBUCHAR_GRID_TOLERANCE = 0.1
+KLOBUCHAR_GRID_TOLERANCE_LSB = 0.1
 """A coefficient within this many LSBs of a whole LSB is a print of that broadcast value."""
 
 
@@ -648,14 +648,14 @@ def klobuchar_on_grid(iono: KlobucharParams) -> KlobucharParams:
     decodes them from the subframes. With 8-bit coefficients a 5-digit print is at most
     0.07 LSB from its value; the print rounded back differs by up to ~5e-4 relative, 0.1 mm
     of a slant delay. Unchanged unless every coefficient is within
-    :data:`KLOBUCHAR_GRID_TOLERANCE` LSB of the grid (not a print of broadcast values)."""
+    :data:`KLOBUCHAR_GRID_TOLERANCE_LSB` LSB of the grid (not a print of broadcast values)."""
     values = (*iono.alpha, *iono.beta)
     raw = []
     for name, value in zip(IONO_PARAMS, values, strict=True):
         p = PARAMS[name]
         n = round(value / p.lsb) if math.isfinite(value) else 0
         half = 1 << (p.bits - 1)
-        if not (abs(value / p.lsb - n) <= KLOBUCHAR_GRID_TOLERANCE and -half <= n < half):
+        if not (abs(value / p.lsb - n) <= KLOBUCHAR_GRID_TOLERANCE_LSB and -half <= n < half):
             return iono
         raw.append(n)
     out = klobuchar_from_raw(dict(zip(IONO_PARAMS, raw, strict=True)))

@@ -68,8 +68,6 @@ def week_near(broadcast: int, modulus: int, ref_week: int) -> int:
 # --- I/NAV pages (OS SIS ICD 4.3.2.2, 4.3.5) -----------------------------------------------
 CRC24Q_POLY = 0x1864CFB
 """CRC-24Q generator (OS SIS ICD 4.3.2.2.2: the I/NAV page CRC, as RTCM 3's)."""
-INAV_PAGE_S = 2.0
-"""A nominal I/NAV page (even + odd part) lasts 2 s on E1-B and on E5b-I (ICD 4.3.2.2)."""
 INAV_TOW_WORDS = frozenset({0, 5, 6})
 """Word types that carry WN and TOW (ICD 4.3.5: word type 0 when its Time field is '10',
 word types 5 and 6). The TOW is GST at the start of the page that carries it: on the PolyU

@@ -43,7 +43,6 @@ from service.core.constants import C_M_S, WEEK_S
 from service.core.gal_nav import (
     E1B_FIRST_PAGE_S,
     E1B_SUBFRAME_WORDS,
-    INAV_PAGE_S,
     encode_page,
     next_tow_page_start_s,
 )
@@ -53,7 +52,7 @@ from service.core.gps_nav import SUBFRAME_S as LNAV_SUBFRAME_S
 from service.core.gps_nav import encode_subframe as encode_lnav
 from service.core.gps_nav import subframe_words as lnav_words
 from service.core.orbit import EphemerisArrays
-from service.core.sow_rule import DEFAULT_FULL_RULE, time_known_after_s
+from service.core.sow_rule import DEFAULT_FULL_RULE, INAV_PAGE_S, time_known_after_s
 from service.core.systems import prn_number, wavelength_m
 from service.core.timebase import (
     BDT_GPST_OFFSET_S,
