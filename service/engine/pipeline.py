@@ -17,6 +17,7 @@ receiver restart can produce); neither changes the pipeline's state.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -226,6 +227,20 @@ class Pipeline:
             if self.store.dropped_unhealthy != unhealthy:
                 self.counters["ephemeris_dropped_unhealthy"] += 1
 
+    def _with_velocity(self, fix: Fix, view: MeasurementEpoch) -> Fix:
+        """``fix`` with its velocity from ``view``'s Doppler. A coarse-time fix with every
+        range fractional is at the tag plus its solved offset (seconds, with a host clock
+        off): its Doppler rows are taken at that receive time (the clock handed to them is
+        -c x offset), so the satellites' positions and velocities are those of its
+        solution, not up to seconds away along their orbits (1 m/s of range rate per
+        second); the fix itself keeps its clock relative to the tag."""
+        if fix.method != "coarse_time" or fix.full:
+            return with_velocity(fix, view, self.store)
+        if fix.time_offset_s is None or not math.isfinite(fix.time_offset_s):
+            return fix
+        at_rx = replace(fix, clock_bias_m=-C_M_S * fix.time_offset_s)
+        return replace(fix, velocity=with_velocity(at_rx, view, self.store).velocity)
+
     def prune_store(self) -> int:
         """Drop ephemerides a day older than the latest measurement and their satellite's
         newest set (:meth:`EphemerisStore.prune`; none before the first measurement: without
@@ -364,10 +379,8 @@ class Pipeline:
             or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
         ):
             fix = self._coarse_fix(whole, fix)
-        if self.velocity and not (fix.method == "coarse_time" and not fix.full):
-            # (a coarse-time fix with every range fractional is at the tag plus its solved
-            # offset, which the Doppler rows at the tag do not know: no velocity for it)
-            fix = with_velocity(fix, view, self.store)
+        if self.velocity:
+            fix = self._with_velocity(fix, view)
         count_fix(self.counters, fix)
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
