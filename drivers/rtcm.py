@@ -47,7 +47,7 @@ from pyrtcm import RTCMReader
 from drivers.framing import BinaryFraming, Event, WeekContext
 from service.core.constants import C_M_S, ICD_PI, URA_M, WEEK_S
 from service.core.counters import Counters
-from service.core.gal_nav import galileo_sisa_m
+from service.core.gal_nav import galileo_sisa_m, inav_health
 from service.core.rtcm1042 import EPH_1042_FIELDS, EPH_1042_INT_FIELDS
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
 from service.core.timebase import (
@@ -441,11 +441,11 @@ class RtcmMapper:
                 "ura_m": URA_M[ura_index] if 0 <= ura_index < len(URA_M) else math.nan,
             }
         else:  # E1-B and E5b health and validity, as RINEX packs them (Table A8)
-            health = int(msg.DF317) | int(msg.DF316) << 1 | int(msg.DF288) << 6
+            health = inav_health(int(msg.DF317), int(msg.DF316), int(msg.DF288), int(msg.DF287))
             extra = {
                 "tgd1_s": float(msg.DF313),
                 "tgd2_s": float(msg.DF312),
-                "health": health | int(msg.DF287) << 7,
+                "health": health,
                 "aode": int(msg.DF290),
                 "ura_m": galileo_sisa_m(int(msg.DF286)),
             }

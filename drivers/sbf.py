@@ -72,6 +72,7 @@ from service.core.errors import DecodeError
 from service.core.gal_nav import (
     WN0G_MODULUS,
     galileo_sisa_m,
+    inav_health,
     inav_subframe,
     inav_word_of_parts,
     week_near,
@@ -384,11 +385,14 @@ def ephemeris_from_galnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
     a week from the block's WNc is refused (``eph_bad_week``, by the caller)."""
     week = int(msg.WNt_oe)
     bdt_week, toe_bdt = gpst_to_bdt(week, float(msg.t_oe))
-    health = 0
-    if int(getattr(msg, "L1-BHealth")):
-        health |= int(getattr(msg, "L1-Bdvs")) | int(getattr(msg, "L1-Bhs")) << 1
-    if int(msg.E5bHealth):
-        health |= int(msg.E5bdvs) << 6 | int(msg.E5bhs) << 7
+    e1b = bool(int(getattr(msg, "L1-BHealth")))  # each pair only where flagged valid
+    e5b = bool(int(msg.E5bHealth))
+    health = inav_health(
+        int(getattr(msg, "L1-Bdvs")) if e1b else 0,
+        int(getattr(msg, "L1-Bhs")) if e1b else 0,
+        int(msg.E5bdvs) if e5b else 0,
+        int(msg.E5bhs) if e5b else 0,
+    )
     bgd_e5b, bgd_e5a = float(msg.BGD_L1E5b), float(msg.BGD_L1E5a)
     return Ephemeris(
         prn=sat_id(GnssSystem.GAL, prn),

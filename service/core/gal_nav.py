@@ -192,6 +192,14 @@ def _fields(prn: str, words: dict[int, int], defs: dict[int, dict[str, Any]]) ->
     return nav
 
 
+def inav_health(e1b_dvs: int, e1b_hs: int, e5b_dvs: int, e5b_hs: int) -> int:
+    """A Galileo satellite's E1-B and E5b data validity (1 bit) and signal health (2 bits)
+    (OS SIS ICD 5.1.9.3) packed as RINEX 3.04 Table A8 packs them, which RTCM 1046 and
+    SBF GALNav sets follow here too: bit 0 E1-B DVS, bits 1-2 E1-B HS, bit 6 E5b DVS,
+    bits 7-8 E5b HS (:attr:`Ephemeris.health`; 0 is healthy)."""
+    return e1b_dvs | e1b_hs << 1 | e5b_dvs << 6 | e5b_hs << 7
+
+
 def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Ephemeris:
     """The ephemeris of I/NAV word types 1-4 (one IODnav) and 5 (ICD 4.3.5, the word type tables;
     fields by pygnssutils' RawNav), on BDT (GST - 14 s, the GST week + 1024 on the GPS
@@ -236,7 +244,7 @@ def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Eph
         cis_rad=float(nav.cis),
         tgd1_s=float(nav.bgde5b),
         tgd2_s=float(nav.bgde5a),
-        health=e1b_dvs | e1b_hs << 1 | e5b_dvs << 6 | e5b_hs << 7,
+        health=inav_health(e1b_dvs, e1b_hs, e5b_dvs, e5b_hs),
         aode=int(nav.iodn),
         ura_m=galileo_sisa_m(int(nav.sisa)),
         source="subframes",
