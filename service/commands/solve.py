@@ -24,9 +24,8 @@ from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.batch import CHUNK_EPOCHS, solve_many
 from service.engine.pipeline import without_coarse_fractions
-from service.engine.solver import IonoSet, SolverConfig, fractionalize
+from service.engine.solver import CHUNK_EPOCHS, IonoSet, SolverConfig, fractionalize, solve_many
 from service.engine.velocity import with_velocities
 
 log = logging.getLogger(__name__)

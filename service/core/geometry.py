@@ -81,17 +81,29 @@ def _enu_rows(lat_rad: float, lon_rad: float) -> list[list[float]]:
     return [[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]]
 
 
-def enu_rotations_at(x_ecef_m: np.ndarray) -> np.ndarray:
-    """The :func:`enu_rotation` (n, 3, 3) at each of the ECEF points ``x_ecef_m`` (n, 3),
-    from their geodetic latitude and longitude (:func:`ecef_to_geodetic`): each point by the
-    scalar path, whose numbers these are bit for bit, in plain floats (a few points per
-    call in the receiver, a chunk of fixes in ``bdsfix solve``: numpy's per-call cost, not
-    the arithmetic, was the time)."""
-    rows = []
+def geodetic_points(
+    x_ecef_m: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Geodetic latitude, longitude [rad], height [m] (n,) and :func:`enu_rotation`
+    (n, 3, 3) of each of the ECEF points ``x_ecef_m`` (n, 3): each point by the scalar path
+    of :func:`ecef_to_geodetic`, in plain floats, so a point's numbers are the same bits
+    however many points are converted together (a few per call in the receiver, a chunk of
+    epochs in ``bdsfix solve``: numpy's per-call cost, not the arithmetic, was the time)."""
+    lat, lon, alt, rows = [], [], [], []
     for x, y, z in np.asarray(x_ecef_m, dtype=float).reshape(-1, 3).tolist():
-        lat, lon, _h = _ecef_to_geodetic_point(x, y, z)
-        rows.append(_enu_rows(lat, lon))
-    return np.array(rows, dtype=float).reshape(-1, 3, 3)
+        la, lo, h = _ecef_to_geodetic_point(x, y, z)
+        lat.append(la)
+        lon.append(lo)
+        alt.append(h)
+        rows.append(_enu_rows(la, lo))
+    rot = np.array(rows, dtype=float).reshape(-1, 3, 3)
+    return np.array(lat), np.array(lon), np.array(alt), rot
+
+
+def enu_rotations_at(x_ecef_m: np.ndarray) -> np.ndarray:
+    """The :func:`enu_rotation` (n, 3, 3) at each of the ECEF points ``x_ecef_m`` (n, 3)
+    (:func:`geodetic_points`)."""
+    return geodetic_points(x_ecef_m)[3]
 
 
 def enu_rotation(lat_rad: np.ndarray | float, lon_rad: np.ndarray | float) -> np.ndarray:

@@ -1,15 +1,13 @@
-"""The judgement of a solution and the :class:`~service.core.types.Fix` it becomes: written
-once for the per-epoch solver (:mod:`service.engine.solver`) and the batch
-(:mod:`service.engine.batch`), so that the two cannot differ in what they decide or in how a
-decline is recorded.
+"""The judgement of a solution and the :class:`~service.core.types.Fix` it becomes, for the
+one solver kernel (:mod:`service.engine.solver`), so that a decision and the words of a
+decline are written once.
 
 A converged, weighted solution is judged in the order of docs/method.md: the chi-square
 test of its residuals (:mod:`service.engine.raim`), the plausible shell (altitude, receiver
 clock), the PDOP gate. Its first failure is the decline (:func:`verdict`); a decline's words
 come from the one table (:mod:`service.core.declines`). Fault exclusion ranks candidate
-solutions by :func:`fit_ratio`, in the one exclusion loop both paths run (:func:`exclude`),
-each solving its candidates its own way (the per-epoch solver one set of rows at a time, the
-batch every candidate of every epoch of a stage in one chunk).
+solutions by :func:`fit_ratio`, in the one exclusion loop (:func:`exclude`), which the
+kernel feeds every candidate of every failed epoch of a stage in one chunk.
 """
 
 from __future__ import annotations
@@ -154,8 +152,8 @@ class Failed:
 
 
 Outcome = Fix | Failed | None
-"""What solving one set of rows gives: a fix or a decline, a failed chi-square test, or None
-(the solver that was asked cannot decide it: the batch's epochs it hands over)."""
+"""What solving one set of rows gives: a fix or a decline, or a failed chi-square test (None:
+not solved yet; a candidate whose outcome is None leaves its solution undecided)."""
 
 Key = TypeVar("Key")
 State = TypeVar("State")

@@ -1,4 +1,4 @@
-"""The positioning engine: the Zhao-Cui-Lu fast fix and conventional SPP, as pure functions.
+"""The positioning engine: the Zhao-Cui-Lu fast fix and conventional SPP, one kernel.
 
 The fast fix follows the paper's eqs. (1)-(16): unknowns [x, y, z, b, N_1..N_m] start at zero;
 fractional rows z_j = |X_j - x| + b - N_j c T_j get a -c T_j column (eq. 11); x and b take the
@@ -20,15 +20,25 @@ Two phases, so that fast and SPP share one fixed point:
 
 With every measurement full and an approximate position given (``x0_ecef_m``), phase 1 has
 nothing to resolve and phase 2 starts there: conventional SPP, the same solution.
+
+**One kernel** (:func:`_solve_chunk`) solves every epoch: each step of the iteration is one
+set of numpy operations on (epoch, satellite) arrays of a chunk of epochs. The stream solves
+a chunk of one (:func:`solve`), ``bdsfix solve`` chunks of :data:`CHUNK_EPOCHS`
+(:func:`solve_many`), fault exclusion every candidate of every failed epoch of a stage in one
+chunk, and the studies their trials in batches. The unknowns are the rows'
+:class:`~service.engine.layout.Layout` (a receiver clock per satellite system); what a
+solution becomes (the verdict, the fix or decline, fault exclusion) is written once in
+:mod:`service.engine.judge`, in the words of :mod:`service.core.declines`. Each receiver's
+geodetic position is computed alone, so an epoch solved alone and the same epoch inside a
+chunk give the same bits.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import struct
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -38,10 +48,10 @@ from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
 from service.core.declines import Decline, Declined, excluded_why
 from service.core.ephemeris import EphemerisStore
-from service.core.geometry import ecef_to_geodetic, enu_rotation, look_angles
+from service.core.geometry import geodetic_points, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
-from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, constants_of
+from service.core.systems import constants_of
 from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch, SatView
 from service.engine import linalg
@@ -54,8 +64,8 @@ from service.engine.judge import (
     solution_fix,
     verdict,
 )
-from service.engine.layout import Layout, dop, layout_of
-from service.engine.raim import Integrity, assess
+from service.engine.layout import BDS_ONLY, Layout, dop, layout_of
+from service.engine.raim import Integrity, assess_many
 
 log = logging.getLogger(__name__)
 
@@ -183,94 +193,6 @@ def derive_beta(period_s: float, range_error_m: float) -> float:
     return C_M_S * period_s / 2.0 / range_error_m
 
 
-@dataclass(slots=True, eq=False)
-class _Rows:
-    """Measurement rows of one solve, aligned with their ephemerides."""
-
-    prn: tuple[str, ...]
-    z_m: np.ndarray  # full pseudorange, or fractional value in [0, cT)
-    ct_m: np.ndarray  # c*T for fractional rows, 0 for full rows
-    cn0_dbhz: np.ndarray
-    eph: EphemerisArrays
-    layout: Layout  # the unknowns: position and a clock per system among the rows
-    clk: np.ndarray  # each row's clock (index into layout.systems)
-    # satellite positions and clocks at the transmit times of eqs. (4)-(5): those depend on
-    # the receive time and z + N cT only, not on the receiver state, so iterations that keep
-    # N reuse them (key: :func:`_orbit_key`)
-    orbit_cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-    @property
-    def frac(self) -> np.ndarray:
-        return self.ct_m > 0
-
-    def take(self, idx: np.ndarray) -> _Rows:
-        """Rows ``idx``; the cached satellite states come along."""
-        cache = {}
-        for key, (sat, clk) in self.orbit_cache.items():
-            n_int, when = np.frombuffer(key[: -_TIME_KEY.size]), key[-_TIME_KEY.size :]
-            cache[n_int[idx].tobytes() + when] = (sat[idx], clk[idx])
-        prn = tuple(self.prn[i] for i in idx)
-        layout = layout_of(prn)
-        clk = self.clk[idx] if layout is self.layout else layout.clock_index(prn)
-        return _Rows(
-            prn,
-            self.z_m[idx],
-            self.ct_m[idx],
-            self.cn0_dbhz[idx],
-            self.eph.take(idx),
-            layout,
-            clk,
-            cache,
-        )
-
-    def clocks(self, b: np.ndarray) -> np.ndarray | float:
-        """Each row's receiver clock [m] from the clocks ``b`` of :attr:`layout`."""
-        return b.item() if self.layout.n_clocks == 1 else b[self.clk]
-
-    def design(self, los: np.ndarray) -> np.ndarray:
-        """The design matrix of these rows at line-of-sight vectors ``los``."""
-        return self.layout.design(los, self.clk)
-
-    def dop(self, los: np.ndarray, idx: np.ndarray) -> float:
-        """GDOP of rows ``idx`` (paper eq. 20, a clock per system; inf where singular)."""
-        return float(dop(self.layout.design(los[idx], self.clk[idx])))
-
-
-_TIME_KEY = struct.Struct("<id")
-
-
-def _orbit_key(n_int: np.ndarray, bdt_week: int, bdt_sow_s: float) -> bytes:
-    """Key of :attr:`_Rows.orbit_cache`: the integers' bytes, then the receive time's."""
-    return n_int.tobytes() + _TIME_KEY.pack(bdt_week, bdt_sow_s)
-
-
-@dataclass(slots=True)
-class _Geometry:
-    los: np.ndarray  # unit vectors receiver -> satellite (n, 3)
-    pred_m: np.ndarray  # predicted pseudorange without the receiver clock and N terms
-    sat_ecef_m: np.ndarray
-
-    def take(self, idx: np.ndarray) -> _Geometry:
-        return _Geometry(self.los[idx], self.pred_m[idx], self.sat_ecef_m[idx])
-
-
-def _geometry(
-    rows: _Rows, bdt_week: int, bdt_sow_s: float, x: np.ndarray, n_int: np.ndarray
-) -> _Geometry:
-    """Satellite positions at transmit time (paper eqs. 4-5) and geometric ranges."""
-    key = _orbit_key(n_int, bdt_week, bdt_sow_s)
-    cached = rows.orbit_cache.get(key)
-    if cached is None:
-        if len(rows.orbit_cache) > 64:
-            rows.orbit_cache.clear()
-        eph = rows.eph
-        t1 = bdt_sow_s - (rows.z_m + n_int * rows.ct_m) / C_M_S
-        t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
-        cached = rows.orbit_cache[key] = sat_pos_clock(eph, bdt_week, t_tx)
-    los, pred, sat = ranges(*cached, x, rows.eph.omega_e_rad_s)
-    return _Geometry(los=los, pred_m=pred, sat_ecef_m=sat)
-
-
 def ranges(
     sat0_ecef_m: np.ndarray, clock_s: np.ndarray, x_ecef_m: np.ndarray, omega_e_rad_s: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -287,37 +209,6 @@ def ranges(
     d = sat - x
     rho = np.sqrt(np.einsum(dot, d, d))
     return d / rho[..., None], rho - C_M_S * clock_s, sat
-
-
-_NO_INTEGERS = np.zeros(0)
-_B1I_PERIOD_S = SYSTEM_CONSTANTS[GnssSystem.BDS].code_period_s
-"""The GDOP gate's period when an epoch has no fractional row (beta of eq. 21)."""
-
-
-def _full_cost(rows: _Rows, geo: _Geometry, b: np.ndarray, full_idx: np.ndarray) -> float:
-    """Sum of squared residuals of the full rows (no corrections): the line-search merit."""
-    bc = rows.clocks(b)
-    if not isinstance(bc, float):
-        bc = bc[full_idx]
-    r = rows.z_m[full_idx] - geo.pred_m[full_idx] - bc
-    return float(r @ r)
-
-
-def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-    """The (weighted) least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and 16).
-
-    Solved through the normal equations: a handful of unknowns, where an SVD per iteration
-    costs more than the rest of the iteration; a singular system falls back to numpy's
-    minimum-norm least squares (raising LinAlgError only where that fails too)."""
-    ht = h.T if w is None else h.T * w
-    try:
-        return linalg.solve(ht @ h, ht @ dz)
-    except np.linalg.LinAlgError:
-        if w is not None:
-            sw = np.sqrt(w)
-            h, dz = h * sw[:, None], dz * sw
-        step, *_ = np.linalg.lstsq(h, dz, rcond=None)
-        return np.asarray(step)
 
 
 @dataclass(frozen=True, slots=True)
@@ -381,398 +272,12 @@ class IonoModels:
     other: KlobucharParams
 
 
-def _norm(v: np.ndarray) -> float:
-    """The Euclidean norm of a vector, as ``numpy.linalg.norm`` computes it (sqrt of the dot
-    product), without its per-call cost."""
-    return math.sqrt(float(v.dot(v)))
-
-
-def _meaningful(x: np.ndarray) -> bool:
-    """A position near enough the Earth for masks and delays to mean something."""
-    r = _norm(x)
-    return 6.0e6 < r < 8.5e6
-
-
 GROSS_SPREAD_M = 25_000e3
 """Largest possible difference of two full B1I pseudoranges of one epoch [m]. They share
 the receiver clock, so they differ by geometry and satellite clocks only: from a MEO at
 zenith (~21,500 km) to a GEO/IGSO at the horizon (~41,700 km) is ~20,200 km for a user on
 the ground or up to 1000 km above it, plus satellite clocks (< 1 ms, 300 km). A full
 pseudorange further than this from the epoch's median is impossible, not merely faulty."""
-
-
-@dataclass(frozen=True, slots=True)
-class _Context:
-    """What one epoch's solve needs besides its rows."""
-
-    gpst_week: int
-    gpst_tow_s: float
-    bdt_week: int
-    bdt_sow_s: float
-    iono: IonoSet
-    cfg: SolverConfig
-    solver: Literal["fast", "spp"]
-
-
-@dataclass(slots=True, eq=False)
-class _State:
-    """An iterate: position, clock bias [m], integers (0 for full rows) and its geometry."""
-
-    x: np.ndarray
-    b: np.ndarray  # a clock per system of the rows' layout [m]
-    n_int: np.ndarray
-    geo: _Geometry
-    iterations: int = 0
-
-
-@dataclass(frozen=True, slots=True)
-class _Decline:
-    """Why an attempt gave no solution (``why``), with the figures its declined fix keeps."""
-
-    why: Declined
-    gdop_full: float | None = None
-    iterations: int = 0
-
-
-def _phase1(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _State | _Decline:
-    """Phase 1: the paper's iteration (eqs. 3-14) from the Earth's centre (or
-    ``cfg.x0_ecef_m``, or ``start``) without corrections, the GEO-GDOP gate (eqs. 12, 20-21)
-    and the fixed-integer correction (eqs. 15-16)."""
-    cfg = ctx.cfg
-    if start is not None:
-        x = np.array(start, dtype=float)
-    else:
-        x = np.zeros(3) if cfg.x0_ecef_m is None else np.array(cfg.x0_ecef_m, dtype=float)
-    b = np.zeros(rows.layout.n_clocks)
-    p = 3 + rows.layout.n_clocks  # the position and clock columns; then the integers
-    n_int = np.zeros(len(rows.prn))
-    frac = rows.frac
-    n_frac = int(frac.sum())
-    frac_idx = np.flatnonzero(frac)
-    full_idx = np.flatnonzero(~frac)
-    converged = False
-    it = 0
-    geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
-    cost = _full_cost(rows, geo, b, full_idx)
-    for it in range(1, cfg.max_iter + 1):
-        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - rows.clocks(b)  # eqs. (7)-(8)
-        h = rows.design(geo.los)
-        if n_frac:
-            # eq. (11) with the ambiguity in metres (column -1 instead of -cT) for conditioning
-            hn = np.zeros((len(rows.prn), n_frac))
-            hn[frac_idx, np.arange(n_frac)] = -1.0
-            h = np.concatenate([h, hn], axis=1)
-        try:
-            step = _lsq(h, dz)  # eq. (10)
-        except np.linalg.LinAlgError:
-            return _Decline(Declined.of(Decline.SINGULAR))
-        # Backtracking: the float ambiguities absorb the fractional rows, so x and b move on
-        # the full rows alone; from the Earth's centre, near-equatorial GEOs make the plain
-        # step overshoot (beyond GEO altitude, then divergence). A step that increases the
-        # full-row residual is halved; where the plain step helps it is taken unchanged.
-        lam = 1.0
-        while True:
-            x_new = x + lam * step[:3]
-            b_new = b + lam * step[3:p]
-            if n_frac:
-                dn = np.rint(lam * step[p:] / rows.ct_m[frac_idx])
-                n_new = n_int.copy()
-                n_new[frac_idx] += dn  # eq. (13)
-            else:  # every row full: no integers to move
-                dn, n_new = _NO_INTEGERS, n_int
-            geo_new = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x_new, n_new)
-            cost_new = _full_cost(rows, geo_new, b_new, full_idx)
-            if cost_new <= cost or lam < 1e-3 or not math.isfinite(cost):
-                break
-            lam /= 2.0
-        x, b, n_int, geo, cost = x_new, b_new, n_new, geo_new, cost_new
-        if not np.isfinite(x).all():
-            break
-        if _norm(lam * step[:p]) < cfg.theta_m and not np.any(dn):  # eq. (14)
-            converged = True
-            break
-    if not np.isfinite(x).all():
-        return _Decline(Declined.of(Decline.NO_CONVERGENCE, iterations=it), iterations=it)
-
-    # eqs. (12), (20)-(21): GEO-GDOP gate over the full rows, evaluated at the converged
-    # phase-1 position (or at the last iterate when the iteration did not settle)
-    gd = rows.dop(geo.los, full_idx)
-    beta = cfg.beta
-    if not beta:
-        t_min = float(np.min(rows.ct_m[frac]) / C_M_S) if n_frac else _B1I_PERIOD_S
-        beta = derive_beta(t_min, cfg.range_error_m)
-    if n_frac and not gd < beta:
-        variant = "" if converged else "unsettled"
-        why = Declined.of(Decline.GDOP_GATE, variant, gdop=gd, beta=beta, iterations=it)
-        return _Decline(why, gd, it)
-    if not converged:
-        return _Decline(Declined.of(Decline.NO_CONVERGENCE, iterations=it), gd, it)
-
-    # eqs. (15)-(16): integers fixed, correct [x, b] over all rows (iterated to convergence)
-    state = _fixed_iterations(rows, ctx, _State(x, b, n_int, geo, it), None, False)
-    return state
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _Attempt:
-    """One solve of a set of rows: the fix (or why not) and the integrity figures of its
-    final solution. ``kept`` indexes ``rows``: the rows the solution used (above the mask)."""
-
-    fix: Fix
-    rows: _Rows
-    kept: np.ndarray
-    integrity: Integrity | None = None
-    x_ecef_m: np.ndarray | None = None  # the final solution, judged or not
-
-    @property
-    def failed_test(self) -> bool:
-        i = self.integrity
-        return i is not None and i.chi2 is not None and not i.passed
-
-
-def _attempt(rows: _Rows, ctx: _Context, start: np.ndarray | None = None) -> _Attempt:
-    """Solve ``rows`` (phase 1 when fractional rows need integers, then phase 2) and judge
-    the solution: chi-square test, plausibility, PDOP gate (in that order). ``start``: where
-    phase 1 starts instead of the Earth's centre (fault exclusion's candidates start at the
-    failed solution: the same fixed point, reached in fewer iterations)."""
-    cfg = ctx.cfg
-    frac = rows.frac
-    n_full, n_frac = int((~frac).sum()), int(frac.sum())
-
-    def declined(d: _Decline) -> _Attempt:
-        fix = decline_fix(
-            ctx.solver,
-            ctx.gpst_week,
-            ctx.gpst_tow_s,
-            rows.prn,
-            frac.tolist(),
-            d.why,
-            gdop_full=d.gdop_full,
-            iterations=d.iterations,
-        )
-        return _Attempt(fix, rows, np.zeros(0, dtype=int))
-
-    need = rows.layout.n_params
-    if n_full < need:
-        return declined(
-            _Decline(Declined.of(Decline.TOO_FEW_FULL, n_full=n_full, n_frac=n_frac, need=need))
-        )
-    if cfg.x0_ecef_m is not None and not n_frac:
-        # every measurement full and a position known: conventional SPP, phase 2 alone (the
-        # same solution as from the Earth's centre, see SolverConfig.x0_ecef_m)
-        x = np.array(cfg.x0_ecef_m, dtype=float)
-        n0 = np.zeros(len(rows.prn))
-        b0 = np.zeros(rows.layout.n_clocks)
-        state = _State(x, b0, n0, _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n0))
-    else:
-        first = _phase1(rows, ctx, start)
-        if isinstance(first, _Decline):
-            return declined(first)
-        state = first
-
-    # ---- phase 2: mask, corrections, weights ---------------------------------------------
-    meaningful = _meaningful(state.x)
-    loc0 = None
-    if meaningful:
-        loc0 = _local(state.x, state.geo.sat_ecef_m)
-        keep = np.flatnonzero(loc0.el_rad >= np.radians(cfg.elmask_deg))
-    else:
-        keep = np.arange(len(rows.prn))
-    kept = rows if len(keep) == len(rows.prn) else rows.take(keep)
-    kfrac = kept.frac
-    n_full_k = int((~kfrac).sum())
-    if n_full_k < kept.layout.n_params:
-        return declined(
-            _Decline(
-                Declined.of(Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=n_full_k),
-                rows.dop(state.geo.los, np.flatnonzero(~frac)) if n_frac else None,
-                state.iterations,
-            )
-        )
-    model = ctx.iono.models(cfg.iono) if meaningful else None
-    geo = state.geo if kept is rows else state.geo.take(keep)
-    state = _fixed_iterations(
-        kept,
-        ctx,
-        _State(state.x, _clocks_for(state.b, rows, kept), state.n_int[keep], geo, state.iterations),
-        model,
-        meaningful,
-        loc0 if kept is rows else None,  # a subset's angles are computed on their own
-    )
-    x, b, it = state.x, state.b, state.iterations
-    if not (np.isfinite(x).all() and np.isfinite(b).all()):
-        return declined(_Decline(Declined.of(Decline.DIVERGED), iterations=it))
-
-    # ---- judge the solution -----------------------------------------------------------------
-    geo = state.geo
-    loc = _local(x, geo.sat_ecef_m)
-    iono_m, tropo_m = (
-        _delays(loc, ctx.bdt_sow_s, model, cfg, kept.eph) if meaningful else (None, None)
-    )
-    corr = total_delay(iono_m, tropo_m)
-    v = kept.z_m + state.n_int * kept.ct_m - geo.pred_m - kept.clocks(b) - corr
-    sigma = _sigma_m(kept, loc, iono_m, tropo_m, cfg, meaningful)
-    a = kept.design(geo.los)
-    rot = enu_rotation(loc.lat_rad, loc.lon_rad)
-    integ = assess(a, v, sigma, rot, cfg.p_fa, cfg.p_md, kept.layout)
-    resid_rms = float(np.sqrt(np.mean(v**2)))
-    gd_final = kept.dop(geo.los, np.flatnonzero(~kfrac))
-    frac_idx = np.flatnonzero(kfrac)
-    ambiguity = {kept.prn[i]: int(state.n_int[i]) for i in frac_idx}
-    gdop_full = gd_final if ctx.solver == "fast" else None
-
-    lat_deg, lon_deg = float(np.degrees(loc.lat_rad)), float(np.degrees(loc.lon_rad))
-    b_max = float(b[int(np.argmax(np.abs(b)))])  # the clock furthest from zero
-    q_enu = rot @ linalg.inv(a.T @ a)[:3, :3] @ rot.T
-    pdop = float(np.sqrt(np.trace(q_enu)))
-    why = verdict(integ, kept.prn, loc.alt_m, b_max, pdop, cfg)
-    if why is not None:
-        fix = decline_fix(
-            ctx.solver,
-            ctx.gpst_week,
-            ctx.gpst_tow_s,
-            rows.prn,
-            frac.tolist(),
-            why,
-            gdop_full=gdop_full,
-            iterations=it,
-            resid_rms_m=resid_rms,
-            redundancy=integ.redundancy,
-            chi2=integ.chi2,
-            chi2_max=integ.chi2_max,
-            **({"ambiguity": ambiguity} if why.code is Decline.CHI2 else {}),
-        )
-        return _Attempt(fix, rows, keep, integ, x)
-    fix = solution_fix(
-        solver=ctx.solver,
-        gpst_week=ctx.gpst_week,
-        gpst_tow_s=ctx.gpst_tow_s,
-        x=x,
-        clocks=b,
-        systems=kept.layout.systems,
-        lat_deg=lat_deg,
-        lon_deg=lon_deg,
-        alt_m=loc.alt_m,
-        gdop_full=gdop_full,
-        pdop=pdop,
-        hdop=float(np.sqrt(q_enu[0, 0] + q_enu[1, 1])),
-        vdop=float(np.sqrt(q_enu[2, 2])),
-        cov=integ.cov_enu_m2.tolist(),  # the same floats as element by element
-        integ=integ,
-        resid_rms_m=resid_rms,
-        iterations=it,
-        used=kept.prn,
-        frac=kfrac.tolist(),
-        ambiguity=ambiguity,
-        recovered_pr_m={
-            kept.prn[i]: float(kept.z_m[i] + state.n_int[i] * kept.ct_m[i]) for i in frac_idx
-        },
-    )
-    return _Attempt(fix, rows, keep, integ, x)
-
-
-def _clocks_for(b: np.ndarray, rows: _Rows, kept: _Rows) -> np.ndarray:
-    """The clocks ``b`` of ``rows``' layout for the subset ``kept`` (a system the subset
-    no longer has loses its clock)."""
-    if kept.layout is rows.layout:
-        return b
-    where = {s: k for k, s in enumerate(rows.layout.systems)}
-    return np.array([b[where[s]] for s in kept.layout.systems])
-
-
-def _solve_rows(rows: _Rows, ctx: _Context) -> Fix:
-    """Solve with fault detection and exclusion: impossible ranges are dropped first; when
-    the chi-square test fails, satellites are excluded one at a time (:func:`_exclude`)."""
-    excluded: dict[str, str] = {}
-    full = ~rows.frac
-    if int(full.sum()) >= 2:
-        # the median by sorting: numpy's median imports numpy.ma on its first call (~14 ms,
-        # a stall on the first fast-fix epoch of a daemon)
-        z = np.sort(rows.z_m[full])
-        median = 0.5 * (z[(len(z) - 1) // 2] + z[len(z) // 2])
-        dev = np.abs(rows.z_m - median)
-        gross = full & ~(dev <= GROSS_SPREAD_M)
-        if gross.any():
-            for i in np.flatnonzero(gross):
-                excluded[rows.prn[i]] = excluded_why("gross", dev_km=dev[i] / 1e3)
-            rows = rows.take(np.flatnonzero(~gross))
-    att = _attempt(rows, ctx)
-    fix = att.fix
-    if att.failed_test and ctx.cfg.max_exclusions > 0:
-        fix = _exclude(att, ctx)
-        excluded |= fix.excluded
-    if excluded:
-        return replace(fix, excluded=excluded)
-    return fix
-
-
-_Candidate = tuple[_Rows, np.ndarray | None]
-"""A candidate of fault exclusion: its rows and where its phase 1 starts (:func:`_warm_start`)."""
-
-
-def _exclude(failed: _Attempt, ctx: _Context) -> Fix:
-    """Fault exclusion of a solution that failed the test (:func:`service.engine.judge.
-    exclude`, the loop the batch runs too), each candidate solved by :func:`_attempt`: the
-    fix it resolves to, or the failed solution's decline when no exclusion passes."""
-
-    def without(cand: _Candidate, prn: str) -> _Candidate:
-        rows, start = cand
-        return rows.take(np.flatnonzero([p != prn for p in rows.prn])), start
-
-    def solve(cands: list[_Candidate]) -> list[tuple[Outcome, _Candidate]]:
-        out: list[tuple[Outcome, _Candidate]] = []
-        for rows, start in cands:
-            att = _attempt(rows, ctx, start)
-            res = _outcome(att)
-            warm = res.warm_start if isinstance(res, Failed) else None
-            out.append((res, (att.rows, None if warm is None else np.array(warm))))
-        return out
-
-    first = _outcome(failed)
-    if not isinstance(first, Failed):  # (the caller asks only for a failed test)
-        return failed.fix
-    start = None if first.warm_start is None else np.array(first.warm_start)
-    passed, _ = exclude({0: (first, (failed.rows, start))}, without, solve, ctx.cfg.max_exclusions)
-    return passed[0] if passed else no_exclusion(failed.fix, ctx.cfg.max_exclusions)
-
-
-def _outcome(att: _Attempt) -> Outcome:
-    """The fix of ``att``, or its failed test (:class:`service.engine.judge.Failed`)."""
-    i = att.integrity
-    if i is None or i.chi2 is None or i.chi2_max is None or i.passed:
-        return att.fix
-    kept = tuple(att.rows.prn[j] for j in att.kept.tolist())
-    warm = _warm_start(att)
-    start = None if warm is None else (float(warm[0]), float(warm[1]), float(warm[2]))
-    return Failed(i.chi2, i.chi2_max, i.redundancy, kept, tuple(i.w.tolist()), att.fix, start)
-
-
-def _warm_start(failed: _Attempt) -> np.ndarray | None:
-    """Where the exclusion candidates of ``failed`` start phase 1: its solution, when every
-    row is full (no integers to resolve, so phase 1 converges to the same fixed point from
-    anywhere it converges from the Earth's centre, in 2-3 iterations instead of 6-8); None
-    (the Earth's centre) with fractional rows, whose integers the fault may have corrupted."""
-    x = failed.x_ecef_m
-    if x is None or failed.rows.frac.any() or not _meaningful(x):
-        return None
-    return x
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _Local:
-    """Receiver geodetic position and satellite look angles at one iterate."""
-
-    lat_rad: float
-    lon_rad: float
-    alt_m: float
-    el_rad: np.ndarray
-    az_rad: np.ndarray
-
-
-def _local(x: np.ndarray, sat_ecef_m: np.ndarray) -> _Local:
-    lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
-    el, az = look_angles(x, sat_ecef_m, (lat, lon))
-    return _Local(lat, lon, alt, el, az)
 
 
 def measurement_sigma_m(
@@ -818,41 +323,6 @@ def _obliquity(el_rad: np.ndarray) -> np.ndarray:
     return 1.0 / np.sqrt(1.0 - ratio**2)
 
 
-def _sigma_m(
-    rows: _Rows,
-    loc: _Local,
-    iono_m: np.ndarray | None,
-    tropo_m: np.ndarray | None,
-    cfg: SolverConfig,
-    meaningful: bool,
-) -> np.ndarray:
-    if not (meaningful and cfg.weighted):
-        return np.full(len(rows.prn), cfg.sigma_uniform_m)
-    return measurement_sigma_m(loc.el_rad, rows.cn0_dbhz, iono_m, tropo_m, cfg)
-
-
-def _delays(
-    loc: _Local,
-    bdt_sow: float,
-    models: IonoModels | None,
-    cfg: SolverConfig,
-    eph: EphemerisArrays,
-) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """:func:`system_delays` for the rows at this iterate."""
-    return system_delays(
-        loc.lat_rad,
-        loc.lon_rad,
-        loc.alt_m,
-        loc.el_rad,
-        loc.az_rad,
-        bdt_sow,
-        eph.carrier_hz,
-        eph.bds,
-        models,
-        cfg,
-    )
-
-
 def system_delays(
     lat_rad: float | np.ndarray,
     lon_rad: float | np.ndarray,
@@ -872,7 +342,7 @@ def system_delays(
     model = None if models is None else models.bds
     args = (lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, carrier_hz)
     iono, tropo = delays(*args, model, cfg)
-    mixed = models is not None and models.other is not model and not bool(np.all(bds_rows))
+    mixed = models is not None and models.other is not model and not bds_rows.all()
     if iono is not None and models is not None and mixed:
         other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
         if other is not None:
@@ -898,6 +368,25 @@ def delays(
     NaN for that epoch's rows in a batch (the error model then counts the whole delay as
     error)."""
     batch = np.ndim(alt_m) > 0
+    if batch and np.size(alt_m) == 1:
+        # a batch of one: its receiver's figures as floats and its rows as one epoch's (the
+        # same arithmetic, without broadcasting's per-call cost), in the batch's shapes
+        alt = float(np.asarray(alt_m)[0])
+        one = delays(
+            float(np.asarray(lat_rad)[0]),
+            float(np.asarray(lon_rad)[0]),
+            alt,
+            el_rad[0],
+            az_rad[0],
+            float(np.asarray(bdt_sow_s)[0]),
+            carrier_hz[0],
+            model,
+            cfg,
+        )
+        io, tr = (None if v is None else v[None] for v in one)
+        if model is not None and io is None:  # above 100 km: NaN, as a batch gives
+            io = np.full(el_rad.shape, np.nan)
+        return io, tr
     if batch:  # receivers (e,) against rows (e, s)
         lat_rad, lon_rad = np.asarray(lat_rad)[:, None], np.asarray(lon_rad)[:, None]
         alt_m, bdt_sow_s = np.asarray(alt_m)[:, None], np.asarray(bdt_sow_s)[:, None]
@@ -908,7 +397,7 @@ def delays(
         else:
             gpst_tow = bdt_sow_s + BDT_GPST_OFFSET_S
             iono = klobuchar_gps_m(model, lat_rad, lon_rad, el_rad, az_rad, gpst_tow, carrier_hz)
-        if batch:
+        if batch and not np.all(alt_m < 100e3):
             iono = np.where(alt_m < 100e3, iono, np.nan)
     tropo = saastamoinen_m(lat_rad, alt_m, el_rad) if cfg.tropo != "off" else None
     return iono, tropo
@@ -924,41 +413,6 @@ def total_delay(iono_m: np.ndarray | None, tropo_m: np.ndarray | None) -> np.nda
     if tropo_m is not None:
         out = out + tropo_m
     return out
-
-
-def _fixed_iterations(
-    rows: _Rows,
-    ctx: _Context,
-    state: _State,
-    model: IonoModels | None,
-    meaningful: bool,
-    loc0: _Local | None = None,
-) -> _State:
-    """Least squares on [x, y, z, b] with the integers held (paper eqs. 15-16), iterated
-    from ``state``. When the position is ``meaningful`` the rows are weighted by the error
-    model and corrected for the delays. ``loc0``: :func:`_local` at ``state`` when the
-    caller has it already (the same values: it is not computed again)."""
-    cfg = ctx.cfg
-    x, b, geo, n_int = state.x, state.b, state.geo, state.n_int
-    it = 0
-    for it in range(1, cfg.max_iter + 1):
-        dz = rows.z_m + n_int * rows.ct_m - geo.pred_m - rows.clocks(b)
-        w = None
-        if meaningful:
-            loc = loc0 if loc0 is not None and it == 1 else _local(x, geo.sat_ecef_m)
-            iono_m, tropo_m = _delays(loc, ctx.bdt_sow_s, model, cfg, rows.eph)
-            dz = dz - total_delay(iono_m, tropo_m)
-            if cfg.weighted:
-                w = 1.0 / _sigma_m(rows, loc, iono_m, tropo_m, cfg, True) ** 2
-        step = _lsq(rows.design(geo.los), dz, w)
-        x = x + step[:3]
-        b = b + step[3:]
-        if not (np.isfinite(x).all() and np.isfinite(b).all()):
-            break
-        geo = _geometry(rows, ctx.bdt_week, ctx.bdt_sow_s, x, n_int)
-        if _norm(step) < cfg.conv_m:
-            break
-    return _State(x, b, n_int, geo, state.iterations + it)
 
 
 def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
@@ -989,52 +443,1127 @@ def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[
     )
 
 
-def select_rows(
-    epoch: MeasurementEpoch, store: EphemerisStore, solver: Literal["fast", "spp"]
-) -> tuple[_Rows | None, list[str]]:
-    """Rows usable by ``solver`` (SPP: full only; fast: full and fractional) with ephemerides.
+def declined(
+    epoch: MeasurementEpoch,
+    why: Declined,
+    solver: Literal["fast", "spp"] = "fast",
+) -> Fix:
+    """A declined fix for ``epoch`` (``mode="none"``), declined for ``why`` before any row
+    was solved (:func:`service.engine.judge.decline_fix` over no rows)."""
+    return decline_fix(solver, epoch.gpst_week, epoch.gpst_tow_s, (), (), why)
 
-    When some system has a full row, the fast fix takes the fractional rows of a system only
-    when that system has a full row too: phase 1 resolves integers against clocks estimated
-    from full rows, and a system whose rows are all fractional has none; its rows join
-    afterwards (:func:`_with_other_systems`). Returns the rows and the PRNs dropped for
-    want of a usable ephemeris.
-    """
-    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-    full = np.isfinite(epoch.pr_m)
-    fracok = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
-    if solver == "fast" and fracok.any():
-        with_full = {epoch.prn[i][:1] for i in np.flatnonzero(full)}
-        if with_full and any(p[:1] not in with_full for p in epoch.prn):
-            fracok &= np.array([p[:1] in with_full for p in epoch.prn], dtype=bool)
-    use = full | fracok if solver == "fast" else full
-    idx: list[int] = []
-    ephs: list[Ephemeris] = []
-    missing: list[str] = []
-    for i in np.flatnonzero(use):
-        e = store.select(epoch.prn[i], bdt_week, bdt_sow)
-        if e is None:
-            missing.append(epoch.prn[i])
-            continue
-        idx.append(int(i))
-        ephs.append(e)
-    if not idx:
-        return None, missing
-    ii = np.asarray(idx)
-    z = np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii])
-    ct = np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii])
-    prn = tuple(epoch.prn[i] for i in idx)
-    layout = layout_of(prn)
-    rows = _Rows(
-        prn=prn,
-        z_m=z,
-        ct_m=ct,
-        cn0_dbhz=epoch.cn0_dbhz[ii],
-        eph=store.arrays(ephs),
-        layout=layout,
-        clk=layout.clock_index(prn),
+
+# ---- the kernel: epochs x satellites ---------------------------------------------------------
+
+CHUNK_EPOCHS = 256
+"""Epochs ``bdsfix solve`` hands the kernel at once: large enough that numpy's per-call cost
+is spread thin, small enough that the arrays stay in cache and output keeps flowing."""
+
+_EPH_FIELDS = tuple(f for f in EphemerisArrays.__dataclass_fields__ if f != "prn")
+
+
+def _with_full_systems(epoch: MeasurementEpoch, full: np.ndarray, fracok: np.ndarray) -> np.ndarray:
+    """The fast fix's fractional rows of ``epoch``: when some system has a full row, only the
+    fractional rows of the systems that have one (phase 1 resolves integers against clocks
+    estimated from full rows; a system whose rows are all fractional has none, and its rows
+    join afterwards, :func:`_with_other_systems`)."""
+    prn = epoch.prn
+    with_full = {prn[i][:1] for i in full.nonzero()[0].tolist()}
+    if with_full and any(p[:1] not in with_full for p in prn):
+        return fracok & np.array([p[:1] in with_full for p in prn], dtype=bool)
+    return fracok
+
+
+class _Chunk:
+    """The rows of a chunk of epochs as (epoch, slot) arrays; ``valid`` marks real rows.
+
+    A row is a measurement the solver uses (SPP: full; fast: full and fractional,
+    :func:`_with_full_systems`) whose satellite has an ephemeris; ``missing`` lists, per
+    epoch, the usable measurements without one. A full pseudorange further than
+    :data:`GROSS_SPREAD_M` from its epoch's median is impossible, not merely faulty: it is
+    not a row, and ``gross`` says why (``Fix.excluded``); ``screen=False`` (fault
+    exclusion's candidates, made from rows already screened) keeps every row."""
+
+    def __init__(
+        self,
+        epochs: Sequence[MeasurementEpoch],
+        store: EphemerisStore,
+        solver: Literal["fast", "spp"],
+        screen: bool = True,
+    ) -> None:
+        n_e = len(epochs)
+        self.epochs = epochs
+        bdt = [gpst_to_bdt(ep.gpst_week, ep.gpst_tow_s) for ep in epochs]
+        self.bdt_week = np.array([w for w, _ in bdt], dtype=float)
+        self.bdt_sow = np.array([s for _, s in bdt])
+        self.missing: list[list[str]] = [[] for _ in range(n_e)]
+        self.gross: list[dict[str, str]] = [{} for _ in range(n_e)]
+        # per epoch: the measurements of systems without a full row (fast: they join later)
+        self.others = [False] * n_e
+        table: dict[int, int] = {}
+        unique: list[Ephemeris] = []
+        eph_idx: list[int] = []
+        owner: list[int] = []
+        cols: list[tuple[float, float, float]] = []  # z, c*T (0: full), C/N0
+        prns: list[str] = []
+        for k, ep in enumerate(epochs):
+            full = np.isfinite(ep.pr_m)
+            use = full
+            if solver == "fast":
+                fracok = ~full & np.isfinite(ep.frac_pr_m) & np.isfinite(ep.period_s)
+                if fracok.any():
+                    kept = _with_full_systems(ep, full, fracok)
+                    self.others[k] = bool((fracok & ~kept).any())
+                    use = full | kept
+            week, sow = bdt[k]
+            zf, zq = ep.pr_m.tolist(), ep.frac_pr_m.tolist()
+            per, cn0 = ep.period_s.tolist(), ep.cn0_dbhz.tolist()
+            for i in use.nonzero()[0].tolist():
+                prn = ep.prn[i]
+                e = store.select(prn, week, sow)
+                if e is None:
+                    self.missing[k].append(prn)
+                    continue
+                u = table.get(id(e))
+                if u is None:
+                    u = table[id(e)] = len(unique)
+                    unique.append(e)
+                eph_idx.append(u)
+                owner.append(k)
+                prns.append(prn)
+                z = zf[i]
+                cols.append((z, 0.0, cn0[i]) if z == z else (zq[i], C_M_S * per[i], cn0[i]))
+        flat = np.array(cols, dtype=float).reshape(-1, 3)
+        own = np.array(owner, dtype=np.intp)
+        gross = self._gross(n_e, own, flat, prns) if screen else None
+        if gross is not None:
+            keep = ~gross
+            flat, own = flat[keep], own[keep]
+            prns = [p for p, g in zip(prns, gross.tolist(), strict=True) if not g]
+            eph_idx = [u for u, g in zip(eph_idx, gross.tolist(), strict=True) if not g]
+        if not unique:
+            unique.append(_placeholder())
+        arr = store.arrays(unique)
+        if n_e == 1 and flat.shape[0]:  # one epoch: its rows are its slots
+            n_s = flat.shape[0]
+            self.valid = np.ones((1, n_s), dtype=bool)
+            cols_t = flat.T
+            self.z, self.ct, self.cn0 = cols_t[0:1].copy(), cols_t[1:2].copy(), cols_t[2:3].copy()
+            self.prn = [tuple(prns)]
+            if eph_idx == list(range(len(unique))):  # each row its own set, in order
+                self.eph = _gather(arr, None)
+            else:
+                self.eph = _gather(arr, np.array([eph_idx], dtype=np.intp))
+        else:
+            counts = np.bincount(own, minlength=n_e)
+            n_s = max(1, int(counts.max()) if n_e else 1)
+            first = np.concatenate([[0], np.cumsum(counts)[:-1]]) if n_e else np.zeros(0, int)
+            slot = np.arange(len(own)) - first[own]
+            at = (own, slot)
+            self.valid = np.zeros((n_e, n_s), dtype=bool)
+            self.valid[at] = True
+            self.z = np.zeros((n_e, n_s))
+            self.z[at] = flat[:, 0]
+            self.ct = np.zeros((n_e, n_s))
+            self.ct[at] = flat[:, 1]
+            self.cn0 = np.full((n_e, n_s), np.nan)
+            self.cn0[at] = flat[:, 2]
+            ends = np.cumsum(counts).tolist()
+            self.prn = [tuple(prns[a:b]) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
+            idx = np.zeros((n_e, n_s), dtype=np.intp)
+            idx[at] = eph_idx
+            self.eph = _gather(arr, idx)
+        self.frac = self.valid & (self.ct > 0)
+        self.full = self.valid & ~self.frac
+        layouts = {layout_of(self.prn[0])} if n_e == 1 else {layout_of(p) for p in self.prn if p}
+        # the unknowns: one layout for the chunk (None: its epochs' rows differ in their
+        # systems, and :func:`_outcomes` solves each layout's epochs as a chunk of their own)
+        self.layout: Layout | None = layouts.pop() if len(layouts) == 1 else None
+        if not layouts and self.layout is None:
+            self.layout = BDS_ONLY
+        self.cix = np.zeros((n_e, n_s), dtype=np.intp)  # each row's clock (padding: 0)
+        if self.layout is not None and self.layout.n_clocks > 1:
+            for k, ps in enumerate(self.prn):
+                self.cix[k, : len(ps)] = self.layout.clock_index(ps)
+
+    def _gross(
+        self, n_e: int, own: np.ndarray, flat: np.ndarray, prns: list[str]
+    ) -> np.ndarray | None:
+        """The flat rows that are impossible ranges (None: none), recorded in ``gross``."""
+        full = flat[:, 1] == 0.0
+        z = flat[:, 0]
+        if n_e == 1:  # one epoch: the same median, without the grouping
+            zs = np.sort(z[full])
+            n = len(zs)
+            if n < 2:
+                return None
+            dev = np.abs(z - 0.5 * (zs[(n - 1) // 2] + zs[n // 2]))
+            bad = full & ~(dev <= GROSS_SPREAD_M)
+        else:
+            n_full = np.bincount(own[full], minlength=n_e)
+            if not (n_full >= 2).any():
+                return None
+            # each epoch's median of its full rows: sort by (epoch, z), full rows first
+            order = np.lexsort((z, ~full, own))
+            start = np.searchsorted(own[order], np.arange(n_e))
+            lo = start + np.maximum(n_full - 1, 0) // 2
+            hi = start + n_full // 2
+            zs = z[order]
+            median = 0.5 * (zs[np.minimum(lo, len(z) - 1)] + zs[np.minimum(hi, len(z) - 1)])
+            dev = np.abs(z - median[own])
+            bad = full & (n_full[own] >= 2) & ~(dev <= GROSS_SPREAD_M)
+        if not bad.any():
+            return None
+        for i in bad.nonzero()[0].tolist():
+            self.gross[int(own[i])][prns[i]] = excluded_why("gross", dev_km=dev[i] / 1e3)
+        return bad
+
+
+def _placeholder() -> Ephemeris:
+    z = 0.0
+    return Ephemeris("C01", 0, z, z, z, z, z, 6493.0, z, z, z, z, z, z, z, z, z, z, z, z, z, z)
+
+
+def _gather(cols: EphemerisArrays, idx: np.ndarray | None) -> EphemerisArrays:
+    """Ephemeris columns indexed by ``idx`` (any shape; None: the columns as one epoch's
+    rows, views, kept for the next epoch with the same sets); ``prn`` is not carried."""
+    if idx is None:
+        hit = _AS_ONE_EPOCH.get(id(cols))
+        if hit is not None and hit[0] is cols:
+            return hit[1]
+        kw = {name: getattr(cols, name)[None] for name in _EPH_FIELDS}
+        one = EphemerisArrays(prn=(), **kw)
+        if len(_AS_ONE_EPOCH) >= 64:
+            _AS_ONE_EPOCH.clear()
+        _AS_ONE_EPOCH[id(cols)] = (cols, one)
+        return one
+    kw = {name: getattr(cols, name)[idx] for name in _EPH_FIELDS}
+    return EphemerisArrays(prn=(), **kw)
+
+
+_AS_ONE_EPOCH: dict[int, tuple[EphemerisArrays, EphemerisArrays]] = {}
+""":func:`_gather` of a set's columns as one epoch's rows, by the set (the stream solves
+the same satellites' sets epoch after epoch; the store memoises the sets' columns)."""
+
+
+def _orbits(ch: _Chunk, sel: _Index, n_int: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Satellite positions and clocks at the transmit times of eqs. (4)-(5) for epochs
+    ``sel`` with integers ``n_int``: they depend on the receive time and z + N cT only, not
+    on the receiver state."""
+    # every epoch (sel is sorted and unique): the chunk's columns as they are, not copied
+    eph = ch.eph
+    if not isinstance(sel, slice) and len(sel) != len(ch.z):
+        eph = _gather_rows(ch.eph, sel)
+    sow = ch.bdt_sow[sel, None]
+    t1 = sow - (ch.z[sel] + n_int * ch.ct[sel]) / C_M_S
+    t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
+    return sat_pos_clock(eph, ch.bdt_week[sel, None], t_tx)
+
+
+def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
+    kw = {name: getattr(eph, name)[sel] for name in _EPH_FIELDS}
+    return EphemerisArrays(prn=(), **kw)
+
+
+def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
+    """Each row's receiver clock [m]: the clocks ``b`` (e, clocks) at the rows' clock
+    indices ``cix`` (e, s); with one clock, ``b`` itself (it broadcasts over the rows)."""
+    return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
+
+
+def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per epoch, the weighted least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and
+    16) over rows with w > 0 (rows with w = 0 are out), through the normal equations (a
+    handful of unknowns, where an SVD per iteration costs more than the rest of the
+    iteration). An epoch whose normal matrix is singular takes numpy's minimum-norm least
+    squares; the second value marks the epochs that fails for too (None: none), whose step
+    is NaN."""
+    ht = h.swapaxes(-1, -2) * w[:, None, :]
+    a, rhs = ht @ h, ht @ dz[..., None]
+    try:
+        return linalg.solve(a, rhs)[..., 0], None
+    except np.linalg.LinAlgError:
+        pass
+    out = np.full(dz.shape[:1] + h.shape[-1:], np.nan)
+    bad = np.zeros(len(dz), dtype=bool)
+    for k in range(len(dz)):
+        try:
+            out[k] = linalg.solve(a[k], rhs[k])[:, 0]
+        except np.linalg.LinAlgError:
+            sw = np.sqrt(w[k])
+            try:
+                out[k] = np.linalg.lstsq(h[k] * sw[:, None], dz[k] * sw, rcond=None)[0]
+            except np.linalg.LinAlgError:
+                bad[k] = True
+    return out, bad
+
+
+def _where(
+    near: np.ndarray, value: np.ndarray | float, far: np.ndarray | float
+) -> np.ndarray | float:
+    """``value`` for the epochs ``near`` the Earth (e, 1), ``far`` for the others; ``value``
+    itself (the same object, no copy) when every epoch is near."""
+    if near.all():
+        return value
+    return np.where(near, value, far)
+
+
+_Local = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""Latitude, longitude, height (e,), elevation, azimuth (e, s) and ENU rotation (e, 3, 3)."""
+
+
+def _local(x: np.ndarray, sat: np.ndarray) -> _Local:
+    """Geodetic latitude, longitude, height of receivers ``x`` (e, 3), elevation and azimuth
+    of their satellites ``sat`` (e, s, 3), and the receivers' east-north-up rotations: each
+    receiver alone (:func:`service.core.geometry.geodetic_points`)."""
+    lat, lon, alt, rot = geodetic_points(x)
+    enu = (sat - x[:, None, :]) @ rot.swapaxes(-1, -2)
+    el = np.arctan2(enu[..., 2], np.hypot(enu[..., 0], enu[..., 1]))
+    az = np.mod(np.arctan2(enu[..., 0], enu[..., 1]), 2 * np.pi)
+    return lat, lon, alt, el, az, rot
+
+
+class _Decided:
+    """The epochs of a chunk whose outcome is known, and the declines decided before a
+    solution is judged: (epoch, why, fields of the declined fix)."""
+
+    def __init__(self, n_e: int) -> None:
+        self.out: list[Outcome] = [None] * n_e
+        self.declines: list[tuple[int, Declined, dict[str, object]]] = []
+
+    def decline(self, e: int, why: Declined, **fields: object) -> None:
+        self.declines.append((e, why, fields))
+
+
+_Index = slice | np.ndarray
+"""Epochs of a chunk: all of them (a slice, whose arrays are views) or some (indices)."""
+
+_MERIT_SLACK = 1.0 + 1e-6
+"""Phase 1's line search takes a step unless it raises the full rows' sum of squared
+residuals by more than this factor. A full row with a gross fault leaves a residual of
+hundreds of kilometres, and near the fixed point of the iteration (eq. 14) the step, made
+with the line-of-sight design (eq. 9, the Earth's rotation during the flight left out),
+is metres that change that sum by parts in 1e8: it is a step of the paper's iteration,
+not a divergence, and halving it never ends (a 1 ms error on GEO C01, HKSC). A step from
+the Earth's centre that overshoots raises the sum many times over."""
+
+
+def _cost(
+    ch: _Chunk, rows: _Index, pred: np.ndarray, b: np.ndarray, fullw: np.ndarray
+) -> np.ndarray:
+    """Sum of squared residuals of the full rows (no corrections) of epochs ``rows``: phase
+    1's line-search merit."""
+    r = (ch.z[rows] - pred - _row_clocks(b, ch.cix[rows])) * fullw[rows]
+    return np.einsum("es,es->e", r, r)
+
+
+@dataclass(slots=True, eq=False)
+class _Trial:
+    """Phase 1's iterate of some epochs after a step (:func:`_trial`)."""
+
+    x: np.ndarray
+    b: np.ndarray
+    n_int: np.ndarray
+    dn: np.ndarray | None  # the integers' moves (None: no fractional rows)
+    moved: bool  # any integer moved
+    sat0: np.ndarray
+    clk: np.ndarray
+    los: np.ndarray
+    pred: np.ndarray
+    sat: np.ndarray
+    cost: np.ndarray
+
+    def take(self, at: np.ndarray, part: _Trial, pick: np.ndarray) -> None:
+        """Rows ``at`` of this trial from rows ``pick`` of ``part`` (copied first: this
+        trial's arrays may be views of the iterate)."""
+        for name in _TRIAL_ARRAYS:
+            mine, theirs = getattr(self, name), getattr(part, name)
+            if mine is None or theirs is None:
+                continue
+            mine = mine.copy()
+            mine[at] = theirs[pick]
+            setattr(self, name, mine)
+        self.moved = self.moved or part.moved
+
+
+_TRIAL_ARRAYS = ("x", "b", "n_int", "dn", "sat0", "clk", "los", "pred", "sat", "cost")
+
+
+def _trial(
+    ch: _Chunk,
+    st: _Iterate,
+    rows: _Index,
+    sel: np.ndarray,
+    step: np.ndarray,
+    dn_m: np.ndarray | None,
+    lp: np.ndarray | None,
+    ct1: np.ndarray,
+    omega: np.ndarray,
+    fullw: np.ndarray,
+    layout: Layout,
+) -> _Trial:
+    """Phase 1's iterate of epochs ``rows`` (indices ``sel``) after their step ``step``
+    (x, clocks) times ``lp`` (None: the whole step): the integers move by the rounded
+    ambiguity steps ``dn_m`` [m] (eq. 13; None: no fractional rows), the orbits are computed
+    again for the epochs whose integers moved (eqs. 4-5), the ranges and the merit."""
+    n_par = layout.n_params
+    sx, sb = step[:, :3], step[:, 3:n_par]
+    if lp is not None:
+        sx, sb = lp[:, None] * sx, lp[:, None] * sb
+    xp, bp = st.x[rows] + sx, st.b[rows] + sb
+    s0, ck, ni = st.sat0[rows], st.clk[rows], st.n_int[rows]
+    dn = None
+    moved = False
+    if dn_m is not None:
+        dm = dn_m if lp is None else lp[:, None] * dn_m
+        dn = np.where(ch.frac[rows], np.rint(dm / ct1[rows]), 0.0)
+        mv = np.asarray(dn.any(axis=1))
+        if mv.any():
+            moved = True
+            ni = ni + dn
+            m = mv.nonzero()[0]
+            s0, ck = s0.copy(), ck.copy()
+            s0[m], ck[m] = _orbits(ch, sel[m], ni[m])
+    lo, pr, sa = ranges(s0, ck, xp, omega[rows])
+    return _Trial(xp, bp, ni, dn, moved, s0, ck, lo, pr, sa, _cost(ch, rows, pr, bp, fullw))
+
+
+def _solve_chunk(
+    ch: _Chunk,
+    layout: Layout,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
+) -> list[Outcome]:
+    """The outcome of each epoch of the chunk, whose rows have the unknowns ``layout`` (a
+    clock per system among them): its fix or decline, or its failed chi-square test
+    (:class:`~service.engine.judge.Failed`). ``start`` (e, 3): where each epoch's phase 1
+    starts (NaN rows, or None for every epoch: ``cfg.x0_ecef_m``, else the Earth's centre).
+
+    Phase 1 (paper eqs. 3-16), every epoch in lockstep, an epoch that has converged keeping
+    its state: the x/b step is the least-squares step over the full rows; each fractional
+    row has its own ambiguity column in eq. (11), so its residual is absorbed by
+    dN_j = h_j . [dx, db] - dz_j (in metres, rounded in units of c*T by eq. 13), which is
+    the solution of the augmented system of eq. (10) without forming it. A step that
+    increases the full rows' residual is halved (from the Earth's centre, near-equatorial
+    GEOs make the plain step overshoot). The satellites' orbits (eqs. 4-5) depend on the
+    integers only: an epoch's are computed again only when a step moves its integers. Then
+    the GEO-GDOP gate (eqs. 12, 20-21) and the fixed-integer correction (eqs. 15-16).
+    Phase 2 (:func:`_phase2`) adds the mask, corrections and weights, and judges."""
+    n_e, n_s = ch.z.shape
+    d = _Decided(n_e)
+    n_full = ch.full.sum(axis=1)
+    n_frac = ch.frac.sum(axis=1)
+    n_rows = n_full + n_frac
+    n_par, n_clk, cix = layout.n_params, layout.n_clocks, ch.cix
+    for e in (n_rows == 0).nonzero()[0].tolist():  # no ephemeris or no measurement
+        if ch.missing[e]:
+            d.decline(e, Declined.of(Decline.NO_EPHEMERIS, prns=", ".join(ch.missing[e])))
+        else:
+            d.decline(e, Declined.of(Decline.NO_MEASUREMENTS))
+    too_few = (n_rows > 0) & (n_full < n_par)
+    for e in too_few.nonzero()[0].tolist():
+        n_f, n_q = int(n_full[e]), int(n_frac[e])
+        d.decline(e, Declined.of(Decline.TOO_FEW_FULL, n_full=n_f, n_frac=n_q, need=n_par))
+    ok = (n_rows > 0) & ~too_few
+
+    def design(los_: np.ndarray, rows: _Index) -> np.ndarray:
+        if n_clk == 1:  # one clock column: no clock indices to gather
+            return layout.design(los_)
+        return layout.design(los_, cix[rows])
+
+    # every row full and a position known: conventional SPP, phase 2 alone from there (the
+    # same solution as from the Earth's centre, see SolverConfig.x0_ecef_m); with
+    # fractional rows phase 1 starts there
+    x = np.zeros((n_e, 3))
+    direct = np.zeros(n_e, dtype=bool)
+    if cfg.x0_ecef_m is not None:
+        x[:] = cfg.x0_ecef_m
+        direct = ok & (n_frac == 0)
+    if start is not None:
+        x = np.where(np.isnan(start) | direct[:, None], x, start)
+    b = np.zeros((n_e, n_clk))
+    n_int = np.zeros((n_e, n_s))
+    iters = np.zeros(n_e, dtype=int)
+    sat0, clk = _orbits(ch, slice(None), n_int)
+    omega = ch.eph.omega_e_rad_s
+    los, pred, sat = ranges(sat0, clk, x, omega)
+    fullw = ch.full.astype(float)
+
+    # ---- phase 1: the paper's iteration -----------------------------------------------------
+    has_frac = bool(n_frac.any())
+    st = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
+    cost = _cost(ch, slice(None), pred, b, fullw)
+    one = ok & ~direct
+    active = one.copy()
+    converged = np.zeros(n_e, dtype=bool)
+    singular = np.zeros(n_e, dtype=bool)
+    ct1 = np.where(ch.frac, ch.ct, 1.0) if has_frac else ch.ct
+    zn = ch.z  # z + N c T of each row (eq. 5), as the integers move
+    for _it in range(cfg.max_iter):
+        sel = active.nonzero()[0]
+        if not sel.size:
+            break
+        whole = sel.size == n_e
+        ix: _Index = slice(None) if whole else sel
+        st.iters[ix] += 1
+        dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix])
+        h = design(st.los[ix], ix)
+        step, bad = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
+        if bad is not None:
+            singular[sel[bad]] = True
+            active[sel[bad]] = False
+            sel, dz, h, step = sel[~bad], dz[~bad], h[~bad], step[~bad]
+            whole, ix = False, sel
+            if not sel.size:
+                continue
+        # each fractional row's ambiguity step [m]: its residual after the x/b step
+        dn_m = np.einsum("esk,ek->es", h, step) - dz if has_frac else None
+        got = _trial(ch, st, ix, sel, step, dn_m, None, ct1, omega, fullw, layout)
+        accept = (got.cost <= cost[ix] * _MERIT_SLACK) | ~np.isfinite(cost[ix])
+        lam: np.ndarray | float = 1.0
+        if not accept.all():
+            # a step that raises the full rows' residual is halved (from the Earth's
+            # centre, near-equatorial GEOs make the plain step overshoot)
+            lam = np.ones(sel.size)
+            pending = (~accept).nonzero()[0]
+            while pending.size:
+                lam[pending] /= 2.0
+                lp = lam[pending]
+                rows = sel[pending]
+                part = _trial(
+                    ch,
+                    st,
+                    rows,
+                    rows,
+                    step[pending],
+                    None if dn_m is None else dn_m[pending],
+                    lp,
+                    ct1,
+                    omega,
+                    fullw,
+                    layout,
+                )
+                c0 = cost[rows]
+                ok_p = (part.cost <= c0 * _MERIT_SLACK) | (lp < 1e-3) | ~np.isfinite(c0)
+                got.take(pending[ok_p], part, ok_p)
+                pending = pending[~ok_p]
+        if whole:  # every epoch stepped: the new arrays are the iterate
+            st.x, st.b, st.n_int, st.sat0, st.clk = got.x, got.b, got.n_int, got.sat0, got.clk
+            st.los, st.pred, st.sat, cost = got.los, got.pred, got.sat, got.cost
+        else:
+            st.x[ix], st.b[ix], st.n_int[ix] = got.x, got.b, got.n_int
+            st.sat0[ix], st.clk[ix], st.los[ix], st.pred[ix] = got.sat0, got.clk, got.los, got.pred
+            st.sat[ix], cost[ix] = got.sat, got.cost
+        if got.moved:
+            zn = ch.z + st.n_int * ch.ct
+        size = np.sqrt(np.einsum("ek,ek->e", step, step)) * lam
+        settled = size < cfg.theta_m  # eq. (14)
+        if got.dn is not None:
+            settled &= ~got.dn.any(axis=1)
+        finite = np.isfinite(got.x).all(axis=1)
+        converged[ix] = finite & settled
+        active[ix] = finite & ~settled
+    x, b, n_int, iters = st.x, st.b, st.n_int, st.iters
+    sat0, clk, los, pred, sat = st.sat0, st.clk, st.los, st.pred, st.sat
+    for e in singular.nonzero()[0].tolist():
+        d.decline(e, Declined.of(Decline.SINGULAR))
+    ok &= ~singular
+
+    # no convergence, or a position no longer finite
+    lost = one & ok & ~np.isfinite(x).all(axis=1)
+    for e in lost.nonzero()[0].tolist():
+        it = int(iters[e])
+        d.decline(e, Declined.of(Decline.NO_CONVERGENCE, iterations=it), iterations=it)
+    ok &= ~lost
+    # eqs. (12), (20)-(21): the GEO-GDOP gate over the full rows at the phase-1 position
+    gated = one & ok & ((n_frac > 0) | ~converged)
+    if gated.any():
+        gs: _Index = slice(None) if gated.all() else gated.nonzero()[0]
+        gd = np.full(n_e, np.nan)
+        gd[gs] = dop(design(los[gs], gs), fullw[gs])
+        if cfg.beta:
+            beta = np.full(n_e, float(cfg.beta))
+        else:  # eq. 21 with the shortest code period among the fractional rows
+            t_min = np.where(ch.frac, ch.ct, np.inf).min(axis=1) / C_M_S
+            beta = np.where(n_frac > 0, C_M_S * t_min / 2.0 / cfg.range_error_m, 0.0)
+        gate = gated & (n_frac > 0) & ~(gd < beta)
+        unsettled = gated & ~gate & ~converged
+        declined_here = gate | unsettled
+        gd_l = gd.tolist() if declined_here.any() else []
+        beta_l, it_l = beta.tolist(), iters.tolist()
+        for e in gate.nonzero()[0].tolist():
+            variant = "" if converged[e] else "unsettled"
+            it = it_l[e]
+            why = Declined.of(
+                Decline.GDOP_GATE, variant, gdop=gd_l[e], beta=beta_l[e], iterations=it
+            )
+            d.decline(e, why, gdop_full=gd_l[e], iterations=it)
+        for e in unsettled.nonzero()[0].tolist():
+            it = it_l[e]
+            why = Declined.of(Decline.NO_CONVERGENCE, iterations=it)
+            d.decline(e, why, gdop_full=gd_l[e], iterations=it)
+        ok &= ~declined_here
+
+    # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
+    validw = ch.valid.astype(float)
+    sel = np.flatnonzero(ok & one)
+    numerical: dict[int, str] = {}
+    zn = ch.z + n_int * ch.ct if has_frac else ch.z  # the integers are held from here
+    for _it in range(cfg.max_iter):
+        if not sel.size:
+            break
+        ix = slice(None) if sel.size == n_e else sel
+        iters[ix] += 1
+        dz = zn[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
+        step, bad = _lsq(design(los[ix], ix), dz, validw[ix])
+        if bad is not None:
+            for e in sel[bad].tolist():
+                numerical[e] = _SINGULAR_MESSAGE
+            sel, step = sel[~bad], step[~bad]
+            ix = sel
+        x[ix] += step[:, :3]
+        b[ix] += step[:, 3:n_par]
+        finite = np.isfinite(step).all(axis=1)  # (phase 1 ended finite)
+        if isinstance(ix, slice) and finite.all():
+            los, pred, sat = ranges(sat0, clk, x, omega)
+        else:
+            fin = sel[finite]
+            los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
+        size = np.sqrt(np.einsum("ek,ek->e", step, step))
+        sel = sel[finite & (size >= cfg.conv_m)]
+    it_state = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
+    return _phase2(ch, d, ok, numerical, layout, it_state, iono, cfg, solver)
+
+
+_SINGULAR_MESSAGE = "singular least-squares system"
+
+
+@dataclass(slots=True, eq=False)
+class _Iterate:
+    """The chunk's iterate: positions (e, 3), clocks (e, clocks) [m], integers (e, s),
+    iterations so far, satellite states at transmit time (orbit positions and clocks, then
+    rotated by the Earth during the flight, with lines of sight and predicted ranges)."""
+
+    x: np.ndarray
+    b: np.ndarray
+    n_int: np.ndarray
+    iters: np.ndarray
+    sat0: np.ndarray
+    clk: np.ndarray
+    los: np.ndarray
+    pred: np.ndarray
+    sat: np.ndarray
+
+
+def _phase2(
+    ch: _Chunk,
+    d: _Decided,
+    ok: np.ndarray,
+    numerical: dict[int, str],
+    layout: Layout,
+    st: _Iterate,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> list[Outcome]:
+    """Phase 2 of the epochs ``ok`` from the iterate ``st``: the elevation mask (a masked
+    fractional satellite loses its row; its integer is already fixed), Klobuchar and
+    Saastamoinen, the error model's weights, iterated to convergence; then the judgement
+    (:func:`_judge`). A position far from the Earth (a gross fault can put phase 1 there)
+    gets no mask, no corrections and one weight for every row: they mean nothing there.
+    An epoch whose mask leaves a system without rows loses that system's clock."""
+    n_e = len(ch.z)
+    x = st.x
+    finite = np.isfinite(x).all(axis=1) & np.isfinite(st.b).all(axis=1)
+    for e in (ok & ~finite).nonzero()[0].tolist():
+        it = int(st.iters[e]) + 1
+        d.decline(e, Declined.of(Decline.DIVERGED), iterations=it)
+    for e in numerical:
+        ok[e] = False
+    ok &= finite
+    r = np.sqrt(np.einsum("ek,ek->e", x, x))
+    meaningful = (r > 6.0e6) & (r < 8.5e6)
+    keep = ch.valid.copy()
+    sel0 = ok.nonzero()[0]
+    loc0 = None
+    if sel0.size:
+        s0: _Index = slice(None) if sel0.size == n_e else sel0
+        loc0 = _local(x[s0], st.sat[s0])
+        above = loc0[3] >= math.radians(cfg.elmask_deg)
+        keep[s0] &= above if meaningful.all() else above | ~meaningful[s0, None]
+    # each epoch's unknowns after the mask: the layout of its kept rows
+    klayout: list[Layout] = [layout] * n_e
+    if layout.n_clocks > 1 and sel0.size:
+        for e in sel0.tolist():
+            ps = ch.prn[e]
+            kept_ps = [ps[i] for i in np.flatnonzero(keep[e, : len(ps)]).tolist()]
+            klayout[e] = layout_of(kept_ps) if kept_ps else layout
+    n_full_k = (keep & ch.full).sum(axis=1)
+    need = layout.n_params if layout.n_clocks == 1 else np.array([k.n_params for k in klayout])
+    masked = ok & (n_full_k < need)
+    if masked.any():
+        ms = masked.nonzero()[0]
+        gd = dop(layout.design(st.los[ms], ch.cix[ms]), ch.full[ms].astype(float))
+        n_frac = ch.frac.sum(axis=1)
+        for k, e in enumerate(ms.tolist()):
+            why = Declined.of(
+                Decline.TOO_FEW_FULL, "mask", mask_deg=cfg.elmask_deg, n_full=int(n_full_k[e])
+            )
+            gd_e = float(gd[k]) if n_frac[e] else None
+            d.decline(e, why, gdop_full=gd_e, iterations=int(st.iters[e]))
+    ok &= ~masked
+    out = d.out
+    for e, why, fields in d.declines:
+        out[e] = _decline(ch, e, solver, why, fields)
+    for e, message in numerical.items():
+        out[e] = _numerical(ch.epochs[e], solver, "LinAlgError", message)
+    sel_all = ok.nonzero()[0]
+    if not sel_all.size:
+        return out
+    groups: dict[Layout, list[int]] = {}
+    for k, e in enumerate(sel_all.tolist()):
+        groups.setdefault(klayout[e], []).append(k)
+    for lay, ks in groups.items():
+        sel = sel_all[ks] if len(ks) != len(sel_all) else sel_all
+        if lay is layout:
+            b, cix = st.b[sel], ch.cix[sel]
+        else:  # the clocks of the systems left, each row pointing at its system's
+            cols = [layout.systems.index(s) for s in lay.systems]
+            b = st.b[sel][:, cols]
+            remap = np.zeros(layout.n_clocks, dtype=np.intp)
+            remap[cols] = np.arange(len(cols))
+            cix = remap[ch.cix[sel]]
+        # the look angles at this position, computed for the mask (over the epochs ``ok``
+        # had then, ``sel0``)
+        loc: _Local | None = loc0
+        if loc0 is not None and len(sel) != len(sel0):
+            at = np.searchsorted(sel0, sel)
+            lat, lon, alt, el, az, rot = loc0
+            loc = (lat[at], lon[at], alt[at], el[at], az[at], rot[at])
+        for e, res in zip(
+            sel.tolist(),
+            _weighted(ch, sel, lay, b, cix, keep[sel], meaningful[sel], st, loc, iono, cfg, solver),
+            strict=True,
+        ):
+            out[e] = res
+    return out
+
+
+def _weighted(
+    ch: _Chunk,
+    sel: np.ndarray,
+    layout: Layout,
+    b: np.ndarray,
+    cix: np.ndarray,
+    keep: np.ndarray,
+    meaningful: np.ndarray,
+    st: _Iterate,
+    loc: _Local | None,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> list[Outcome]:
+    """Phase 2's iterations for epochs ``sel`` (rows ``keep``, clocks ``b`` of ``layout``
+    at the rows' indices ``cix``), then the judgement of each solution."""
+    n_par = layout.n_params
+    n1 = len(sel)
+    rows: _Index = slice(None) if n1 == len(ch.z) else sel  # (all: views, no copies)
+    x = st.x[rows]
+    n_int, iters = st.n_int[rows], st.iters[rows]
+    sat0, clk, los, pred, sat = (
+        st.sat0[rows],
+        st.clk[rows],
+        st.los[rows],
+        st.pred[rows],
+        st.sat[rows],
     )
-    return rows, missing
+    eph = ch.eph
+    omega, carrier, bds = eph.omega_e_rad_s[rows], eph.carrier_hz[rows], eph.bds[rows]
+    z = ch.z[rows] + n_int * ch.ct[rows]
+    sow = ch.bdt_sow[rows]
+    near = meaningful[:, None]
+    all_near = bool(meaningful.all())  # (the usual case: no epoch far from the Earth)
+    keepw = keep.astype(float)
+    models = iono.models(cfg.iono)
+    cn0 = ch.cn0[rows]
+    diverged = np.zeros(n1, dtype=bool)
+    bad_lsq = np.zeros(n1, dtype=bool)
+    act = np.arange(n1)
+    for _it in range(cfg.max_iter):
+        if not act.size:
+            break
+        ix: _Index = slice(None) if act.size == n1 else act
+        iters[ix] += 1
+        if loc is None or _it:
+            loc = _local(x[ix], sat[ix])
+        lat, lon, alt, el, az, _rot = loc
+        io, tr = system_delays(lat, lon, alt, el, az, sow[ix], carrier[ix], bds[ix], models, cfg)
+        dz = z[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
+        corr = total_delay(io, tr)
+        dz = dz - (corr if all_near else _where(near[ix], corr, 0.0))
+        w = keepw[ix]
+        if cfg.weighted:
+            sig = measurement_sigma_m(el, cn0[ix], io, tr, cfg)
+            w = w / sig**2 if all_near else np.asarray(_where(near[ix], w / sig**2, w))
+        step, bad = _lsq(layout.design(los[ix], cix[ix]), dz, w)
+        if bad is not None:
+            bad_lsq[act[bad]] = True
+            act, step = act[~bad], step[~bad]
+            ix = act
+        x[ix] += step[:, :3]
+        b[ix] += step[:, 3:n_par]
+        finite = np.isfinite(step).all(axis=1)  # (the iterate was finite)
+        if isinstance(ix, slice) and finite.all():
+            los, pred, sat = ranges(sat0, clk, x, omega)
+        else:
+            diverged[act[~finite]] = True
+            fin = act[finite]
+            los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
+        size = np.sqrt(np.einsum("ek,ek->e", step, step))
+        act = act[finite & (size >= cfg.conv_m)]
+    out: list[Outcome] = [None] * n1
+    for k in bad_lsq.nonzero()[0].tolist():
+        out[k] = _numerical(ch.epochs[int(sel[k])], solver, "LinAlgError", _SINGULAR_MESSAGE)
+    for k in (diverged & ~bad_lsq).nonzero()[0].tolist():
+        e = int(sel[k])
+        why = Declined.of(Decline.DIVERGED)
+        out[k] = _decline(ch, e, solver, why, {"iterations": int(iters[k])})
+    good = (~diverged & ~bad_lsq).nonzero()[0]
+    if not good.size:
+        return out
+    if good.size != n1:
+        x, b, cix, keep, near = x[good], b[good], cix[good], keep[good], near[good]
+        n_int, iters, los, pred, sat = n_int[good], iters[good], los[good], pred[good], sat[good]
+        z, sow, cn0 = z[good], sow[good], cn0[good]
+        carrier, bds = carrier[good], bds[good]
+    # ---- judge the solution ------------------------------------------------------------------
+    lat, lon, alt, el, az, rot = _local(x, sat)
+    io, tr = system_delays(lat, lon, alt, el, az, sow, carrier, bds, models, cfg)
+    corr = total_delay(io, tr)
+    v = z - pred - _row_clocks(b, cix) - (corr if all_near else _where(near, corr, 0.0))
+    v = np.where(keep, v, 0.0)
+    if cfg.weighted:
+        sigma = _where(near, measurement_sigma_m(el, cn0, io, tr, cfg), cfg.sigma_uniform_m)
+        sigma = np.where(keep, sigma, 1.0)
+    else:
+        sigma = np.full(keep.shape, cfg.sigma_uniform_m)
+    g = layout.design(los, cix)
+    integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
+    n_k = keep.sum(axis=1)
+    resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
+    gsel = sel[good]
+    if solver == "fast":
+        gd_final = dop(g, (keep & ch.full[gsel]).astype(float)).tolist()
+    else:
+        gd_final = [None] * len(good)
+    gu = g * keep[..., None]
+    q = linalg.inv(gu.swapaxes(-1, -2) @ gu)[:, :3, :3]
+    q_enu = rot @ q @ rot.swapaxes(-1, -2)
+    pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
+    numbers: dict[str, list] = {
+        "x": x.tolist(),
+        "b": b.tolist(),
+        "lat_deg": np.degrees(lat).tolist(),
+        "lon_deg": np.degrees(lon).tolist(),
+        "alt": alt.tolist(),
+        "gdop": gd_final,
+        "pdop": pdop.tolist(),
+        "hdop": np.sqrt(q_enu[:, 0, 0] + q_enu[:, 1, 1]).tolist(),
+        "vdop": np.sqrt(q_enu[:, 2, 2]).tolist(),
+        "cov": [i.cov_enu_m2.tolist() for i in integ],
+        "resid": resid_rms.tolist(),
+        "iters": iters.tolist(),
+    }
+    for k, (g_k, e) in enumerate(zip(good.tolist(), gsel.tolist(), strict=True)):
+        out[g_k] = _judged(ch, e, solver, layout, n_int[k], keep[k], integ[k], numbers, k, cfg)
+    return out
+
+
+def _judged(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    layout: Layout,
+    n_int: np.ndarray,
+    kept: np.ndarray,
+    integ: Integrity,
+    numbers: dict[str, list],
+    k: int,
+    cfg: SolverConfig,
+) -> Outcome:
+    """Epoch ``e``'s solution judged (:func:`service.engine.judge.verdict`): its fix, its
+    decline, or its failed test (``k``: its index among the judged epochs, in ``numbers``;
+    ``n_int`` and ``kept``: its integers and kept rows, by slot)."""
+    ep = ch.epochs[e]
+    prn = ch.prn[e]
+    frac = ch.frac[e, : len(prn)].tolist()
+    kk = [i for i, k in enumerate(kept[: len(prn)].tolist()) if k]
+    used = tuple(prn[i] for i in kk)
+    fr = [i for i in kk if frac[i]]  # the used fractional rows
+    # (plain floats: the same sums, without numpy's per-item cost)
+    n_row: list[float] = n_int.tolist() if fr else []
+    ambiguity = {prn[i]: int(n_row[i]) for i in fr}
+    gdop_full = numbers["gdop"][k]
+    alt, clocks, pdop = numbers["alt"][k], numbers["b"][k], numbers["pdop"][k]
+    clock = clocks[0] if len(clocks) == 1 else max(clocks, key=abs)  # furthest from zero
+    why = verdict(integ, used, alt, clock, pdop, cfg, kk)
+    if why is not None:
+        fix = decline_fix(
+            solver,
+            ep.gpst_week,
+            ep.gpst_tow_s,
+            prn,
+            frac,
+            why,
+            gdop_full=gdop_full,
+            iterations=numbers["iters"][k],
+            resid_rms_m=numbers["resid"][k],
+            redundancy=integ.redundancy,
+            chi2=integ.chi2,
+            chi2_max=integ.chi2_max,
+            **({"ambiguity": ambiguity} if why.code is Decline.CHI2 else {}),
+        )
+        if why.code is not Decline.CHI2 or integ.chi2 is None or integ.chi2_max is None:
+            return fix
+        w = integ.w.tolist()
+        wtest = tuple(w[i] for i in kk)
+        x = numbers["x"][k]
+        # every row full and near the Earth: the candidates start here (Failed.warm_start)
+        near = 6.0e6 < math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]) < 8.5e6
+        warm = (x[0], x[1], x[2]) if near and not any(frac) else None
+        return Failed(integ.chi2, integ.chi2_max, integ.redundancy, used, wtest, fix, warm)
+    z, ct = (ch.z[e].tolist(), ch.ct[e].tolist()) if fr else ([], [])
+    return solution_fix(
+        solver=solver,
+        gpst_week=ep.gpst_week,
+        gpst_tow_s=ep.gpst_tow_s,
+        x=numbers["x"][k],
+        clocks=clocks,
+        systems=layout.systems,
+        lat_deg=numbers["lat_deg"][k],
+        lon_deg=numbers["lon_deg"][k],
+        alt_m=alt,
+        gdop_full=gdop_full,
+        pdop=pdop,
+        hdop=numbers["hdop"][k],
+        vdop=numbers["vdop"][k],
+        cov=numbers["cov"][k],
+        integ=integ,
+        resid_rms_m=numbers["resid"][k],
+        iterations=numbers["iters"][k],
+        used=used,
+        frac=[frac[i] for i in kk],
+        ambiguity=ambiguity,
+        recovered_pr_m={prn[i]: z[i] + n_row[i] * ct[i] for i in fr},
+    )
+
+
+def _decline(
+    ch: _Chunk,
+    e: int,
+    solver: Literal["fast", "spp"],
+    why: Declined,
+    fields: dict[str, object],
+) -> Fix:
+    """Epoch ``e``'s decline decided before its solution is judged: over its rows, with
+    ``fields`` (an epoch without rows has none)."""
+    ep, prn = ch.epochs[e], ch.prn[e]
+    frac = ch.frac[e, : len(prn)].tolist()
+    return decline_fix(solver, ep.gpst_week, ep.gpst_tow_s, prn, frac, why, **fields)
+
+
+def _numerical(
+    epoch: MeasurementEpoch, solver: Literal["fast", "spp"], error: str, message: str
+) -> Fix:
+    """The decline of an epoch whose numbers failed (no rows are named)."""
+    why = Declined.of(Decline.NUMERICAL, error=error, message=message)
+    return declined(epoch, why, solver)
+
+
+_NUMBER_ERRORS = (np.linalg.LinAlgError, ArithmeticError, ValueError)
+
+
+def _outcomes(
+    epochs: Sequence[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
+    screen: bool = True,
+) -> tuple[list[Outcome], list[dict[str, str]], list[bool]]:
+    """:func:`_solve_chunk` over ``epochs`` chunk by chunk; ``start`` (e, 3): where each
+    epoch's phase 1 starts (NaN: ``cfg.x0_ecef_m`` or the Earth's centre). Also, per epoch,
+    the impossible ranges left out (``_Chunk.gross``) and whether it has fractional rows of
+    systems without a full row (``_Chunk.others``; ``screen``: whether impossible ranges
+    are looked for). A chunk whose numbers fail is solved again epoch by epoch; an epoch
+    alone whose numbers fail is declined ``numerical``."""
+    out: list[Outcome] = []
+    gross: list[dict[str, str]] = []
+    others: list[bool] = []
+    for at in range(0, len(epochs), CHUNK_EPOCHS):
+        part = epochs[at : at + CHUNK_EPOCHS]
+        where = None if start is None else start[at : at + CHUNK_EPOCHS]
+        try:
+            with np.errstate(all="ignore"):
+                ch = _Chunk(part, store, solver, screen)
+                out += _solve_layouts(ch, store, iono, cfg, solver, where, screen)
+            gross += ch.gross
+            others += ch.others
+        except _NUMBER_ERRORS as exc:
+            if len(part) == 1:
+                log.debug(
+                    "solver failure at GPST %d %.3f",
+                    part[0].gpst_week,
+                    part[0].gpst_tow_s,
+                    exc_info=True,
+                )
+                out.append(_numerical(part[0], solver, type(exc).__name__, str(exc)))
+                gross.append({})
+                others.append(False)
+                continue
+            log.debug("a chunk's numbers failed; its epochs are solved one by one", exc_info=True)
+            for k, ep in enumerate(part):
+                one = None if where is None else where[k : k + 1]
+                o, g, t = _outcomes([ep], store, iono, cfg, solver, one, screen)
+                out += o
+                gross += g
+                others += t
+    return out, gross, others
+
+
+def _solve_layouts(
+    ch: _Chunk,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+    start: np.ndarray | None = None,
+    screen: bool = True,
+) -> list[Outcome]:
+    """:func:`_solve_chunk` of ``ch``; when its epochs' rows differ in their satellite
+    systems (so in their clocks, :class:`~service.engine.layout.Layout`), each layout's
+    epochs are solved as a chunk of their own."""
+    if ch.layout is not None:
+        return _solve_chunk(ch, ch.layout, iono, cfg, solver, start)
+    groups: dict[Layout, list[int]] = {}
+    for e, ps in enumerate(ch.prn):
+        groups.setdefault(layout_of(ps) if ps else BDS_ONLY, []).append(e)
+    out: list[Outcome] = [None] * len(ch.prn)
+    for idx in groups.values():
+        sub = _Chunk([ch.epochs[e] for e in idx], store, solver, screen)
+        layout = sub.layout if sub.layout is not None else BDS_ONLY
+        where = None if start is None else start[idx]
+        for e, res in zip(idx, _solve_chunk(sub, layout, iono, cfg, solver, where), strict=True):
+            out[e] = res
+    return out
+
+
+def _without(epoch: MeasurementEpoch, prns: Iterable[str]) -> MeasurementEpoch:
+    """``epoch`` without satellites ``prns``."""
+    drop = set(prns)
+    return epoch.rows([i for i, p in enumerate(epoch.prn) if p not in drop])
+
+
+_Candidate = tuple[MeasurementEpoch, tuple[float, float, float] | None]
+"""A candidate of fault exclusion: its epoch and where its phase 1 starts (None: the Earth's
+centre; :attr:`service.engine.judge.Failed.warm_start`)."""
+
+
+def _exclude(
+    failed: dict[int, tuple[Failed, MeasurementEpoch]],
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    solver: Literal["fast", "spp"],
+) -> tuple[dict[int, Fix], set[int]]:
+    """Fault exclusion (:func:`service.engine.judge.exclude`) for the epochs that failed the
+    test, every candidate of every epoch of a stage solved in one call of the kernel."""
+
+    def without(cand: _Candidate, prn: str) -> _Candidate:
+        return _without(cand[0], (prn,)), cand[1]
+
+    def solve(cands: list[_Candidate]) -> list[tuple[Outcome, _Candidate]]:
+        start = np.array([(math.nan,) * 3 if s is None else s for _, s in cands]).reshape(-1, 3)
+        res, _, _ = _outcomes([ep for ep, _ in cands], store, iono, cfg, solver, start, False)
+        return [
+            (r, (ep, r.warm_start if isinstance(r, Failed) else None))
+            for r, (ep, _) in zip(res, cands, strict=True)
+        ]
+
+    first = {e: (f, (ep, f.warm_start)) for e, (f, ep) in failed.items()}
+    return exclude(first, without, solve, cfg.max_exclusions)
+
+
+def solve_many(
+    epochs: Sequence[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    solver: Literal["fast", "spp"] = "fast",
+    with_sky: bool = False,
+) -> list[Fix]:
+    """The fix of each epoch (:func:`solve` of each): the kernel over chunks of
+    :data:`CHUNK_EPOCHS` epochs, fault exclusion with every candidate of every failed epoch
+    of a stage in one call. Never raises for bad input, geometry or numbers: a fix that
+    cannot be trusted comes back as ``mode="none"`` with a reason (``reason_code``). Epochs
+    in time order make the ephemeris selection cheapest; any order gives the same fixes."""
+    cfg = cfg or SolverConfig()
+    iono = iono or IonoSet()
+    # no GPS week: declined before any row is read
+    out: list[Fix | None] = [
+        None if ep.week_known else declined(ep, Declined.of(Decline.NO_TIME), solver)
+        for ep in epochs
+    ]
+    todo = [i for i, ep in enumerate(epochs) if ep.week_known]
+    results, gross, others = _outcomes([epochs[i] for i in todo], store, iono, cfg, solver)
+    failed: dict[int, tuple[Failed, MeasurementEpoch]] = {}
+    for k, (i, res) in enumerate(zip(todo, results, strict=True)):
+        if isinstance(res, Fix):
+            out[i] = res
+        elif isinstance(res, Failed):
+            # its candidates are made from its rows, the impossible ranges left out
+            ep = _without(epochs[i], gross[k]) if gross[k] else epochs[i]
+            failed[i] = (res, ep)
+    if failed and cfg.max_exclusions > 0:
+        passed, hopeless = _exclude(failed, store, iono, cfg, solver)
+        for i, fix in passed.items():
+            out[i] = fix
+        for i in hopeless:  # no exclusion passes: the failed solution's decline
+            out[i] = no_exclusion(failed[i][0].fix, cfg.max_exclusions)
+    else:  # no exclusion asked for: the failed solution's decline
+        for i, (bad, _) in failed.items():
+            out[i] = bad.fix
+    fixes: list[Fix] = []
+    pos = {i: k for k, i in enumerate(todo)}
+    for i, (got, ep) in enumerate(zip(out, epochs, strict=True)):
+        if got is None:  # (every epoch has its outcome by now)
+            raise RuntimeError(f"epoch {i} has no outcome")
+        at = pos.get(i)
+        if at is not None and gross[at]:
+            got = replace(got, excluded=gross[at] | got.excluded)
+        if at is not None and others[at] and got.ok and solver == "fast":
+            got = _with_other_systems(ep, store, iono, cfg, got)
+        if with_sky and got.ok:
+            got = replace(got, sky=sky_view(ep, store, got))
+        fixes.append(got)
+    return fixes
+
+
+def solve(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    iono: IonoSet | None = None,
+    cfg: SolverConfig | None = None,
+    solver: Literal["fast", "spp"] = "fast",
+    with_sky: bool = False,
+) -> Fix:
+    """Solve one epoch: the kernel with a chunk of one (:func:`solve_many`). Never raises
+    for bad input, geometry or numbers: a fix that cannot be trusted comes back as
+    ``mode="none"`` with a reason (and ``reason_code``)."""
+    return solve_many((epoch,), store, iono, cfg, solver, with_sky)[0]
 
 
 AMBIGUITY_MARGIN = 0.25
@@ -1046,32 +1575,27 @@ the system's, whose inter-system bias is metres to kilometres) errs by far less 
 
 
 def _with_other_systems(
-    epoch: MeasurementEpoch, store: EphemerisStore, rows: _Rows, ctx: _Context, fix: Fix
+    epoch: MeasurementEpoch, store: EphemerisStore, iono: IonoSet, cfg: SolverConfig, fix: Fix
 ) -> Fix:
-    """The fast fix ``fix`` of ``rows`` joined by the fractional rows of the systems that have
-    no full row (which :func:`select_rows` left out): each one's integer N (paper eq. 11)
-    from the range predicted at the fix with the fix's BeiDou clock, N = round((rho - c
-    dt_sat + b - z) / cT), then every row solved again with those integers held (the rows
-    become full, and the fix reports them fractional with their N; its ``gdop_full`` stays
-    ``fix``'s, the GDOP of eq. (20) over the full rows it reports, not over the joined rows
-    held full). ``fix`` itself when there are none, when a prediction is ambiguous
-    (:data:`AMBIGUITY_MARGIN`) or the joined solve fails."""
-    have = set(rows.prn)
-    todo = [
-        i
-        for i, p in enumerate(epoch.prn)
-        if p not in have
-        and not np.isfinite(epoch.pr_m[i])
-        and np.isfinite(epoch.frac_pr_m[i])
-        and np.isfinite(epoch.period_s[i])
-    ]
+    """The fast fix ``fix`` of ``epoch`` joined by the fractional rows of the systems that
+    have no full row (which the fast fix leaves out, :func:`_with_full_systems`): each one's
+    integer N (paper eq. 11) from the range predicted at the fix with the fix's BeiDou
+    clock, N = round((rho - c dt_sat + b - z) / cT), then every row solved again with those
+    integers held (the rows become full, and the fix reports them fractional with their N;
+    its ``gdop_full`` stays ``fix``'s, the GDOP of eq. (20) over the full rows it reports,
+    not over the joined rows held full). ``fix`` itself when there are none, when a
+    prediction is ambiguous (:data:`AMBIGUITY_MARGIN`) or the joined solve fails."""
+    full = np.isfinite(epoch.pr_m)
+    fracok = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
+    todo = np.flatnonzero(fracok & ~_with_full_systems(epoch, full, fracok)).tolist()
     if not todo or fix.x_ecef_m is None:
         return fix
+    bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     x = np.asarray(fix.x_ecef_m, dtype=float)
     b = fix.clocks_m.get("C", fix.clock_bias_m or 0.0)
     ephs, idx = [], []
     for i in todo:
-        e = store.select(epoch.prn[i], ctx.bdt_week, ctx.bdt_sow_s)
+        e = store.select(epoch.prn[i], bdt_week, bdt_sow)
         if e is not None:
             ephs.append(e)
             idx.append(i)
@@ -1081,7 +1605,7 @@ def _with_other_systems(
     ii = np.asarray(idx)
     tau = np.full(len(ii), NOMINAL_FLIGHT_TIME_S)
     for _ in range(2):  # transmit time from the geometric range (metres of error, not km)
-        sat, clk = sat_pos_clock(arr, ctx.bdt_week, ctx.bdt_sow_s - tau)
+        sat, clk = sat_pos_clock(arr, bdt_week, bdt_sow - tau)
         tau = np.linalg.norm(sat - x, axis=1) / C_M_S
     _, pred, _ = ranges(sat, clk, x, arr.omega_e_rad_s)
     ct = C_M_S * epoch.period_s[ii]
@@ -1091,10 +1615,7 @@ def _with_other_systems(
         return fix
     pr = epoch.pr_m.copy()
     pr[ii] = epoch.frac_pr_m[ii] + n * ct
-    joined, _ = select_rows(replace(epoch, pr_m=pr), store, "fast")
-    if joined is None:
-        return fix
-    again = _solve_rows(joined, ctx)
+    again = solve(replace(epoch, pr_m=pr), store, iono, cfg, "fast")
     if not again.ok:
         return fix
     recovered = {epoch.prn[i]: int(k) for i, k in zip(ii, n, strict=True)}
@@ -1105,79 +1626,6 @@ def _with_other_systems(
         ambiguity={**again.ambiguity, **{p: k for p, k in recovered.items() if p in again.used}},
         gdop_full=fix.gdop_full,
     )
-
-
-def declined(
-    epoch: MeasurementEpoch,
-    why: Declined,
-    solver: Literal["fast", "spp"] = "fast",
-) -> Fix:
-    """A declined fix for ``epoch`` (``mode="none"``), declined for ``why`` before any row
-    was solved (:func:`service.engine.judge.decline_fix` over no rows)."""
-    return decline_fix(solver, epoch.gpst_week, epoch.gpst_tow_s, (), (), why)
-
-
-def solve(
-    epoch: MeasurementEpoch,
-    store: EphemerisStore,
-    iono: IonoSet | None = None,
-    cfg: SolverConfig | None = None,
-    solver: Literal["fast", "spp"] = "fast",
-    with_sky: bool = False,
-) -> Fix:
-    """Solve one epoch. Never raises for bad input, geometry or numbers: a fix that cannot
-    be trusted comes back as ``mode="none"`` with a reason (and ``reason_code``)."""
-    cfg = cfg or SolverConfig()
-    iono = iono or IonoSet()
-    if not epoch.week_known:
-        return declined(epoch, Declined.of(Decline.NO_TIME), solver)
-    with np.errstate(all="ignore"):
-        try:
-            rows, missing = select_rows(epoch, store, solver)
-            if rows is None:
-                if missing:
-                    why = Declined.of(Decline.NO_EPHEMERIS, prns=", ".join(missing))
-                else:
-                    why = Declined.of(Decline.NO_MEASUREMENTS)
-                return declined(epoch, why, solver)
-            bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-            ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
-            fix = _solve_rows(rows, ctx)
-            if solver == "fast" and fix.ok:
-                fix = _with_other_systems(epoch, store, rows, ctx, fix)
-            if with_sky and fix.ok:
-                fix = replace(fix, sky=sky_view(epoch, store, fix))
-        except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
-            log.debug(
-                "solver failure at GPST %d %.3f", epoch.gpst_week, epoch.gpst_tow_s, exc_info=True
-            )
-            why = Declined.of(Decline.NUMERICAL, error=type(exc).__name__, message=str(exc))
-            return declined(epoch, why, solver)
-    return fix
-
-
-def attempt(
-    epoch: MeasurementEpoch,
-    store: EphemerisStore,
-    iono: IonoSet,
-    cfg: SolverConfig,
-    solver: Literal["fast", "spp"],
-    start: tuple[float, float, float] | None = None,
-) -> Outcome:
-    """One solve of ``epoch``'s rows as a candidate of fault exclusion solves it (phase 1
-    from ``start`` or the Earth's centre, phase 2, the judgement; no impossible-range check
-    and no exclusion of its own): its fix, its failed test, or None when it has no rows or
-    the numbers fail. The batch asks this of the candidates it cannot decide itself."""
-    with np.errstate(all="ignore"):
-        try:
-            rows, _ = select_rows(epoch, store, solver)
-            if rows is None:
-                return None
-            bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-            ctx = _Context(epoch.gpst_week, epoch.gpst_tow_s, bdt_week, bdt_sow, iono, cfg, solver)
-            return _outcome(_attempt(rows, ctx, None if start is None else np.array(start)))
-        except (np.linalg.LinAlgError, ArithmeticError, ValueError):
-            return None
 
 
 def fractionalize(

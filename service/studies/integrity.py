@@ -45,8 +45,7 @@ from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem
 from service.core.timebase import bdt_to_gpst
 from service.core.types import Ephemeris, Fix, KlobucharParams, MeasurementEpoch
-from service.engine.batch import solve_many
-from service.engine.solver import IonoSet, SolverConfig
+from service.engine.solver import IonoSet, SolverConfig, solve_many
 from service.sim.simulator import SimConfig, Simulator
 
 PERIOD_S = SYSTEM_CONSTANTS[GnssSystem.BDS].code_period_s

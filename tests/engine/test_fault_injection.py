@@ -29,8 +29,7 @@ from service.core.bds import is_geo
 from service.core.constants import C_M_S
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.batch import solve_many
-from service.engine.solver import fractionalize
+from service.engine.solver import fractionalize, solve_many
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA, ROOT
 

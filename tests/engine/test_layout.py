@@ -146,7 +146,7 @@ def test_batch_solves_the_mixed_epochs_itself_with_a_clock_per_system(hksc, monk
     rows), without handing the epoch to the per-epoch solver; a chunk that mixes epochs of
     one and of two systems solves each layout's epochs together. Its fixes are the
     per-epoch solver's to rounding (the same decisions, clocks and positions within 1e-6 m)."""
-    from service.engine import batch
+    from service.engine import solver as batch
 
     epochs, store, iono = hksc
     mixed = [_relabel(ep, take) if k % 2 else ep for k, ep in enumerate(epochs)]

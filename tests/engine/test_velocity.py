@@ -84,7 +84,7 @@ def test_a_chunk_gives_what_each_epoch_gives_alone():
     epoch at a time), to 1e-9 m/s."""
     from drivers.rinex import RinexObsReader
     from service.commands.solve import load_navigation
-    from service.engine.batch import solve_many
+    from service.engine.solver import solve_many
     from service.engine.velocity import with_velocities, with_velocity
     from tests.support.paths import DATA
 

@@ -1,12 +1,14 @@
-"""The batch solver (service.engine.batch.solve_many) against the per-epoch solver.
+"""The one solver kernel (service.engine.solver): epochs solved in chunks (solve_many, as
+``bdsfix solve`` and fault exclusion call it) against the same epochs solved alone (solve,
+a chunk of one, as the stream calls it).
 
-solve_many must give, for every epoch, what solve() gives: the same decision (mode, reason
-code and words, satellites used, full/fractional, integers, exclusions and why) and the same
-numbers to floating-point rounding (positions within 1e-6 m; the paths differ only in the
-order of floating-point operations). Real recordings: HKSC (clean, 5 GEOs), the urban TST
-drive (declines of every kind, fault exclusion in one and two stages, more than one chunk),
-the 3-GEO file (every fast fix declined), and HKSC with injected faults (exclusion of GEOs
-and non-GEOs, for both solvers).
+Each epoch of a chunk must get what it gets alone: the same decision (mode, reason code and
+words, satellites used, full/fractional, integers, exclusions and why) and the same numbers
+(the same bits where the chunk's epochs have as many rows as it; with padding slots the
+sums over satellites may group their terms differently, so to 1e-6 m). Real recordings:
+HKSC (clean, 5 GEOs), the urban TST drive (declines of every kind, fault exclusion in one
+and two stages, more than one chunk), the 3-GEO file (every fast fix declined), and HKSC
+with injected faults (exclusion of GEOs and non-GEOs, for both solvers).
 """
 
 from __future__ import annotations
@@ -25,8 +27,7 @@ from service.commands.solve import load_navigation
 from service.core.bds import is_geo
 from service.core.constants import C_M_S
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.batch import CHUNK_EPOCHS, solve_many
-from service.engine.solver import SolverConfig, fractionalize, solve
+from service.engine.solver import CHUNK_EPOCHS, SolverConfig, fractionalize, solve, solve_many
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA
 
@@ -87,7 +88,7 @@ def hksc() -> list[MeasurementEpoch]:
 
 
 @pytest.mark.parametrize("solver", ["spp", "fast"])
-def test_hksc_batch_equals_per_epoch(hksc, solver):
+def test_hksc_chunks_equal_epochs_alone(hksc, solver):
     got = _check(hksc, str(DATA / "hksc-2021" / "hksc1610.nav"), solver)
     assert all(f.mode == solver for f in got)
     err = [np.linalg.norm(np.subtract(f.x_ecef_m, HKSC_TRUTH_ECEF_M)) for f in got]
@@ -95,7 +96,7 @@ def test_hksc_batch_equals_per_epoch(hksc, solver):
 
 
 @pytest.mark.parametrize("solver", ["spp", "fast"])
-def test_urban_drive_batch_equals_per_epoch(solver):
+def test_urban_drive_chunks_equal_epochs_alone(solver):
     d = DATA / "hk-tst-urban-2019"
     epochs = list(RinexObsReader(d / "COM3_190428_124409.obs"))[200:900]
     assert len(epochs) > 2 * CHUNK_EPOCHS
@@ -111,7 +112,7 @@ def test_urban_drive_batch_equals_per_epoch(solver):
         assert sum(f.mode == "fast" for f in got) >= 5
 
 
-def test_three_geos_every_fast_fix_declined_as_per_epoch():
+def test_three_geos_every_fast_fix_declined_in_chunks_as_alone():
     d = DATA / "hk-urban-3geo-2020"
     epochs = list(RinexObsReader(d / "rover.obs"))[:100]
     got = _check(epochs, str(d / "navigation_message.nav"), "fast")
@@ -134,7 +135,7 @@ def _faulted(ep: MeasurementEpoch, k: int) -> MeasurementEpoch:
 
 
 @pytest.mark.parametrize("solver", ["spp", "fast"])
-def test_injected_faults_excluded_as_per_epoch(hksc, solver):
+def test_injected_faults_excluded_in_chunks_as_alone(hksc, solver):
     epochs = [_faulted(e, k) for k, e in enumerate(hksc[::2])]
     got = _check(epochs, str(DATA / "hksc-2021" / "hksc1610.nav"), solver)
     assert sum(bool(f.excluded) for f in got) >= len(got) // 2
@@ -174,7 +175,7 @@ def test_order_does_not_matter(hksc):
     ],
 )
 @pytest.mark.parametrize("solver", ["spp", "fast"])
-def test_settings_batch_equals_per_epoch(hksc, solver, cfg):
+def test_settings_chunks_equal_epochs_alone(hksc, solver, cfg):
     nav = str(DATA / "hksc-2021" / "hksc1610.nav")
     store, iono = load_navigation([nav])
     epochs = [_faulted(e, k) for k, e in enumerate(hksc[::5])]
@@ -195,25 +196,17 @@ def test_settings_batch_equals_per_epoch(hksc, solver, cfg):
     ids=["gdop-gate", "mask"],
 )
 @pytest.mark.parametrize("solver", ["spp", "fast"])
-def test_the_batch_decides_its_declines_itself(hksc, monkeypatch, solver, cfg, code):
+def test_gate_and_mask_declines_keep_their_figures(hksc, solver, cfg, code):
     """The GEO-GDOP gate (fast only: SPP has no fractional rows to gate) and too few full
-    rows above the mask are declined by the batch itself (the per-epoch solver, patched to
-    fail, is never asked), with the per-epoch solver's words and figures: the same reason,
-    iterations, and GDOP to rounding."""
-    from service.engine import batch
-
+    rows above the mask: declined with the same reason, iterations and GDOP in a chunk as
+    alone."""
     nav = str(DATA / "hksc-2021" / "hksc1610.nav")
     store, iono = load_navigation([nav])
     epochs = hksc[::10]
     if solver == "fast":
         epochs = [fractionalize(e) for e in epochs]
     ref = [solve(e, store, iono, cfg, solver) for e in epochs]  # type: ignore[arg-type]
-
-    def no_fallback(*args: object, **kwargs: object) -> None:
-        raise AssertionError("the batch handed an epoch to the per-epoch solver")
-
-    monkeypatch.setattr(batch, "solve", no_fallback)
-    got = batch.solve_many(epochs, store, iono, cfg, solver)  # type: ignore[arg-type]
+    got = solve_many(epochs, store, iono, cfg, solver)  # type: ignore[arg-type]
     for r, g in zip(ref, got, strict=True):
         _same(r, g)
         assert g.iterations == r.iterations
@@ -224,13 +217,11 @@ def test_the_batch_decides_its_declines_itself(hksc, monkeypatch, solver, cfg, c
         assert sum(f.reason_code == code for f in got) >= len(got) // 4
 
 
-def test_a_position_far_from_the_earth_is_judged_in_the_batch(hksc, monkeypatch):
+def test_a_position_far_from_the_earth_is_judged_without_mask_or_corrections(hksc):
     """A 150 km error on a GEO puts the fast fix's phase 1 far from the Earth on some epochs
-    (5 of these 26): the batch then judges it as the per-epoch solver does (no mask, no
-    corrections, one weight for every row) instead of handing it over; every epoch gets the
-    per-epoch solver's decline, in the same words (the test's statistic and w-test)."""
-    from service.engine import batch
-
+    (5 of these 26): the solution is then judged with no mask, no corrections and one
+    weight for every row, and every epoch is declined by the test, in the same words (the
+    test's statistic and w-test) in a chunk as alone."""
     store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
     cfg = SolverConfig(max_exclusions=0)
     epochs = []
@@ -240,12 +231,7 @@ def test_a_position_far_from_the_earth_is_judged_in_the_batch(hksc, monkeypatch)
         pr[geos[k % len(geos)]] += 150e3
         epochs.append(fractionalize(replace(ep, pr_m=pr, frac_pr_m=np.mod(pr, C_M_S * 1e-3))))
     ref = [solve(e, store, iono, cfg, "fast") for e in epochs]
-
-    def no_fallback(*args: object, **kwargs: object) -> None:
-        raise AssertionError("the batch handed an epoch to the per-epoch solver")
-
-    monkeypatch.setattr(batch, "solve", no_fallback)
-    got = batch.solve_many(epochs, store, iono, cfg, "fast")
+    got = solve_many(epochs, store, iono, cfg, "fast")
     for r, g in zip(ref, got, strict=True):
         _same(r, g)
     assert {f.reason_code for f in got} == {"chi2"}
@@ -266,7 +252,7 @@ def urban() -> tuple[list[MeasurementEpoch], object, object]:
 @settings(max_examples=12, deadline=None, derandomize=True)
 @given(data=st.data())
 def test_one_epoch_alone_is_the_same_epoch_inside_a_chunk(hksc, urban, data):
-    """Property of the batch kernel: an epoch solved alone and inside any chunk of other
+    """Property of the kernel: an epoch solved alone and inside any chunk of other
     epochs gives the same decision and, where the chunk's epochs have as many rows as it
     (no padding slots: HKSC), the same bits; with padding (the urban drive, 4 to 20
     satellites) the sums over satellites may group their terms differently (numpy's SIMD
@@ -339,10 +325,9 @@ FAULTS_M = (C_M_S * 1e-3, 150e3, 1000.0, 300.0, -3000.0)
 def test_one_faulted_epoch_alone_is_the_same_epoch_inside_a_chunk(hksc, scenario, data):
     """The property with injected faults (none, one or two satellites, GEO or not, of the
     sizes of :data:`FAULTS_M`) on real HKSC epochs and the built-in scenario's: fault
-    exclusion solves every candidate of every epoch of a stage in one chunk, and epochs the
-    batch hands to the per-epoch solver go there alone or not; an epoch alone and the same
-    epoch inside the chunk give the same bits (every epoch of these has the same
-    satellites, so the chunk has no padding slots)."""
+    exclusion solves every candidate of every epoch of a stage in one chunk; an epoch alone
+    and the same epoch inside the chunk give the same bits (every epoch of these has the
+    same satellites, so the chunk has no padding slots)."""
     solver = data.draw(st.sampled_from(["spp", "fast"]))
     if data.draw(st.booleans()):
         epochs, (store, iono) = hksc, load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
@@ -367,13 +352,11 @@ def test_one_faulted_epoch_alone_is_the_same_epoch_inside_a_chunk(hksc, scenario
 
 
 @pytest.mark.parametrize("solver", ["spp", "fast"])
-def test_no_week_and_no_test_are_decided_in_the_batch(monkeypatch, solver):
-    """Epochs without a GPS week are declined ``no_time`` by the batch, and with the test
-    off (``p_fa=0``: the PDOP gate and the plausible shell only) the urban drive's declines
-    of every other kind too: the per-epoch solver, patched to fail, is never asked, and
-    gives the same fixes when asked itself."""
+def test_no_week_and_no_test_declines(solver):
+    """Epochs without a GPS week are declined ``no_time``, and with the test off
+    (``p_fa=0``: the PDOP gate and the plausible shell only) the urban drive's declines of
+    every other kind too, the same in a chunk as alone."""
     from service.core.types import UNKNOWN_WEEK
-    from service.engine import batch
 
     d = DATA / "hk-tst-urban-2019"
     store, iono = load_navigation([str(d / "hksc1180.19b")])
@@ -383,12 +366,7 @@ def test_no_week_and_no_test_are_decided_in_the_batch(monkeypatch, solver):
         epochs = [fractionalize(e) for e in epochs]
     cfg = SolverConfig(p_fa=0.0, pdop_max=10.0)
     ref = [solve(e, store, iono, cfg, solver) for e in epochs]  # type: ignore[arg-type]
-
-    def no_fallback(*args: object, **kwargs: object) -> None:
-        raise AssertionError("the batch handed an epoch to the per-epoch solver")
-
-    monkeypatch.setattr(batch, "solve", no_fallback)
-    got = batch.solve_many(epochs, store, iono, cfg, solver)  # type: ignore[arg-type]
+    got = solve_many(epochs, store, iono, cfg, solver)  # type: ignore[arg-type]
     for r, g in zip(ref, got, strict=True):
         _same(r, g)
     codes = [f.reason_code for f in got]
@@ -398,15 +376,11 @@ def test_no_week_and_no_test_are_decided_in_the_batch(monkeypatch, solver):
         assert {"pdop_gate", "implausible"} <= set(codes)
 
 
-def test_a_wrong_millisecond_on_a_geo_is_excluded_in_the_batch(hksc, monkeypatch):
-    """1 ms (a wrong integer, 300 km) on GEO C01, fast fix: the batch's phase 1 converges
-    on the faulty epoch and its test fails; of the exclusion candidates, the one without
-    C01 passes, and those without another GEO (four GEOs left, one of them faulty) do not
-    converge in the batch. Those candidates alone are solved by the per-epoch solver's
-    attempt (solver.attempt), the epoch stays the batch's (the per-epoch solver, patched to
-    fail, is never asked), and it gets the per-epoch solver's fix: C01 excluded."""
-    from service.engine import batch
-
+def test_a_wrong_millisecond_on_a_geo_is_excluded(hksc):
+    """1 ms (a wrong integer, 300 km) on GEO C01, fast fix: phase 1 converges on the
+    faulty epoch and its test fails; of the exclusion candidates, the one without C01
+    passes (those without another GEO keep the faulty one), so every epoch is fixed with
+    C01 excluded, in a chunk as alone."""
     store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
     epochs = []
     for ep in hksc[::20]:
@@ -414,20 +388,7 @@ def test_a_wrong_millisecond_on_a_geo_is_excluded_in_the_batch(hksc, monkeypatch
         pr[ep.prn.index("C01")] += C_M_S * 1e-3
         epochs.append(fractionalize(replace(ep, pr_m=pr)))
     ref = [solve(e, store, iono, solver="fast") for e in epochs]
-    asked: list[int] = []
-    real = batch.attempt
-
-    def counted(*args: object, **kwargs: object) -> object:
-        asked.append(1)
-        return real(*args, **kwargs)  # type: ignore[arg-type]
-
-    def no_fallback(*args: object, **kwargs: object) -> None:
-        raise AssertionError("the batch handed an epoch to the per-epoch solver")
-
-    monkeypatch.setattr(batch, "solve", no_fallback)
-    monkeypatch.setattr(batch, "attempt", counted)
-    got = batch.solve_many(epochs, store, iono, solver="fast")
+    got = solve_many(epochs, store, iono, solver="fast")
     for r, g in zip(ref, got, strict=True):
         _same(r, g)
         assert list(g.excluded) == ["C01"]
-    assert asked
