@@ -121,23 +121,42 @@ def klobuchar_gps_m(
     return C_M_S * delay * (_F_L1_HZ / np.asarray(carrier_hz)) ** 2
 
 
+def saastamoinen_zenith_m(lat_rad: float, alt_m: float, humidity: float = 0.7) -> float:
+    """Saastamoinen's zenith delay [m] (hydrostatic + wet, standard atmosphere) of one
+    receiver; 0 outside -100 m to 10 km. Plain floats: a receiver's figure is the same bits
+    however many receivers are computed together (:func:`saastamoinen_m`)."""
+    if alt_m < -100.0 or alt_m > 1e4:
+        return 0.0
+    h = min(max(alt_m, 0.0), 1e4)
+    pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
+    temp_k = 15.0 - 6.5e-3 * h + 273.16
+    e_hpa = 6.108 * humidity * math.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
+    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * math.cos(2 * lat_rad) - 0.00028 * h / 1e3)
+    wet = 0.002277 * (1255.0 / temp_k + 0.05) * e_hpa
+    return hydro + wet
+
+
 def saastamoinen_m(
     lat_rad: float | np.ndarray,
     alt_m: float | np.ndarray,
     el_rad: np.ndarray,
     humidity: float = 0.7,
 ) -> np.ndarray:
-    """Slant tropospheric delay [m], Saastamoinen model with a standard atmosphere; 0 for a
-    receiver outside -100 m to 10 km. One receiver, or one per row when ``lat_rad`` and
-    ``alt_m`` are arrays that broadcast against ``el_rad``."""
+    """Slant tropospheric delay [m], Saastamoinen model with a standard atmosphere
+    (:func:`saastamoinen_zenith_m`) and a 1/cos(z) mapping (elevation floored at 1 deg, 0
+    below the horizon); 0 for a receiver outside -100 m to 10 km. One receiver, or one per
+    row when ``lat_rad`` and ``alt_m`` are arrays that broadcast against ``el_rad``."""
     el = np.asarray(el_rad, dtype=float)
-    alt = np.asarray(alt_m, dtype=float)
-    h = np.clip(alt, 0.0, 1e4)  # outside -100 m to 10 km the result is 0 (below)
-    pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
-    temp_k = 15.0 - 6.5e-3 * h + 273.16
-    e_hpa = 6.108 * humidity * np.exp((17.15 * temp_k - 4684.0) / (temp_k - 38.45))
+    if np.ndim(alt_m) == 0:
+        zenith: float | np.ndarray = saastamoinen_zenith_m(float(lat_rad), float(alt_m), humidity)
+    else:  # each receiver alone
+        lat_a, alt_a = np.asarray(lat_rad, dtype=float), np.asarray(alt_m, dtype=float)
+        if lat_a.shape != alt_a.shape:
+            lat_a, alt_a = np.broadcast_arrays(lat_a, alt_a)
+        flat = [
+            saastamoinen_zenith_m(la, h, humidity)
+            for la, h in zip(lat_a.ravel().tolist(), alt_a.ravel().tolist(), strict=True)
+        ]
+        zenith = np.array(flat).reshape(alt_a.shape)
     cos_z = np.cos(np.pi / 2 - np.maximum(el, _ONE_DEG_RAD))
-    hydro = 0.0022768 * pres_hpa / (1.0 - 0.00266 * np.cos(2 * lat_rad) - 0.00028 * h / 1e3)
-    wet = 0.002277 * (1255.0 / temp_k + 0.05) * e_hpa
-    outside = (alt < -100.0) | (alt > 1e4)
-    return np.where(~outside & (el > 0), (hydro + wet) / cos_z, 0.0)
+    return np.where(el > 0, zenith / cos_z, 0.0)
