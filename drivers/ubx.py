@@ -403,18 +403,6 @@ def _chips_at_1023_per_ms(sv: Any) -> bool:
     return abs(d) <= MEASX_CHIP_TOLERANCE
 
 
-def _measx_fraction_m(sat: _Sat, tow_ms: int) -> float:
-    """A satellite's MEASX code phase as a range modulo c*T, uncalibrated (NaN without
-    one): ``c * mod(tow_ms + intCodePhase + codePhase, T)``, the whole ms reduced in
-    integers (module docstring, RXM-MEASX)."""
-    if not math.isfinite(sat.code_ms):
-        return math.nan
-    whole_ms = (tow_ms + sat.code_int_ms) % _PERIOD_MS[sat.prn[0]]
-    # Python's float % is numpy.mod's floor-mod (fmod, then the divisor's sign), for a
-    # tenth of the per-call cost
-    return (C_M_S * (whole_ms + sat.code_ms) * 1e-3) % _CODE_RANGE_M[sat.prn[0]]
-
-
 class UbxMapper:
     """Stateful mapper: UBX frames (:meth:`on_frame`) or parsed messages (:meth:`on_message`,
     from :func:`parse_rxm` or pyubx2) in stream order -> events.
@@ -665,12 +653,20 @@ class UbxMapper:
         sats = sorted(p.sats.values(), key=lambda s: s.prn)
         finite = math.isfinite
         tow_ms = round(p.tow_s * 1e3)
-        raws = [_measx_fraction_m(s, tow_ms) for s in sats]
-        d: dict[str, list[float]] = {}
-        for s, raw in zip(sats, raws, strict=True):
-            if finite(s.pr_m) and finite(raw):
-                ct = _CODE_RANGE_M[s.prn[0]]
-                d.setdefault(s.prn[0], []).append(((s.pr_m % ct - raw) + ct / 2) % ct - ct / 2)
+        # MEASX fractions, uncalibrated: c * mod(tow_ms + intCodePhase + codePhase, T), the
+        # whole ms reduced in integers (module docstring, RXM-MEASX); Python's float % is
+        # numpy.mod's floor-mod (fmod, then the divisor's sign)
+        raws: list[float] = []
+        d: dict[str, list[float]] = {}  # per system: mod(prMes, c*T) - fraction
+        for s in sats:
+            raw = math.nan
+            if s.code_ms == s.code_ms:  # not NaN: MEASX gave a code phase
+                x = s.prn[0]
+                ct = _CODE_RANGE_M[x]
+                raw = (C_M_S * ((tow_ms + s.code_int_ms) % _PERIOD_MS[x] + s.code_ms) * 1e-3) % ct
+                if finite(s.pr_m):
+                    d.setdefault(x, []).append(((s.pr_m % ct - raw) + ct / 2) % ct - ct / 2)
+            raws.append(raw)
         for system, dd in d.items():
             spread_m = max(dd) - min(dd)
             if spread_m < 30.0:
@@ -692,7 +688,7 @@ class UbxMapper:
             ct = _CODE_RANGE_M[s.prn[0]]
             if finite(s.pr_m):
                 kept.append((s, s.pr_m % ct))
-            elif finite(raw):
+            elif raw == raw:
                 self.counters["measx_only_sats"] += 1
                 offset = self.measx_offsets_m.get(s.prn[0], self.measx_offset_m)
                 if offset is None:
