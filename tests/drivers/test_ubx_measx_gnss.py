@@ -14,11 +14,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pyubx2 import UBX_PROTOCOL, UBXReader
 from pyubx2.ubxhelpers import calc_checksum
 
+from drivers.framing import WeekContext
 from drivers.source import StreamDecoder
+from drivers.ubx import UbxMapper
 from service.core.types import MeasurementEpoch
+from service.sim.ubx import MeasxSv, measx_frame
 from tests.support.paths import DATA
 
 HPG = DATA / "ublox-logs" / "ublox-zed-f9p_hpg1.11.log"
@@ -240,3 +245,59 @@ def test_measx_rows_follow_the_systems_selection(systems):
         assert dec.counters["measx_G_other_signal"] == 0
     if "E" in systems:  # E5b blocks: counted, not read
         assert dec.counters["measx_E_other_signal"] == 2324
+
+
+_ANY_BLOCK = st.tuples(
+    st.sampled_from([0, 2, 3, 6]),  # GPS, Galileo, BeiDou, GLONASS
+    st.integers(0, 255),  # svId
+    st.integers(0, 65535),  # wholeChips (65535: invalid)
+    st.integers(0, 1023),  # fracChips
+    st.integers(0, 2**32 - 1),  # codePhase [2^-21 ms]
+    st.integers(0, 255),  # intCodePhase (255: invalid)
+)
+
+
+@st.composite
+def _l1_block(draw):
+    """A GPS or Galileo block whose chips are its code phase at 1.023 Mchip/s."""
+    code = draw(st.integers(0, 2**21 - 1))
+    int_ms = draw(st.integers(0, 3))
+    chips = code * 1023  # 2^-21 chip
+    whole = (chips >> 21) + 1023 * int_ms
+    return (
+        draw(st.sampled_from([0, 2])),
+        draw(st.integers(1, 36)),
+        whole,
+        (chips >> 11) & 1023,
+        code,
+        draw(st.sampled_from([int_ms, 255])),
+    )
+
+
+_BLOCK = st.one_of(_ANY_BLOCK, _l1_block())
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(st.lists(_BLOCK, max_size=30), st.integers(0, 604_799_999))
+def test_any_measx_frame_maps_to_rows_within_their_period(blocks, tow_ms):
+    """Arbitrary MEASX blocks of every system (the fuzzers' mapper reads BeiDou alone):
+    nothing raises, and every row is fractional modulo its own system's c*T."""
+    svs = [
+        MeasxSv(
+            gnss_id=g,
+            sv_id=sv,
+            cn0_dbhz=30,
+            whole_chips=whole,
+            frac_chips=frac,
+            code_phase_units=code,
+            int_code_phase_ms=int_ms,
+        )
+        for g, sv, whole, frac, code, int_ms in blocks
+    ]
+    mapper = UbxMapper(week=WeekContext(2300), systems=frozenset("CGE"))
+    events = mapper.on_frame(measx_frame(tow_ms, tow_ms, svs)) + mapper.flush()
+    for ep in (e for e in events if isinstance(e, MeasurementEpoch)):
+        for i, prn in enumerate(ep.prn):
+            t_s = 4e-3 if prn[0] == "E" else 1e-3
+            assert prn[0] in "CGE" and ep.period_s[i] == t_s
+            assert math.isnan(ep.pr_m[i]) and 0.0 <= ep.frac_pr_m[i] < C * t_s
