@@ -428,8 +428,8 @@ def open_source(
     with :func:`pace`.
     ``max_payload`` and ``mapper_options`` go to :class:`StreamDecoder`. ``systems`` (RINEX
     letters) are the systems read from RINEX observation and nav files, RTCM MSM and
-    ephemerides, UBX RXM-RAWX and the GPS LNAV subframes of UBX RXM-SFRBX, SBF MeasEpoch and the GPS
-    and Galileo navigation blocks (BeiDou alone by default; UBX MEASX: BeiDou only so far).
+    ephemerides, UBX RXM-RAWX, RXM-MEASX and the GPS/Galileo subframes of UBX RXM-SFRBX, SBF
+    MeasEpoch and the GPS and Galileo navigation blocks (BeiDou alone by default).
 
     The GPS week for RTCM MSM times of week comes from the stream (UBX RAWX / NAV-TIMEGPS /
     NAV-PVT, the ephemerides RTCM 1019/1042/1044/1045/1046), with ``gps_week`` or, for live

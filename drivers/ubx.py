@@ -18,17 +18,33 @@ section 5).
   tagged ``gpsTOW`` (ms, GPST) with the week of the stream, or
   :data:`~service.core.types.UNKNOWN_WEEK` before the stream has given one (counted,
   ``epoch_no_week``; the pipeline declines it, ``no_time``).
-- RXM-MEASX: the code phase (``codePhase`` in 2^-21 ms, ``intCodePhase`` in ms) is the
-  pseudorange modulo the code period, but without a receiver-internal delay calibration
-  that is applied to prMes only and carried by no MEASX field. The mapper calibrates it
-  against RAWX: the offset is the median of ``mod(prMes, c*1ms) - c*codePhase`` over the
+- RXM-MEASX (BDS gnssId 3; GPS gnssId 0 and Galileo gnssId 2 when the mapper's ``systems``
+  include them): the code phase (``codePhase`` in 2^-21 ms, ``intCodePhase`` in ms) is the
+  pseudorange modulo the code period T of the satellite's signal (1 ms for B1I and GPS L1
+  C/A, 4 ms for Galileo E1: :attr:`~service.core.systems.SystemConstants.code_period_s`),
+  read as ``c * mod(t_ms + intCodePhase + codePhase, T)`` with ``t_ms`` the epoch's time
+  tag in whole ms (RAWX ``rcvTow`` when the epoch has one, else MEASX ``gpsTOW``; it drops
+  out for T = 1 ms; for Galileo E1 it is what makes ``mod(prMes, c*4ms)`` of the ZED-F9P
+  capture agree, the code phase counting from the receiver's own millisecond epochs).
+  MEASX has no signal field: a dual-band receiver writes one block per tracked signal under
+  the same ``svId`` (GPS L1 C/A and L2C, Galileo E1 and E5b). The GPS and Galileo block
+  read is the one whose chips, ``wholeChips + fracChips/1024``, are 1023 times
+  ``codePhase`` modulo 1023 (L1 C/A and E1 are 1.023 Mchip/s: IS-GPS-200 3.3.2.3, Galileo
+  OS SIS ICD 2.3.3; E5b's 10.23 and L2C's 0.5115 Mchip/s are not); the others are counted,
+  ``measx_<G|E>_other_signal``. The fraction lacks a receiver-internal delay calibration
+  that is applied to prMes only and carried by no MEASX field, one per system (about 2 m
+  apart between GPS and BDS on the ZED-F9P). The mapper calibrates each system against
+  RAWX: its offset is the median of ``mod(prMes, c*T) - fraction`` over the system's
   satellites with both in one epoch (refused and counted, ``measx_offset_rejected``, when
-  they spread over 30 m), and is kept for later epochs (``measx_offset_m`` presets it).
-  Before any calibration the raw fraction is used and counted (``measx_uncalibrated``):
-  the offset is then common to all fractional rows and goes into the receiver clock bias.
+  they spread over 30 m), and is kept for later epochs (``measx_offset_m`` presets every
+  system's). Before a system's calibration its raw fraction is used and counted
+  (``measx_uncalibrated``): the offset is then common to the system's fractional rows and
+  goes into its receiver clock bias.
 - One :class:`MeasurementEpoch` per receive epoch combines RAWX and MEASX: ``pr_m`` from a
-  valid prMes; ``frac_pr_m`` = ``mod(prMes, c*1ms)`` when prMes is valid (so that it is
-  exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` 0.001.
+  valid prMes; ``frac_pr_m`` = ``mod(prMes, c*T)`` when prMes is valid (so that it is
+  exactly consistent with ``pr_m``), else the calibrated MEASX fraction; ``period_s`` T of
+  each satellite's system. A satellite only MEASX has is named by its system's signal
+  (:attr:`~service.core.systems.SystemConstants.signal`: ``2I``, ``1C``, ``1C``).
 - RXM-SFRBX (BDS; GPS L1 C/A LNAV and Galileo E1-B/E5b-I I/NAV pages when the mapper's
   ``systems`` include them) becomes a
   :class:`NavSubframe` via :mod:`drivers.sfrbx`, time-tagged with
@@ -38,7 +54,8 @@ section 5).
 
 Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``rawx_meas_other_gnss``, ``rawx_bds_other_signal``, ``rawx_pr_invalid``,
-``rawx_pr_implausible``, ``measx_invalid``, ``measx_only_sats``, ``measx_uncalibrated``,
+``rawx_pr_implausible``, ``measx_invalid``, ``measx_G_other_signal``,
+``measx_E_other_signal``, ``measx_only_sats``, ``measx_uncalibrated``,
 ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``, ``epoch_no_week``,
 ``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_gps``, ``sfrbx_gal``, ``sfrbx_other_gnss``,
 ``sfrbx_no_time``,
@@ -70,8 +87,11 @@ from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
 
 log = logging.getLogger(__name__)
 
-B1I_PERIOD_S = SYSTEM_CONSTANTS[GnssSystem.BDS].code_period_s
-B1I_RANGE_M = C_M_S * B1I_PERIOD_S
+_PERIOD_S: dict[str, float] = {s.value: k.code_period_s for s, k in SYSTEM_CONSTANTS.items()}
+_PERIOD_MS: dict[str, int] = {x: round(t * 1e3) for x, t in _PERIOD_S.items()}
+_CODE_RANGE_M: dict[str, float] = {x: C_M_S * t for x, t in _PERIOD_S.items()}
+"""Per satellite letter: the code period T, in s and whole ms, and c*T [m] (what a
+fractional range is known modulo)."""
 
 # u-blox signal identifiers (gnssId 3) -> RINEX 3 observation code; only B1I is used.
 BDS_SIGNALS: dict[int, str] = {0: "2I", 1: "2I"}  # B1I D1, B1I D2
@@ -129,13 +149,22 @@ the Earth, and u-blox keeps its receiver clock within 1 ms (300 km). A prMes fla
 but NaN, infinite or outside (0, PR_MAX_M) is counted (``rawx_pr_implausible``), not used."""
 MEASX_INVALID_INT_MS = 255
 MEASX_INVALID_CHIPS = 65535
+L1_CHIPS_PER_MS = 1023
+"""Chips per ms of GPS L1 C/A (IS-GPS-200 3.3.2.3: 1.023 MHz, 1023 chips in 1 ms) and
+Galileo E1-B/C (OS SIS ICD 2.3.3: 1.023 MHz, 4092 chips in 4 ms)."""
+MEASX_CHIP_TOLERANCE = 0.01
+"""How far [chips] ``wholeChips + fracChips/1024`` of a 1.023 Mchip/s block may be from
+1023 times ``codePhase`` (modulo 1023): two roundings of one measurement, 2^-10 chip and
+2^-21 ms = 0.0005 chip (0.0012 chip at most on the ZED-F9P capture, the nearest E5b or L2C
+block 0.1 chip away)."""
 
 
 @dataclass(slots=True)
 class _Sat:
     prn: str
     pr_m: float = math.nan
-    raw_frac_m: float = math.nan  # MEASX code phase as a range, uncalibrated
+    code_ms: float = math.nan  # MEASX codePhase [ms]
+    code_int_ms: int = 0  # MEASX intCodePhase [ms]
     cn0_dbhz: float = math.nan
     doppler_hz: float = math.nan
     lock_s: float = math.nan
@@ -364,6 +393,16 @@ def _rawx_rows(raw: bytes) -> tuple[int, float, list[_RawxRow]] | None:
     return week, tow, rows
 
 
+def _chips_at_1023_per_ms(sv: Any) -> bool:
+    """A MEASX block of a 1.023 Mchip/s signal (GPS L1 C/A, Galileo E1): its chips,
+    ``wholeChips + fracChips/1024``, are 1023 x ``codePhase`` [ms] modulo 1023 chips, within
+    :data:`MEASX_CHIP_TOLERANCE`."""
+    chips = int(sv["wholeChips"]) + int(sv["fracChips"]) / 1024
+    half = L1_CHIPS_PER_MS / 2
+    d = (chips - L1_CHIPS_PER_MS * float(sv["codePhase"]) + half) % L1_CHIPS_PER_MS - half
+    return abs(d) <= MEASX_CHIP_TOLERANCE
+
+
 class UbxMapper:
     """Stateful mapper: UBX frames (:meth:`on_frame`) or parsed messages (:meth:`on_message`,
     from :func:`parse_rxm` or pyubx2) in stream order -> events.
@@ -387,7 +426,8 @@ class UbxMapper:
     ) -> None:
         self.counters = counters if counters is not None else Counters()
         self.week = week if week is not None else WeekContext()
-        self.measx_offset_m = measx_offset_m
+        self.measx_offset_m = measx_offset_m  # preset of every system's calibration
+        self.measx_offsets_m: dict[str, float] = {}  # by system letter, measured
         self.pair_tolerance_s = pair_tolerance_s
         self.source = source
         self._other = {s: sig for s, sig in OTHER_SIGNALS.items() if s.value in frozenset(systems)}
@@ -516,17 +556,24 @@ class UbxMapper:
         for sv in _blocks(msg, "numSv"):
             system = UBX_GNSS.get(sv["gnssId"])
             if system is not GnssSystem.BDS:
-                continue
+                if system not in self._other:
+                    continue
+                n = int(sv["svId"])
+                if not 1 <= n <= SYSTEM_CONSTANTS[system].prn_max or not _chips_at_1023_per_ms(sv):
+                    # L2C, E5b: the same svId, another signal
+                    self.counters[f"measx_{system.value}_other_signal"] += 1
+                    continue
             int_ms = int(sv["intCodePhase"])
             chips = int(sv["wholeChips"])
             if int_ms == MEASX_INVALID_INT_MS or chips == MEASX_INVALID_CHIPS:
                 self.counters["measx_invalid"] += 1
                 continue
-            code_ms = int_ms + float(sv["codePhase"])
-            sat = self._sat(pending, sat_id(system, int(sv["svId"])))
-            # Python's float % is numpy.mod's floor-mod (fmod, then the divisor's sign), for
-            # a tenth of the per-call cost
-            sat.raw_frac_m = (C_M_S * code_ms * 1e-3) % B1I_RANGE_M
+            prn = sat_id(system, int(sv["svId"]))
+            sat = pending.sats.get(prn)
+            if sat is None:
+                sat = pending.sats[prn] = _Sat(prn, signal=SYSTEM_CONSTANTS[system].signal)
+            sat.code_ms = float(sv["codePhase"])
+            sat.code_int_ms = int_ms
             if math.isnan(sat.cn0_dbhz):
                 sat.cn0_dbhz = float(sv["cNo"])
             if math.isnan(sat.doppler_hz):
@@ -605,37 +652,49 @@ class UbxMapper:
         sign) and ``max - min`` is ``np.ptp``: the same numbers, bit for bit."""
         sats = sorted(p.sats.values(), key=lambda s: s.prn)
         finite = math.isfinite
-        half = B1I_RANGE_M / 2
-        d = [
-            ((s.pr_m % B1I_RANGE_M - s.raw_frac_m) + half) % B1I_RANGE_M - half
-            for s in sats
-            if finite(s.pr_m) and finite(s.raw_frac_m)
-        ]
-        if d:
-            spread_m = max(d) - min(d)
+        tow_ms = round(p.tow_s * 1e3)
+        # MEASX fractions, uncalibrated: c * mod(tow_ms + intCodePhase + codePhase, T), the
+        # whole ms reduced in integers (module docstring, RXM-MEASX); Python's float % is
+        # numpy.mod's floor-mod (fmod, then the divisor's sign)
+        raws: list[float] = []
+        d: dict[str, list[float]] = {}  # per system: mod(prMes, c*T) - fraction
+        for s in sats:
+            raw = math.nan
+            if s.code_ms == s.code_ms:  # not NaN: MEASX gave a code phase
+                x = s.prn[0]
+                ct = _CODE_RANGE_M[x]
+                raw = (C_M_S * ((tow_ms + s.code_int_ms) % _PERIOD_MS[x] + s.code_ms) * 1e-3) % ct
+                if finite(s.pr_m):
+                    d.setdefault(x, []).append(((s.pr_m % ct - raw) + ct / 2) % ct - ct / 2)
+            raws.append(raw)
+        for system, dd in d.items():
+            spread_m = max(dd) - min(dd)
             if spread_m < 30.0:
-                self.measx_offset_m = float(statistics.median(d))
+                self.measx_offsets_m[system] = float(statistics.median(dd))
             else:
                 self.counters["measx_offset_rejected"] += 1
                 self._log.warning(
                     "measx_offset_rejected",
-                    "MEASX/RAWX offsets disagree by %.1f m at GPST %d %.3f; kept %s",
+                    "MEASX/RAWX offsets disagree by %.1f m among %s satellites at GPST %d %.3f;"
+                    " kept %s",
                     spread_m,
+                    system,
                     p.week,
                     p.tow_s,
-                    self.measx_offset_m,
+                    self.measx_offsets_m.get(system, self.measx_offset_m),
                 )
-        only = sum(1 for s in sats if not finite(s.pr_m) and finite(s.raw_frac_m))
-        if only:
-            self.counters["measx_only_sats"] += only
-            if self.measx_offset_m is None:
-                self.counters["measx_uncalibrated"] += only
-        offset = self.measx_offset_m or 0.0
         kept: list[tuple[_Sat, float]] = []
-        for s in sats:
-            frac = s.pr_m % B1I_RANGE_M if finite(s.pr_m) else (s.raw_frac_m + offset) % B1I_RANGE_M
-            if finite(frac):
-                kept.append((s, frac))
+        for s, raw in zip(sats, raws, strict=True):
+            ct = _CODE_RANGE_M[s.prn[0]]
+            if finite(s.pr_m):
+                kept.append((s, s.pr_m % ct))
+            elif raw == raw:
+                self.counters["measx_only_sats"] += 1
+                offset = self.measx_offsets_m.get(s.prn[0], self.measx_offset_m)
+                if offset is None:
+                    self.counters["measx_uncalibrated"] += 1
+                    offset = 0.0
+                kept.append((s, (raw + offset) % ct))
         if not kept:
             return None
         return MeasurementEpoch.from_columns(
@@ -645,7 +704,7 @@ class UbxMapper:
             [s.signal for s, _f in kept],
             [s.pr_m for s, _f in kept],
             frac_pr_m=[f for _s, f in kept],
-            period_s=B1I_PERIOD_S,
+            period_s=[_PERIOD_S[s.prn[0]] for s, _f in kept],
             cn0_dbhz=[s.cn0_dbhz for s, _f in kept],
             doppler_hz=[s.doppler_hz for s, _f in kept],
             lock_s=[s.lock_s for s, _f in kept],

@@ -16,14 +16,17 @@ Per epoch the stream carries RXM-SFRBX for every subframe completed since the la
 RXM-RAWX whose prMes is valid only for satellites that are full. Pseudoranges come from
 :mod:`service.sim.rangegen` (light time, Sagnac, satellite clock with TGD1, Klobuchar,
 Saastamoinen, Gaussian noise) and are quantised to the MEASX code-phase step (2^-21 ms), so
-that the fractional value a decoder reads back is exactly the full one modulo 1 ms.
+that the fractional value a decoder reads back is exactly the full one modulo the code
+period (1 ms; 4 ms for Galileo E1).
 
 GPS and Galileo satellites of the ephemerides given join when ``systems`` names them (issue
 19): GPS LNAV subframes of 6 s on GPST with the HOW (IS-GPS-200 20.3.2, 20.3.3.2: full 1.2 s
 into the first subframe after bit sync), Galileo E1-B I/NAV pages of 2 s on odd GST seconds
 (OS SIS ICD 4.3.2.2, 4.3.5: full at the end of the first page of word type 0/5/6 after page
-sync), RAWX gnssId 0 / 2 sigId 0, SFRBX LNAV subframes and I/NAV pages; MEASX stays
-BeiDou's (the driver reads BeiDou's). They draw from random streams of their own, so the
+sync), RAWX gnssId 0 / 2 sigId 0, SFRBX LNAV subframes and I/NAV pages; MEASX carries the
+systems of ``measx_systems`` (BeiDou alone by default, so that the built-in scenario and
+the TTFF studies keep their figures; with ``"CGE"`` GPS and Galileo are fractional rows from
+code lock, as from a real F9P). They draw from random streams of their own, so the
 BeiDou satellites' draws, and a BeiDou-only stream, are the same whatever else is simulated.
 """
 
@@ -53,7 +56,7 @@ from service.core.gps_nav import encode_subframe as encode_lnav
 from service.core.gps_nav import subframe_words as lnav_words
 from service.core.orbit import EphemerisArrays
 from service.core.sow_rule import DEFAULT_FULL_RULE, INAV_PAGE_S, time_known_after_s
-from service.core.systems import prn_number, wavelength_m
+from service.core.systems import constants_of, prn_number, wavelength_m
 from service.core.timebase import (
     BDT_GPST_OFFSET_S,
     GST_GPS_WEEK_OFFSET,
@@ -70,7 +73,6 @@ log = logging.getLogger(__name__)
 
 CODE_PHASE_LSB_MS = 2.0**-21
 PR_LSB_M = C_M_S * 1e-3 * CODE_PHASE_LSB_MS
-B1I_WAVELENGTH_M = wavelength_m("C01")
 LEAP_S = 18
 UBX_OUTPUTS = ("RXM-SFRBX", "RXM-MEASX", "RXM-RAWX")
 _GNSS_ID = {"C": 3, "G": 0, "E": 2}
@@ -101,6 +103,7 @@ class SimConfig:
     tropo: bool = True
     full_rule: str = DEFAULT_FULL_RULE  # when prMes becomes valid (service.core.sow_rule)
     systems: str = "C"  # RINEX letters of the systems simulated from the ephemerides given
+    measx_systems: str = "C"  # those of them RXM-MEASX carries (a real F9P: every system)
 
 
 @dataclass(slots=True)
@@ -302,7 +305,8 @@ class Simulator:
                 for sf in ep.subframes
             ]
         if "RXM-MEASX" in outputs:
-            parts.append(_measx(epoch_subset(ep, lambda p: p[0] == "C", ep.subframes)))
+            keep = self.cfg.measx_systems
+            parts.append(_measx(epoch_subset(ep, lambda p: p[0] in keep, ep.subframes)))
         if "RXM-RAWX" in outputs:
             parts.append(_rawx(ep, [is_geo(p) for p in ep.prn]))
         return b"".join(parts)
@@ -397,21 +401,34 @@ def _rawx(ep: SimEpoch, geo: Sequence[bool]) -> bytes:
     return rawx_frame(ep.tag_gpst_tow_s, ep.tag_gpst_week, LEAP_S, meas)
 
 
+_CHIPS_PER_MS = {"C": 2046, "G": 1023, "E": 1023}
+"""B1I 2.046 Mchip/s (BDS-SIS-ICD-B1I-3.0 3.2), GPS L1 C/A and Galileo E1 1.023 Mchip/s
+(IS-GPS-200 3.3.2.3, Galileo OS SIS ICD 2.3.3)."""
+
+
 def _measx(ep: SimEpoch) -> bytes:
-    """RXM-MEASX: the code phase (pseudorange modulo 1 ms) of every tracked satellite."""
+    """RXM-MEASX: the code phase (pseudorange modulo the code period T: 1 ms, Galileo E1
+    4 ms) of every satellite given, as the ZED-F9P writes it (:mod:`drivers.ubx`): the
+    whole ms ``intCodePhase`` counted from the receiver's own ms epoch (the time tag), the
+    chips of the signal's chip rate in ``wholeChips`` + ``fracChips``/1024."""
     gps_tow_ms = round(ep.tag_gpst_tow_s * 1000.0)
     svs = []
     for i, prn in enumerate(ep.prn):
-        units = round(float(ep.pr_m[i]) / PR_LSB_M) % (1 << 21)  # code phase in 2^-21 ms
+        period_units = round(constants_of(prn).code_period_s * 1e3) << 21
+        # code phase in 2^-21 ms, from the tag's ms epoch: mod(pr/c - tag_ms, T)
+        units = (round(float(ep.pr_m[i]) / PR_LSB_M) - (gps_tow_ms << 21)) % period_units
+        chips = units * _CHIPS_PER_MS[prn[0]]  # in 2^-21 chip
         svs.append(
             MeasxSv(
-                gnss_id=3,
+                gnss_id=_GNSS_ID[prn[0]],
                 sv_id=prn_number(prn),
                 cn0_dbhz=int(ep.cn0_dbhz[i]),
-                whole_chips=(units * 2046) >> 21,
-                code_phase_units=units,
+                whole_chips=chips >> 21,
+                frac_chips=(chips >> 11) & 0x3FF,
+                code_phase_units=units & ((1 << 21) - 1),
+                int_code_phase_ms=units >> 21,
                 doppler_hz=float(ep.doppler_hz[i]),
-                wavelength_m=B1I_WAVELENGTH_M,
+                wavelength_m=wavelength_m(prn),
             )
         )
     return measx_frame(

@@ -80,6 +80,7 @@ class MeasxSv:
     whole_chips: int
     code_phase_units: int
     int_code_phase_ms: int = 0
+    frac_chips: int = 0  # 2^-10 chip
     doppler_hz: float = 0.0  # the same sign as RAWX doMes; written in m/s and in Hz
     wavelength_m: float = 0.0  # of the carrier, for dopplerMS
 
@@ -97,7 +98,7 @@ def measx_frame(gps_tow_ms: int, bds_tow_ms: int, svs: list[MeasxSv]) -> bytes:
                 round(sv.doppler_hz * sv.wavelength_m / MEASX_DOPPLER_MS_LSB),
                 round(sv.doppler_hz / MEASX_DOPPLER_HZ_LSB),
                 sv.whole_chips,
-                0,
+                sv.frac_chips,
                 sv.code_phase_units,
                 sv.int_code_phase_ms,
                 0,
