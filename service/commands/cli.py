@@ -600,7 +600,16 @@ def _command_of(argv: Sequence[str]) -> str | None:
     return word if word in _HANDLERS else None
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, program: bool = False) -> int:
+    """Run the command ``argv`` names (default: the process's arguments); its exit code.
+
+    ``program`` (:func:`entry`, the process is bdsfix): the cyclic garbage collector is off
+    from the start, and what the parser and the command's modules imported is frozen out
+    of its reach (:func:`gc.freeze`) before it is switched on for the command itself.
+    Imports make a few hundred thousand objects, nearly none of them garbage, and the
+    collector's automatic passes over them were ~50 per start of ``bdsfix solve``; the
+    daemon's loop and the batch solver freeze their start-up heap as well, the first after
+    a full collection that then has nothing of it to walk."""
     # the flags of the command run only: building every command's parser imported the
     # configuration of them all (the daemon's, the outputs', the coarse-time solver's)
     parser = build_parser(_command_of(sys.argv[1:] if argv is None else argv))
@@ -610,7 +619,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
     )
     try:
-        return _resolve(_HANDLERS[args.command])(args)
+        handler = _resolve(_HANDLERS[args.command])
+        if program:
+            gc.freeze()
+            gc.enable()
+        return handler(args)
     except BdsfixError as exc:
         # exit codes: service/core/errors.py (EXIT_*) and the README's "Exit codes"
         print(f"bdsfix {args.command}: error: {_one_line(exc)}", file=sys.stderr)
@@ -640,8 +653,11 @@ def entry() -> NoReturn:
     the navigation), 10-20 ms of each start of ``bdsfix solve`` on a 2-core machine, to free
     memory the process is about to hand back whole. Every command has closed what it opened
     by then (outputs, sockets), and the shutdown still flushes stdout/stderr and runs the
-    ``atexit`` handlers; only objects in reference cycles are left unfinalized."""
-    code = main()
+    ``atexit`` handlers; only objects in reference cycles are left unfinalized.
+
+    The collector is off until the command starts (:func:`main`, ``program``)."""
+    gc.disable()
+    code = main(program=True)
     gc.freeze()
     sys.exit(code)
 
