@@ -164,6 +164,29 @@ counted and skipped."""
 _SYSTEM_NAMES = {GnssSystem.BDS: "BDS", GnssSystem.GPS: "GPS", GnssSystem.GAL: "Galileo"}
 
 _INT_FIELDS = frozenset({"aode", "aodc", "health", "week", "data_sources"})
+_FIELD_COLUMNS: dict[str, tuple[tuple[int, tuple[tuple[str, int, int], ...]], ...]] = {
+    system: tuple(
+        (
+            k,
+            tuple(
+                (name, start + 19 * j, start + 19 * (j + 1))
+                for j, name in enumerate(names)
+                if name is not None
+            ),
+        )
+        for k, names in enumerate(layout)
+        for start in (23 if k == 0 else 4,)
+    )
+    for system, layout in _RECORDS.items()
+}
+"""Per system, each record line's index and its fields' (name, first column, end column):
+4X,4D19.12 (the first line after its 23 columns of ID and epoch), one per :data:`_RECORDS`
+name."""
+_INT_FIELDS_OF: dict[str, tuple[str, ...]] = {
+    system: tuple(name for names in layout for name in names if name in _INT_FIELDS)
+    for system, layout in _RECORDS.items()
+}
+"""Per system, the integer fields of its record, in record order."""
 _OPTIONAL = {
     "tgd1_s": 0.0,
     "tgd2_s": 0.0,
@@ -846,36 +869,45 @@ def _nav_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> tuple[E
         else:
             toc_gps_week, dow = divmod(day.toordinal() - _GPS_EPOCH_ORDINAL, 7)
             toc_sow = gpst_to_bdt(toc_gps_week, dow * 86400 + sod)[1]
-        for k, names in enumerate(_RECORDS[system]):
-            start = 23 if k == 0 else 4
+        for k, fields in _FIELD_COLUMNS[system]:
             # the D exponents of a line read as E in one pass, so that ``float`` takes each
             # field at the first try (the number is the same; _float's second look, once a
             # field, was half of reading a nav file); anything else goes to _float as written
             line = rec[k]
             read = line.replace("D", "E").replace("d", "e")
-            for j, name in enumerate(names):
-                if name is not None:
-                    a, b = start + 19 * j, start + 19 * (j + 1)
-                    try:
-                        values[name] = float(read[a:b])
-                    except ValueError:
-                        text = line[a:b]
-                        values[name] = _float(text)
-                        if not text.strip():
-                            blank.add(name)
+            for name, a, b in fields:
+                try:
+                    values[name] = float(read[a:b])
+                except ValueError:
+                    text = line[a:b]
+                    values[name] = _float(text)
+                    if not text.strip():
+                        blank.add(name)
     except ValueError as exc:
         raise FramingError(f"{path}:{lineno + k}: bad {name_of} record for {prn}: {exc}") from exc
     kwargs: dict[str, float | int] = {}
-    for name, value in values.items():
-        if name in blank:
-            if name not in _OPTIONAL and name != "tot_sow_s":
-                raise FramingError(f"{path}:{lineno}: {name_of} record for {prn} lacks {name}")
-            if name == "tot_sow_s":
-                continue
-            value = _OPTIONAL[name]
-        elif name in _INT_FIELDS and not math.isfinite(value):
-            raise FramingError(f"{path}:{lineno}: {name_of} record for {prn}: {name} is {value}")
-        kwargs[name] = int(value) if name in _INT_FIELDS else value
+    if not blank:  # the usual record: every field written; only the integers to check
+        kwargs.update(values)
+        for name in _INT_FIELDS_OF[system]:
+            value = values[name]
+            if not math.isfinite(value):
+                raise FramingError(
+                    f"{path}:{lineno}: {name_of} record for {prn}: {name} is {value}"
+                )
+            kwargs[name] = int(value)
+    else:
+        for name, value in values.items():
+            if name in blank:
+                if name not in _OPTIONAL and name != "tot_sow_s":
+                    raise FramingError(f"{path}:{lineno}: {name_of} record for {prn} lacks {name}")
+                if name == "tot_sow_s":
+                    continue
+                value = _OPTIONAL[name]
+            elif name in _INT_FIELDS and not math.isfinite(value):
+                raise FramingError(
+                    f"{path}:{lineno}: {name_of} record for {prn}: {name} is {value}"
+                )
+            kwargs[name] = int(value) if name in _INT_FIELDS else value
     kwargs.pop("tot_sow_s", None)
     rank = 1
     if system == GnssSystem.GAL:
