@@ -10,7 +10,7 @@ another version with the same names reads the same).
   values are (FullBiasNanos is ~1.2e18: beyond a float's 53 bits). ``BiasUncertaintyNanos``
   is how well the phone knows that time: carried on the epoch as ``time_unc_s``, the prior
   of a coarse-time fix (the pipeline keeps fractional ranges out of the fix while it
-  exceeds :data:`service.engine.pipeline.COARSE_TIME_S`). A change of
+  exceeds :data:`service.engine.timetag.COARSE_TIME_S`). A change of
   ``HardwareClockDiscontinuityCount`` is a restart of the phone's clock: counted
   (``android_clock_restarts``) and the epoch carries ``restarted=True``.
 - **Per signal**, ``State`` (:data:`STATE_BITS`) says how much of the transmit time

@@ -164,6 +164,29 @@ counted and skipped."""
 _SYSTEM_NAMES = {GnssSystem.BDS: "BDS", GnssSystem.GPS: "GPS", GnssSystem.GAL: "Galileo"}
 
 _INT_FIELDS = frozenset({"aode", "aodc", "health", "week", "data_sources"})
+_FIELD_COLUMNS: dict[str, tuple[tuple[int, tuple[tuple[str, int, int], ...]], ...]] = {
+    system: tuple(
+        (
+            k,
+            tuple(
+                (name, start + 19 * j, start + 19 * (j + 1))
+                for j, name in enumerate(names)
+                if name is not None
+            ),
+        )
+        for k, names in enumerate(layout)
+        for start in (23 if k == 0 else 4,)
+    )
+    for system, layout in _RECORDS.items()
+}
+"""Per system, each record line's index and its fields' (name, first column, end column):
+4X,4D19.12 (the first line after its 23 columns of ID and epoch), one per :data:`_RECORDS`
+name."""
+_INT_FIELDS_OF: dict[str, tuple[str, ...]] = {
+    system: tuple(name for names in layout for name in names if name in _INT_FIELDS)
+    for system, layout in _RECORDS.items()
+}
+"""Per system, the integer fields of its record, in record order."""
 _OPTIONAL = {
     "tgd1_s": 0.0,
     "tgd2_s": 0.0,
@@ -222,6 +245,12 @@ class _Lines:
     def push_back(self, line: str) -> None:
         self._back = line
         self.n -= 1
+
+    def rest(self) -> list[str]:
+        """Every line not read yet, at once (a pushed-back line first); :attr:`n` stays the
+        number of the last line read before."""
+        back, self._back = self._back, None
+        return ([back] if back is not None else []) + list(self._fh)
 
     def error(self, message: str, lineno: int | None = None) -> FramingError:
         return FramingError(f"{self.path}:{self.n if lineno is None else lineno}: {message}")
@@ -840,36 +869,45 @@ def _nav_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> tuple[E
         else:
             toc_gps_week, dow = divmod(day.toordinal() - _GPS_EPOCH_ORDINAL, 7)
             toc_sow = gpst_to_bdt(toc_gps_week, dow * 86400 + sod)[1]
-        for k, names in enumerate(_RECORDS[system]):
-            start = 23 if k == 0 else 4
+        for k, fields in _FIELD_COLUMNS[system]:
             # the D exponents of a line read as E in one pass, so that ``float`` takes each
             # field at the first try (the number is the same; _float's second look, once a
             # field, was half of reading a nav file); anything else goes to _float as written
             line = rec[k]
             read = line.replace("D", "E").replace("d", "e")
-            for j, name in enumerate(names):
-                if name is not None:
-                    a, b = start + 19 * j, start + 19 * (j + 1)
-                    try:
-                        values[name] = float(read[a:b])
-                    except ValueError:
-                        text = line[a:b]
-                        values[name] = _float(text)
-                        if not text.strip():
-                            blank.add(name)
+            for name, a, b in fields:
+                try:
+                    values[name] = float(read[a:b])
+                except ValueError:
+                    text = line[a:b]
+                    values[name] = _float(text)
+                    if not text.strip():
+                        blank.add(name)
     except ValueError as exc:
         raise FramingError(f"{path}:{lineno + k}: bad {name_of} record for {prn}: {exc}") from exc
     kwargs: dict[str, float | int] = {}
-    for name, value in values.items():
-        if name in blank:
-            if name not in _OPTIONAL and name != "tot_sow_s":
-                raise FramingError(f"{path}:{lineno}: {name_of} record for {prn} lacks {name}")
-            if name == "tot_sow_s":
-                continue
-            value = _OPTIONAL[name]
-        elif name in _INT_FIELDS and not math.isfinite(value):
-            raise FramingError(f"{path}:{lineno}: {name_of} record for {prn}: {name} is {value}")
-        kwargs[name] = int(value) if name in _INT_FIELDS else value
+    if not blank:  # the usual record: every field written; only the integers to check
+        kwargs.update(values)
+        for name in _INT_FIELDS_OF[system]:
+            value = values[name]
+            if not math.isfinite(value):
+                raise FramingError(
+                    f"{path}:{lineno}: {name_of} record for {prn}: {name} is {value}"
+                )
+            kwargs[name] = int(value)
+    else:
+        for name, value in values.items():
+            if name in blank:
+                if name not in _OPTIONAL and name != "tot_sow_s":
+                    raise FramingError(f"{path}:{lineno}: {name_of} record for {prn} lacks {name}")
+                if name == "tot_sow_s":
+                    continue
+                value = _OPTIONAL[name]
+            elif name in _INT_FIELDS and not math.isfinite(value):
+                raise FramingError(
+                    f"{path}:{lineno}: {name_of} record for {prn}: {name} is {value}"
+                )
+            kwargs[name] = int(value) if name in _INT_FIELDS else value
     kwargs.pop("tot_sow_s", None)
     rank = 1
     if system == GnssSystem.GAL:
@@ -912,20 +950,29 @@ def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
         if h.version >= 3.05:
             record_lines[GnssSystem.GLO] = 5
         held: dict[str, dict[tuple[int, float], tuple[tuple[int, float], Ephemeris]]] = {}
-        while (line := lines.next()) is not None:
+        # the records as one list, walked by index (line k of ``body`` is line base + k + 1
+        # of the file): a day's mixed nav file is ~7,000 lines, most of them of systems not
+        # read, and a method call per line was a third of reading it
+        body = lines.rest()
+        base = lines.n
+        i, n_body = 0, len(body)
+        while i < n_body:
+            line = body[i]
+            i += 1
             if not line.strip():
                 counters["blank_lines"] += 1
                 continue
             sys_char = line[0]
+            start = base + i
             if sys_char not in record_lines:
-                raise lines.error(f"expected a navigation record, got {line.rstrip()[:40]!r}")
-            start = lines.n
-            rec = [line]
-            while (nxt := lines.next()) is not None:
-                if nxt[:1] not in (" ", "\n", "\r"):
-                    lines.push_back(nxt)
-                    break
-                rec.append(nxt)
+                raise lines.error(
+                    f"expected a navigation record, got {line.rstrip()[:40]!r}", start
+                )
+            end = i
+            while end < n_body and body[end][:1] in (" ", "\n", "\r"):
+                end += 1
+            rec = body[i - 1 : end]
+            i = end
             while len(rec) > 1 and not rec[-1].strip():
                 rec.pop()  # trailing blank lines belong to no record
             want = record_lines[sys_char]

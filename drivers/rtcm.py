@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from pyrtcm import RTCMReader
+from pyrtcm import VALNONE, RTCMReader
 
 from drivers.framing import BinaryFraming, Event, WeekContext
 from service.core.constants import C_M_S, ICD_PI, URA_M, WEEK_S
@@ -337,7 +337,8 @@ class RtcmMapper:
         if number in EPH_WEEKS and self.week.exact and number not in self._eph:
             number = 0  # the week is the receiver's own: nothing to read there
         if number in self._used:
-            return self.on_message(RTCMReader.parse(raw))
+            # the framing has checked the CRC-24Q (checksum_ok): pyrtcm need not again
+            return self.on_message(RTCMReader.parse(raw, validate=VALNONE))
         self.counters["rtcm_ignored"] += 1
         if number in MSM_RANGE and len(raw) > 10 and not msm_multiple_message_bit(raw):
             return self.flush()

@@ -1,7 +1,5 @@
 """``python -m service``: the ``bdsfix`` command line."""
 
-import sys
+from service.commands.cli import entry
 
-from service.commands.cli import main
-
-sys.exit(main())
+entry()

@@ -4,25 +4,17 @@ dispatch to one module per subcommand; only this entry point configures logging.
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
+import os
 import sys
 import traceback
 from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from service import __version__
-from service.commands.options import add_start_flag
 from service.core.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, BdsfixError
-from service.core.receiver_setup import ReceiverSetup
-from service.core.settings import add_flags
-from service.core.sow_rule import FullRuleConfig
-from service.core.systems import SystemsConfig
-from service.daemon.config import DEFAULT_CONFIG, add_config_flags
-from service.engine.coarse import CoarseConfig
-from service.engine.solver import SolverConfig
-from service.output.sinks import SINKS
-from service.output.sinks.base import HTTP_MAX_CLIENTS, NMEA_TCP_MAX_CLIENTS
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +38,36 @@ def _float_list(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
 
 
+def _terminal_columns() -> int:
+    """``shutil.get_terminal_size().columns``: ``COLUMNS`` if set, else the width of the
+    terminal on stdout, else 80; without importing :mod:`shutil`, which imports bz2 and lzma
+    (~2 ms of each start: argparse makes a formatter, and asks this, at every flag added)."""
+    try:
+        columns = int(os.environ["COLUMNS"])
+    except (KeyError, ValueError):
+        columns = 0
+    if columns <= 0:
+        try:
+            columns = os.get_terminal_size(sys.__stdout__.fileno()).columns  # type: ignore[union-attr]
+        except (AttributeError, ValueError, OSError):
+            columns = 0
+        columns = columns or 80
+    return columns
+
+
 class _Help(argparse.HelpFormatter):
     """Every option's help ends with its default (unless it has none or says it already)."""
+
+    def __init__(
+        self,
+        prog: str,
+        indent_increment: int = 2,
+        max_help_position: int = 24,
+        width: int | None = None,
+    ) -> None:
+        # argparse's own default width, from _terminal_columns
+        width = _terminal_columns() - 2 if width is None else width
+        super().__init__(prog, indent_increment, max_help_position, width)
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
@@ -87,7 +107,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or with ``only`` of that command alone (the others
+    listed, without their flags): a run builds the flags of its own command only and imports
+    only what they name (:func:`main`)."""
     p = _Parser(
         prog="bdsfix",
         description="Real-time BeiDou receiver service with the a-priori-free fast first fix "
@@ -119,6 +142,84 @@ def build_parser() -> argparse.ArgumentParser:
         "write one record per epoch and solver; a summary with the decline reasons goes "
         "to stderr.",
     )
+    if only in (None, "solve"):
+        _solve_flags(s)
+    c = command(
+        "coverage",
+        "usability study of the fast fix (paper Table 3)",
+        "Where and how often the fast fix is usable: at least 4 GEOs in view and the GEO "
+        "GDOP gate passed, over a global grid and a span of days, from the paper's Table 1 "
+        "constellation or a nav file's GEOs.",
+    )
+    if only in (None, "coverage"):
+        _coverage_flags(c)
+    r = command(
+        "replay",
+        "replay a capture (or the built-in scenario) as a receiver",
+        "Feed a capture through the same stream path as the daemon: a UBX/RTCM3/SBF/NMEA "
+        "capture, a RINEX 3 obs file or an Android GnssLogger log, paced in real time "
+        "(--max-speed: as fast as "
+        "possible); with no FILE, the built-in virtual receiver near Beijing at full speed. "
+        "NMEA goes to stdout unless another output is asked for; a summary to stderr.",
+    )
+    if only in (None, "replay"):
+        _replay_flags(r)
+    d = command(
+        "run",
+        "the daemon (config file; every key is also a flag)",
+        "The receiver daemon: reads a receiver (serial, TCP or a file), publishes NMEA on "
+        "TCP, ZeroMQ and files, keeps its ephemeris store in the state directory. Every key "
+        "of the TOML config is also a flag; flags override the file.",
+    )
+    if only in (None, "run"):
+        _run_flags(d)
+    m = command(
+        "simulate",
+        "virtual BDS receiver: UBX out",
+        "A virtual B1I receiver at a known place: UBX RXM-MEASX, RXM-RAWX (prMes valid once "
+        "each satellite's SOW decoded) and RXM-SFRBX with real D1/D2 subframe timing, to a "
+        "file, stdout or a pty.",
+    )
+    if only in (None, "simulate"):
+        _simulate_flags(m)
+    t = command(
+        "ttff",
+        "time to first fix: fast vs conventional on restarts",
+        "Time to first fix after receiver restarts: emulated on real RINEX data (OBS NAV), "
+        "or (--simulate) restarts of the virtual receiver streamed through a pty into "
+        "'bdsfix run'. Fast fix versus conventional SPP and GEO-only SPP.",
+    )
+    if only in (None, "ttff"):
+        _ttff_flags(t)
+    g = command(
+        "configure",
+        "set a u-blox receiver up for the fast fix",
+        "Set a u-blox receiver up for the fast fix with pyubx2's CFG messages: BeiDou B1I on "
+        "with its GEOs, RXM-RAWX, RXM-MEASX and RXM-SFRBX on the port in use, the "
+        "measurement rate (M8: CFG-GNSS, CFG-RATE, CFG-MSG; F9/X20: CFG-VALSET). Each "
+        "message waits for its ACK/NAK; a refusal (exit 5) or no answer (exit 3) is one "
+        "line naming what is in effect. 'bdsfix run' does the same with configure = true.",
+    )
+    if only in (None, "configure"):
+        _configure_flags(g)
+    z = command(
+        "sub",
+        "print ZeroMQ messages",
+        "Subscribe to a bdsfix ZeroMQ PUB endpoint and print each message as "
+        "'TOPIC JSON' (a running 'bdsfix run', or 'bdsfix replay --zmq ENDPOINT'); "
+        "--json prints the JSON alone.",
+    )
+    if only in (None, "sub"):
+        _sub_flags(z)
+    return p
+
+
+def _solve_flags(s: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix solve``."""
+    from service.core.settings import add_flags
+    from service.core.systems import SystemsConfig
+    from service.engine.solver import SolverConfig
+
     s.add_argument(
         "obs",
         help="RINEX 3 observation file (BDS C2I/C1I pseudoranges) or Android GnssLogger log "
@@ -153,13 +254,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_flags(s, SolverConfig, "solver")
     add_flags(s, SystemsConfig, "systems")
 
-    c = command(
-        "coverage",
-        "usability study of the fast fix (paper Table 3)",
-        "Where and how often the fast fix is usable: at least 4 GEOs in view and the GEO "
-        "GDOP gate passed, over a global grid and a span of days, from the paper's Table 1 "
-        "constellation or a nav file's GEOs.",
-    )
+
+def _coverage_flags(c: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix coverage``."""
+    from service.commands.options import add_start_flag
+
     c.add_argument(
         "--days", type=float, default=None, help="span of the study [days] (8; --first-fix: 1)"
     )
@@ -208,15 +307,17 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--plot", help="write a coverage map PNG (needs the plot extra)")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    r = command(
-        "replay",
-        "replay a capture (or the built-in scenario) as a receiver",
-        "Feed a capture through the same stream path as the daemon: a UBX/RTCM3/SBF/NMEA "
-        "capture, a RINEX 3 obs file or an Android GnssLogger log, paced in real time "
-        "(--max-speed: as fast as "
-        "possible); with no FILE, the built-in virtual receiver near Beijing at full speed. "
-        "NMEA goes to stdout unless another output is asked for; a summary to stderr.",
-    )
+
+def _replay_flags(r: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix replay``."""
+    from service.core.settings import add_flags
+    from service.core.sow_rule import FullRuleConfig
+    from service.core.systems import SystemsConfig
+    from service.engine.coarse import CoarseConfig
+    from service.engine.solver import SolverConfig
+    from service.output.sinks import SINKS
+    from service.output.sinks.base import HTTP_MAX_CLIENTS, NMEA_TCP_MAX_CLIENTS
+
     r.add_argument(
         "files",
         nargs="*",
@@ -289,25 +390,25 @@ def build_parser() -> argparse.ArgumentParser:
     add_flags(r, SystemsConfig, "systems (RINEX observation and nav files)")
     add_flags(r, CoarseConfig, "coarse-time first fix (fewer full ranges than unknowns)")
 
-    d = command(
-        "run",
-        "the daemon (config file; every key is also a flag)",
-        "The receiver daemon: reads a receiver (serial, TCP or a file), publishes NMEA on "
-        "TCP, ZeroMQ and files, keeps its ephemeris store in the state directory. Every key "
-        "of the TOML config is also a flag; flags override the file.",
-    )
+
+def _run_flags(d: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix run``."""
+    from service.daemon.config import DEFAULT_CONFIG, add_config_flags
+
     d.add_argument(
         "--config", default=None, help=f"TOML config (default {DEFAULT_CONFIG} when it exists)"
     )
     add_config_flags(d)
 
-    m = command(
-        "simulate",
-        "virtual BDS receiver: UBX out",
-        "A virtual B1I receiver at a known place: UBX RXM-MEASX, RXM-RAWX (prMes valid once "
-        "each satellite's SOW decoded) and RXM-SFRBX with real D1/D2 subframe timing, to a "
-        "file, stdout or a pty.",
-    )
+
+def _simulate_flags(m: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix simulate``."""
+    from service.commands.options import add_start_flag
+    from service.core.settings import add_flags
+    from service.core.sow_rule import FullRuleConfig
+    from service.core.systems import SystemsConfig
+    from service.output.sinks import SINKS
+
     m.add_argument("--nav", help="RINEX 3 nav file (default: the paper's Table 1 set)")
     add_flags(
         m,
@@ -386,13 +487,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(m, FullRuleConfig, "prMes validity")
 
-    t = command(
-        "ttff",
-        "time to first fix: fast vs conventional on restarts",
-        "Time to first fix after receiver restarts: emulated on real RINEX data (OBS NAV), "
-        "or (--simulate) restarts of the virtual receiver streamed through a pty into "
-        "'bdsfix run'. Fast fix versus conventional SPP and GEO-only SPP.",
-    )
+
+def _ttff_flags(t: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix ttff``."""
+    from service.commands.options import add_start_flag
+    from service.core.settings import add_flags
+    from service.core.sow_rule import FullRuleConfig
+    from service.core.systems import SystemsConfig
+    from service.engine.solver import SolverConfig
+
     t.add_argument(
         "obs", nargs="?", help="RINEX 3 obs file or GnssLogger log (not with --simulate)"
     )
@@ -436,15 +539,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_flags(t, SolverConfig, "solver")
     add_flags(t, SystemsConfig, "systems (--simulate with --nav: GPS and Galileo satellites join)")
 
-    g = command(
-        "configure",
-        "set a u-blox receiver up for the fast fix",
-        "Set a u-blox receiver up for the fast fix with pyubx2's CFG messages: BeiDou B1I on "
-        "with its GEOs, RXM-RAWX, RXM-MEASX and RXM-SFRBX on the port in use, the "
-        "measurement rate (M8: CFG-GNSS, CFG-RATE, CFG-MSG; F9/X20: CFG-VALSET). Each "
-        "message waits for its ACK/NAK; a refusal (exit 5) or no answer (exit 3) is one "
-        "line naming what is in effect. 'bdsfix run' does the same with configure = true.",
-    )
+
+def _configure_flags(g: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix configure``."""
+    from service.core.receiver_setup import ReceiverSetup
+    from service.core.settings import add_flags
+
     g.add_argument(
         "--source",
         metavar="DEVICE",
@@ -464,13 +564,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="print the messages (hex, then what each asks) instead of sending them",
     )
 
-    z = command(
-        "sub",
-        "print ZeroMQ messages",
-        "Subscribe to a bdsfix ZeroMQ PUB endpoint and print each message as "
-        "'TOPIC JSON' (a running 'bdsfix run', or 'bdsfix replay --zmq ENDPOINT'); "
-        "--json prints the JSON alone.",
-    )
+
+def _sub_flags(z: argparse.ArgumentParser) -> None:
+    """The flags of ``bdsfix sub``."""
     z.add_argument(
         "endpoint", nargs="?", default="tcp://127.0.0.1:10111", help="ZeroMQ PUB endpoint"
     )
@@ -488,7 +584,6 @@ def build_parser() -> argparse.ArgumentParser:
     z.add_argument("--timeout-s", type=float, default=None, help="exit after this idle time")
     z.add_argument("--curve-server-key", metavar="FILE", help="CURVE: server public certificate")
     z.add_argument("--curve-key", metavar="FILE", help="CURVE: this client's secret certificate")
-    return p
 
 
 def _resolve(spec: str) -> Callable[[argparse.Namespace], int]:
@@ -497,15 +592,38 @@ def _resolve(spec: str) -> Callable[[argparse.Namespace], int]:
     return handler
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names: its first word that is not an option (the options
+    before it, ``-v``, ``-h`` and ``--version``, take no value); None when that is no
+    command (argparse then says so, with every command's parser built)."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in _HANDLERS else None
+
+
+def main(argv: Sequence[str] | None = None, *, program: bool = False) -> int:
+    """Run the command ``argv`` names (default: the process's arguments); its exit code.
+
+    ``program`` (:func:`entry`, the process is bdsfix): the cyclic garbage collector is off
+    from the start, and what the parser and the command's modules imported is frozen out
+    of its reach (:func:`gc.freeze`) before it is switched on for the command itself.
+    Imports make a few hundred thousand objects, nearly none of them garbage, and the
+    collector's automatic passes over them were ~50 per start of ``bdsfix solve``; the
+    daemon's loop and the batch solver freeze their start-up heap as well, the first after
+    a full collection that then has nothing of it to walk."""
+    # the flags of the command run only: building every command's parser imported the
+    # configuration of them all (the daemon's, the outputs', the coarse-time solver's)
+    parser = build_parser(_command_of(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(
         level=level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
     )
     try:
-        return _resolve(_HANDLERS[args.command])(args)
+        handler = _resolve(_HANDLERS[args.command])
+        if program:
+            gc.freeze()
+            gc.enable()
+        return handler(args)
     except BdsfixError as exc:
         # exit codes: service/core/errors.py (EXIT_*) and the README's "Exit codes"
         print(f"bdsfix {args.command}: error: {_one_line(exc)}", file=sys.stderr)
@@ -525,9 +643,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERNAL
 
 
+def entry() -> NoReturn:
+    """The ``bdsfix`` program (the console script, ``python -m service``): :func:`main` on
+    the process's arguments, then exit with its code.
+
+    What is left when it returns is moved out of the cyclic garbage collector's reach
+    (:func:`gc.freeze`) before the interpreter shuts down: the shutdown otherwise runs a full
+    collection over every object the run imported or made (numpy's and bdsfix's modules,
+    the navigation), 10-20 ms of each start of ``bdsfix solve`` on a 2-core machine, to free
+    memory the process is about to hand back whole. Every command has closed what it opened
+    by then (outputs, sockets), and the shutdown still flushes stdout/stderr and runs the
+    ``atexit`` handlers; only objects in reference cycles are left unfinalized.
+
+    The collector is off until the command starts (:func:`main`, ``program``)."""
+    gc.disable()
+    code = main(program=True)
+    gc.freeze()
+    sys.exit(code)
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).splitlines()) or type(exc).__name__
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    entry()

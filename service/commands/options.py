@@ -7,15 +7,17 @@ import argparse
 import datetime as dt
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service.core.errors import ConfigError, InputError
 from service.core.files import PLOT_HINT
 from service.core.settings import build, given
 from service.core.sow_rule import FullRuleConfig
 from service.core.systems import SystemsConfig, parse_systems
-from service.engine.coarse import CoarseConfig
 from service.engine.solver import SolverConfig
+
+if TYPE_CHECKING:  # imported where built: a command without the coarse-time solver skips it
+    from service.engine.coarse import CoarseConfig
 
 
 def solver_config(args: argparse.Namespace, **overrides: Any) -> SolverConfig:
@@ -32,6 +34,8 @@ def systems_of(args: argparse.Namespace) -> frozenset[str]:
 
 def coarse_config(args: argparse.Namespace) -> CoarseConfig:
     """The :class:`service.engine.coarse.CoarseConfig` of a command's coarse-time flags."""
+    from service.engine.coarse import CoarseConfig
+
     return build(CoarseConfig, given(args, CoarseConfig), {})
 
 

@@ -24,18 +24,7 @@ from service.commands.summary import stream_lines
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import EXIT_INTERRUPTED, EXIT_OK, BdsfixError, ConfigError, InputError
 from service.core.systems import DEFAULT_SYSTEMS, parse_systems
-from service.daemon.config import (
-    DEFAULT_CONFIG,
-    STORE_NAME,
-    DaemonConfig,
-    load_config,
-    nav_files,
-    ntrip_sources,
-    overrides_from_args,
-)
 from service.daemon.loop import Runner
-from service.daemon.sdnotify import Notifier
-from service.daemon.statelock import lock_state_dir
 from service.engine.pipeline import EpochResult, Pipeline
 from service.engine.solver import IonoSet
 from service.output.publish import Publishers
@@ -44,6 +33,7 @@ from service.output.timeline import Timeline as BaseTimeline
 
 if TYPE_CHECKING:
     from drivers.rinex import NavData
+    from service.daemon.config import DaemonConfig
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +185,8 @@ def _check_state_dir(state_dir: Path) -> None:
 
 
 def load_store(state_dir: Path, max_age_s: float) -> EphemerisStore:
+    from service.daemon.config import STORE_NAME
+
     path = state_dir / STORE_NAME
     if path.exists():
         try:
@@ -217,6 +209,7 @@ def _open_ntrip(cfg: DaemonConfig) -> list[Any]:
     nothing is connected yet: a caster that is down at start is retried, see
     :mod:`drivers.ntrip`)."""
     from drivers.ntrip import open_ntrip
+    from service.daemon.config import ntrip_sources
 
     return [
         open_ntrip(
@@ -248,8 +241,19 @@ class _Signals:
 
 
 def main_run(args: argparse.Namespace) -> int:
+    # the daemon's configuration, state lock and systemd notifier here, not with the module:
+    # ``bdsfix replay`` needs none of them (part of its start-up)
     from drivers.source import open_source
     from drivers.transport import RECONNECT_MAX_S, SerialTransport
+    from service.daemon.config import (
+        DEFAULT_CONFIG,
+        STORE_NAME,
+        load_config,
+        nav_files,
+        overrides_from_args,
+    )
+    from service.daemon.sdnotify import Notifier
+    from service.daemon.statelock import lock_state_dir
 
     cfg_path = args.config
     if cfg_path is None and Path(DEFAULT_CONFIG).exists():

@@ -24,8 +24,8 @@ from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.pipeline import without_coarse_fractions
 from service.engine.solver import CHUNK_EPOCHS, IonoSet, SolverConfig, fractionalize, solve_many
+from service.engine.timetag import without_coarse_fractions
 from service.engine.velocity import with_velocities
 
 log = logging.getLogger(__name__)
@@ -91,7 +91,7 @@ def solve_epochs(
     (:func:`~service.engine.velocity.with_velocities`)."""
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
         # a receiver time coarser than 1 ms (a phone before its first fix): no fractional
-        # range enters the fix (service.engine.pipeline.COARSE_TIME_S)
+        # range enters the fix (service.engine.timetag.COARSE_TIME_S)
         chunk = [without_coarse_fractions(e)[0] for e in chunk]
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):

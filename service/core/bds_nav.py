@@ -81,7 +81,18 @@ def bch_parity(info11: int) -> int:
     return r & 0xF
 
 
-_PARITY = tuple(bch_parity(info) for info in range(1 << 11))
+def _parity_table() -> tuple[int, ...]:
+    """:func:`bch_parity` of every 11-bit group, from the parities of the 11 single bits:
+    the code is linear (the parity of a XOR of groups is the XOR of their parities), so the
+    table doubles 11 times instead of dividing 2048 groups bit by bit at each start."""
+    table = [0]
+    for bit in range(11):
+        p = bch_parity(1 << bit)
+        table += [t ^ p for t in table]
+    return tuple(table)
+
+
+_PARITY = _parity_table()
 """bch_parity of every 11-bit group: the decoder looks parities up (two per word, ten words
 per subframe, five subframes at every D2 boundary) instead of dividing bit by bit."""
 

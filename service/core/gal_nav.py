@@ -20,20 +20,10 @@ pygnssutils' RawNav from its transcription of the ICD's word tables. :func:`enco
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import Any
-
-from pygnssutils.rawnav import RawNav
-from pygnssutils.rawnav_subframes_gal import (
-    GAL_INAV_WORD_1,
-    GAL_INAV_WORD_2,
-    GAL_INAV_WORD_3,
-    GAL_INAV_WORD_4,
-    GAL_INAV_WORD_5,
-    GAL_INAV_WORD_6,
-    GAL_INAV_WORD_10,
-)
 
 from service.core.constants import ICD_PI, WEEK_S
 from service.core.errors import DecodeError
@@ -176,19 +166,47 @@ def inav_subframe(
     )
 
 
-_EPH_WORDS = {1: GAL_INAV_WORD_1, 2: GAL_INAV_WORD_2, 3: GAL_INAV_WORD_3, 4: GAL_INAV_WORD_4}
+@functools.cache
+def _word_definitions() -> dict[int, dict[str, Any]]:
+    """pygnssutils' transcription of the ICD's tables of word types 1-6 and 10, by type.
+
+    Imported at the first word decoded or encoded, not with this module: importing
+    ``pygnssutils`` loads every tool of the package (its NTRIP client, TLS, its servers),
+    about 35 ms at each start of a command that reads no I/NAV word (``bdsfix solve``)."""
+    from pygnssutils.rawnav_subframes_gal import (
+        GAL_INAV_WORD_1,
+        GAL_INAV_WORD_2,
+        GAL_INAV_WORD_3,
+        GAL_INAV_WORD_4,
+        GAL_INAV_WORD_5,
+        GAL_INAV_WORD_6,
+        GAL_INAV_WORD_10,
+    )
+
+    return {
+        1: GAL_INAV_WORD_1,
+        2: GAL_INAV_WORD_2,
+        3: GAL_INAV_WORD_3,
+        4: GAL_INAV_WORD_4,
+        5: GAL_INAV_WORD_5,
+        6: GAL_INAV_WORD_6,
+        10: GAL_INAV_WORD_10,
+    }
 
 
 def _iodnav(word: int) -> int:
     return _bits(word, 128, 6, 10)
 
 
-def _fields(prn: str, words: dict[int, int], defs: dict[int, dict[str, Any]]) -> Any:
-    """The words' fields as pygnssutils' RawNav reads them from its transcription of the
-    ICD's word tables (scaled; angles in semicircles)."""
+def _fields(prn: str, words: dict[int, int]) -> Any:
+    """The fields of ``words`` (word type -> 128-bit word) as pygnssutils' RawNav reads them
+    from its transcription of the ICD's word tables (scaled; angles in semicircles)."""
+    from pygnssutils.rawnav import RawNav
+
+    defs = _word_definitions()
     nav = RawNav("E", int(prn[1:]), "1X")
-    for wt, definition in defs.items():
-        nav.parse(words[wt], definition, 1 << wt)
+    for wt, word in words.items():
+        nav.parse(word, defs[wt], 1 << wt)
     return nav
 
 
@@ -208,7 +226,7 @@ def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Eph
     3.04 Table A8 packs it (bit 0 E1-B DVS, bits 1-2 E1-B HS, bit 6 E5b DVS, bits 7-8 E5b
     HS): word type 5 orders them E5b HS, E1-B HS, E5b DVS, E1-B DVS (pygnssutils 1.3.1
     labels those bits e5ahs, e5bhs, e5advs, e5bdvs; they are read here by position)."""
-    nav = _fields(prn, words, {**_EPH_WORDS, 5: GAL_INAV_WORD_5})
+    nav = _fields(prn, {wt: words[wt] for wt in (1, 2, 3, 4, 5)})
     w5 = words[5]
     e5b_hs, e1b_hs = _bits(w5, 128, 67, 2), _bits(w5, 128, 69, 2)
     e5b_dvs, e1b_dvs = _bits(w5, 128, 71, 1), _bits(w5, 128, 72, 1)
@@ -254,7 +272,7 @@ def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Eph
 def ggto_from_word10(prn: str, word: int, gpst_week: int) -> TimeOffset:
     """GGTO of word type 10 (ICD 4.3.5: A0G 2^-35 s, A1G 2^-51 s/s, t0G 3600 s,
     WN0G modulo 64; fields by pygnssutils' RawNav)."""
-    nav = _fields(prn, {10: word}, {10: GAL_INAV_WORD_10})
+    nav = _fields(prn, {10: word})
     return TimeOffset(
         "GAGP",
         float(nav.a0g),
@@ -390,8 +408,7 @@ def encode_word(
         h = eph.health
         values |= {"e5ahs": h >> 7 & 3, "e5bhs": h >> 1 & 3, "e5advs": h >> 6 & 1}
         values |= {"e5bdvs": h & 1, "ai0": iono[0] if iono else 0.0}
-    definitions = {**_EPH_WORDS, 5: GAL_INAV_WORD_5, 6: GAL_INAV_WORD_6}
-    return pack_word(definitions[wtype], values)
+    return pack_word(_word_definitions()[wtype], values)
 
 
 def encode_page(word: int) -> list[int]:

@@ -57,6 +57,7 @@ from service.engine.solver import (
     sky_view,
     solve,
 )
+from service.engine.timetag import COARSE_TIME_S, without_coarse_fractions
 from service.engine.tracker import FrameSyncTracker, SubframeEmulator, TrackEvent
 from service.engine.velocity import with_velocity
 
@@ -70,16 +71,6 @@ RECEIVER_FIX_MAX_AGE_S = 1.5
 """A receiver's own fix is carried on the results of epochs at most this far from it [s]
 (at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
 MeasEpoch of its second, so the epoch carries the previous second's)."""
-COARSE_TIME_S = 1e-3
-"""An epoch whose receiver time is less certain than this [s] (``time_unc_s``, e.g. a
-phone's BiasUncertaintyNanos) keeps its fractional ranges out of the fix: the fast fix takes
-the time tag as exact (a satellite's transmit time is the tag minus the flight time, its
-integer milliseconds resolved at that tag), and a 1 ms error moves a satellite by at most
-~4 m along its orbit. Full ranges are unaffected (their transmit time is in the
-measurement; a tag error is common to all and goes into the clock). The coarse-time fix
-(:mod:`service.engine.coarse`, time as a fifth unknown) uses them: with the tag as its prior
-while ``time_unc_s`` is within ``time_prior_s``, else with the time the first decoded SOW
-gives, and with neither it waits (declined ``coarse_time``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,18 +105,6 @@ class EpochResult:
     receiver_fix: ReceiverFix | None = None
     """The receiver's own latest fix (an Android Fix row, an SBF PVTGeodetic) if it is at
     most :data:`RECEIVER_FIX_MAX_AGE_S` from this epoch, for comparison; never used."""
-
-
-def without_coarse_fractions(view: MeasurementEpoch) -> tuple[MeasurementEpoch, int]:
-    """``view`` without its fractional ranges when its time is coarser than
-    :data:`COARSE_TIME_S` (their ``frac_pr_m`` NaN), and how many were set aside."""
-    if not view.time_unc_s > COARSE_TIME_S:
-        return view, 0
-    frac = ~np.isfinite(view.pr_m) & np.isfinite(view.frac_pr_m)
-    n = int(frac.sum())
-    if not n:
-        return view, 0
-    return replace(view, frac_pr_m=np.where(frac, np.nan, view.frac_pr_m)), n
 
 
 TIME_PRIOR_SIGMAS = 5.0

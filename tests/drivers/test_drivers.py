@@ -969,7 +969,9 @@ def test_returning_serial_device_is_reopened_within_the_backoff_cap(monkeypatch,
             pass
 
     monkeypatch.setattr(transport_module, "time", clock)
-    monkeypatch.setattr(transport_module.serial, "Serial", FakeSerial)
+    import serial  # the transport imports pyserial when it opens the device
+
+    monkeypatch.setattr(serial, "Serial", FakeSerial)
     t = SerialTransport("/dev/ttyFAKE", 115200)
     t.open_now()
     while not t.counters["reconnects"]:

@@ -520,6 +520,23 @@ def test_non_finite_float_field_is_passed_on_a_blank_one_is_not(tmp_path):
         read_nav(_write(tmp_path, "blank.19b", bad))
 
 
+def test_a_non_finite_integer_field_is_a_framing_error_naming_it(tmp_path):
+    """An integer field (week, AODE) that reads as NaN or infinity has no integer value: the
+    record is refused by the parser, with the file, line and field named."""
+    lines = _lines(BDS_ONLY_NAV[0])
+    c = next(k for k, line in enumerate(lines) if line.startswith("C05"))
+    week = slice(4 + 2 * 19, 4 + 3 * 19)  # BROADCAST ORBIT - 5, third field
+    aode = slice(4, 4 + 19)  # BROADCAST ORBIT - 1, first field
+    for name, row, cut, text, said in [
+        ("week.19b", 5, week, "NaN", "week is nan"),
+        ("aode.19b", 1, aode, " .100000000000D+999", "aode is inf"),
+    ]:
+        bad = lines.copy()
+        bad[c + row] = bad[c + row][: cut.start] + text.rjust(19) + bad[c + row][cut.stop :]
+        with pytest.raises(FramingError, match=rf"{name}:{c + 1}: BDS record for C05: {said}"):
+            read_nav(_write(tmp_path, name, bad))
+
+
 # ---------------------------------------------------------------- navigation files
 
 FIELDS = {  # georinex name -> ours
