@@ -9,8 +9,11 @@ With ``--systems CG`` the GPS satellites of the same hour's GPS nav file (hksc26
 the GPS rows; generator and solver on the BeiDou Klobuchar set, so that the ionosphere the
 solver removes is the one generated).
 
-Run: python bench/bench_coarse_mc.py [N] [SEED] [--systems CG]   (default 10000 trials, seed
-1, BeiDou alone; prints figures; no assertions)
+``--time-prior S``: the coarse-time fix's prior (and the host clock errors' range) S seconds
+instead of 2 (a phone's 5 sigma, up to 30 s: service.engine.pipeline.wide_time_prior).
+
+Run: python bench/bench_coarse_mc.py [N] [SEED] [--systems CG] [--time-prior S]   (default
+10000 trials, seed 1, BeiDou alone, 2 s; prints figures; no assertions)
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from service.commands.solve import load_navigation  # noqa: E402
+from service.engine.coarse import CoarseConfig  # noqa: E402
 from service.engine.solver import IonoSet  # noqa: E402
 from service.studies.coarse_mc import run  # noqa: E402
 
@@ -40,6 +44,11 @@ def main() -> None:
         i = args.index("--systems")
         systems = args[i + 1]
         del args[i : i + 2]
+    ccfg = CoarseConfig()
+    if "--time-prior" in args:
+        i = args.index("--time-prior")
+        ccfg = CoarseConfig(time_prior_s=float(args[i + 1]))
+        del args[i : i + 2]
     n = int(args[0]) if args else 10_000
     seed = int(args[1]) if len(args) > 1 else 1
     navs = [str(NAV), *([str(GPS_NAV)] if "G" in systems else [])]
@@ -48,10 +57,11 @@ def main() -> None:
     bds = [e.toe_sow_s for e in store.all() if e.prn.startswith("C")]
     mid = float(np.median(bds)) + 14.0  # BDT -> GPST
     t0 = time.perf_counter()
-    summary = run(store, iono, GPST_WEEK, (mid - 3600.0, mid + 3600.0), n, seed)
+    summary = run(store, iono, GPST_WEEK, (mid - 3600.0, mid + 3600.0), n, seed, ccfg=ccfg)
     wall = time.perf_counter() - t0
     print(
-        f"bench_coarse_mc: {n} trials, seed {seed}, systems {systems}, "
+        f"bench_coarse_mc: {n} trials, seed {seed}, systems {systems}, time prior "
+        f"{ccfg.time_prior_s:g} s, "
         f"{1e3 * wall / n:.1f} ms per trial"
     )
     for key, value in summary.figures().items():
