@@ -180,3 +180,40 @@ def test_tst_whole_drive_with_gps_availability_and_never_a_wrong_integer():
     assert with_gps >= 0.9 * fixed
     assert with_truth >= 350
     assert beyond <= 0.01 * with_truth
+
+
+PHONE_PERIODS_S = {"C": (1e-3, 2e-3, 0.02), "G": (1e-3, 0.02, 6.0), "E": (4e-3, 0.1, 2.0)}
+"""Periods a phone's states give (drivers/gnsslogger.py): BeiDou code, D2 bit, D1 bit; GPS
+code, bit, subframe; Galileo E1 code, secondary code, page."""
+
+
+@pytest.mark.parametrize("k", [0, 1])
+def test_mixed_periods_within_each_system(hksc, k):
+    """Each system's rows known modulo different periods (a phone's states): each integer
+    counts its own period, each system's reference row is its longest period's, and the
+    whole periods are resolved (BeiDou's 20 ms from the solved time, then GPS's 6 s and
+    Galileo's 2 s through their clocks): every integer absolute and right, the fix SPP of
+    the file's full ranges, the recovered ranges the file's, with or without a full GEO."""
+    store, iono, epochs = hksc
+    for ep, ref in epochs[::5]:
+        geos = [p for p in ep.prn if is_geo(p) and np.isfinite(ep.pr_m[ep.prn.index(p)])][:k]
+        count: dict[str, int] = {}
+        period = []
+        for p in ep.prn:
+            i = count[p[:1]] = count.get(p[:1], -1) + 1
+            period.append(1e-3 if p in geos else PHONE_PERIODS_S[p[:1]][i % 3])
+        per = np.array(period)
+        full = np.array([p in geos for p in ep.prn])
+        fe = replace(
+            ep,
+            pr_m=np.where(full, ep.pr_m, np.nan),
+            frac_pr_m=np.mod(ep.pr_m, C_M_S * per),
+            period_s=per,
+        )
+        res = solve_coarse(fe, store, iono)
+        assert res.fix.ok and res.absolute
+        truth = _true_integers(ep, fe)
+        assert res.integers == truth
+        assert np.linalg.norm(np.subtract(res.fix.x_ecef_m, ref.x_ecef_m)) <= 1e-5
+        for prn, pr in res.fix.recovered_pr_m.items():
+            assert pr == pytest.approx(ep.pr_m[ep.prn.index(prn)], abs=1e-6)
