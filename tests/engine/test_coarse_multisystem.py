@@ -217,3 +217,31 @@ def test_mixed_periods_within_each_system(hksc, k):
         assert np.linalg.norm(np.subtract(res.fix.x_ecef_m, ref.x_ecef_m)) <= 1e-5
         for prn, pr in res.fix.recovered_pr_m.items():
             assert pr == pytest.approx(ep.pr_m[ep.prn.index(prn)], abs=1e-6)
+
+
+def test_mixed_periods_beidou_alone_every_range_fractional(hksc):
+    """BeiDou alone, every range fractional, modulo 1, 2 and 20 ms in turn: a coarse-time
+    fix with the right integers (relative to the 20 ms reference row: the 20 ms whole
+    period is in doubt at 4 sigma of the solved time), centimetres from SPP. Before each
+    system's integers were taken relative to its longest period's row, the first row's
+    integer was subtracted from every row's, a whole shift only when all periods are
+    equal: no candidate converged and such an epoch was declined ``too_few_rows``."""
+    store, iono, epochs = hksc
+    for ep, _ in epochs[::5]:
+        ep = ep.rows([i for i, p in enumerate(ep.prn) if p[:1] == "C"])
+        ref = solve(ep, store, iono, SolverConfig(), "spp")
+        per = np.array([PHONE_PERIODS_S["C"][i % 3] for i in range(len(ep.prn))])
+        fe = replace(
+            ep,
+            pr_m=np.full(len(ep.prn), np.nan),
+            frac_pr_m=np.mod(ep.pr_m, C_M_S * per),
+            period_s=per,
+        )
+        res = solve_coarse(fe, store, iono)
+        assert res.fix.ok and res.fix.method == COARSE_TIME
+        truth = _true_integers(ep, fe)
+        ref_row = next(p for p, t in zip(fe.prn, per, strict=True) if t == 0.02)
+        for p, n in res.integers.items():
+            scale = 0 if res.absolute else round(0.02 / per[fe.prn.index(p)])
+            assert n == truth[p] - truth[ref_row] * scale
+        assert np.linalg.norm(np.subtract(res.fix.x_ecef_m, ref.x_ecef_m)) <= 0.5
