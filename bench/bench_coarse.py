@@ -23,8 +23,15 @@ Times: wall (perf_counter) and CPU (process_time) per epoch of solve_coarse, the
 with a full row, the SPP of the full ranges it makes; the machine is shared, so the wall
 time's tail is mostly other processes (the CPU time is this process's own).
 
-Run: python bench/bench_coarse.py [--quick] [--drive]   (prints figures; no assertions;
---drive: the whole drive only)
+Systems: BeiDou, GPS and Galileo rows (each system's clock its own, GPS and Galileo ranges
+reduced modulo their own code periods, 1 ms and 4 ms) with ``--systems CGE`` (the default;
+the drive has no Galileo navigation file, so its Galileo rows go unused); ``--systems C``:
+BeiDou alone. The whole drive's availability is given over both denominators: the epochs
+where SPP of the file's full ranges fixes with the systems read, and with BeiDou alone
+(the denominator of the BeiDou-only figures).
+
+Run: python bench/bench_coarse.py [--quick] [--drive] [--systems CGE]   (prints figures; no
+assertions; --drive: the whole drive only)
 """
 
 from __future__ import annotations
@@ -51,7 +58,8 @@ from service.engine.coarse import CoarseConfig, plain_chain, solve_coarse  # noq
 from service.engine.solver import SolverConfig, fractionalize, solve  # noqa: E402
 
 HKSC = ROOT.parent / "shared" / "data" / "hksc-2021"
-CT_M = C_M_S * 1e-3
+SYSTEMS = sys.argv[sys.argv.index("--systems") + 1] if "--systems" in sys.argv else "CGE"
+TST_NAVS = [TST / "hksc1180.19b", *([TST / "hksc1180.19n"] if "G" in SYSTEMS else [])]
 
 
 @dataclass
@@ -83,24 +91,37 @@ def restarted(ep, k: int, shift_s: float):
 
 
 def true_integers(ep, fe, shift_s: float) -> dict[str, int]:
+    """Each row's integer in units of its own code period (``fe.period_s``)."""
     full = dict(zip(ep.prn, ep.pr_m.tolist(), strict=True))
-    frac = dict(zip(fe.prn, fe.frac_pr_m.tolist(), strict=True))
-    return {p: round((full[p] + shift_s * C_M_S - frac[p]) / CT_M) for p in fe.prn}
+    rows = zip(fe.prn, fe.frac_pr_m.tolist(), fe.period_s.tolist(), strict=True)
+    return {
+        p: round((full[p] + shift_s * C_M_S - f) / (C_M_S * t))
+        for p, f, t in rows
+        if math.isfinite(t)
+    }
+
+
+def relative_wrong(ints: dict[str, int], truth: dict[str, int]) -> bool:
+    """Integers known only relative within each system (a whole period of a system without
+    a full row is in its clock): wrong if a difference to the system's first row is."""
+    first: dict[str, str] = {}
+    for p in ints:
+        first.setdefault(p[:1], p)
+    return any(ints[p] - ints[first[p[:1]]] != truth[p] - truth[first[p[:1]]] for p in ints)
 
 
 def integers_wrong(result, truth: dict[str, int]) -> bool:
     ints = result.integers or {}
     if result.absolute:
         return any(ints[p] != truth[p] for p in ints)
-    ref = next(iter(ints))
-    return any(ints[p] != truth[p] - truth[ref] for p in ints)
+    return relative_wrong(ints, truth)
 
 
-def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
-    store, iono = load_navigation([str(nav)])
+def run(name, obs, navs, k, shift_s, truth_of=None, quick=False) -> Tally:
+    store, iono = load_navigation([str(n) for n in navs], systems=SYSTEMS)
     cfg, ccfg = SolverConfig(), CoarseConfig()
     t = Tally()
-    for i, ep in enumerate(RinexObsReader(obs)):
+    for i, ep in enumerate(RinexObsReader(obs, systems=SYSTEMS)):
         if quick and i % 10:
             continue
         truth = truth_of(ep) if truth_of else None
@@ -120,8 +141,7 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
         if plain is not None:
             t.plain_fixes += 1
             x_p, ints_p = plain
-            ref0 = next(iter(ints_p))
-            t.plain_wrong += any(ints_p[p] - ints_p[ref0] != tru[p] - tru[ref0] for p in ints_p)
+            t.plain_wrong += relative_wrong(ints_p, tru)
             e_km = float(np.linalg.norm(x_p - np.asarray(ref.x_ecef_m))) / 1e3
             t.plain_err_km.append(e_km)
             t.plain_far += e_km > 1.0
@@ -134,6 +154,7 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
         t.absolute += res.absolute
         t.wrong += integers_wrong(res, tru)
         left_out = [p for p, why in fix.excluded.items() if why == excluded_why("coarse")]
+        left_out += [p for p in ep.prn if p not in res.rows]  # (BeiDou alone: the fallback)
         if left_out:  # SPP of the full ranges of the satellites the fix kept
             kept = [i for i, p in enumerate(ep.prn) if p not in left_out]
             sub = replace(
@@ -148,9 +169,10 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
                 lock_s=ep.lock_s[kept],
             )
             ref = solve(sub, store, iono, cfg, "spp")
-        d = float(np.linalg.norm(np.subtract(fix.x_ecef_m, ref.x_ecef_m)))
-        t.diff_m.append(d)
-        t.eq_1mm += d <= 1e-3
+        if ref.ok:  # (SPP of the kept satellites may itself decline)
+            d = float(np.linalg.norm(np.subtract(fix.x_ecef_m, ref.x_ecef_m)))
+            t.diff_m.append(d)
+            t.eq_1mm += d <= 1e-3
         if truth is not None:
             lat, lon, _ = ecef_to_geodetic(truth)
             e = enu_rotation(lat, lon) @ np.subtract(fix.x_ecef_m, truth)
@@ -183,16 +205,21 @@ def run(name, obs, nav, k, shift_s, truth_of=None, quick=False) -> Tally:
 
 def whole_drive(truth: dict, quick: bool = False) -> None:
     """Every epoch of the TST drive where SPP fixes, k = 0 (module docstring)."""
-    store, iono = load_navigation([str(TST / "hksc1180.19b")])
+    store, iono = load_navigation([str(n) for n in TST_NAVS], systems=SYSTEMS)
     cfg, ccfg = SolverConfig(), CoarseConfig()
     n = fixed = wrong = with_truth = beyond = 0
+    n_bds = fixed_bds = 0  # over the epochs where BeiDou-alone SPP fixes
+    bds = [p for p in ("C",) if p in SYSTEMS]
     epochs: dict[int, int] = {}
     fixes: dict[int, int] = {}
     declines: dict[tuple[str, int], int] = {}
-    for i, ep in enumerate(RinexObsReader(TST / "COM3_190428_124409.obs")):
+    for i, ep in enumerate(RinexObsReader(TST / "COM3_190428_124409.obs", systems=SYSTEMS)):
         if quick and i % 10:
             continue
         ref = solve(ep, store, iono, cfg, "spp")
+        only = [j for j, p in enumerate(ep.prn) if p[:1] in bds]
+        bds_ok = solve(ep.rows(only), store, iono, cfg, "spp").ok if only else False
+        n_bds += bds_ok
         if not ref.ok:
             continue
         n += 1
@@ -205,6 +232,7 @@ def whole_drive(truth: dict, quick: bool = False) -> None:
             declines[key] = declines.get(key, 0) + 1
             continue
         fixed += 1
+        fixed_bds += bds_ok
         fixes[m] = fixes.get(m, 0) + 1
         wrong += integers_wrong(res, true_integers(ep, fe, 0.0))
         x_true = truth.get((ep.gpst_week, round(ep.gpst_tow_s)))
@@ -215,7 +243,9 @@ def whole_drive(truth: dict, quick: bool = False) -> None:
             beyond += res.fix.hpl_m is not None and math.hypot(e[0], e[1]) > res.fix.hpl_m
     print(
         f"TST whole drive k=0: {fixed}/{n} fixed ({100 * fixed / max(n, 1):.1f} %), wrong "
-        f"integers {wrong}, {beyond} of {with_truth} fixes with truth beyond HPL"
+        f"integers {wrong}, {beyond} of {with_truth} fixes with truth beyond HPL (systems "
+        f"{SYSTEMS}); over the {n_bds} epochs where BeiDou-alone SPP fixes: {fixed_bds} fixed "
+        f"({100 * fixed_bds / max(n_bds, 1):.1f} %)"
     )
     print("  satellites SPP used: epochs / fixed / declines")
     for m in sorted(epochs):
@@ -235,12 +265,12 @@ def main() -> None:
 
     for k in (0, 1, 2, 3):
         for shift in (0.0, 2.0, -2.0):
-            run("HKSC", HKSC / "hksc1610.obs", HKSC / "hksc1610.nav", k, shift, quick=quick)
+            run("HKSC", HKSC / "hksc1610.obs", [HKSC / "hksc1610.nav"], k, shift, quick=quick)
     for k in (0, 1, 2, 3):
         run(
             "TST",
             TST / "COM3_190428_124409.obs",
-            TST / "hksc1180.19b",
+            TST_NAVS,
             k,
             0.0,
             tst_truth,

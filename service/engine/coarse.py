@@ -15,28 +15,41 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
 2. **Candidate integer sets** (:func:`solve_coarse`). A hexagonal grid of prior hypotheses on
    the ellipsoid, spacing ``grid_step_m``, out to ``search_radius_m`` around the Doppler
    position; at each point the nearest-satellite rule predicts every range and rounds
-   N_j = round((rho_j + b - z_j) / (c T_j)), b taken from the full rows, or (none) from the
-   nearest satellite. A hypothesis within step / sqrt(3) of the truth rounds every integer
-   right: the range differences it predicts are wrong by at most
-   |e_j - e_r| |dx| <= 2 * 29 km, plus 20 km of height and 3.2 km of a 2 s time error,
-   well inside c T / 2. The distinct integer vectors are the candidates.
-3. **Coarse-time solve** of each candidate: unknowns x, b and the receive-time offset dt
-   (true receive time = tag + dt), rows [-e_j^T, 1, rdot_j] with rdot_j = e_j . V_j the
+   N_j = round((rho_j + b_s - z_j) / (c T_j)), each in units of its own period T_j (1 ms
+   B1I and GPS C/A, 4 ms Galileo E1, or a phone's longer one), b_s the clock of the row's
+   system s taken from its full rows, or (none) from its nearest satellite. A system with
+   no full row has a null space: its clock absorbs a shift of all its ranges by its
+   longest period L (each N_j by L / T_j at once), so its integers are taken relative to
+   its reference row, the row of that period (one integer fixed per system:
+   :func:`_relative`; BeiDou alone, the millisecond common to every range). A hypothesis
+   within step / sqrt(3) of the truth rounds every integer right: the range differences
+   (within a system) it predicts are wrong by at most |e_j - e_r| |dx| <= 2 * 29 km, plus
+   20 km of height and 3.2 km of a 2 s time error, well inside c T / 2. The distinct
+   integer vectors are the candidates.
+3. **Coarse-time solve** of each candidate: unknowns x, one clock b_s per system (BeiDou's,
+   GPS's, Galileo's: each inter-system bias unknown; the layout's, ``Layout(systems,
+   coarse_time=True)``) and the receive-time offset dt (true receive time = tag + dt), rows
+   [-e_j^T, one-hot of the row's clock, rdot_j] with rdot_j = e_j . V_j the
    satellite's range rate (van Diggelen's coarse-time row), the satellites at
    tag + dt - rho_j / c (each one's position interpolated to second order over the time
    prior), Klobuchar and Saastamoinen delays and the weights of the solver's error model
    (:func:`service.engine.solver.measurement_sigma_m`), and the time prior
    dt = 0 +- ``time_prior_s`` as one more row.
-4. **Validation.** A candidate passes when its rows' redundancy (rows - 5) is at least
+4. **Validation.** A candidate passes when its redundancy (rows + the time prior's row -
+   the layout's parameters, 3 + systems + 1) is at least
    ``min_redundancy`` and its weighted residuals pass the chi-square test at the solver's
    ``p_fa`` (:func:`service.engine.raim.chi2_threshold`), at a plausible place: height in
    [``alt_min_m``, ``alt_max_m``], |dt| within the prior, every tracked satellite above
    ``-horizon_deg``. It is published only if no other plausible candidate has a statistic
    below ``uniqueness_margin`` times its own threshold; else the epoch is declined
-   ``ambiguous``.
+   ``ambiguous`` (integer sets compared system by system, relative within a system
+   without a full row: :func:`_agree`). With several systems and no candidate passing
+   (``chi2``), BeiDou's rows alone are solved and judged the same way.
 5. **The fix.** Only a winner that passed steps 3-4 (or their fault exclusion) is
    published. When its integers are absolute (a full row anchors them, or the solved time
-   leaves no doubt about the millisecond common to every range), they make full ranges and
+   leaves no doubt about the millisecond common to every range; a further system through
+   its clock's difference to an absolute one, the inter-system bias, within ``isb_max_m``:
+   :func:`_absolute`), they make full ranges and
    the fix is the solver's own SPP of them (:func:`spp_at_receive_time`: all of
    :func:`service.engine.solver.solve`'s corrections, FDE and protection levels) with tag
    and ranges moved together to the receive time, the coarse solution's clock first, then
@@ -52,7 +65,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -64,6 +77,7 @@ from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
+from service.core.systems import GnssSystem, system_of
 from service.core.timebase import gpst_to_bdt, normalize
 from service.core.types import Ephemeris, Fix, MeasurementEpoch
 from service.engine.layout import Layout
@@ -85,20 +99,25 @@ log = logging.getLogger(__name__)
 COARSE_TIME = "coarse_time"
 """``Fix.method`` of a fix made here (the paper's fast fix and SPP leave it None)."""
 COARSE_LAYOUT = Layout(coarse_time=True)
+"""The layout of a BeiDou-only candidate: x, y, z, the clock and the coarse-time offset."""
 
-N_PARAMS = 5
-"""Unknowns of a candidate's solve: x, y, z, the clock and the coarse-time offset (the
-position layout with ``coarse_time=True``, BeiDou alone: :class:`service.engine.layout.Layout`)."""
+N_PARAMS = COARSE_LAYOUT.n_params
+"""Unknowns of a BeiDou-only candidate's solve: x, y, z, the clock and the coarse-time
+offset; with GPS or Galileo rows, one clock more per extra system
+(:attr:`service.engine.layout.Layout.n_params` of the rows' coarse-time layout)."""
 PRIOR_ROWS = 1
 """Pseudo-observations of a candidate's solve: the time prior dt = 0 +- ``time_prior_s``
 (the host clock's tag, an observation with its own sigma). Its term is in the chi-square
-statistic, so it counts in the redundancy: rows + PRIOR_ROWS - N_PARAMS."""
+statistic, so it counts in the redundancy: rows + PRIOR_ROWS - parameters."""
+CODED_SYSTEMS = frozenset({GnssSystem.BDS, GnssSystem.GPS, GnssSystem.GAL})
+"""The systems whose rows the coarse-time fix takes (a clock each)."""
 
 
-def min_rows(ccfg: CoarseConfig | None = None) -> int:
-    """Range rows the coarse-time fix needs: redundancy ``min_redundancy`` with the time
-    prior's row (6 satellites at the default 2)."""
-    return N_PARAMS + (ccfg or CoarseConfig()).min_redundancy - PRIOR_ROWS
+def min_rows(ccfg: CoarseConfig | None = None, layout: Layout = COARSE_LAYOUT) -> int:
+    """Range rows the coarse-time fix needs with the coarse-time ``layout``: redundancy
+    ``min_redundancy`` with the time prior's row (6 satellites at the default 2 for
+    BeiDou alone, one more per extra system)."""
+    return layout.n_params + (ccfg or CoarseConfig()).min_redundancy - PRIOR_ROWS
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,6 +177,11 @@ class CoarseConfig:
     alt_max_m: float = 15_000.0
     horizon_deg: float = 5.0
     iterations: int = 7
+    multi_system: bool = True
+    """Take GPS and Galileo rows beside BeiDou (a clock each); False: BeiDou alone."""
+    isb_max_m: float = 3_000.0
+    """Largest inter-system bias [m] (10 us) with which an extra system's whole code
+    period is resolved against the anchor system's clock (module docstring, step 5)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -193,13 +217,18 @@ class CoarseResult:
     absolute: bool = False
     """The integers are absolute (full rows anchor them, or the solved time resolved the
     common millisecond): the fix is SPP of the full ranges they make. Else ``integers`` are
-    relative to the first fractional satellite and the fix is the coarse-time solution."""
+    each system's relative to its reference row (its fractional row of the longest period,
+    the first such; integer 0) and the fix is the coarse-time solution."""
+    rows: tuple[str, ...] = ()
+    """The satellites whose rows the search solved (before its fault exclusion): every
+    system's, or BeiDou's alone when that was the fallback (module docstring, step 4)."""
 
 
 @dataclass(slots=True, eq=False)
 class _Sats:
     """The rows of one epoch with their satellites' states, as second-order polynomials of
-    time about ``t0`` (BDT sow): position, velocity and clock."""
+    time about ``t0`` (BDT sow): position, velocity and clock; ``layout`` (one clock per
+    system, coarse time) and ``clk``, each row's clock index in it."""
 
     prn: tuple[str, ...]
     z_m: np.ndarray
@@ -215,6 +244,8 @@ class _Sats:
     c1: np.ndarray
     c2: np.ndarray
     drift_s_s: np.ndarray
+    layout: Layout = COARSE_LAYOUT
+    clk: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
 
     def at(self, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions (..., n, 3), velocities and clocks (..., n) at t0 + ``tau_s`` (..., n)."""
@@ -224,24 +255,86 @@ class _Sats:
         clk = self.c0 + (self.c1 + self.c2 * tau_s) * tau_s
         return pos, vel, clk
 
+    def systems(self) -> list[tuple[int, np.ndarray, bool, int, float]]:
+        """Per clock of the layout that has rows: its index, its rows, whether one of
+        them is full, its reference row (the fractional row of the longest period, the
+        first such) and that period times c [m] (0 with a full row): the system's
+        whole-period null space when none is full (module docstring, step 2)."""
+        out = []
+        frac = self.ct_m > 0
+        for s in range(self.layout.n_clocks):
+            rows = np.flatnonzero(self.clk == s)
+            if not len(rows):
+                continue
+            has_full = bool((~frac[rows]).any())
+            ref = int(rows[np.argmax(self.ct_m[rows])])
+            out.append((s, rows, has_full, ref, 0.0 if has_full else float(self.ct_m[ref])))
+        return out
+
+
+def _relative(sats: _Sats, n_int: np.ndarray) -> np.ndarray:
+    """Integer vectors ``n_int`` (..., n) with the null space of each system without a full
+    row removed: its clock absorbs a shift of its rows by a whole reference period c L
+    (every integer N_j by L / T_j at once), so each such system's integers are taken
+    relative to its reference row (that row's integer 0): one integer fixed per system."""
+    out = np.array(n_int, dtype=float)
+    for _, rows, has_full, ref, ct_ref in sats.systems():
+        if has_full:
+            continue
+        scale = np.round(ct_ref / sats.ct_m[rows])
+        out[..., rows] = out[..., rows] - out[..., ref : ref + 1] * scale
+    return out
+
 
 def _sats(
-    epoch: MeasurementEpoch, store: EphemerisStore, bdt_week: int, bdt_sow: float, span_s: float
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    bdt_week: int,
+    bdt_sow: float,
+    span_s: float,
+    multi_system: bool = True,
 ) -> _Sats | None:
-    """The BeiDou rows of ``epoch`` with an ephemeris and a full or fractional range."""
+    """The rows of ``epoch`` with an ephemeris and a full or fractional range: BeiDou's, and
+    with ``multi_system`` GPS's and Galileo's, of each system that has two rows or more (a
+    system's single row only sets its own clock). A fractional row whose period does not
+    divide its system's longest is left out (its integer has no whole-period relation to
+    the reference row's)."""
     idx: list[int] = []
     ephs: list[Ephemeris] = []
     full = np.isfinite(epoch.pr_m)
     frac = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
+    letters = {GnssSystem.BDS.value}
+    if multi_system:
+        letters = {s.value for s in CODED_SYSTEMS}
     for i in np.flatnonzero(full | frac).tolist():
-        if not epoch.prn[i].startswith("C"):
+        if epoch.prn[i][:1] not in letters:
             continue
         e = store.select(epoch.prn[i], bdt_week, bdt_sow)
         if e is not None:
             idx.append(i)
             ephs.append(e)
-    if not idx:
+    # the longest period of each system's fractional rows; rows of a period not dividing it
+    # out, then systems of a single row out
+    longest: dict[str, float] = {}
+    for i in idx:
+        if frac[i]:
+            p = epoch.prn[i][:1]
+            longest[p] = max(longest.get(p, 0.0), float(epoch.period_s[i]))
+    keep = []
+    for i, e in zip(idx, ephs, strict=True):
+        if frac[i]:
+            ratio = longest[epoch.prn[i][:1]] / float(epoch.period_s[i])
+            if abs(ratio - round(ratio)) > 1e-6:
+                continue
+        keep.append((i, e))
+    count: dict[str, int] = {}
+    for i, _ in keep:
+        count[epoch.prn[i][:1]] = count.get(epoch.prn[i][:1], 0) + 1
+    keep = [(i, e) for i, e in keep if count[epoch.prn[i][:1]] >= 2]
+    if not keep:
         return None
+    idx = [i for i, _ in keep]
+    ephs = [e for _, e in keep]
     ii = np.asarray(idx)
     arr = store.arrays(ephs)
     t0 = bdt_sow - NOMINAL_FLIGHT_TIME_S
@@ -249,8 +342,11 @@ def _sats(
     # the three times in one call (the ephemeris' arrays broadcast over the first axis)
     pos3, clk3 = sat_pos_clock(arr, bdt_week, t0 + h * np.array([-1.0, 0.0, 1.0])[:, None])
     (pm, pz, pp), (cm, cz, cp) = pos3, clk3
+    prn = tuple(epoch.prn[i] for i in idx)
+    present = {system_of(p[:1]) for p in prn}
+    layout = Layout(tuple(s for s in GnssSystem if s in present), coarse_time=True)
     return _Sats(
-        prn=tuple(epoch.prn[i] for i in idx),
+        prn=prn,
         z_m=np.where(full[ii], epoch.pr_m[ii], epoch.frac_pr_m[ii]),
         ct_m=np.where(full[ii], 0.0, C_M_S * epoch.period_s[ii]),
         cn0_dbhz=epoch.cn0_dbhz[ii],
@@ -264,6 +360,8 @@ def _sats(
         c1=(cp - cm) / (2 * h),
         c2=(cp - 2 * cz + cm) / (2 * h * h),
         drift_s_s=(cp - cm) / (2 * h),  # exact for the clock polynomial (ICD 5.2.4.10)
+        layout=layout,
+        clk=layout.clock_index(prn),
     )
 
 
@@ -434,37 +532,43 @@ def _unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _round(sats: _Sats, pts: np.ndarray) -> np.ndarray:
-    """The integer vector (m, n) the nearest-satellite rule gives at each hypothesis: full
-    rows (N = 0) fix the clock where there are any, else the nearest satellite does."""
+    """The integer vector (m, n) the nearest-satellite rule gives at each hypothesis, each
+    system's clock on its own: where a system has full rows (N = 0) they fix its clock,
+    else its nearest satellite does (its integers then relative: :func:`_relative`)."""
     n = len(sats.prn)
-    sat = np.broadcast_to(sats.p0, (len(pts), n, 3))
-    clk = np.broadcast_to(sats.c0, (len(pts), n))
-    omega = np.broadcast_to(sats.eph.omega_e_rad_s, (len(pts), n))
+    m = len(pts)
+    sat = np.broadcast_to(sats.p0, (m, n, 3))
+    clk = np.broadcast_to(sats.c0, (m, n))
+    omega = np.broadcast_to(sats.eph.omega_e_rad_s, (m, n))
     _, pred, _ = ranges(sat, clk, pts, omega)
     frac = sats.ct_m > 0
     ct = np.where(frac, sats.ct_m, 1.0)
-    if (~frac).any():
-        b = np.median((sats.z_m - pred)[:, ~frac], axis=1)
-    else:
-        ref = np.argmin(pred, axis=1)
-        rows = np.arange(len(pts))
-        b = sats.z_m[ref] + np.round((pred[rows, ref] - sats.z_m[ref]) / ct[ref]) * ct[ref]
-        b = b - pred[rows, ref]
-    n_int = np.round((pred + b[:, None] - sats.z_m) / ct)
+    b = np.empty((m, sats.layout.n_clocks))
+    pts_idx = np.arange(m)
+    for s, rows, has_full, _, _ in sats.systems():
+        if has_full:
+            full_s = rows[~frac[rows]]
+            b[:, s] = np.median((sats.z_m - pred)[:, full_s], axis=1)
+        else:
+            ref = rows[np.argmin(pred[:, rows], axis=1)]
+            z_ref, ct_ref = sats.z_m[ref], ct[ref]
+            p_ref = pred[pts_idx, ref]
+            b[:, s] = z_ref + np.round((p_ref - z_ref) / ct_ref) * ct_ref - p_ref
+    n_int = np.round((pred + b[:, sats.clk] - sats.z_m) / ct)
     return np.where(frac, n_int, 0.0)
 
 
 @dataclass(slots=True, eq=False)
 class _Solved:
     x: np.ndarray  # (k, 3)
-    b: np.ndarray  # (k,)
+    b: np.ndarray  # (k, S): a clock per system of the layout
     dt: np.ndarray  # (k,)
     t_stat: np.ndarray  # (k,)
     dof: np.ndarray  # (k,)
     alt: np.ndarray  # (k,)
     min_el_rad: np.ndarray  # (k,)
-    normal: np.ndarray  # (k, 5, 5) the last normal matrix (with the time prior)
-    design: np.ndarray  # (k, n, 5) at the solution
+    normal: np.ndarray  # (k, P, P) the last normal matrix (with the time prior)
+    design: np.ndarray  # (k, n, P) at the solution: x, y, z, S clocks, the time
     resid_m: np.ndarray  # (k, n)
     weight: np.ndarray  # (k, n): 1 / sigma^2, 0 below the mask
 
@@ -488,24 +592,35 @@ def _solve_candidates(
     rows, its own convergence test, frozen once it has converged; a left-out row weighs 0
     and counts nowhere (redundancy, elevation, statistic)."""
     k, n = n_int.shape
+    n_clk = sats.layout.n_clocks
+    i_t = 3 + n_clk  # the coarse-time column
+    onehot = np.zeros((n, n_clk))
+    onehot[np.arange(n), sats.clk] = 1.0
     p = sats.z_m + n_int * sats.ct_m  # (k, n)
     omega = np.broadcast_to(sats.eph.omega_e_rad_s, (k, n))
-    model = iono.model(cfg.iono)
+    # each row's system's ionosphere, as the solver's (IonoSet.models: BeiDou's set for
+    # BeiDou rows, GPS's for GPS and Galileo rows), each on its own carrier
+    models = iono.models(cfg.iono)
+    model = None if models is None else models.bds
+    other = None
+    if models is not None and models.other is not model and not bool(np.all(sats.eph.bds)):
+        other = models.other
+    no_tropo = replace(cfg, tropo="off")
     x = x0.copy()
     dt = np.zeros(k)
     rel = bdt_sow - sats.t0  # the tag's receive time, from t0
-    # the clock from the first geometry
+    # the clocks from the first geometry: each system's median over its (used) rows
     pos, _, clk = sats.at(np.full((k, n), rel - NOMINAL_FLIGHT_TIME_S))
     _, pred, _ = ranges(pos, clk, x, omega)
     if row_mask is None or group is None:
-        b = np.median(p - pred, axis=1)
         starts = np.zeros(1, dtype=int)
+        if n_clk == 1:
+            b = np.median(p - pred, axis=1)[:, None]
+        else:
+            b = _clock_medians(p - pred, None, sats.clk, n_clk)
     else:
         starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
-        b = np.empty(k)
-        for s0, s1 in zip(starts.tolist(), [*starts[1:].tolist(), k], strict=True):
-            cols = np.flatnonzero(row_mask[s0])
-            b[s0:s1] = np.median((p - pred)[s0:s1][:, cols], axis=1)
+        b = _clock_medians(p - pred, row_mask, sats.clk, n_clk)
     batched = len(starts) > 1 or row_mask is not None
     active = np.ones(k, dtype=bool)
     w_prior = 1.0 / ccfg.time_prior_s**2
@@ -515,6 +630,7 @@ def _solve_candidates(
     alt = np.zeros(k)
     v = np.zeros((k, n))
     w = np.ones((k, n))
+    diag = np.arange(3, i_t)
     for it in range(ccfg.iterations):
         d = pos - x[:, None, :]
         tau = np.sqrt(np.einsum("kni,kni->kn", d, d)) / C_M_S
@@ -531,22 +647,29 @@ def _solve_candidates(
             az = np.arctan2(enu[..., 0], enu[..., 1])
         if near:
             io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
+            if other is not None:  # GPS and Galileo rows: their own broadcast model
+                io_o, _ = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, other, no_tropo)
+                if io is not None and io_o is not None:
+                    io = np.where(sats.eph.bds, io, io_o)
             corr = total_delay(io, tr)
             sigma = measurement_sigma_m(el, sats.cn0_dbhz, io, tr, cfg)
             w = np.where(enu[..., 2] >= mask_sin, 1.0 / sigma**2, 0.0)
         else:
             corr = 0.0
             w = np.full((k, n), 1e-2)
-        v = p - pred - b[:, None] - corr
+        v = p - pred - b[:, sats.clk] - corr
         if row_mask is not None:
             w = np.where(row_mask, w, 0.0)
             v = np.where(row_mask, v, 0.0)
-        h = np.concatenate([-los, np.ones((k, n, 1)), rdot[..., None]], axis=-1)
+        h = np.concatenate([-los, np.broadcast_to(onehot, (k, n, n_clk)), rdot[..., None]], axis=-1)
         hw = h * w[..., None]
         normal = np.einsum("kni,knj->kij", hw, h)
-        normal[:, 4, 4] += w_prior
+        normal[:, i_t, i_t] += w_prior
+        if n_clk > 1:  # a system with no row left (the mask): its clock held where it is
+            empty = (w > 0).astype(float) @ onehot == 0.0  # (k, S)
+            normal[:, diag, diag] += empty
         rhs = np.einsum("kni,kn->ki", hw, v)
-        rhs[:, 4] += w_prior * (0.0 - dt)
+        rhs[:, i_t] += w_prior * (0.0 - dt)
         try:
             step = np.linalg.solve(normal, rhs[..., None])[..., 0]
         except np.linalg.LinAlgError:
@@ -555,28 +678,28 @@ def _solve_candidates(
             )
         if not batched:
             x = x + step[:, :3]
-            b = b + step[:, 3]
-            dt = dt + step[:, 4]
+            b = b + step[:, 3:i_t]
+            dt = dt + step[:, i_t]
             # converged with the corrections on: the steps shrink quadratically (HKSC:
             # 30 km, 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is < 0.1 mm
-            moved = np.abs(step[:, :4]).max(initial=0.0)
-            moved += 1e3 * np.abs(step[:, 4]).max(initial=0.0)
+            moved = np.abs(step[:, :i_t]).max(initial=0.0)
+            moved += 1e3 * np.abs(step[:, i_t]).max(initial=0.0)
             if it >= 2 and moved < 0.05:
                 break
             continue
         # several groups: the frozen ones keep their state and last figures
         step = np.where(active[:, None], step, 0.0)
         x = x + step[:, :3]
-        b = b + step[:, 3]
-        dt = dt + step[:, 4]
+        b = b + step[:, 3:i_t]
+        dt = dt + step[:, i_t]
         if it == 0:
             out = [v, w, h, normal, el, np.asarray(alt)]
         else:
             now = [v, w, h, normal, el, np.asarray(alt)]
             out = [np.where(_cast(active, o), a, o) for a, o in zip(now, out, strict=True)]
         if it >= 2:
-            moved_g = np.maximum.reduceat(np.abs(step[:, :4]).max(axis=1), starts)
-            moved_g = moved_g + 1e3 * np.maximum.reduceat(np.abs(step[:, 4]), starts)
+            moved_g = np.maximum.reduceat(np.abs(step[:, :i_t]).max(axis=1), starts)
+            moved_g = moved_g + 1e3 * np.maximum.reduceat(np.abs(step[:, i_t]), starts)
             done = np.repeat(moved_g < 0.05, np.diff(np.r_[starts, k]))
             active &= ~done
             if not active.any():
@@ -584,9 +707,34 @@ def _solve_candidates(
     if batched:
         v, w, h, normal, el, alt = out
     t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
-    dof = (w > 0).sum(axis=1) + PRIOR_ROWS - N_PARAMS
+    # rows + the prior's row - the parameters: position, the time and a clock per system
+    # with rows (Layout.redundancy of the systems each candidate uses)
+    n_sys = ((w > 0).astype(float) @ onehot > 0).sum(axis=1)
+    dof = (w > 0).sum(axis=1) + PRIOR_ROWS - (4 + n_sys)
     min_el = el.min(axis=1) if row_mask is None else np.where(row_mask, el, np.inf).min(axis=1)
     return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), min_el, normal, h, v, w)
+
+
+def _clock_medians(
+    resid_m: np.ndarray, row_mask: np.ndarray | None, clk: np.ndarray, n_clk: int
+) -> np.ndarray:
+    """Each candidate's starting clocks (k, S): the median of each system's residuals
+    ``resid_m`` (k, n) over its rows (``row_mask``: the rows each candidate uses; 0 for a
+    system with none)."""
+    out = np.zeros((len(resid_m), n_clk))
+    for s in range(n_clk):
+        cols = clk == s
+        if not cols.any():
+            continue
+        r = resid_m[:, cols]
+        if row_mask is None:
+            out[:, s] = np.median(r, axis=1)
+            continue
+        m = row_mask[:, cols]
+        vals = np.where(m, r, np.nan)
+        has = m.any(axis=1)
+        out[has, s] = np.nanmedian(vals[has], axis=1)
+    return out
 
 
 def _cast(active: np.ndarray, like: np.ndarray) -> np.ndarray:
@@ -651,9 +799,32 @@ def _solve_coarse(
     cfg: SolverConfig,
     ccfg: CoarseConfig,
 ) -> CoarseResult:
+    """Every system's rows first; when no candidate of theirs passes (``chi2``: more rows,
+    more chances of two NLOS ranges, which one exclusion does not clear), BeiDou's alone,
+    judged on their own (module docstring, step 4). Its decline stands if that fails too."""
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-    sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s)
-    need = min_rows(ccfg)
+    sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s, ccfg.multi_system)
+    result = _solve_sats(epoch, sats, store, iono, cfg, ccfg)
+    if sats is None or sats.layout.n_clocks == 1 or result.fix.reason_code != Decline.CHI2:
+        return result
+    alone = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s, multi_system=False)
+    if alone is None:
+        return result
+    again = _solve_sats(epoch, alone, store, iono, cfg, ccfg)
+    return again if again.fix.ok else result
+
+
+def _solve_sats(
+    epoch: MeasurementEpoch,
+    sats: _Sats | None,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
+) -> CoarseResult:
+    """The coarse-time fix of the rows ``sats`` of ``epoch`` (module docstring, 1-5)."""
+    bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)[1]
+    need = min_rows(ccfg, COARSE_LAYOUT if sats is None else sats.layout)
     if sats is None or len(sats.prn) < need:
         have = 0 if sats is None else len(sats.prn)
         why = Declined.of(Decline.TOO_FEW_ROWS, rows=have, need=need)
@@ -665,17 +836,21 @@ def _solve_coarse(
     pts = hypotheses(
         prior.x_ecef_m, prior.q_en_m2, ccfg.search_sigmas, ccfg.search_radius_m, ccfg.grid_step_m
     )
-    n_all = _round(sats, pts)
+    # each system without a full row: its whole period goes into its clock (module
+    # docstring, step 2), its integers relative to its reference row
+    n_all = _relative(sats, _round(sats, pts))
     frac = sats.ct_m > 0
-    if not (~frac).any():  # the common millisecond goes into the clock (module docstring)
-        n_all = n_all - n_all[:, :1]
     cand, first = _unique_rows(n_all)
     x0 = pts[first]
     ev = _evaluate(sats, cand, x0, bdt_sow, iono, cfg, ccfg)
     n_cand, n_pass = len(cand), int(ev.passing.sum())
 
+    solved_rows = sats.prn
+
     def result(fix: Fix, **found: Any) -> CoarseResult:
-        return CoarseResult(fix, prior=prior, candidates=n_cand, passing=n_pass, **found)
+        return CoarseResult(
+            fix, prior=prior, candidates=n_cand, passing=n_pass, rows=solved_rows, **found
+        )
 
     excluded: dict[str, str] = {}
     if not ev.passing.any() and ccfg.coarse_max_exclusions > 0 and len(sats.prn) - 1 >= need:
@@ -694,7 +869,9 @@ def _solve_coarse(
         best_dof = int(solved.dof.max())
         if best_dof < ccfg.min_redundancy:
             why = Declined.of(
-                Decline.TOO_FEW_ROWS, rows=best_dof + N_PARAMS - PRIOR_ROWS, need=need
+                Decline.TOO_FEW_ROWS,
+                rows=best_dof + sats.layout.n_params - PRIOR_ROWS,
+                need=need,
             )
             return result(declined(epoch, why))
         why = Declined.of(Decline.CHI2, "coarse", candidates=len(cand))
@@ -706,25 +883,10 @@ def _solve_coarse(
             Decline.AMBIGUOUS, passing=int(passing.sum()), rivals=int(rivals.sum()) - 1
         )
         return result(declined(epoch, why))
-    n_best = cand[best]
-    p_full = sats.z_m + n_best * sats.ct_m
     dt = float(solved.dt[best])
-    b = float(solved.b[best])
-    absolute = bool((~frac).any())
-    if not absolute:
-        # the common millisecond from the time offset: the full ranges are p - K c T with
-        # K c T = b + c dt (the receiver clock is the tag's error); resolved when the
-        # solved time leaves no doubt about the millisecond (4 sigma inside half of it)
-        ct = float(sats.ct_m[frac][0])
-        k_float = (b + C_M_S * dt) / ct
-        shift = round(k_float)
-        sigma_dt = math.sqrt(max(float(_inv_diag(solved.normal[best])[4]), 0.0))
-        doubt = abs(k_float - shift) + 4.0 * C_M_S * sigma_dt / ct
-        if doubt < 0.5:
-            absolute = True
-            n_best = n_best - shift * frac
-            p_full = sats.z_m + n_best * sats.ct_m
-            b -= shift * ct  # the clock of these full ranges
+    n_best, b_all, absolute = _absolute(sats, cand[best], solved, best, ccfg)
+    b = float(b_all[0])  # the first system's clock (BeiDou's when it has rows)
+    p_full = sats.z_m + n_best * sats.ct_m
     fractional = tuple(p for p, f in zip(sats.prn, frac, strict=True) if f)
     integers = {p: int(k) for p, k, f in zip(sats.prn, n_best, frac, strict=True) if f}
     if absolute:
@@ -742,8 +904,6 @@ def _solve_coarse(
     else:
         fix = _coarse_fix(epoch, sats, solved, best, cfg)
         recovered = {}
-        ref = fractional[0]
-        integers = {p: k - integers[ref] for p, k in integers.items()}
     if fix.ok:
         # a row SPP's own FDE left out keeps its integer unpublished (never checked, never
         # a recovered range for the SOW check)
@@ -816,7 +976,28 @@ def _take(sats: _Sats, idx: np.ndarray) -> _Sats:
         c1=sats.c1[idx],
         c2=sats.c2[idx],
         drift_s_s=sats.drift_s_s[idx],
+        layout=sats.layout,
+        clk=sats.clk[idx],
     )
+
+
+def _agree(sats: _Sats, rows: list[int], a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether integer vectors ``a`` and ``b`` over the rows ``rows`` of ``sats`` are the
+    same set: system by system, absolutely where a full row among them anchors the
+    system's clock, else relative to the system's fractional row of the longest period
+    among them (each system's whole-period null space: :func:`_relative`)."""
+    idx = np.asarray(rows, dtype=int)
+    for s in np.unique(sats.clk[idx]).tolist():
+        pos = np.flatnonzero(sats.clk[idx] == s)
+        ct = sats.ct_m[idx[pos]]
+        aa, bb = np.asarray(a, dtype=float)[pos], np.asarray(b, dtype=float)[pos]
+        if (ct > 0).all():
+            ref = int(np.argmax(ct))
+            scale = np.round(ct[ref] / ct)
+            aa, bb = aa - aa[ref] * scale, bb - bb[ref] * scale
+        if np.any(aa != bb):
+            return False
+    return True
 
 
 def _exclude_one(
@@ -832,15 +1013,14 @@ def _exclude_one(
     row left out, the other rows, their candidates and evaluation of the best subset whose
     winner passes; None when no subset passes; a text (the rivals) when subsets disagree:
     a passing or rival solution of any subset whose integers differ from the winner's on
-    the rows both use (relative to a common fractional row when no row is full)."""
+    the rows both use (:func:`_agree`: system by system, relative to a common fractional
+    row where the system has no full row)."""
     n = len(sats.prn)
     subsets = []
     for j in range(n):
         keep = np.array([i for i in range(n) if i != j])
         sub = _take(sats, keep)
-        cj = cand[:, keep]
-        if not (sub.ct_m == 0).any():
-            cj = cj - cj[:, :1]
+        cj = _relative(sub, cand[:, keep])
         cj, first = _unique_rows(cj)
         subsets.append((j, keep, sub, cj, first))
     # every subset's candidates in one batch (each group solved as if alone), the left-out
@@ -887,46 +1067,96 @@ def _exclude_one(
     rivals = 0
     for j, keep, _, cj, ev in found:
         common = [i for i in keep.tolist() if i in win]
-        frac_common = [i for i in common if sats.ct_m[i] > 0]
-        # absolute integers only where a full row both use anchors them, else relative
-        absolute = len(frac_common) < len(common)
         cols = [keep.tolist().index(i) for i in common]
+        theirs = np.array([win[i] for i in common])
         for k in np.flatnonzero(ev.rivals | ev.passing).tolist():
             if j == jb and k == kb:
                 continue
-            mine = cj[k, cols]
-            theirs = np.array([win[i] for i in common])
-            if not absolute and frac_common:
-                r = common.index(frac_common[0])
-                mine, theirs = mine - mine[r], theirs - theirs[r]
-            if np.any(mine != theirs):
+            if not _agree(sats, common, cj[k, cols], theirs):
                 rivals += 1
     if rivals:
         return f"{rivals} (one row left out)"
     return (sats.prn[jb],), sub_b, cand_b, ev_b
 
 
+def _absolute(
+    sats: _Sats, n_rel: np.ndarray, solved: _Solved, best: int, ccfg: CoarseConfig
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The winner's integers made absolute where that is beyond doubt (module docstring,
+    step 5): its integers, its clocks (for the full ranges they make) and whether every
+    system's are absolute (else ``n_rel``, each system's relative to its reference row).
+
+    A system with a full row is absolute already. Without any, the first system (the
+    anchor, BeiDou when it has rows) takes its whole period K from the solved time: its
+    full ranges are p - K c L with K c L = b + c dt (the receiver clock is the tag's
+    error), resolved when the time leaves no doubt (4 sigma of dt inside half a period).
+    Every other system takes K from its clock's difference to an absolute system's, the
+    inter-system bias b_s - b_a - K c L, resolved when it is within ``isb_max_m`` with
+    4 sigma to spare (an inter-system bias is nanoseconds in a receiver, far below the
+    150 km of half a millisecond)."""
+    n_best = np.array(n_rel, dtype=float)
+    b = np.array(solved.b[best], dtype=float)
+    cov = None
+    groups = sats.systems()
+    done = {s for s, _, has_full, _, _ in groups if has_full}
+    i_t = 3 + sats.layout.n_clocks
+
+    def shift(s: int, rows: np.ndarray, ct_l: float, k: int) -> None:
+        nonlocal n_best
+        n_best = n_best.copy()
+        n_best[rows] -= k * np.round(ct_l / sats.ct_m[rows])
+        b[s] -= k * ct_l
+
+    if not done and groups:
+        s, rows, _, _, ct_l = groups[0]
+        k_float = (b[s] + C_M_S * float(solved.dt[best])) / ct_l
+        k = round(k_float)
+        sigma_dt = math.sqrt(max(float(_inv_diag(solved.normal[best])[i_t]), 0.0))
+        if abs(k_float - k) + 4.0 * C_M_S * sigma_dt / ct_l < 0.5:
+            shift(s, rows, ct_l, k)
+            done.add(s)
+    if not done:
+        return np.asarray(n_rel, dtype=float), np.asarray(solved.b[best], dtype=float), False
+    a = min(done)
+    for s, rows, has_full, _, ct_l in groups:
+        if s in done or has_full:
+            continue
+        if cov is None:
+            try:
+                cov = np.linalg.inv(solved.normal[best])
+            except np.linalg.LinAlgError:
+                break
+        g = np.zeros(len(cov))
+        g[3 + s], g[3 + a] = 1.0, -1.0
+        sigma = math.sqrt(max(float(g @ cov @ g), 0.0))
+        k = round((b[s] - b[a]) / ct_l)
+        isb = b[s] - b[a] - k * ct_l
+        if abs(isb) + 4.0 * sigma <= ccfg.isb_max_m:
+            shift(s, rows, ct_l, k)
+            done.add(s)
+    everything = len(done) == len(groups)
+    if not everything:
+        return np.asarray(n_rel, dtype=float), np.asarray(solved.b[best], dtype=float), False
+    return n_best, b, True
+
+
 def _coarse_fix(
     epoch: MeasurementEpoch, sats: _Sats, solved: _Solved, best: int, cfg: SolverConfig
 ) -> Fix:
     """The coarse-time solution itself as a fix (the common millisecond unresolved): the
-    winner's position, its integrity from the 5-column design (chi-square, protection
-    levels: :func:`service.engine.raim.assess` with the coarse-time layout), the PDOP gate."""
+    winner's position, its integrity from the coarse-time design (position, a clock per
+    system with rows above the mask, the time: chi-square, protection levels:
+    :func:`service.engine.raim.assess` with that coarse-time layout), the PDOP gate."""
     used = solved.weight[best] > 0
     x = solved.x[best]
     lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
     rot = enu_rotation(lat, lon)
     sigma = 1.0 / np.sqrt(solved.weight[best][used])
-    integ = assess(
-        solved.design[best][used],
-        solved.resid_m[best][used],
-        sigma,
-        rot,
-        cfg.p_fa,
-        cfg.p_md,
-        COARSE_LAYOUT,
-    )
-    g = solved.design[best][used]
+    with_rows = sorted({int(c) for c in sats.clk[used]})
+    layout = Layout(tuple(sats.layout.systems[c] for c in with_rows), coarse_time=True)
+    cols = [0, 1, 2, *(3 + c for c in with_rows), 3 + sats.layout.n_clocks]
+    g = solved.design[best][used][:, cols]
+    integ = assess(g, solved.resid_m[best][used], sigma, rot, cfg.p_fa, cfg.p_md, layout)
     pdop = math.sqrt(max(float(np.sum(_inv_diag(g.T @ g)[:3])), 0.0))
     if not pdop <= cfg.pdop_max:  # the geometry's, with the coarse-time column
         why = Declined.of(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
@@ -1045,12 +1275,13 @@ def sow_time_shift(epoch: MeasurementEpoch, store: EphemerisStore) -> float | No
     tag - pr / c (on the satellite's clock, whatever the receiver clock's error) plus its
     flight time, the middle of [a - R, sqrt(a^2 - R^2)] / c for the orbit's semi-major axis
     a (MEO 72-91 ms, IGSO/GEO 119-139 ms: at most 10 ms off; the search then keeps the
-    configured time prior, which holds that well inside). None without a full BeiDou range
-    whose satellite has an ephemeris."""
+    configured time prior, which holds that well inside; GPS 67-86 ms, Galileo 78-98 ms).
+    None without a full BeiDou, GPS or Galileo range whose satellite has an ephemeris."""
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     for i in np.flatnonzero(np.isfinite(epoch.pr_m)).tolist():
         prn = epoch.prn[i]
-        eph = store.select(prn, bdt_week, bdt_sow) if prn.startswith("C") else None
+        coded = prn[:1] in {s.value for s in CODED_SYSTEMS}
+        eph = store.select(prn, bdt_week, bdt_sow) if coded else None
         if eph is None:
             continue
         a = eph.sqrt_a_sqrt_m**2
@@ -1130,13 +1361,14 @@ def plain_chain(
     the Doppler position (height pseudo-observation 0), every integer rounded once at it
     against the nearest satellite, the five-state least squares, no test (Pocket SDR
     ``pocket_snap.py``: ``pos_dop``, ``res_coff_amb``, ``pos_coff``). Its position and
-    integers (relative to the first fractional row), or None without a Doppler position."""
+    integers (each system's relative to its reference row: :func:`_relative`), or None
+    without a Doppler position."""
     cfg = cfg or SolverConfig()
     ccfg = ccfg or CoarseConfig()
     with np.errstate(all="ignore"):
         bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-        sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s)
-        if sats is None or len(sats.prn) < N_PARAMS:
+        sats = _sats(epoch, store, bdt_week, bdt_sow, ccfg.time_prior_s, ccfg.multi_system)
+        if sats is None or len(sats.prn) < sats.layout.n_params:
             return None
         prior = doppler_position(sats, ccfg, speed_sigma_m_s=0.0)
         if prior is None:
@@ -1147,8 +1379,6 @@ def plain_chain(
     frac = sats.ct_m > 0
     if not frac.any() or not np.all(np.isfinite(solved.x[0])):
         return None
-    ref = int(np.flatnonzero(frac)[0])
-    ints = {
-        p: int(n - n_int[0, ref]) for p, n, f in zip(sats.prn, n_int[0], frac, strict=True) if f
-    }
+    rel = _relative(sats, n_int[0])
+    ints = {p: int(n) for p, n, f in zip(sats.prn, rel, frac, strict=True) if f}
     return solved.x[0], ints

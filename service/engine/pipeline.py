@@ -112,6 +112,24 @@ TIME_PRIOR_SIGMAS = 5.0
 ``time_unc_s`` (a phone's BiasUncertaintyNanos, one sigma)."""
 TIME_PRIOR_MIN_S = 1e-6
 """The narrowest such prior [s] (a phone may say a few nanoseconds)."""
+WIDE_PRIOR_MAX_S = 30.0
+"""The widest time prior [s] the coarse-time fix takes from an epoch's own uncertainty
+(:func:`wide_time_prior`): over 30 s a MEO satellite's range moves by up to 24 km, the
+differences between two by 48 km, which with the grid's 58 km and the height's 20 km stays
+inside the 150 km of half a millisecond (service.engine.coarse, step 2); the setting's
+bound too."""
+
+
+def wide_time_prior(view: MeasurementEpoch, coarse: CoarseConfig) -> CoarseConfig | None:
+    """The coarse-time fix's settings for an epoch whose time is coarser than its
+    ``time_prior_s`` (a phone before its first fix: BiasUncertaintyNanos of seconds) when
+    no SOW has decoded yet: its prior :data:`TIME_PRIOR_SIGMAS` times ``time_unc_s`` when
+    that is within :data:`WIDE_PRIOR_MAX_S`; None (wait for the first SOW) beyond it, or
+    with no uncertainty said (NaN, inf)."""
+    prior = TIME_PRIOR_SIGMAS * view.time_unc_s
+    if not prior <= WIDE_PRIOR_MAX_S:
+        return None
+    return replace(coarse, time_prior_s=max(prior, coarse.time_prior_s))
 
 
 def time_prior(view: MeasurementEpoch, coarse: CoarseConfig) -> CoarseConfig:
@@ -351,8 +369,12 @@ class Pipeline:
                     need=need,
                 )
                 fix = declined(view, why)
+                wide = wide_time_prior(view, self.coarse) if self.coarse.coarse_fix else None
                 if sow:  # its decline, if it has no candidates, is this one
                     fix = self._coarse_fix(whole, fix, at_sow=True)
+                elif wide is not None and fix.reason_code == Decline.COARSE_TIME:
+                    # no SOW yet: the phone's own uncertainty (5 sigma, <= 30 s) is the prior
+                    fix = self._coarse_fix(whole, fix, ccfg=wide)
         elif self.coarse.coarse_fix and (
             fix.reason_code == Decline.TOO_FEW_FULL
             or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
@@ -382,19 +404,25 @@ class Pipeline:
             self._receiver_fix_near(epoch),
         )
 
-    def _coarse_fix(self, view: MeasurementEpoch, paper: Fix, at_sow: bool = False) -> Fix:
+    def _coarse_fix(
+        self,
+        view: MeasurementEpoch,
+        paper: Fix,
+        at_sow: bool = False,
+        ccfg: CoarseConfig | None = None,
+    ) -> Fix:
         """The coarse-time fix (:mod:`service.engine.coarse`) of an epoch the paper's method
         declined for want of four full ranges: its fix, or its decline when it found
         candidates and none was safe to publish (``chi2``, ``ambiguous``, ``pdop_gate``);
         else (too few rows, no Doppler) the paper's decline stands, the reason to wait.
         ``at_sow``: the tag is no prior (``time_unc_s`` beyond ``time_prior_s``), the first
-        decoded SOW is (:func:`service.engine.coarse.solve_coarse_at_sow`)."""
+        decoded SOW is (:func:`service.engine.coarse.solve_coarse_at_sow`). ``ccfg``: the
+        settings to solve with (None: :func:`time_prior`'s)."""
         if at_sow:
             result = solve_coarse_at_sow(view, self.store, self.iono, self.cfg, self.coarse)
         else:
-            result = solve_coarse(
-                view, self.store, self.iono, self.cfg, time_prior(view, self.coarse)
-            )
+            ccfg = ccfg or time_prior(view, self.coarse)
+            result = solve_coarse(view, self.store, self.iono, self.cfg, ccfg)
         fix = result.fix
         if fix.ok:
             self.counters["coarse_fixes"] += 1

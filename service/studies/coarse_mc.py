@@ -11,9 +11,9 @@ delay rates) minus e . v (the receiver's motion), plus a receiver clock drift an
 among them (0-3, drawn) are full, every other range is cut to 1 ms.
 
 A trial succeeds with a published fix; it is wrong when any integer differs from the
-generator's (absolute where the fix claims them, else relative to the first fractional
-satellite); the figures also count fixes whose horizontal error exceeds their HPL and
-fixes more than 100 m from the truth.
+generator's (absolute where the fix claims them, else relative within each system: to
+its first fractional satellite); the figures also count fixes whose horizontal error
+exceeds their HPL and fixes more than 100 m from the truth.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from service.core.bds import is_geo
 from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import enu_rotation, geodetic_to_ecef
-from service.core.systems import wavelength_m
+from service.core.systems import constants_of, wavelength_m
 from service.core.timebase import gpst_to_bdt
 from service.core.types import MeasurementEpoch
 from service.engine.coarse import CoarseConfig, CoarseResult, solve_coarse
@@ -167,19 +167,30 @@ def simulate_and_solve(
     k = int(rng.integers(0, min(3, len(geos)) + 1)) if k_full is None else k_full
     full = set(geos[:k])
     pr = tr.pr_m[seen]
-    ct = C_M_S * 1e-3
+    other = np.array([p[:1] != "C" for p in prn], dtype=bool)
+    if other.any():  # a receiver's inter-system bias, one per extra system, +-100 ns
+        for letter in sorted({p[:1] for p in prn} - {"C"}):
+            mine = np.array([p[:1] == letter for p in prn], dtype=bool)
+            pr = pr + np.where(mine, rng.uniform(-30.0, 30.0), 0.0)
+    # each row cut to its own system's code period (1 ms B1I and GPS C/A, 4 ms Galileo E1)
+    period = np.array([constants_of(p).code_period_s for p in prn])
+    ct = C_M_S * period
     epoch = MeasurementEpoch.from_columns(
         tr.tag_gpst_week,
         tr.tag_gpst_tow_s,
         prn,
-        ["B1I"] * len(prn),
+        ["B1I" if p[:1] == "C" else constants_of(p).signal for p in prn],
         np.where([p in full for p in prn], pr, np.nan),
         frac_pr_m=np.mod(pr, ct),
+        period_s=period,
         cn0_dbhz=np.full(len(prn), 42.0),
         doppler_hz=doppler,
     )
     res = solve_coarse(epoch, store, iono, cfg, ccfg)
-    truth = {p: round((r - np.mod(r, ct)) / ct) for p, r in zip(prn, pr.tolist(), strict=True)}
+    truth = {
+        p: round((r - np.mod(r, c)) / c)
+        for p, r, c in zip(prn, pr.tolist(), ct.tolist(), strict=True)
+    }
     wrong, err = _judge(res, truth, x)
     err_h = None
     if res.fix.ok and res.fix.x_ecef_m is not None:
@@ -208,9 +219,11 @@ def _judge(res: CoarseResult, truth: dict[str, int], x: np.ndarray) -> tuple[boo
     ints = res.integers or {}
     if res.absolute:
         bad = any(ints[p] != truth[p] for p in ints)
-    else:
-        ref = next(iter(ints))
-        bad = any(ints[p] != truth[p] - truth[ref] for p in ints)
+    else:  # system by system (a system without a full row has its whole period in its clock)
+        first: dict[str, str] = {}
+        for p in ints:
+            first.setdefault(p[:1], p)
+        bad = any(ints[p] - ints[first[p[:1]]] != truth[p] - truth[first[p[:1]]] for p in ints)
     return bad, err
 
 

@@ -22,6 +22,7 @@ from drivers.rinex import read_nav
 from drivers.source import open_source
 from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
+from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.types import MeasurementEpoch
 from service.engine.coarse import moved
 from service.engine.pipeline import Pipeline
@@ -87,11 +88,17 @@ def spp_of(epoch):
 
 def test_a_coarse_time_keeps_fractional_ranges_out_and_says_why():
     epoch = _hksc_epoch()
-    # no full range: with the phone's 5.97 s prior (beyond the coarse-time fix's 2 s) the
-    # fractional rows are set aside and the decline names the prior: wait for the first SOW
-    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=5.968969500122643)).fix
+    # no full range: with a time uncertain by 7.25 s (beyond the coarse-time fix's 2 s, and 5
+    # sigma beyond the 30 s it takes from a phone) the fractional rows are set aside and the
+    # decline names the prior: wait for the first SOW
+    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=7.25)).fix
     assert fix.reason_code == "coarse_time"
-    assert "+-5.97 s" in fix.reason and "16 fractional" in fix.reason and "0 full" in fix.reason
+    assert "+-7.25 s" in fix.reason and "16 fractional" in fix.reason and "0 full" in fix.reason
+    # the Perth phone's 5.97 s: 5 sigma (29.8 s) is the coarse-time fix's prior, which takes
+    # the epoch (the common millisecond in doubt: the coarse-time solution, within 1 m of SPP)
+    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=5.968969500122643)).fix
+    assert fix.ok and fix.method == "coarse_time"
+    assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp_of(epoch).x_ecef_m)) < 1.0
     # so too with no time uncertainty given at all (a phone that does not say: inf)
     fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=math.inf)).fix
     assert fix.reason_code == "coarse_time"
@@ -133,6 +140,43 @@ def test_perth_replay_through_the_pipeline():
     lat = np.degrees(np.arctan2(ref[2], np.hypot(ref[0], ref[1])))
     lon = np.degrees(np.arctan2(ref[1], ref[0]))
     assert -32.5 < lat < -31.5 and 115.5 < lon < 116.5
+
+
+def test_perth_with_gps_and_galileo_fixes_from_the_first_epoch():
+    """The Perth start-up with GPS and Galileo rows read: the phone's time is uncertain by
+    5.97 s (beyond the 2 s prior) and no SOW has decoded until 12 s, so the coarse-time fix
+    takes the phone's own 5 sigma (29.9 s) as its prior. Every epoch is fixed, the first at
+    the first Raw row (10 GPS ranges known modulo 1 ms; BeiDou alone: 26.18 s), and the
+    epochs 6-11 s, every range fractional with mixed periods (GPS modulo 6 s at subframe
+    sync, BeiDou and Galileo modulo 1 ms), are coarse-time fixes with rows of each system.
+    Every fix within 100 m of the median of the last 5 minutes (measured at most 26.9 m),
+    the coarse-time ones within their HPL of it (measured 3.7-18 m against HPLs of
+    21-57 m)."""
+    pipe = _pipeline(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx", ("C", "G", "E"))
+    with open_source(str(PERTH / "SensorLog20171005.txt")) as src:
+        results = [pipe.on_epoch(e) for e in src if isinstance(e, MeasurementEpoch)]
+    t0 = results[0].epoch.gpst_tow_s
+    assert all(r.fix.ok for r in results)
+    x = np.array([r.fix.x_ecef_m for r in results])
+    t = np.array([r.epoch.gpst_tow_s for r in results]) - t0
+    ref = np.median(x[t > t[-1] - 300], axis=0)
+    dist = np.linalg.norm(x - ref, axis=1)
+    assert dist.max() < 100.0
+    mixed = 0
+    for r, d in zip(results, dist, strict=True):
+        ep = r.epoch
+        if ep.gpst_tow_s - t0 >= 12.0:  # the first GPS times of week decoded: full ranges
+            break
+        assert r.fix.method == "coarse_time"
+        assert not np.isfinite(ep.pr_m).any()
+        lat, lon, _ = ecef_to_geodetic(ref)
+        e = enu_rotation(lat, lon) @ (x[results.index(r)] - ref)
+        assert math.hypot(e[0], e[1]) <= r.fix.hpl_m
+        gps = {float(p) for p, q in zip(ep.period_s, ep.prn, strict=True) if q[:1] == "G"}
+        if gps == {6.0}:
+            mixed += 1
+            assert {p[:1] for p in r.fix.used} >= {"C", "G"}
+    assert mixed == 6  # 6.00-11.00 s
 
 
 @pytest.mark.parametrize("n_full", [1, 2, 3])

@@ -53,9 +53,12 @@ def test_gps_from_own_sfrbx_fixes_near_the_receivers_solution(tmp_path):
 
 def test_perth_phone_fixes_at_its_first_full_gps_ranges(tmp_path):
     """The Android Perth start-up log with its same-day nav file: BeiDou alone fixes first at
-    26.18 s; with GPS the first fix comes at 12.0 s, when the phone's first four GPS ranges
-    have their TOW decoded (the log's own state bits), from GPS rows alone. Its position is
-    checked against the BeiDou-only fixes' median (the log has no truth): 11.5 m."""
+    26.18 s; with GPS the first fix from full ranges comes at 12.0 s, when the phone's first
+    four GPS ranges have their TOW decoded (the log's own state bits), from GPS rows alone,
+    and before it, from the first epoch, coarse-time fixes from the fractional GPS (and
+    BeiDou) ranges (service.engine.coarse, the phone's time uncertainty as the prior). Their
+    positions are checked against the BeiDou-only fixes' median (the log has no truth):
+    11.5 m at 12.0 s, the coarse-time fixes within 40 m."""
     d = DATA / "android-perth-s8-2017"
     nav = d / "PERT00AUS_R_20172780000_01D_MN.rnx"
     first = {}
@@ -67,12 +70,17 @@ def test_perth_phone_fixes_at_its_first_full_gps_ranges(tmp_path):
         assert rc == 0
         recs = [json.loads(line) for line in out.read_text().splitlines()]
         fixes[systems] = [r for r in recs if r["class"] == "FIX" and r["mode"] != "none"]
-        first[systems] = fixes[systems][0]
+        first[systems] = next(r for r in fixes[systems] if r.get("method") != "coarse_time")
     assert round(first["C"]["since_start_s"], 2) == 26.18
+    assert fixes["C"][0] is first["C"]  # BeiDou alone: too few rows for a coarse-time fix
     assert first["C,G"]["since_start_s"] == 12.0
     assert first["C,G"]["n_full"] >= 4
     median = np.median([r["x_ecef_m"] for r in fixes["C"]], axis=0)
     assert np.linalg.norm(np.subtract(first["C,G"]["x_ecef_m"], median)) < 20.0
+    coarse = [r for r in fixes["C,G"] if r["since_start_s"] < 12.0]
+    assert len(coarse) == 12 and coarse[0]["since_start_s"] == 0.0
+    assert all(r["method"] == "coarse_time" and r["n_full"] == 0 for r in coarse)
+    assert all(np.linalg.norm(np.subtract(r["x_ecef_m"], median)) < 40.0 for r in coarse)
 
 
 def test_galileo_from_own_inav_pages_fixes_near_the_receivers_solution(tmp_path):

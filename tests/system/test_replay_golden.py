@@ -135,10 +135,10 @@ CASES = {
             "--nav",
             "android-perth-s8-2017/PERT00AUS_R_20172780000_01D_MN.rnx",
         ],
-        "Android GnssLogger start-up (Galaxy S8), mixed RINEX nav: 4 full ranges at 12.00 s "
-        "(GPS: no GPS ephemerides in the engine yet); fractional ranges set aside while the "
-        "phone's time is uncertain by 5.97 s (coarse_time); the first SPP fix from 4 BDS "
-        "IGSO/MEO at 26.18 s, fast fixes once a GEO joins at 83 s",
+        "Android GnssLogger start-up (Galaxy S8), mixed RINEX nav: coarse-time fixes from the "
+        "first epoch (every range fractional, GPS and BeiDou rows, the phone's 5.97 s time "
+        "uncertainty taken as a 29.9 s prior), SPP from 4 full GPS ranges at 12.00 s, fast "
+        "fixes once a GEO joins at 83 s",
     ),
     "hksc-rinex": Case(
         ["hksc-2021/hksc1610.obs", "--nav", "hksc-2021/hksc1610.nav"],
