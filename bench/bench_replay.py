@@ -2,7 +2,7 @@
 
 The virtual receiver (`bdsfix simulate`, near Beijing, warm start) writes N minutes of
 10 Hz UBX to a file; `bdsfix replay FILE --max-speed` then runs it through the stream path
-(driver, tracker, per-epoch solver, outputs) with NMEA to /dev/null (the default output
+(driver, tracker, solver, outputs) with NMEA to /dev/null (the default output
 kind, every sentence built) and, apart, with only JSONL. Prints epochs per second of wall
 time and of CPU time (user + system of the replay process), median of the runs.
 
@@ -86,7 +86,7 @@ def profile_shares(capture: Path, workdir: Path) -> None:
     parts = {
         "NMEA sentences": cum("service/output/nmea.py", "lead_sentences")
         + cum("service/output/nmea.py", "sentences_after_gga"),
-        "per-epoch solver": cum("service/engine/solver.py", "solve")
+        "solver": cum("service/engine/solver.py", "solve")
         - cum("service/engine/solver.py", "sky_view"),
         "sky view (GSV)": cum("service/engine/solver.py", "sky_view"),
         "UBX decoding (drivers)": cum("drivers/source.py", "__iter__"),

