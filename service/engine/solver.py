@@ -379,7 +379,7 @@ def delays(
             el_rad[0],
             az_rad[0],
             float(np.asarray(bdt_sow_s)[0]),
-            carrier_hz[0],
+            carrier_hz[0] if np.ndim(carrier_hz) == 2 else carrier_hz,  # (rows may be 1-D)
             model,
             cfg,
         )

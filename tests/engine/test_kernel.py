@@ -392,3 +392,35 @@ def test_a_wrong_millisecond_on_a_geo_is_excluded(hksc):
     for r, g in zip(ref, got, strict=True):
         _same(r, g)
         assert list(g.excluded) == ["C01"]
+
+
+@pytest.mark.parametrize("carrier_rows", ["per-epoch", "shared"])
+def test_delays_of_a_batch_of_one_equal_the_same_receiver_in_a_larger_batch(carrier_rows):
+    """:func:`service.engine.solver.delays` computes a batch of one receiver with its
+    figures as floats: the same numbers as that receiver inside a batch of three, for rows
+    of three carriers given per epoch (e, s) or once for every epoch (s,) (as the
+    coarse-time fix gives them), above 100 km too (no ionosphere there: NaN)."""
+    from service.core.types import KlobucharParams
+    from service.engine.solver import delays
+
+    bds = KlobucharParams((1.2e-8, 2.2e-8, -1.1e-7, 1.2e-7), (1.1e5, 1.3e5, -2.6e5, -3.3e5))
+    rng = np.random.default_rng(7)
+    n = 9
+    el = rng.uniform(0.1, 1.5, (3, n))
+    az = rng.uniform(0.0, 6.2, (3, n))
+    carrier = np.array([1561.098e6, 1575.42e6, 1575.42e6] * 3)
+    car = np.tile(carrier, (3, 1)) if carrier_rows == "per-epoch" else carrier
+    lat, lon = np.array([0.39, -0.55, 0.9]), np.array([1.99, 2.0, -0.1])
+    alt, sow = np.array([19.0, 250e3, 900.0]), np.array([358554.0, 3600.5, 86000.25])
+    cfg = SolverConfig()
+    io3, tr3 = delays(lat, lon, alt, el, az, sow, car, bds, cfg)
+    assert io3 is not None and tr3 is not None
+    for k in range(3):
+        one_car = car[k : k + 1] if carrier_rows == "per-epoch" else car
+        s = slice(k, k + 1)
+        io1, tr1 = delays(lat[s], lon[s], alt[s], el[s], az[s], sow[s], one_car, bds, cfg)
+        assert io1 is not None and tr1 is not None
+        assert io1.shape == tr1.shape == (1, n)
+        np.testing.assert_array_equal(io1[0], io3[k])
+        np.testing.assert_array_equal(tr1[0], tr3[k])
+    assert np.isnan(io3[1]).all() and np.isfinite(io3[0]).all()
