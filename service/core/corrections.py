@@ -127,6 +127,8 @@ def saastamoinen_zenith_m(lat_rad: float, alt_m: float, humidity: float = 0.7) -
     however many receivers are computed together (:func:`saastamoinen_m`)."""
     if alt_m < -100.0 or alt_m > 1e4:
         return 0.0
+    if not math.isfinite(lat_rad):
+        return math.nan
     h = min(max(alt_m, 0.0), 1e4)
     pres_hpa = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
     temp_k = 15.0 - 6.5e-3 * h + 273.16
@@ -147,7 +149,7 @@ def saastamoinen_m(
     below the horizon); 0 for a receiver outside -100 m to 10 km. One receiver, or one per
     row when ``lat_rad`` and ``alt_m`` are arrays that broadcast against ``el_rad``."""
     el = np.asarray(el_rad, dtype=float)
-    if np.ndim(alt_m) == 0:
+    if np.ndim(alt_m) == 0 and np.ndim(lat_rad) == 0:
         zenith: float | np.ndarray = saastamoinen_zenith_m(float(lat_rad), float(alt_m), humidity)
     else:  # each receiver alone
         lat_a, alt_a = np.asarray(lat_rad, dtype=float), np.asarray(alt_m, dtype=float)

@@ -60,7 +60,15 @@ def ecef_to_geodetic(x_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _ecef_to_geodetic_point(x: float, y: float, z: float) -> tuple[float, float, float]:
-    """:func:`ecef_to_geodetic` of one point, in floats."""
+    """:func:`ecef_to_geodetic` of one point, in floats (NaN for the Earth's centre, where
+    the iteration divides by zero, as numpy's array path gives)."""
+    try:
+        return _geodetic_of_point(x, y, z)
+    except ZeroDivisionError:
+        return math.nan, math.nan, math.nan
+
+
+def _geodetic_of_point(x: float, y: float, z: float) -> tuple[float, float, float]:
     p = math.hypot(x, y)
     lon = math.atan2(y, x)
     lat = math.atan2(z, p * (1.0 - _E2))

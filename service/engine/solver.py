@@ -180,8 +180,9 @@ class SolverConfig:
     )
     # A known approximate position (a reference in studies, the last fix in a stream).
     # With every measurement full the solve is then conventional SPP from it (phase 2
-    # alone); with fractional rows phase 1 starts there. None: the paper's start, the
-    # Earth's centre (eq. 3). Either way the least-squares solution is the same.
+    # alone) when it lies near the Earth (6,000-8,500 km from its centre); otherwise, and
+    # with fractional rows, phase 1 starts there. None: the paper's start, the Earth's
+    # centre (eq. 3). Either way the least-squares solution is the same.
     x0_ecef_m: tuple[float, float, float] | None = None
 
 
@@ -308,7 +309,7 @@ def measurement_sigma_m(
         var = var + (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
     else:
         left = (cfg.iono_error_ratio * iono_m) ** 2
-        if not np.isfinite(left).all():  # NaN: no model at that row's receiver (the batch)
+        if not np.isfinite(left).all():  # NaN: no model at that row's receiver (above 100 km)
             unmodelled = (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
             left = np.where(np.isfinite(iono_m), left, unmodelled)
         var = var + left
@@ -368,7 +369,7 @@ def delays(
     NaN for that epoch's rows in a batch (the error model then counts the whole delay as
     error)."""
     batch = np.ndim(alt_m) > 0
-    if batch and np.size(alt_m) == 1:
+    if batch and np.size(alt_m) == 1 and np.ndim(el_rad) == 2 and len(el_rad) == 1:
         # a batch of one: its receiver's figures as floats and its rows as one epoch's (the
         # same arithmetic, without broadcasting's per-call cost), in the batch's shapes
         alt = float(np.asarray(alt_m)[0])
@@ -379,7 +380,7 @@ def delays(
             el_rad[0],
             az_rad[0],
             float(np.asarray(bdt_sow_s)[0]),
-            carrier_hz[0] if np.ndim(carrier_hz) == 2 else carrier_hz,  # (rows may be 1-D)
+            np.broadcast_to(carrier_hz, el_rad.shape)[0],  # (given per row or per epoch)
             model,
             cfg,
         )
@@ -858,7 +859,10 @@ def _solve_chunk(
     n_rows = n_full + n_frac
     n_par, n_clk, cix = layout.n_params, layout.n_clocks, ch.cix
     for e in (n_rows == 0).nonzero()[0].tolist():  # no ephemeris or no measurement
-        if ch.missing[e]:
+        if ch.gross[e]:  # every row an impossible range: none left to solve
+            why = Declined.of(Decline.TOO_FEW_FULL, n_full=0, n_frac=0, need=n_par)
+            d.decline(e, why)
+        elif ch.missing[e]:
             d.decline(e, Declined.of(Decline.NO_EPHEMERIS, prns=", ".join(ch.missing[e])))
         else:
             d.decline(e, Declined.of(Decline.NO_MEASUREMENTS))
@@ -880,7 +884,8 @@ def _solve_chunk(
     direct = np.zeros(n_e, dtype=bool)
     if cfg.x0_ecef_m is not None:
         x[:] = cfg.x0_ecef_m
-        direct = ok & (n_frac == 0)
+        if 6.0e6 < math.sqrt(sum(v * v for v in cfg.x0_ecef_m)) < 8.5e6:
+            direct = ok & (n_frac == 0)  # (a start far from the Earth: phase 1 from it)
     if start is not None:
         x = np.where(np.isnan(start) | direct[:, None], x, start)
     b = np.zeros((n_e, n_clk))
@@ -1071,7 +1076,7 @@ def _phase2(
     """Phase 2 of the epochs ``ok`` from the iterate ``st``: the elevation mask (a masked
     fractional satellite loses its row; its integer is already fixed), Klobuchar and
     Saastamoinen, the error model's weights, iterated to convergence; then the judgement
-    (:func:`_judge`). A position far from the Earth (a gross fault can put phase 1 there)
+    (:func:`_judged`). A position far from the Earth (a gross fault can put phase 1 there)
     gets no mask, no corrections and one weight for every row: they mean nothing there.
     An epoch whose mask leaves a system without rows loses that system's clock."""
     n_e = len(ch.z)
@@ -1544,10 +1549,15 @@ def solve_many(
         at = pos.get(i)
         if at is not None and gross[at]:
             got = replace(got, excluded=gross[at] | got.excluded)
-        if at is not None and others[at] and got.ok and solver == "fast":
-            got = _with_other_systems(ep, store, iono, cfg, got)
-        if with_sky and got.ok:
-            got = replace(got, sky=sky_view(ep, store, got))
+        try:
+            with np.errstate(all="ignore"):
+                if at is not None and others[at] and got.ok and solver == "fast":
+                    got = _with_other_systems(ep, store, iono, cfg, got)
+                if with_sky and got.ok:
+                    got = replace(got, sky=sky_view(ep, store, got))
+        except _NUMBER_ERRORS as exc:
+            log.debug("solver failure at GPST %d %.3f", ep.gpst_week, ep.gpst_tow_s, exc_info=True)
+            got = _numerical(ep, solver, type(exc).__name__, str(exc))
         fixes.append(got)
     return fixes
 
@@ -1611,10 +1621,13 @@ def _with_other_systems(
     ct = C_M_S * epoch.period_s[ii]
     n_float = (pred + b - epoch.frac_pr_m[ii]) / ct
     n = np.rint(n_float)
-    if np.any(np.abs(n_float - n) > AMBIGUITY_MARGIN):
+    if not np.all(np.abs(n_float - n) <= AMBIGUITY_MARGIN):  # (NaN: not resolved either)
         return fix
     pr = epoch.pr_m.copy()
     pr[ii] = epoch.frac_pr_m[ii] + n * ct
+    if not np.isfinite(pr[ii]).all():
+        return fix
+    # (those rows are full now: the joined epoch has no system left to join)
     again = solve(replace(epoch, pr_m=pr), store, iono, cfg, "fast")
     if not again.ok:
         return fix

@@ -424,3 +424,35 @@ def test_delays_of_a_batch_of_one_equal_the_same_receiver_in_a_larger_batch(carr
         np.testing.assert_array_equal(io1[0], io3[k])
         np.testing.assert_array_equal(tr1[0], tr3[k])
     assert np.isnan(io3[1]).all() and np.isfinite(io3[0]).all()
+
+
+def test_epochs_the_kernel_must_decide_without_raising(hksc):
+    """Edge cases the kernel decides itself, each with the outcome the method gives:
+    every full range impossible (further than 25,000 km from the epoch's median, so none
+    is left: too few full rows, each named in ``excluded``); a start at the Earth's centre
+    with every row full (no approximate position: phase 1 from it, so the same SPP fix as
+    with no start); and fractional rows of
+    a system without a full row whose code period is not a number (their integers cannot
+    be predicted: the fast fix of the other rows, not an exception)."""
+    from tests.engine.test_layout import _relabel, _Relabelled
+
+    store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
+    ep = hksc[0]
+    two = replace(ep, pr_m=np.where(np.arange(len(ep.prn)) % 2 == 0, 2e7, 9e7))
+    f = solve(two, store, iono, solver="spp")
+    assert f.reason_code == "too_few_full" and set(f.excluded) == set(two.prn)
+
+    ref = solve(ep, store, iono, solver="spp")
+    origin = solve(ep, store, iono, SolverConfig(x0_ecef_m=(0.0, 0.0, 0.0)), "spp")
+    assert ref.ok and origin.ok and origin.used == ref.used
+    assert np.linalg.norm(np.subtract(origin.x_ecef_m, ref.x_ecef_m)) <= 1e-3
+
+    mixed = _relabel(ep, 5)
+    g = [i for i, p in enumerate(mixed.prn) if p.startswith("G")]
+    for period_s in (0.0, math.inf, math.nan, 1e300):
+        per = mixed.period_s.copy()
+        pr = mixed.pr_m.copy()
+        per[g], pr[g] = period_s, np.nan
+        odd = replace(mixed, pr_m=pr, period_s=per, frac_pr_m=np.mod(mixed.pr_m, C_M_S * 1e-3))
+        fix = solve(odd, _Relabelled(store), iono, solver="fast")  # type: ignore[arg-type]
+        assert fix.ok and not any(p.startswith("G") for p in fix.used), period_s
