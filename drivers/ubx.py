@@ -51,15 +51,25 @@ import datetime as dt
 import itertools
 import logging
 import math
+import operator
 import statistics
 import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from pyubx2 import UBX_MSGIDS, UBXReader
 
-from drivers.framing import BinaryFraming, Event, WeekContext
+from drivers.framing import (
+    BAD_CHECKSUM,
+    BAD_LENGTH,
+    NEED_MORE,
+    NOT_A_FRAME,
+    BinaryFraming,
+    Event,
+    WeekContext,
+)
 from drivers.sfrbx import UBX_GNSS, nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S
 from service.core.counters import Counters
@@ -108,7 +118,34 @@ def checksum_ok(frame: bytes) -> bool:
     return fletcher8(frame[2:-2]) == frame[-2:]
 
 
-FRAMING = BinaryFraming(
+class UbxFraming(BinaryFraming):
+    """The UBX frame layout as a :class:`~drivers.framing.BinaryFraming`, whose
+    :meth:`measure` reads the length field and checks the checksum in place: every frame of
+    an epoch is measured between its last byte and its fix, and the generic method's calls
+    and copies (``payload_len``, ``check``, :func:`fletcher8`) were a tenth of an epoch's
+    decoding there. Same results as the generic method on any bytes (tests compare them)."""
+
+    def measure(self, buf: bytes | bytearray, pos: int, max_payload: int) -> int:
+        avail = len(buf) - pos
+        if avail > 1 and buf[pos + 1] != SYNC[1]:
+            return NOT_A_FRAME
+        if avail < HEADER_LEN:
+            return NEED_MORE
+        n_payload = buf[pos + 4] | (buf[pos + 5] << 8)
+        if n_payload > max_payload:
+            return BAD_LENGTH
+        size = HEADER_LEN + n_payload + 2
+        if avail < size:
+            return NEED_MORE
+        body = bytes(buf[pos + 2 : pos + size - 2])  # class..payload
+        if (sum(body) & 0xFF) != buf[pos + size - 2]:
+            return BAD_CHECKSUM
+        if (sum(itertools.accumulate(body)) & 0xFF) != buf[pos + size - 1]:
+            return BAD_CHECKSUM
+        return size
+
+
+FRAMING = UbxFraming(
     sync=SYNC,
     header_len=HEADER_LEN,
     trailer_len=2,
@@ -127,6 +164,9 @@ PR_MAX_M = 1e8
 BDS-SIS-ICD-B1I-3.0 section 3, space constellation) is at most ~42,000 km from a user on
 the Earth, and u-blox keeps its receiver clock within 1 ms (300 km). A prMes flagged valid
 but NaN, infinite or outside (0, PR_MAX_M) is counted (``rawx_pr_implausible``), not used."""
+RAWX_SIGNALS_KEPT = 1024
+"""(gnssId, svId, sigId) triples whose mapping a :class:`UbxMapper` keeps (a receiver's few
+tens; the bound holds against a stream of damaged rows, which are then mapped each time)."""
 MEASX_INVALID_INT_MS = 255
 MEASX_INVALID_CHIPS = 65535
 
@@ -140,6 +180,9 @@ class _Sat:
     doppler_hz: float = math.nan
     lock_s: float = math.nan
     signal: str = "2I"
+
+
+_by_prn = operator.attrgetter("prn")
 
 
 @dataclass(slots=True)
@@ -392,6 +435,7 @@ class UbxMapper:
         self.source = source
         self._other = {s: sig for s, sig in OTHER_SIGNALS.items() if s.value in frozenset(systems)}
         self._expected: frozenset[str] = frozenset({RAWX})
+        self._rawx_signals: dict[tuple[int, int, int], tuple[str | None, str, str]] = {}
         self._pending: _Pending | None = None
         self._last_emitted: tuple[int, float] | None = None
         self._last_meas_time: tuple[int, float] | None = None
@@ -473,35 +517,51 @@ class UbxMapper:
         pending = self._pending
         if pending is None:
             return out
+        counters, sats, rows_seen = self.counters, pending.sats, self._rawx_signals
         for gnss_id, sv_id, sig_id, pr_m, do_hz, lock_ms, cno, pr_valid in rows:
-            system = UBX_GNSS.get(gnss_id)
-            if system is GnssSystem.BDS:
-                sig = BDS_SIGNALS.get(int(sig_id))
-                if sig is None:
-                    self.counters["rawx_bds_other_signal"] += 1
-                    continue
-            elif system in self._other:
-                sig = self._other[system].get(int(sig_id))
-                if sig is None or not 1 <= int(sv_id) <= SYSTEM_CONSTANTS[system].prn_max:
-                    self.counters[f"rawx_{system.value}_other_signal"] += 1
-                    continue
-                self.counters[f"rawx_{system.value}"] += 1
-            else:
-                self.counters["rawx_meas_other_gnss"] += 1
+            key = (gnss_id, sv_id, sig_id)
+            seen = rows_seen.get(key)
+            if seen is None:
+                seen = self._rawx_signal(*key)
+                if len(rows_seen) < RAWX_SIGNALS_KEPT:
+                    rows_seen[key] = seen
+            prn, sig, count = seen
+            if count:
+                counters[count] += 1
+            if prn is None:
                 continue
-            sat = self._sat(pending, sat_id(system, int(sv_id)))
+            sat = sats.get(prn)
+            if sat is None:
+                sat = sats[prn] = _Sat(prn)
             sat.signal = sig
             pr_m = float(pr_m)
             if not pr_valid:
-                self.counters["rawx_pr_invalid"] += 1
+                counters["rawx_pr_invalid"] += 1
             elif not 0.0 < pr_m < PR_MAX_M:  # NaN/inf/negative reached the solver before
-                self.counters["rawx_pr_implausible"] += 1
+                counters["rawx_pr_implausible"] += 1
             else:
                 sat.pr_m = pr_m
             sat.cn0_dbhz = float(cno)
             sat.doppler_hz = float(do_hz)
             sat.lock_s = float(lock_ms) * 1e-3
         return out + self._maybe_complete()
+
+    def _rawx_signal(self, gnss_id: int, sv_id: int, sig_id: int) -> tuple[str | None, str, str]:
+        """What a RAWX row of (gnssId, svId, sigId) is: its satellite ID (None: not used),
+        its RINEX signal code and the counter it adds to ("" for none). Worked out once per
+        mapper for each triple seen (:data:`RAWX_SIGNALS_KEPT` of them), not per row."""
+        system = UBX_GNSS.get(gnss_id)
+        if system is GnssSystem.BDS:
+            sig = BDS_SIGNALS.get(int(sig_id))
+            if sig is None:
+                return None, "", "rawx_bds_other_signal"
+            return sat_id(system, int(sv_id)), sig, ""
+        if system in self._other:
+            sig = self._other[system].get(int(sig_id))
+            if sig is None or not 1 <= int(sv_id) <= SYSTEM_CONSTANTS[system].prn_max:
+                return None, "", f"rawx_{system.value}_other_signal"
+            return sat_id(system, int(sv_id)), sig, f"rawx_{system.value}"
+        return None, "", "rawx_meas_other_gnss"
 
     def _on_measx(self, msg: Any) -> list[Event]:
         tow = int(msg.gpsTOW) * 1e-3
@@ -602,8 +662,11 @@ class UbxMapper:
         Plain Python over the epoch's few tens of satellites: numpy's per-call cost on
         arrays this small was half the decoding of an epoch, on the path from its last byte
         to its fix. Python's float ``%`` is numpy.mod's floor-mod (fmod, then the divisor's
-        sign) and ``max - min`` is ``np.ptp``: the same numbers, bit for bit."""
-        sats = sorted(p.sats.values(), key=lambda s: s.prn)
+        sign) and ``max - min`` is ``np.ptp``: the same numbers, bit for bit. The columns
+        become arrays in one conversion (the values
+        :meth:`~service.core.types.MeasurementEpoch.from_columns` gives them, each column
+        contiguous), not one per column."""
+        sats = sorted(p.sats.values(), key=_by_prn)
         finite = math.isfinite
         half = B1I_RANGE_M / 2
         d = [
@@ -631,24 +694,33 @@ class UbxMapper:
             if self.measx_offset_m is None:
                 self.counters["measx_uncalibrated"] += only
         offset = self.measx_offset_m or 0.0
-        kept: list[tuple[_Sat, float]] = []
+        prns: list[str] = []
+        signals: list[str] = []
+        rows: list[tuple[float, float, float, float, float, float]] = []
         for s in sats:
             frac = s.pr_m % B1I_RANGE_M if finite(s.pr_m) else (s.raw_frac_m + offset) % B1I_RANGE_M
             if finite(frac):
-                kept.append((s, frac))
-        if not kept:
+                prns.append(s.prn)
+                signals.append(s.signal)
+                rows.append((s.pr_m, frac, B1I_PERIOD_S, s.cn0_dbhz, s.doppler_hz, s.lock_s))
+        if not rows:
             return None
-        return MeasurementEpoch.from_columns(
-            p.week,
-            p.tow_s,
-            [s.prn for s, _f in kept],
-            [s.signal for s, _f in kept],
-            [s.pr_m for s, _f in kept],
-            frac_pr_m=[f for _s, f in kept],
-            period_s=B1I_PERIOD_S,
-            cn0_dbhz=[s.cn0_dbhz for s, _f in kept],
-            doppler_hz=[s.doppler_hz for s, _f in kept],
-            lock_s=[s.lock_s for s, _f in kept],
+        # the columns in one conversion (rows of a C-ordered block: each one contiguous, as
+        # MeasurementEpoch.from_columns would make them, with the same values)
+        pr, frac_pr, period, cn0, doppler, lock = np.array(
+            list(zip(*rows, strict=True)), dtype=float
+        )
+        return MeasurementEpoch(
+            gpst_week=int(p.week),
+            gpst_tow_s=float(p.tow_s),
+            prn=tuple(prns),
+            signal=tuple(signals),
+            pr_m=pr,
+            frac_pr_m=frac_pr,
+            period_s=period,
+            cn0_dbhz=cn0,
+            doppler_hz=doppler,
+            lock_s=lock,
             source=self.source,
         )
 
