@@ -264,6 +264,9 @@ class Runner:
                 name=f"bdsfix-nav-{i + 1}",
                 daemon=True,
             ).start()
+        # outputs that hold TRACK records until a fix has its GGA out
+        # (service.output.publish) get them sent whenever nothing waits
+        release_tracks = getattr(self.outputs, "release_tracks", None)
         now = time.monotonic()
         next_status = now + self.status_interval_s
         next_save = now + self.store_save_interval_s
@@ -293,6 +296,8 @@ class Runner:
                 if caught_up and (live or self.inline):
                     self._take_networked(q)
                 if caught_up:
+                    if release_tracks is not None:
+                        release_tracks()
                     collect_when_idle(thresholds)
                 now = time.monotonic()
                 slack = 0.0 if caught_up else TIMER_SLACK_S
