@@ -51,25 +51,16 @@ import datetime as dt
 import itertools
 import logging
 import math
-import operator
 import statistics
 import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 from pyubx2 import UBX_MSGIDS, UBXReader
 
-from drivers.framing import (
-    BAD_CHECKSUM,
-    BAD_LENGTH,
-    NEED_MORE,
-    NOT_A_FRAME,
-    BinaryFraming,
-    Event,
-    WeekContext,
-)
+from drivers import framing
+from drivers.framing import BinaryFraming, Event, WeekContext
 from drivers.sfrbx import UBX_GNSS, nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S
 from service.core.counters import Counters
@@ -128,20 +119,20 @@ class UbxFraming(BinaryFraming):
     def measure(self, buf: bytes | bytearray, pos: int, max_payload: int) -> int:
         avail = len(buf) - pos
         if avail > 1 and buf[pos + 1] != SYNC[1]:
-            return NOT_A_FRAME
+            return framing.NOT_A_FRAME
         if avail < HEADER_LEN:
-            return NEED_MORE
+            return framing.NEED_MORE
         n_payload = buf[pos + 4] | (buf[pos + 5] << 8)
         if n_payload > max_payload:
-            return BAD_LENGTH
+            return framing.BAD_LENGTH
         size = HEADER_LEN + n_payload + 2
         if avail < size:
-            return NEED_MORE
+            return framing.NEED_MORE
         body = bytes(buf[pos + 2 : pos + size - 2])  # class..payload
         if (sum(body) & 0xFF) != buf[pos + size - 2]:
-            return BAD_CHECKSUM
+            return framing.BAD_CHECKSUM
         if (sum(itertools.accumulate(body)) & 0xFF) != buf[pos + size - 1]:
-            return BAD_CHECKSUM
+            return framing.BAD_CHECKSUM
         return size
 
 
@@ -164,9 +155,6 @@ PR_MAX_M = 1e8
 BDS-SIS-ICD-B1I-3.0 section 3, space constellation) is at most ~42,000 km from a user on
 the Earth, and u-blox keeps its receiver clock within 1 ms (300 km). A prMes flagged valid
 but NaN, infinite or outside (0, PR_MAX_M) is counted (``rawx_pr_implausible``), not used."""
-RAWX_SIGNALS_KEPT = 1024
-"""(gnssId, svId, sigId) triples whose mapping a :class:`UbxMapper` keeps (a receiver's few
-tens; the bound holds against a stream of damaged rows, which are then mapped each time)."""
 MEASX_INVALID_INT_MS = 255
 MEASX_INVALID_CHIPS = 65535
 
@@ -180,9 +168,6 @@ class _Sat:
     doppler_hz: float = math.nan
     lock_s: float = math.nan
     signal: str = "2I"
-
-
-_by_prn = operator.attrgetter("prn")
 
 
 @dataclass(slots=True)
@@ -385,6 +370,11 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
     return RxmMessage(layout.identity, fields, blocks)
 
 
+RAWX_SIGNALS_KEPT = 1024
+"""(gnssId, svId, sigId) triples whose mapping a :class:`UbxMapper` keeps (a receiver's few
+tens; the bound holds against a stream of damaged rows, which are then mapped each time)."""
+
+
 _RawxRow = tuple[int, int, int, float, float, int, int, int]
 """What the mapper reads of a RAWX measurement block: gnssId, svId, sigId, prMes, doMes,
 locktime [ms], cno and prValid (trkStat bit 0)."""
@@ -435,12 +425,12 @@ class UbxMapper:
         self.source = source
         self._other = {s: sig for s, sig in OTHER_SIGNALS.items() if s.value in frozenset(systems)}
         self._expected: frozenset[str] = frozenset({RAWX})
-        self._rawx_signals: dict[tuple[int, int, int], tuple[str | None, str, str]] = {}
         self._pending: _Pending | None = None
         self._last_emitted: tuple[int, float] | None = None
         self._last_meas_time: tuple[int, float] | None = None
         self._last_nav_time: tuple[int, float] | None = None  # NAV-TIMEGPS / NAV-PVT
         self._log = RateLimitedLog(log)
+        self._rawx_signals: dict[tuple[int, int, int], tuple[str | None, str, str]] = {}
 
     # --- entry points ------------------------------------------------------------------------
     def on_frame(self, raw: bytes) -> list[Event]:
@@ -662,11 +652,8 @@ class UbxMapper:
         Plain Python over the epoch's few tens of satellites: numpy's per-call cost on
         arrays this small was half the decoding of an epoch, on the path from its last byte
         to its fix. Python's float ``%`` is numpy.mod's floor-mod (fmod, then the divisor's
-        sign) and ``max - min`` is ``np.ptp``: the same numbers, bit for bit. The columns
-        become arrays in one conversion (the values
-        :meth:`~service.core.types.MeasurementEpoch.from_columns` gives them, each column
-        contiguous), not one per column."""
-        sats = sorted(p.sats.values(), key=_by_prn)
+        sign) and ``max - min`` is ``np.ptp``: the same numbers, bit for bit."""
+        sats = sorted(p.sats.values(), key=lambda s: s.prn)
         finite = math.isfinite
         half = B1I_RANGE_M / 2
         d = [
@@ -694,33 +681,24 @@ class UbxMapper:
             if self.measx_offset_m is None:
                 self.counters["measx_uncalibrated"] += only
         offset = self.measx_offset_m or 0.0
-        prns: list[str] = []
-        signals: list[str] = []
-        rows: list[tuple[float, float, float, float, float, float]] = []
+        kept: list[tuple[_Sat, float]] = []
         for s in sats:
             frac = s.pr_m % B1I_RANGE_M if finite(s.pr_m) else (s.raw_frac_m + offset) % B1I_RANGE_M
             if finite(frac):
-                prns.append(s.prn)
-                signals.append(s.signal)
-                rows.append((s.pr_m, frac, B1I_PERIOD_S, s.cn0_dbhz, s.doppler_hz, s.lock_s))
-        if not rows:
+                kept.append((s, frac))
+        if not kept:
             return None
-        # the columns in one conversion (rows of a C-ordered block: each one contiguous, as
-        # MeasurementEpoch.from_columns would make them, with the same values)
-        pr, frac_pr, period, cn0, doppler, lock = np.array(
-            list(zip(*rows, strict=True)), dtype=float
-        )
-        return MeasurementEpoch(
-            gpst_week=int(p.week),
-            gpst_tow_s=float(p.tow_s),
-            prn=tuple(prns),
-            signal=tuple(signals),
-            pr_m=pr,
-            frac_pr_m=frac_pr,
-            period_s=period,
-            cn0_dbhz=cn0,
-            doppler_hz=doppler,
-            lock_s=lock,
+        return MeasurementEpoch.from_columns(
+            p.week,
+            p.tow_s,
+            [s.prn for s, _f in kept],
+            [s.signal for s, _f in kept],
+            [s.pr_m for s, _f in kept],
+            frac_pr_m=[f for _s, f in kept],
+            period_s=B1I_PERIOD_S,
+            cn0_dbhz=[s.cn0_dbhz for s, _f in kept],
+            doppler_hz=[s.doppler_hz for s, _f in kept],
+            lock_s=[s.lock_s for s, _f in kept],
             source=self.source,
         )
 
