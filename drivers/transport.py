@@ -21,7 +21,6 @@ import ipaddress
 import logging
 import math
 import os
-import select
 import socket
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -295,37 +294,19 @@ class SerialTransport(_Reconnecting):
         self.device = device
         self.baud = baud
         self._ser: serial.Serial | None = None
-        self._poll: tuple[select.poll, int] | None = None
+        self._polled: tuple[Any, Any] | None = None  # (the port, a poll of its descriptor)
 
     def _handle(self) -> Any:
         return self._ser
 
     def _connect(self) -> None:
         self._ser = serial.Serial(self.device, self.baud, timeout=self.timeout_s)
-        fd = getattr(self._ser, "fd", None)  # pyserial's POSIX port: opened O_NONBLOCK
-        if isinstance(fd, int):
-            poll = select.poll()
-            poll.register(fd, select.POLLIN)
-            self._poll = (poll, fd)
 
     def _read_now(self, max_bytes: int) -> bytes:
+        if isinstance(getattr(self._ser, "fd", None), int):
+            return self._read_polled(max_bytes)
         if self._ser is None:
             raise serial.SerialException("not open")
-        if self._poll is not None:
-            # One wait and one read of whatever has arrived: pyserial's read(1), in_waiting
-            # and read(n) cost two waits, two reads and an ioctl, on the path from an
-            # epoch's last byte to its fix. Its checks kept: a device that is ready but
-            # gives nothing has gone (a read error is an OSError, as from pyserial).
-            poll, fd = self._poll
-            if not poll.poll(self.timeout_s * 1e3):
-                return b""
-            try:
-                data = os.read(fd, max_bytes)
-            except BlockingIOError:
-                return b""
-            if not data:
-                raise serial.SerialException("device ready to read but returned no data")
-            return data
         data = bytes(self._ser.read(1))  # waits up to timeout_s
         if data and max_bytes > 1:
             waiting = self._ser.in_waiting
@@ -335,12 +316,35 @@ class SerialTransport(_Reconnecting):
 
     def _release(self) -> None:
         ser, self._ser = self._ser, None
-        self._poll = None
         if ser is not None:
             try:
                 ser.close()
             except (OSError, serial.SerialException) as err:  # pragma: no cover - best effort
                 log.debug("%s: close failed: %s", self.name, err)
+
+    def _read_polled(self, max_bytes: int) -> bytes:
+        """One wait and one read of what has arrived, on the descriptor of pyserial's POSIX
+        port (opened non-blocking): pyserial's read(1), in_waiting and read(n) cost two
+        waits, two reads and an ioctl between an epoch's last byte and its decoding. As
+        from pyserial, a read error is an OSError and a device that is ready but gives
+        nothing has gone."""
+        ser = self._ser
+        held = self._polled
+        if held is None or held[0] is not ser:
+            import select
+
+            poll = select.poll()
+            poll.register(ser.fd, select.POLLIN)  # type: ignore[union-attr]
+            held = self._polled = (ser, poll)
+        if not held[1].poll(self.timeout_s * 1e3):
+            return b""
+        try:
+            data = os.read(ser.fd, max_bytes)  # type: ignore[union-attr]
+        except BlockingIOError:
+            return b""
+        if not data:
+            raise OSError("device ready to read but returned no data (disconnected?)")
+        return data
 
 
 class TcpClientTransport(_Reconnecting):
