@@ -17,7 +17,10 @@ source:
 Between events the main thread keeps time for STATUS messages, the systemd watchdog and
 periodic saves of the ephemeris store (it prunes the store and takes a snapshot; a
 :class:`~service.daemon.store_writer.StoreWriter` thread encodes and writes it), and it
-stops cleanly on request (SIGTERM) after saving the store.
+stops cleanly on request (SIGTERM) after saving the store. When it has caught up with its
+source it also sends the TRACK records the outputs hold (:mod:`service.output.publish`)
+and makes the garbage collector's passes (:func:`collect_when_idle`), which would
+otherwise fall inside an epoch.
 
 Network nav sources (NTRIP, :mod:`service.daemon.netnav`) each have a reader thread of their
 own feeding the queue (their events are rare: ephemerides every few minutes; the loop takes
