@@ -76,6 +76,7 @@ from typing import Any
 
 from pyubx2 import UBX_MSGIDS, UBXReader
 
+from drivers import framing
 from drivers.framing import BinaryFraming, Event, WeekContext
 from drivers.sfrbx import UBX_GNSS, nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S
@@ -128,7 +129,34 @@ def checksum_ok(frame: bytes) -> bool:
     return fletcher8(frame[2:-2]) == frame[-2:]
 
 
-FRAMING = BinaryFraming(
+class UbxFraming(BinaryFraming):
+    """The UBX frame layout as a :class:`~drivers.framing.BinaryFraming`, whose
+    :meth:`measure` reads the length field and checks the checksum in place: every frame of
+    an epoch is measured between its last byte and its fix, and the generic method's calls
+    and copies (``payload_len``, ``check``, :func:`fletcher8`) were a tenth of an epoch's
+    decoding there. Same results as the generic method on any bytes (tests compare them)."""
+
+    def measure(self, buf: bytes | bytearray, pos: int, max_payload: int) -> int:
+        avail = len(buf) - pos
+        if avail > 1 and buf[pos + 1] != SYNC[1]:
+            return framing.NOT_A_FRAME
+        if avail < HEADER_LEN:
+            return framing.NEED_MORE
+        n_payload = buf[pos + 4] | (buf[pos + 5] << 8)
+        if n_payload > max_payload:
+            return framing.BAD_LENGTH
+        size = HEADER_LEN + n_payload + 2
+        if avail < size:
+            return framing.NEED_MORE
+        body = bytes(buf[pos + 2 : pos + size - 2])  # class..payload
+        if (sum(body) & 0xFF) != buf[pos + size - 2]:
+            return framing.BAD_CHECKSUM
+        if (sum(itertools.accumulate(body)) & 0xFF) != buf[pos + size - 1]:
+            return framing.BAD_CHECKSUM
+        return size
+
+
+FRAMING = UbxFraming(
     sync=SYNC,
     header_len=HEADER_LEN,
     trailer_len=2,
@@ -371,6 +399,11 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
     return RxmMessage(layout.identity, fields, blocks)
 
 
+RAWX_SIGNALS_KEPT = 1024
+"""(gnssId, svId, sigId) triples whose mapping a :class:`UbxMapper` keeps (a receiver's few
+tens; the bound holds against a stream of damaged rows, which are then mapped each time)."""
+
+
 _RawxRow = tuple[int, int, int, float, float, int, int, int]
 """What the mapper reads of a RAWX measurement block: gnssId, svId, sigId, prMes, doMes,
 locktime [ms], cno and prValid (trkStat bit 0)."""
@@ -437,6 +470,7 @@ class UbxMapper:
         self._last_meas_time: tuple[int, float] | None = None
         self._last_nav_time: tuple[int, float] | None = None  # NAV-TIMEGPS / NAV-PVT
         self._log = RateLimitedLog(log)
+        self._rawx_signals: dict[tuple[int, int, int], tuple[str | None, str, str]] = {}
 
     # --- entry points ------------------------------------------------------------------------
     def on_frame(self, raw: bytes) -> list[Event]:
@@ -513,35 +547,51 @@ class UbxMapper:
         pending = self._pending
         if pending is None:
             return out
+        counters, sats, rows_seen = self.counters, pending.sats, self._rawx_signals
         for gnss_id, sv_id, sig_id, pr_m, do_hz, lock_ms, cno, pr_valid in rows:
-            system = UBX_GNSS.get(gnss_id)
-            if system is GnssSystem.BDS:
-                sig = BDS_SIGNALS.get(int(sig_id))
-                if sig is None:
-                    self.counters["rawx_bds_other_signal"] += 1
-                    continue
-            elif system in self._other:
-                sig = self._other[system].get(int(sig_id))
-                if sig is None or not 1 <= int(sv_id) <= SYSTEM_CONSTANTS[system].prn_max:
-                    self.counters[f"rawx_{system.value}_other_signal"] += 1
-                    continue
-                self.counters[f"rawx_{system.value}"] += 1
-            else:
-                self.counters["rawx_meas_other_gnss"] += 1
+            key = (gnss_id, sv_id, sig_id)
+            seen = rows_seen.get(key)
+            if seen is None:
+                seen = self._rawx_signal(*key)
+                if len(rows_seen) < RAWX_SIGNALS_KEPT:
+                    rows_seen[key] = seen
+            prn, sig, count = seen
+            if count:
+                counters[count] += 1
+            if prn is None:
                 continue
-            sat = self._sat(pending, sat_id(system, int(sv_id)))
+            sat = sats.get(prn)
+            if sat is None:
+                sat = sats[prn] = _Sat(prn)
             sat.signal = sig
             pr_m = float(pr_m)
             if not pr_valid:
-                self.counters["rawx_pr_invalid"] += 1
+                counters["rawx_pr_invalid"] += 1
             elif not 0.0 < pr_m < PR_MAX_M:  # NaN/inf/negative reached the solver before
-                self.counters["rawx_pr_implausible"] += 1
+                counters["rawx_pr_implausible"] += 1
             else:
                 sat.pr_m = pr_m
             sat.cn0_dbhz = float(cno)
             sat.doppler_hz = float(do_hz)
             sat.lock_s = float(lock_ms) * 1e-3
         return out + self._maybe_complete()
+
+    def _rawx_signal(self, gnss_id: int, sv_id: int, sig_id: int) -> tuple[str | None, str, str]:
+        """What a RAWX row of (gnssId, svId, sigId) is: its satellite ID (None: not used),
+        its RINEX signal code and the counter it adds to ("" for none). Worked out once per
+        mapper for each triple seen (:data:`RAWX_SIGNALS_KEPT` of them), not per row."""
+        system = UBX_GNSS.get(gnss_id)
+        if system is GnssSystem.BDS:
+            sig = BDS_SIGNALS.get(int(sig_id))
+            if sig is None:
+                return None, "", "rawx_bds_other_signal"
+            return sat_id(system, int(sv_id)), sig, ""
+        if system in self._other:
+            sig = self._other[system].get(int(sig_id))
+            if sig is None or not 1 <= int(sv_id) <= SYSTEM_CONSTANTS[system].prn_max:
+                return None, "", f"rawx_{system.value}_other_signal"
+            return sat_id(system, int(sv_id)), sig, f"rawx_{system.value}"
+        return None, "", "rawx_meas_other_gnss"
 
     def _on_measx(self, msg: Any) -> list[Event]:
         tow = int(msg.gpsTOW) * 1e-3

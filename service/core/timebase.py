@@ -8,6 +8,7 @@ exact across week boundaries, which a single float since 1980 would not.
 
 from __future__ import annotations
 
+import bisect
 import datetime as dt
 
 import numpy as np
@@ -47,6 +48,9 @@ _LEAP_GPST: tuple[tuple[dt.datetime, dt.datetime, int], ...] = tuple(
 )
 """Per leap second, on the GPST scale: the start and end of the inserted second and GPST -
 UTC from its end (worked out once: NMEA asks for them twice an epoch)."""
+_LEAP_INSERTED_GPST: tuple[dt.datetime, ...] = tuple(inserted for inserted, _e, _l in _LEAP_GPST)
+"""The inserted seconds' starts on the GPST scale, ascending: a binary search finds the
+leap second in force at an instant (:mod:`bisect`; the table is in date order)."""
 
 
 def normalize(week: int, sow_s: float) -> tuple[int, float]:
@@ -106,18 +110,16 @@ def utc_from_gpst(week: int, tow_s: float) -> dt.datetime:
     every other instant is exact.
     """
     t = datetime_from_gpst(week, tow_s)
-    offset = 0
-    for inserted, _end, leap in _LEAP_GPST:
-        if t >= inserted:
-            offset = leap
-    return t - dt.timedelta(seconds=offset)
+    k = bisect.bisect_right(_LEAP_INSERTED_GPST, t)  # the inserted seconds started by t
+    return t - dt.timedelta(seconds=_LEAP_GPST[k - 1][2]) if k else t
 
 
 def gpst_in_leap_second(week: int, tow_s: float) -> bool:
     """Whether GPST (week, tow) falls in an inserted UTC second (23:59:60.x), which
     :func:`utc_from_gpst` gives as a repeated 23:59:59.x."""
     t = datetime_from_gpst(week, tow_s)
-    return any(inserted <= t < end for inserted, end, _leap in _LEAP_GPST)
+    k = bisect.bisect_right(_LEAP_INSERTED_GPST, t)  # the last one started by t, if any
+    return bool(k) and t < _LEAP_GPST[k - 1][1]
 
 
 J2000_UTC = dt.datetime(2000, 1, 1, 12)

@@ -17,7 +17,10 @@ source:
 Between events the main thread keeps time for STATUS messages, the systemd watchdog and
 periodic saves of the ephemeris store (it prunes the store and takes a snapshot; a
 :class:`~service.daemon.store_writer.StoreWriter` thread encodes and writes it), and it
-stops cleanly on request (SIGTERM) after saving the store.
+stops cleanly on request (SIGTERM) after saving the store. When it has caught up with its
+source it also sends the TRACK records the outputs hold (:mod:`service.output.publish`)
+and makes the garbage collector's passes (:func:`collect_when_idle`), which would
+otherwise fall inside an epoch.
 
 Network nav sources (NTRIP, :mod:`service.daemon.netnav`) each have a reader thread of their
 own feeding the queue (their events are rare: ephemerides every few minutes; the loop takes
@@ -61,6 +64,13 @@ log = logging.getLogger(__name__)
 
 _END = object()
 SWITCH_INTERVAL_S = 0.0005
+GC_SAFETY_THRESHOLD = 20_000
+"""While the loop runs, the cyclic garbage collector's automatic trigger (young objects
+allocated and not freed) is this high, and the loop collects when it has caught up with its
+source (:func:`collect_when_idle`): a young-generation pass at an arbitrary allocation
+took 0.1-0.2 ms and an intermediate one up to several ms on the 2-core machine, landing
+inside an epoch's decoding, solve or NMEA as often as every fourth epoch. The automatic
+trigger stays as a safety net for a loop that never catches up."""
 TIMER_SLACK_S = 1.0
 EPOCH_TIMES_ENV = "BDSFIX_EPOCH_TIMES"
 """When this environment variable names a file, the loop keeps five times of each epoch
@@ -232,6 +242,8 @@ class Runner:
         # stall an epoch by milliseconds (~4 ms for a daemon's start-up heap).
         gc.collect()
         gc.freeze()
+        thresholds = gc.get_threshold()
+        gc.set_threshold(max(GC_SAFETY_THRESHOLD, thresholds[0]), *thresholds[1:])
         times_path = os.environ.get(EPOCH_TIMES_ENV)
         self._epoch_times = [] if times_path else None
         q: queue.Queue[Any] = queue.Queue(maxsize=self.queue_size)
@@ -255,6 +267,9 @@ class Runner:
                 name=f"bdsfix-nav-{i + 1}",
                 daemon=True,
             ).start()
+        # outputs that hold TRACK records until a fix has its GGA out
+        # (service.output.publish) get them sent whenever nothing waits
+        release_tracks = getattr(self.outputs, "release_tracks", None)
         now = time.monotonic()
         next_status = now + self.status_interval_s
         next_save = now + self.store_save_interval_s
@@ -283,6 +298,10 @@ class Runner:
                 caught_up = (ev is None) if live else (self.inline or q.empty())
                 if caught_up and (live or self.inline):
                     self._take_networked(q)
+                if caught_up:
+                    if release_tracks is not None:
+                        release_tracks()
+                    collect_when_idle(thresholds)
                 now = time.monotonic()
                 slack = 0.0 if caught_up else TIMER_SLACK_S
                 if now >= next_status + slack:
@@ -297,6 +316,7 @@ class Runner:
                     self.watchdog()
                     next_dog = now + (self.watchdog_interval_s or 1e18)
         finally:
+            gc.set_threshold(*thresholds)
             gc.unfreeze()  # the caller's heap is its own again (tests run many loops)
             self._stop.set()
             self.save_store(final=True)
@@ -441,6 +461,19 @@ class Runner:
             writer.close(snapshot)
         elif snapshot is not None:
             writer.submit(snapshot)
+
+
+def collect_when_idle(thresholds: tuple[int, ...]) -> None:
+    """The collection the interpreter would have made by now under ``thresholds`` (its own,
+    :func:`gc.get_threshold`), made here, where no event waits (:data:`GC_SAFETY_THRESHOLD`):
+    a young pass once that many objects are pending, an intermediate one every
+    ``thresholds[1]`` young passes, a full one every ``thresholds[2]`` intermediate ones
+    (the start-up heap is frozen out of it, :meth:`Runner.run`)."""
+    counts = gc.get_count()
+    for generation in (2, 1, 0):
+        if counts[generation] > thresholds[generation]:
+            gc.collect(generation)
+            return
 
 
 class LatencyStats:

@@ -19,8 +19,9 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from functools import partial
+from typing import Any
 
 import numpy as np
 
@@ -194,6 +195,7 @@ class Pipeline:
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
     _inav: InavAssembler = field(default_factory=InavAssembler)
     _receiver_fix: ReceiverFix | None = None
+    _cfg_settings: tuple[SolverConfig, dict[str, Any]] | None = None
     ggto: TimeOffset | None = None
     """The latest broadcast GST - GPST offset (:mod:`service.core.gal_nav`): recorded, not
     applied (each system has its own receiver clock, which absorbs it)."""
@@ -472,7 +474,19 @@ class Pipeline:
             <= WARM_START_MAX_AGE_S
         ):
             return self.cfg
-        return replace(self.cfg, x0_ecef_m=last[2])
+        return self._cfg_from(last[2])
+
+    def _cfg_from(self, x0_ecef_m: tuple[float, float, float]) -> SolverConfig:
+        """``replace(self.cfg, x0_ecef_m=...)`` with the settings read once per ``cfg``
+        (``replace`` reads all of them each time: a few microseconds an epoch)."""
+        held = self._cfg_settings
+        if held is None or held[0] is not self.cfg:
+            cfg = self.cfg
+            held = self._cfg_settings = (
+                cfg,
+                {f.name: getattr(cfg, f.name) for f in fields(cfg) if f.init},
+            )
+        return type(held[0])(**{**held[1], "x0_ecef_m": x0_ecef_m})
 
     def _check_integrity(
         self, view: MeasurementEpoch, events: list[TrackEvent]

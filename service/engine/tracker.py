@@ -215,7 +215,8 @@ class FrameSyncTracker:
             self._start = (epoch.gpst_week, epoch.gpst_tow_s)
         week, tow = epoch.gpst_week, epoch.gpst_tow_s
         full = np.isfinite(epoch.pr_m)
-        if self._restart is not None and diff_s(week, tow, *self._restart) >= 0:
+        restricted = self._restart is not None and diff_s(week, tow, *self._restart) >= 0
+        if restricted:
             emulator = self._emulator
             # decoded subframes arrive at their end: under the SOW rule the satellite's time
             # was known before, at the instant the emulator gives from BDT
@@ -225,8 +226,8 @@ class FrameSyncTracker:
                 full &= np.array([p in self._sow_after_restart for p in epoch.prn], dtype=bool)
         events: list[TrackEvent] = []
         since = self.since_start_s(week, tow)
-        for i, prn in enumerate(epoch.prn):
-            if full[i] and prn not in self._full_since_s:
+        for prn, is_full in zip(epoch.prn, full.tolist(), strict=True):
+            if is_full and prn not in self._full_since_s:
                 self._full_since_s[prn] = since
                 events.append(
                     TrackEvent(
@@ -239,9 +240,10 @@ class FrameSyncTracker:
                         full_since_s=since,
                     )
                 )
-            elif not full[i] and prn in self._full_since_s:
+            elif not is_full and prn in self._full_since_s:
                 del self._full_since_s[prn]  # lost lock or time: fractional again
-        if full.all() or np.array_equal(full, np.isfinite(epoch.pr_m)):
+        # full unless the restart holds some back: the receiver's own view, as it came
+        if not restricted or full.all() or np.array_equal(full, np.isfinite(epoch.pr_m)):
             return epoch, events
         ct = C_M_S * epoch.period_s
         frac = np.where(np.isfinite(epoch.frac_pr_m), epoch.frac_pr_m, np.mod(epoch.pr_m, ct))

@@ -72,7 +72,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import reduce
 from operator import xor
 
@@ -160,41 +160,63 @@ def _dmm(deg: object, width: int) -> str:
     return f"{int(whole * 100) + minutes:.7f}".zfill(width)
 
 
-def _text(value: object, kind: str, fields: dict[str, object]) -> str:
-    """One field's text as pynmeagps ``NMEAMessage.val2str`` writes it."""
-    if kind == _LAT:
-        return _dmm(value, 12)
-    if kind == _LON:
-        return _dmm(value, 13)
-    if kind == _NS:
-        lat = fields.get("lat")
-        return "S" if isinstance(lat, (int, float)) and lat < 0 else "N"
-    if kind == _EW:
-        lon = fields.get("lon")
-        return "W" if isinstance(lon, (int, float)) and lon < 0 else "E"
-    if kind == _TIME:
-        if isinstance(value, str):
-            return value.replace(":", "")
-        t: dt.time = value  # type: ignore[assignment]
-        return f"{t.hour:02d}{t.minute:02d}{t.second:02d}.{t.microsecond // 10_000:02d}"
-    if kind == _DATE:
-        if isinstance(value, str):
-            v = value.replace("-", "")
-            return f"{v[6:8]}{v[4:6]}{v[2:4]}"
-        d: dt.date = value  # type: ignore[assignment]
-        return f"{d.day:02d}{d.month:02d}{d.year % 100:02d}"
-    return str(value)
+def _lat_text(value: object, fields: dict[str, object]) -> str:
+    return _dmm(value, 12)
+
+
+def _lon_text(value: object, fields: dict[str, object]) -> str:
+    return _dmm(value, 13)
+
+
+def _ns_text(value: object, fields: dict[str, object]) -> str:
+    lat = fields.get("lat")
+    return "S" if isinstance(lat, (int, float)) and lat < 0 else "N"
+
+
+def _ew_text(value: object, fields: dict[str, object]) -> str:
+    lon = fields.get("lon")
+    return "W" if isinstance(lon, (int, float)) and lon < 0 else "E"
+
+
+def _time_text(value: object, fields: dict[str, object]) -> str:
+    if isinstance(value, str):
+        return value.replace(":", "")
+    t: dt.time = value  # type: ignore[assignment]
+    return f"{t.hour:02d}{t.minute:02d}{t.second:02d}.{t.microsecond // 10_000:02d}"
+
+
+def _date_text(value: object, fields: dict[str, object]) -> str:
+    if isinstance(value, str):
+        v = value.replace("-", "")
+        return f"{v[6:8]}{v[4:6]}{v[2:4]}"
+    d: dt.date = value  # type: ignore[assignment]
+    return f"{d.day:02d}{d.month:02d}{d.year % 100:02d}"
+
+
+_Writer = Callable[[object, dict[str, object]], str]
+_WRITERS: dict[str, _Writer] = {
+    _LAT: _lat_text,
+    _LON: _lon_text,
+    _NS: _ns_text,
+    _EW: _ew_text,
+    _TIME: _time_text,
+    _DATE: _date_text,
+}
+"""How pynmeagps' ``NMEAMessage.val2str`` writes a field of each kind other than those it
+writes with ``str()`` (:data:`_PLAIN_KINDS`): ``(value, all fields) -> text``."""
 
 
 _PLAIN_KINDS = frozenset({_HEX, _DEC, _INT, _CHAR})
 """Kinds pynmeagps writes with ``str()``."""
-_SPECS: dict[str, tuple[tuple[str, str | None, str | None], ...]] = {
+_SPECS: dict[str, tuple[tuple[str, _Writer | None, str | None], ...]] = {
     msg_id: tuple(
-        (name, None if kind in _PLAIN_KINDS else kind, _NOMINAL.get(kind)) for name, kind in spec
+        (name, None if kind in _PLAIN_KINDS else _WRITERS[kind], _NOMINAL.get(kind))
+        for name, kind in spec
     )
     for msg_id, spec in _FIELDS.items()
 }
-"""``_FIELDS`` as (name, kind or None for ``str()``, text when not given) for the formatter."""
+"""``_FIELDS`` as (name, writer or None for ``str()``, text when not given) for the
+formatter."""
 
 
 def plain_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes:
@@ -205,14 +227,14 @@ def plain_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes
     Fields not given get pynmeagps' nominal text (times and dates must be given)."""
     parts = [talker + msg_id]
     get = fields.get
-    for name, kind, nominal in _SPECS[msg_id]:
+    for name, writer, nominal in _SPECS[msg_id]:
         value = get(name, nominal)
-        if kind is None:
+        if writer is None:
             parts.append(str(value))
         elif value is None:
             raise KeyError(f"{msg_id} needs its {name} field")
         else:
-            parts.append(_text(value, kind, fields))
+            parts.append(writer(value, fields))
     if msg_id == "GSV":
         # pynmeagps' group count for generated messages: the largest _NN suffix given
         n_groups = max([int(k.split("_", 1)[1]) for k in fields if "_" in k], default=0)
@@ -369,7 +391,10 @@ def gsv_sentences(
     return out
 
 
-def _gga(talker: str, t: dt.time | str, fix: Fix, has_fix: bool) -> bytes:
+def _gga(
+    talker: str, t: dt.time | str, fix: Fix, has_fix: bool, pos: dict[str, object] | None = None
+) -> bytes:
+    """GGA; ``pos``: the fix's ``lat``/``lon`` as RMC got them (:func:`_deg_for_dmm`)."""
     if not has_fix:
         return _msg(
             talker,
@@ -388,6 +413,11 @@ def _gga(talker: str, t: dt.time | str, fix: Fix, has_fix: bool) -> bytes:
             diffStation="",
         )
     alt_m = float(fix.alt_m)  # type: ignore[arg-type]
+    if pos is None:
+        pos = {
+            "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
+            "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
+        }
     sentence = b""
     # millimetre altitude and 0.01 HDOP first; shorter forms only to stay within 82 chars
     for alt_nd, hdop_nd in ((3, 2), (2, 2), (2, 1)):
@@ -395,8 +425,7 @@ def _gga(talker: str, t: dt.time | str, fix: Fix, has_fix: bool) -> bytes:
             talker,
             "GGA",
             time=t,
-            lat=_deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
-            lon=_deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
+            **pos,
             quality=1,
             numSV=len(fix.used),
             HDOP=_dop(fix.hdop, hdop_nd),
@@ -529,7 +558,7 @@ def lead_sentences(
                 posMode="A",
             )
         )
-    out.append(_gga(talker, t, fix, has_fix))
+    out.append(_gga(talker, t, fix, has_fix, pos))
     return out
 
 

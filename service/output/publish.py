@@ -2,8 +2,16 @@
 (:mod:`service.output.sinks`). None of it blocks.
 
 Each sink gets what it declares it takes, in this order per epoch: RMC, VTG and GGA to the
-live NMEA sinks (as soon as they are built), the FIX record, the epoch's other sentences to the live
-NMEA sinks, then all of the epoch's sentences to the epoch-wise NMEA sinks (files).
+live NMEA sinks (as soon as they are built), the TRACK records held since the last release
+(the subframes decoded just before the epoch, the satellites it found full), the FIX record,
+the epoch's other sentences to the live NMEA sinks, then all of the epoch's sentences to the
+epoch-wise NMEA sinks (files).
+
+TRACK records are held, not sent as their events come, until the next fix has its lead
+sentences out, a STATUS, :meth:`Publishers.release_tracks` (the receiver loop calls it when
+it has caught up with its source) or the close: every record sink sees them in the order it
+always did (before the FIX of the epoch that followed their subframes), and the JSON and
+ZeroMQ work of an epoch's subframes no longer sits between its last byte and its GGA.
 """
 
 from __future__ import annotations
@@ -50,6 +58,7 @@ class Publishers:
         self._nmea_live = [s for s in self.sinks if s.nmea == "live"]
         self._nmea_epoch = [s for s in self.sinks if s.nmea == "epoch"]
         self._takes = {c: [s for s in self.sinks if c in s.records] for c in RECORD_CLASSES}
+        self._held_tracks: list[Any] = []
 
     def fix(
         self,
@@ -79,6 +88,7 @@ class Publishers:
             for sink in self._nmea_live:
                 sink.write_nmea(lead)
             self.gga_out_s = time.perf_counter()
+        self.release_tracks()
         if self._takes["FIX"]:
             rec = fix_record(fix, since_start_s, receiver_fix)
             for sink in self._takes["FIX"]:
@@ -120,8 +130,15 @@ class Publishers:
             self.sky(fix.gpst_week, fix.gpst_tow_s, fix.sky)
 
     def track(self, event: Any) -> None:
-        """A :class:`service.engine.tracker.TrackEvent` as a ``TRACK`` record."""
+        """A :class:`service.engine.tracker.TrackEvent` as a ``TRACK`` record, held until
+        the next release (module docstring)."""
         if self._takes["TRACK"]:
+            self._held_tracks.append(event)
+
+    def release_tracks(self) -> None:
+        """Send the TRACK records held, in the order their events came."""
+        held, self._held_tracks = self._held_tracks, []
+        for event in held:
             rec = track_record_of(event)
             for sink in self._takes["TRACK"]:
                 sink.write_record("TRACK", rec)
@@ -136,7 +153,8 @@ class Publishers:
         return merged
 
     def status(self, counters: Mapping[str, int | float], **extra: Any) -> None:
-        """Publish a ``STATUS`` record of all counters."""
+        """Publish a ``STATUS`` record of all counters (after the TRACK records held)."""
+        self.release_tracks()
         if self._takes["STATUS"]:
             rec = status_record(self.all_counters(counters), **extra)
             for sink in self._takes["STATUS"]:
@@ -153,5 +171,6 @@ class Publishers:
             sink.reopen()
 
     def close(self) -> None:
+        self.release_tracks()
         for sink in self.sinks:
             sink.close()

@@ -17,7 +17,8 @@ from pyrtcm.rtcmhelpers import calc_crc24q
 from pyubx2 import UBXReader
 from pyubx2.ubxhelpers import calc_checksum
 
-from drivers.framing import Framer
+from drivers import ubx
+from drivers.framing import BinaryFraming, Framer
 from drivers.protocols import PROTOCOLS
 from drivers.source import StreamDecoder
 from service.core.types import (
@@ -187,3 +188,25 @@ def test_decoder_survives_checksum_valid_nonsense(items, chunk):
     for e in events:
         if isinstance(e, MeasurementEpoch):
             assert len(e.pr_m) == len(e.frac_pr_m) == len(e.prn)
+
+
+@SETTINGS
+@given(mixed_streams(), st.integers(0, 255), st.integers(0, 255), st.integers(0, 400))
+def test_ubx_measure_equals_the_generic_binary_framing(stream, flip_at, flip_bits, max_payload):
+    """drivers.ubx.UbxFraming measures in place what the generic BinaryFraming.measure
+    (sync, the length from ``payload_len``, ``check`` over a copy) measures from the same
+    layout, at every offset of streams of valid, damaged and false frames, and for any
+    payload bound."""
+    data, _ = stream
+    if data:  # one damaged byte somewhere (a checksum, a length or a sync byte)
+        k = flip_at % len(data)
+        data = data[:k] + bytes([data[k] ^ flip_bits]) + data[k + 1 :]
+    buf = bytearray(data)
+    for pos in range(len(buf)):
+        if buf[pos] != ubx.SYNC[0]:
+            continue
+        for limit in (max_payload, ubx.DEFAULT_MAX_PAYLOAD):
+            for end in (len(buf), pos + 1 + (flip_at % max(1, len(buf) - pos))):
+                view = buf[:end]
+                got = ubx.FRAMING.measure(view, pos, limit)
+                assert got == BinaryFraming.measure(ubx.FRAMING, view, pos, limit), (pos, limit)

@@ -158,3 +158,24 @@ def test_measx_encoder_read_by_pyubx2(tow_ms, ss):
             getattr(msg, "codePhase" + k), s.code_phase_units * 2.0**-21, abs_tol=1e-12
         )
         assert getattr(msg, "intCodePhase" + k) == s.int_code_phase_ms
+
+
+@pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
+def test_rawx_rows_map_alike_with_and_without_the_kept_signal_table(path: Path, monkeypatch):
+    """What a RAWX row's (gnssId, svId, sigId) means is worked out once per mapper and kept
+    (``RAWX_SIGNALS_KEPT`` of them): a mapper that keeps none, working each row out anew,
+    gives the same epochs, subframes and counters, with every system read (the counters
+    of other systems' signals and of other GNSS included)."""
+    import drivers.ubx as ubx
+
+    systems = frozenset({"C", "G", "E"})
+    kept = UbxMapper(systems=systems)
+    frames = _rxm_frames(path)
+    got = [e for raw in frames for e in kept.on_frame(raw)] + kept.flush()
+    monkeypatch.setattr(ubx, "RAWX_SIGNALS_KEPT", 0)
+    anew = UbxMapper(systems=systems)
+    want = [e for raw in frames for e in anew.on_frame(raw)] + anew.flush()
+    assert [_epoch_key(e) for e in got] == [_epoch_key(e) for e in want]
+    assert kept.counters == anew.counters
+    has_rawx = any(raw[3] == 0x15 for raw in frames)
+    assert not anew._rawx_signals and bool(kept._rawx_signals) == has_rawx

@@ -586,6 +586,39 @@ def test_fan_out_order_puts_rmc_and_gga_first_and_file_blocks_last():
     assert all(s.closed for s in sinks)
 
 
+def test_track_records_wait_for_the_next_gga_and_keep_their_place_before_its_fix():
+    """TRACK records are held (the JSON and ZeroMQ work of an epoch's subframes is not
+    between its last byte and its GGA) and sent, in their order, once the next fix's lead
+    sentences are out: each record sink still sees them before that FIX; a STATUS, a
+    release (the loop caught up) or the close sends them too."""
+    calls: list = []
+    every = frozenset({"FIX", "SKY", "TRACK", "STATUS"})
+    sinks = [
+        Recorder("tcp", calls, nmea="live"),
+        Recorder("zmq", calls, records=every),
+        Recorder("jsonl", calls, records=frozenset({"FIX", "TRACK"})),
+    ]
+    out = Publishers(sinks)
+    out.track(TrackEvent("C06", "sow", 2161, 444950.2, 0.2, "D1", sow_s=444936.0))
+    out.track(TrackEvent("C06", "full", 2161, 444950.3, 0.3, "D1"))
+    assert calls == []
+    out.epoch(SimpleNamespace(fix=hksc_fix(), since_start_s=4.0))
+    assert calls[:7] == [
+        ("tcp", "RMC", 2),
+        ("zmq", "TRACK"),
+        ("jsonl", "TRACK"),
+        ("zmq", "TRACK"),
+        ("jsonl", "TRACK"),
+        ("zmq", "FIX"),
+        ("jsonl", "FIX"),
+    ]
+    for send in (out.release_tracks, lambda: out.status({"x": 1}), out.close):
+        calls.clear()
+        out.track(TrackEvent("C09", "full", 2161, 444951.0, 1.0, "D1"))
+        send()
+        assert calls[:2] == [("zmq", "TRACK"), ("jsonl", "TRACK")], send
+
+
 def test_every_registered_kind_resolves_to_a_factory():
     for kind, target in SINKS.items():
         module, name = target.split(":")
