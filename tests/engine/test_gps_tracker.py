@@ -86,7 +86,8 @@ def _replay(capsys, tmp_path, capture, *args):
 
 
 def test_hiroshima_restart_confirms_recovered_gps_integers(capsys, tmp_path):
-    """Hiroshima OEM729, restart 20 s in, BeiDou + GPS: the fast fixes at 1-3 s hold 9 GPS
+    """Hiroshima OEM729, restart 20 s in, BeiDou + GPS: a coarse-time fix at 0 s, then the
+    paper's fast fixes at 1-3 s, which hold 9 GPS
     integers recovered from the GEOs' fix; the GPS satellites become full at 8 s (the next
     GPST subframe boundary at 6 s after the 0.1-0.5 s sync, + 1.2 s), and every recovered
     integer is confirmed then: 23 checks (14 BeiDou IGSO/MEO + 9 GPS), 0 failures. BeiDou
@@ -95,7 +96,10 @@ def test_hiroshima_restart_confirms_recovered_gps_integers(capsys, tmp_path):
     rtcm = DATA / "hiroshima-oem729-rtcm-2022" / "20221213-010900.rtcm"
     recs, n, bad = _replay(capsys, tmp_path, rtcm, "--systems", "C,G", "--restart-at", "20")
     assert (n, bad) == (23, 0)
-    fast = [r for r in recs if r["class"] == "FIX" and r["mode"] == "fast"]
+    first = [r for r in recs if r["class"] == "FIX" and r["mode"] == "fast"]
+    # at 0 s, before four GEOs are full: the coarse-time fix (BeiDou and GPS rows)
+    assert [r["since_start_s"] for r in first if r.get("method") == "coarse_time"] == [0.0]
+    fast = [r for r in first if r.get("method") is None]  # the paper's fast fix
     assert [r["since_start_s"] for r in fast] == [1.0, 2.0, 3.0]
     assert all(r["used_by_system"]["G"] == 9 for r in fast)
     restart_tow = fast[0]["gpst_tow_s"] - 1.0
