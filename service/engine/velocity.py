@@ -25,7 +25,8 @@ r = rows - unknowns >= 1 (velocity and one clock drift per system,
 :mod:`service.engine.layout`), the residuals' weighted sum of squares is tested against the
 chi-square quantile (as :mod:`service.engine.raim` tests the position); while it fails, the
 row with the largest normalised residual (w-test, Baarda) is removed, up to ``max_exclusions``
-times. A solution that still fails, or one without enough rows, is not reported (None).
+times, each only from redundancy >= 2 (at redundancy 1 every w-test has the same size). A
+solution that still fails, or one without enough rows, is not reported (None).
 """
 
 from __future__ import annotations
@@ -192,7 +193,10 @@ def solve_velocities(
                 float(chi2[j]) if dof[j] > 0 else None,
                 float(chi2_max[j]) if dof[j] > 0 else None,
             )
-        failed = np.flatnonzero(~passed)
+        # an exclusion must leave a testable solution (redundancy >= 1 after it), as fault
+        # exclusion of the position requires: at redundancy 1 every row's w-test has the
+        # same size, so which row is "worst" is rounding (a failed test there: no velocity)
+        failed = np.flatnonzero(~passed & (dof >= 2))
         if len(failed) == 0:
             todo = failed
             break

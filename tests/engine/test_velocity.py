@@ -107,3 +107,32 @@ def test_a_chunk_gives_what_each_epoch_gives_alone():
         assert np.allclose(a.velocity.std_v_enu_m_s, b.velocity.std_v_enu_m_s, atol=1e-12)
     assert n_vel >= 1000 and n_excl >= 10
     assert sum(f.ok for f in fixes) > n_vel  # some fixes have no trusted velocity
+
+
+def test_a_failed_test_at_redundancy_one_gives_no_velocity_whatever_the_rounding():
+    """Urban TST drive, three SPP fixes of five satellites whose Doppler test fails at
+    redundancy 1: every row's w-test then has the same size, so no row can be told apart
+    (fault exclusion needs redundancy >= 2 before it). No velocity is reported, and moving
+    the fix by 1e-7 m or 1e-5 m does not change that (before, the row excluded, and a speed
+    of 1.4 to 56.5 m/s published untested, followed the rounding)."""
+    from dataclasses import replace
+
+    from drivers.rinex import RinexObsReader
+    from service.commands.solve import load_navigation
+    from service.engine.solver import solve
+    from service.engine.velocity import with_velocity
+    from tests.support.paths import DATA
+
+    d = DATA / "hk-tst-urban-2019"
+    store, iono = load_navigation([str(d / "hksc1180.19b")])
+    wanted = {46320.003, 46062.003, 47281.0}
+    epochs = [
+        e for e in RinexObsReader(d / "COM3_190428_124409.obs") if round(e.gpst_tow_s, 3) in wanted
+    ]
+    assert len(epochs) == 3
+    for ep in epochs:
+        fix = solve(ep, store, iono, solver="spp")
+        assert fix.ok and len(fix.used) == 5
+        for dx in (0.0, 1e-7, -1e-7, 1e-5):
+            moved = replace(fix, x_ecef_m=tuple(np.add(fix.x_ecef_m, dx)))
+            assert with_velocity(moved, ep, store).velocity is None, (ep.gpst_tow_s, dx)
