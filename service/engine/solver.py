@@ -536,7 +536,7 @@ class _Chunk:
                 cols.append((z, 0.0, cn0[i]) if z == z else (zq[i], C_M_S * per[i], cn0[i]))
         flat = np.array(cols, dtype=float).reshape(-1, 3)
         own = np.array(owner, dtype=np.intp)
-        gross = self._gross(n_e, own, flat, prns) if screen else None
+        gross = self._gross(n_e, own, flat, prns, cols) if screen else None
         if gross is not None:
             keep = ~gross
             flat, own = flat[keep], own[keep]
@@ -588,31 +588,45 @@ class _Chunk:
                 self.cix[k, : len(ps)] = self.layout.clock_index(ps)
 
     def _gross(
-        self, n_e: int, own: np.ndarray, flat: np.ndarray, prns: list[str]
+        self,
+        n_e: int,
+        own: np.ndarray,
+        flat: np.ndarray,
+        prns: list[str],
+        cols: list[tuple[float, float, float]],
     ) -> np.ndarray | None:
-        """The flat rows that are impossible ranges (None: none), recorded in ``gross``."""
-        full = flat[:, 1] == 0.0
-        z = flat[:, 0]
-        if n_e == 1:  # one epoch: the same median, without the grouping
-            zs = np.sort(z[full])
-            n = len(zs)
+        """The flat rows (``flat``, or the same as tuples, ``cols``) that are impossible
+        ranges (None: none), recorded in ``gross``."""
+        if n_e == 1:  # one epoch: the same median and deviations, in floats
+            zl = sorted(c[0] for c in cols if c[1] == 0.0)
+            n = len(zl)
             if n < 2:
                 return None
-            dev = np.abs(z - 0.5 * (zs[(n - 1) // 2] + zs[n // 2]))
-            bad = full & ~(dev <= GROSS_SPREAD_M)
-        else:
-            n_full = np.bincount(own[full], minlength=n_e)
-            if not (n_full >= 2).any():
+            med = 0.5 * (zl[(n - 1) // 2] + zl[n // 2])
+            devs = [abs(c[0] - med) for c in cols]
+            flags = [
+                c[1] == 0.0 and not (d <= GROSS_SPREAD_M) for c, d in zip(cols, devs, strict=True)
+            ]
+            if not any(flags):
                 return None
-            # each epoch's median of its full rows: sort by (epoch, z), full rows first
-            order = np.lexsort((z, ~full, own))
-            start = np.searchsorted(own[order], np.arange(n_e))
-            lo = start + np.maximum(n_full - 1, 0) // 2
-            hi = start + n_full // 2
-            zs = z[order]
-            median = 0.5 * (zs[np.minimum(lo, len(z) - 1)] + zs[np.minimum(hi, len(z) - 1)])
-            dev = np.abs(z - median[own])
-            bad = full & (n_full[own] >= 2) & ~(dev <= GROSS_SPREAD_M)
+            for i, flag in enumerate(flags):
+                if flag:
+                    self.gross[0][prns[i]] = excluded_why("gross", dev_km=devs[i] / 1e3)
+            return np.array(flags, dtype=bool)
+        full = flat[:, 1] == 0.0
+        z = flat[:, 0]
+        n_full = np.bincount(own[full], minlength=n_e)
+        if not (n_full >= 2).any():
+            return None
+        # each epoch's median of its full rows: sort by (epoch, z), full rows first
+        order = np.lexsort((z, ~full, own))
+        start = np.searchsorted(own[order], np.arange(n_e))
+        lo = start + np.maximum(n_full - 1, 0) // 2
+        hi = start + n_full // 2
+        zs = z[order]
+        median = 0.5 * (zs[np.minimum(lo, len(z) - 1)] + zs[np.minimum(hi, len(z) - 1)])
+        dev = np.abs(z - median[own])
+        bad = full & (n_full[own] >= 2) & ~(dev <= GROSS_SPREAD_M)
         if not bad.any():
             return None
         for i in bad.nonzero()[0].tolist():
@@ -858,7 +872,7 @@ def _solve_chunk(
     n_frac = ch.frac.sum(axis=1)
     n_rows = n_full + n_frac
     n_par, n_clk, cix = layout.n_params, layout.n_clocks, ch.cix
-    for e in (n_rows == 0).nonzero()[0].tolist():  # no ephemeris or no measurement
+    for e in [] if n_rows.all() else (n_rows == 0).nonzero()[0].tolist():  # none
         if ch.gross[e]:  # every row an impossible range: none left to solve
             why = Declined.of(Decline.TOO_FEW_FULL, n_full=0, n_frac=0, need=n_par)
             d.decline(e, why)
@@ -867,7 +881,7 @@ def _solve_chunk(
         else:
             d.decline(e, Declined.of(Decline.NO_MEASUREMENTS))
     too_few = (n_rows > 0) & (n_full < n_par)
-    for e in too_few.nonzero()[0].tolist():
+    for e in too_few.nonzero()[0].tolist() if too_few.any() else []:
         n_f, n_q = int(n_full[e]), int(n_frac[e])
         d.decline(e, Declined.of(Decline.TOO_FEW_FULL, n_full=n_f, n_frac=n_q, need=n_par))
     ok = (n_rows > 0) & ~too_few
@@ -996,20 +1010,23 @@ def _solve_chunk(
         gate = gated & (n_frac > 0) & ~(gd < beta)
         unsettled = gated & ~gate & ~converged
         declined_here = gate | unsettled
-        gd_l = gd.tolist() if declined_here.any() else []
-        beta_l, it_l = beta.tolist(), iters.tolist()
-        for e in gate.nonzero()[0].tolist():
+        any_declined = bool(declined_here.any())
+        gd_l, beta_l, it_l = (
+            (gd.tolist(), beta.tolist(), iters.tolist()) if any_declined else ([], [], [])
+        )
+        for e in gate.nonzero()[0].tolist() if any_declined else []:
             variant = "" if converged[e] else "unsettled"
             it = it_l[e]
             why = Declined.of(
                 Decline.GDOP_GATE, variant, gdop=gd_l[e], beta=beta_l[e], iterations=it
             )
             d.decline(e, why, gdop_full=gd_l[e], iterations=it)
-        for e in unsettled.nonzero()[0].tolist():
+        for e in unsettled.nonzero()[0].tolist() if any_declined else []:
             it = it_l[e]
             why = Declined.of(Decline.NO_CONVERGENCE, iterations=it)
             d.decline(e, why, gdop_full=gd_l[e], iterations=it)
-        ok &= ~declined_here
+        if any_declined:
+            ok &= ~declined_here
 
     # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
     validw = ch.valid.astype(float)
@@ -1082,7 +1099,7 @@ def _phase2(
     n_e = len(ch.z)
     x = st.x
     finite = np.isfinite(x).all(axis=1) & np.isfinite(st.b).all(axis=1)
-    for e in (ok & ~finite).nonzero()[0].tolist():
+    for e in [] if finite.all() else (ok & ~finite).nonzero()[0].tolist():
         it = int(st.iters[e]) + 1
         d.decline(e, Declined.of(Decline.DIVERGED), iterations=it)
     for e in numerical:
@@ -1549,12 +1566,14 @@ def solve_many(
         at = pos.get(i)
         if at is not None and gross[at]:
             got = replace(got, excluded=gross[at] | got.excluded)
+        join = at is not None and others[at] and got.ok and solver == "fast"
         try:
-            with np.errstate(all="ignore"):
-                if at is not None and others[at] and got.ok and solver == "fast":
-                    got = _with_other_systems(ep, store, iono, cfg, got)
-                if with_sky and got.ok:
-                    got = replace(got, sky=sky_view(ep, store, got))
+            if join or (with_sky and got.ok):
+                with np.errstate(all="ignore"):
+                    if join:
+                        got = _with_other_systems(ep, store, iono, cfg, got)
+                    if with_sky and got.ok:
+                        got = replace(got, sky=sky_view(ep, store, got))
         except _NUMBER_ERRORS as exc:
             log.debug("solver failure at GPST %d %.3f", ep.gpst_week, ep.gpst_tow_s, exc_info=True)
             got = _numerical(ep, solver, type(exc).__name__, str(exc))
