@@ -861,9 +861,10 @@ def _solve_chunk(
     row has its own ambiguity column in eq. (11), so its residual is absorbed by
     dN_j = h_j . [dx, db] - dz_j (in metres, rounded in units of c*T by eq. 13), which is
     the solution of the augmented system of eq. (10) without forming it. A step that
-    increases the full rows' residual is halved (from the Earth's centre, near-equatorial
-    GEOs make the plain step overshoot). The satellites' orbits (eqs. 4-5) depend on the
-    integers only: an epoch's are computed again only when a step moves its integers. Then
+    increases the full rows' residual (by more than :data:`_MERIT_SLACK`) is halved (from
+    the Earth's centre, near-equatorial GEOs make the plain step overshoot). The
+    satellites' orbits (eqs. 4-5) depend on the integers only: an epoch's are computed
+    again only when a step moves its integers. Then
     the GEO-GDOP gate (eqs. 12, 20-21) and the fixed-integer correction (eqs. 15-16).
     Phase 2 (:func:`_phase2`) adds the mask, corrections and weights, and judges."""
     n_e, n_s = ch.z.shape
@@ -872,7 +873,8 @@ def _solve_chunk(
     n_frac = ch.frac.sum(axis=1)
     n_rows = n_full + n_frac
     n_par, n_clk, cix = layout.n_params, layout.n_clocks, ch.cix
-    for e in [] if n_rows.all() else (n_rows == 0).nonzero()[0].tolist():  # none
+    # no rows: no ephemeris, no measurement, or every one an impossible range
+    for e in [] if n_rows.all() else (n_rows == 0).nonzero()[0].tolist():
         if ch.gross[e]:  # every row an impossible range: none left to solve
             why = Declined.of(Decline.TOO_FEW_FULL, n_full=0, n_frac=0, need=n_par)
             d.decline(e, why)
