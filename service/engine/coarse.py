@@ -74,7 +74,12 @@ from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import sagnac_rotate
 from service.core.declines import Decline, Declined, excluded_why
 from service.core.ephemeris import EphemerisStore
-from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from service.core.geometry import (
+    ecef_to_geodetic,
+    enu_rotation,
+    geodetic_points,
+    geodetic_to_ecef,
+)
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.systems import GnssSystem, system_of
@@ -640,8 +645,7 @@ def _solve_candidates(
         rdot = np.einsum("kni,kni->kn", los, vel)
         near = it >= 1
         if near or it == ccfg.iterations - 1:  # (the first, from afar: no mask, no delays)
-            lat, lon, alt = _geodetic(x)
-            rot = _enu_rotations(lat, lon)  # (k, 3, 3)
+            lat, lon, alt, rot = _frames(x)  # rot (k, 3, 3)
             enu = np.einsum("kij,knj->kni", rot, los)
             el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
             az = np.arctan2(enu[..., 0], enu[..., 1])
@@ -743,21 +747,21 @@ def _cast(active: np.ndarray, like: np.ndarray) -> np.ndarray:
 
 
 def _geodetic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`ecef_to_geodetic` of points ``x`` (k, 3): point by point (its scalar path)
-    when they are few, where numpy's per-call cost is most of the time."""
+    """:func:`ecef_to_geodetic` of points ``x`` (k, 3) (:func:`_frames`)."""
     if len(x) > 8:
         return ecef_to_geodetic(x)
-    out = np.array([[float(v) for v in ecef_to_geodetic(p)] for p in x]).reshape(-1, 3)
-    return out[:, 0], out[:, 1], out[:, 2]
+    lat, lon, alt, _ = geodetic_points(x)
+    return lat, lon, alt
 
 
-def _enu_rotations(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
-    """:func:`enu_rotation` (k, 3, 3) of points at ``lat``, ``lon`` (k,): point by point
-    (its scalar path) when they are few, as :func:`_geodetic`."""
-    if len(lat) > 8:
-        return enu_rotation(lat, lon)
-    rots = [enu_rotation(a, o) for a, o in zip(lat.tolist(), lon.tolist(), strict=True)]
-    return np.array(rots).reshape(-1, 3, 3)
+def _frames(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Geodetic latitude, longitude, height (k,) and :func:`enu_rotation` (k, 3, 3) of
+    points ``x`` (k, 3): point by point (:func:`service.core.geometry.geodetic_points`)
+    when they are few, where numpy's per-call cost is most of the time."""
+    if len(x) > 8:
+        lat, lon, alt = ecef_to_geodetic(x)
+        return lat, lon, alt, enu_rotation(lat, lon)
+    return geodetic_points(x)
 
 
 def _inv_diag(m: np.ndarray) -> np.ndarray:

@@ -668,16 +668,11 @@ def _orbits(ch: _Chunk, sel: _Index, n_int: np.ndarray) -> tuple[np.ndarray, np.
     # every epoch (sel is sorted and unique): the chunk's columns as they are, not copied
     eph = ch.eph
     if not isinstance(sel, slice) and len(sel) != len(ch.z):
-        eph = _gather_rows(ch.eph, sel)
+        eph = _gather(ch.eph, sel)
     sow = ch.bdt_sow[sel, None]
     t1 = sow - (ch.z[sel] + n_int * ch.ct[sel]) / C_M_S
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
     return sat_pos_clock(eph, ch.bdt_week[sel, None], t_tx)
-
-
-def _gather_rows(eph: EphemerisArrays, sel: np.ndarray) -> EphemerisArrays:
-    kw = {name: getattr(eph, name)[sel] for name in _EPH_FIELDS}
-    return EphemerisArrays(prn=(), **kw)
 
 
 def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
@@ -714,13 +709,11 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def _where(
-    near: np.ndarray, value: np.ndarray | float, far: np.ndarray | float
+    near: np.ndarray | None, value: np.ndarray | float, far: np.ndarray | float
 ) -> np.ndarray | float:
     """``value`` for the epochs ``near`` the Earth (e, 1), ``far`` for the others; ``value``
-    itself (the same object, no copy) when every epoch is near."""
-    if near.all():
-        return value
-    return np.where(near, value, far)
+    itself (the same object, no copy) when every epoch is near (``near`` None)."""
+    return value if near is None else np.where(near, value, far)
 
 
 _Local = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
@@ -1207,8 +1200,8 @@ def _weighted(
     omega, carrier, bds = eph.omega_e_rad_s[rows], eph.carrier_hz[rows], eph.bds[rows]
     z = ch.z[rows] + n_int * ch.ct[rows]
     sow = ch.bdt_sow[rows]
-    near = meaningful[:, None]
-    all_near = bool(meaningful.all())  # (the usual case: no epoch far from the Earth)
+    # the epochs near the Earth (None: all of them, the usual case)
+    near = None if meaningful.all() else meaningful[:, None]
     keepw = keep.astype(float)
     models = iono.models(cfg.iono)
     cn0 = ch.cn0[rows]
@@ -1226,11 +1219,12 @@ def _weighted(
         io, tr = system_delays(lat, lon, alt, el, az, sow[ix], carrier[ix], bds[ix], models, cfg)
         dz = z[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
         corr = total_delay(io, tr)
-        dz = dz - (corr if all_near else _where(near[ix], corr, 0.0))
+        nr = None if near is None else near[ix]
+        dz = dz - _where(nr, corr, 0.0)
         w = keepw[ix]
         if cfg.weighted:
             sig = measurement_sigma_m(el, cn0[ix], io, tr, cfg)
-            w = w / sig**2 if all_near else np.asarray(_where(near[ix], w / sig**2, w))
+            w = np.asarray(_where(nr, w / sig**2, w))
         step, bad = _lsq(layout.design(los[ix], cix[ix]), dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
@@ -1258,7 +1252,8 @@ def _weighted(
     if not good.size:
         return out
     if good.size != n1:
-        x, b, cix, keep, near = x[good], b[good], cix[good], keep[good], near[good]
+        x, b, cix, keep = x[good], b[good], cix[good], keep[good]
+        near = None if near is None else near[good]
         n_int, iters, los, pred, sat = n_int[good], iters[good], los[good], pred[good], sat[good]
         z, sow, cn0 = z[good], sow[good], cn0[good]
         carrier, bds = carrier[good], bds[good]
@@ -1266,7 +1261,7 @@ def _weighted(
     lat, lon, alt, el, az, rot = _local(x, sat)
     io, tr = system_delays(lat, lon, alt, el, az, sow, carrier, bds, models, cfg)
     corr = total_delay(io, tr)
-    v = z - pred - _row_clocks(b, cix) - (corr if all_near else _where(near, corr, 0.0))
+    v = z - pred - _row_clocks(b, cix) - _where(near, corr, 0.0)
     v = np.where(keep, v, 0.0)
     if cfg.weighted:
         sigma = _where(near, measurement_sigma_m(el, cn0, io, tr, cfg), cfg.sigma_uniform_m)
