@@ -434,7 +434,7 @@ def test_epochs_the_kernel_must_decide_without_raising(hksc):
     with no start); and fractional rows of
     a system without a full row whose code period is not a number (their integers cannot
     be predicted: the fast fix of the other rows, not an exception)."""
-    from tests.engine.test_layout import _relabel, _Relabelled
+    from tests.support.relabel import Relabelled, relabel
 
     store, iono = load_navigation([str(DATA / "hksc-2021" / "hksc1610.nav")])
     ep = hksc[0]
@@ -447,12 +447,12 @@ def test_epochs_the_kernel_must_decide_without_raising(hksc):
     assert ref.ok and origin.ok and origin.used == ref.used
     assert np.linalg.norm(np.subtract(origin.x_ecef_m, ref.x_ecef_m)) <= 1e-3
 
-    mixed = _relabel(ep, 5)
+    mixed = relabel(ep, 5)
     g = [i for i, p in enumerate(mixed.prn) if p.startswith("G")]
     for period_s in (0.0, math.inf, math.nan, 1e300):
         per = mixed.period_s.copy()
         pr = mixed.pr_m.copy()
         per[g], pr[g] = period_s, np.nan
         odd = replace(mixed, pr_m=pr, period_s=per, frac_pr_m=np.mod(mixed.pr_m, C_M_S * 1e-3))
-        fix = solve(odd, _Relabelled(store), iono, solver="fast")  # type: ignore[arg-type]
+        fix = solve(odd, Relabelled(store), iono, solver="fast")  # type: ignore[arg-type]
         assert fix.ok and not any(p.startswith("G") for p in fix.used), period_s

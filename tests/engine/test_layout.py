@@ -15,55 +15,16 @@ import pytest
 
 from drivers.rinex import RinexObsReader
 from service.commands.solve import load_navigation
-from service.core.bds import is_geo
-from service.core.constants import C_M_S
 from service.core.ephemeris import EphemerisStore
-from service.core.orbit import EphemerisArrays
 from service.core.systems import GnssSystem
-from service.core.types import Ephemeris, MeasurementEpoch
+from service.core.types import MeasurementEpoch
 from service.engine.layout import BDS_ONLY, Layout, layout_of
 from service.engine.solver import SolverConfig, solve, solve_many
 from service.output.records import fix_record
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA
+from tests.support.relabel import ISB_M, Relabelled, relabel
 from tests.support.schema import validate
-
-ISB_M = 123.456
-"""The inter-system bias put on the relabelled rows [m]."""
-
-
-GPS_OMEGA_E_RAD_S = 7.2921151467e-5  # IS-GPS-200N 20.3.3.4.3
-GPST_AHEAD_OF_BDT_S = 14.0  # BDS-SIS-ICD-B1I-3.0 4.2
-
-
-class _Relabelled:
-    """An ephemeris store that answers "G<n>" with BeiDou satellite "C<n>"'s broadcast set
-    under the other name (the solver asks ``select`` and ``arrays`` only). A GPS set is
-    held on BDT and its Omega_e t_oe term takes t_oe on GPST, 14 s later: Omega_0 gets
-    Omega_e 14 s back, so that the node is the BeiDou set's."""
-
-    def __init__(self, store: EphemerisStore) -> None:
-        self.store = store
-
-    def select(self, prn: str, bdt_week: int, bdt_sow_s: float) -> Ephemeris | None:
-        e = self.store.select("C" + prn[1:], bdt_week, bdt_sow_s)
-        if e is None or prn[0] == "C":
-            return e
-        omega0 = e.omega0_rad + GPS_OMEGA_E_RAD_S * GPST_AHEAD_OF_BDT_S
-        return replace(e, prn=prn, omega0_rad=omega0)
-
-    def arrays(self, ephs: list[Ephemeris]) -> EphemerisArrays:
-        return EphemerisArrays.from_ephemerides(ephs)
-
-
-def _relabel(ep: MeasurementEpoch, take: int) -> MeasurementEpoch:
-    """``ep`` with its first ``take`` non-GEO satellites named "G<n>" and ``ISB_M`` added
-    to their pseudoranges."""
-    others = [i for i, p in enumerate(ep.prn) if not is_geo(p)][:take]
-    prn = tuple("G" + p[1:] if i in others else p for i, p in enumerate(ep.prn))
-    pr = ep.pr_m.copy()
-    pr[others] += ISB_M
-    return replace(ep, prn=prn, pr_m=pr, frac_pr_m=np.mod(pr, C_M_S * 1e-3))
 
 
 @pytest.fixture(scope="module")
@@ -93,8 +54,8 @@ def test_rows_of_another_system_get_their_own_clock(hksc, take):
     cfg = SolverConfig()
     for ep in epochs:
         ref = solve(ep, store, iono, cfg, "spp")
-        mixed = _relabel(ep, take)
-        fix = solve(mixed, _Relabelled(store), iono, cfg, "spp")  # type: ignore[arg-type]
+        mixed = relabel(ep, take)
+        fix = solve(mixed, Relabelled(store), iono, cfg, "spp")  # type: ignore[arg-type]
         assert fix.mode == "spp", fix.reason
         n_g = sum(p.startswith("G") for p in fix.used)
         assert n_g == take
@@ -117,7 +78,7 @@ def test_fix_records_carry_each_systems_clock(hksc):
     ep = epochs[0]
     bds = fix_record(solve(ep, store, iono, SolverConfig(), "spp"))
     assert "clocks_m" not in bds and validate(bds) == []
-    fix = solve(_relabel(ep, 4), _Relabelled(store), iono, SolverConfig(), "spp")  # type: ignore[arg-type]
+    fix = solve(relabel(ep, 4), Relabelled(store), iono, SolverConfig(), "spp")  # type: ignore[arg-type]
     rec = fix_record(fix)
     assert validate(rec) == []
     assert list(rec["clocks_m"]) == ["C", "G"]
@@ -132,11 +93,11 @@ def test_one_clock_for_every_system_would_fail_the_test(hksc):
     test (or exclusion removes them), which is why the layout gives each system a clock."""
     epochs, store, iono = hksc
     ep = epochs[0]
-    biased = _relabel(ep, 3)
+    biased = relabel(ep, 3)
     as_bds = replace(biased, prn=ep.prn)  # the same ranges, all named for BeiDou
     fix = solve(as_bds, store, iono, SolverConfig(), "spp")
     assert not fix.ok or fix.excluded
-    mixed = solve(biased, _Relabelled(store), iono, SolverConfig(), "spp")  # type: ignore[arg-type]
+    mixed = solve(biased, Relabelled(store), iono, SolverConfig(), "spp")  # type: ignore[arg-type]
     assert mixed.ok and not mixed.excluded
 
 
@@ -147,9 +108,9 @@ def test_a_chunk_solves_the_mixed_epochs_with_a_clock_per_system(hksc, take):
     together, and each gets what it gets alone (the same decisions, clocks and positions
     within 1e-6 m)."""
     epochs, store, iono = hksc
-    mixed = [_relabel(ep, take) if k % 2 else ep for k, ep in enumerate(epochs)]
-    one = [solve(ep, _Relabelled(store), iono, solver="spp") for ep in mixed]  # type: ignore[arg-type]
-    many = solve_many(mixed, _Relabelled(store), iono, solver="spp")  # type: ignore[arg-type]
+    mixed = [relabel(ep, take) if k % 2 else ep for k, ep in enumerate(epochs)]
+    one = [solve(ep, Relabelled(store), iono, solver="spp") for ep in mixed]  # type: ignore[arg-type]
+    many = solve_many(mixed, Relabelled(store), iono, solver="spp")  # type: ignore[arg-type]
     for a, b in zip(one, many, strict=True):
         assert (a.mode, a.used, a.redundancy) == (b.mode, b.used, b.redundancy)
         assert set(a.clocks_m) == set(b.clocks_m)

@@ -17,27 +17,19 @@ import math
 import numpy as np
 import pytest
 
-from drivers.rinex import read_nav
 from drivers.source import StreamDecoder
 from service.core.ephemeris import EphemerisStore
 from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
 from service.engine.pipeline import Pipeline
 from service.sim.scenario import default_start_gpst
 from service.sim.simulator import SimConfig, Simulator
-from tests.support.paths import DATA
+from tests.support.nav import HKSC_2021_NAV, hksc_2021_ephemerides
 
-NAV = DATA / "hksc-2021" / "hksc1610.nav"
 C_M_S = 299_792_458.0
 
 
-@functools.cache
-def _ephs() -> tuple[Ephemeris, ...]:
-    nav = read_nav(NAV, "CGE")
-    return tuple(e for items in nav.ephemerides.values() for e in items)
-
-
 def _config(systems: str, duration_s: float = 40.0) -> SimConfig:
-    week, tow = default_start_gpst([e for e in _ephs() if e.prn[0] == "C"])
+    week, tow = default_start_gpst([e for e in hksc_2021_ephemerides() if e.prn[0] == "C"])
     return SimConfig(
         lat_deg=22.3,
         lon_deg=114.2,
@@ -52,7 +44,7 @@ def _config(systems: str, duration_s: float = 40.0) -> SimConfig:
 
 @functools.cache
 def _run(systems: str) -> tuple[Simulator, list, list, Pipeline, dict]:
-    sim = Simulator(_ephs(), _config(systems))
+    sim = Simulator(hksc_2021_ephemerides(), _config(systems))
     dec = StreamDecoder(mapper_options={"ubx": {"systems": frozenset(systems)}})
     pipe = Pipeline(store=EphemerisStore())
     sim_epochs, results = [], []
@@ -70,18 +62,20 @@ def test_beidou_stream_is_the_same_bytes_whatever_else_is_simulated():
     """A BeiDou-only run (the default systems) gives the bytes it gave before GPS and Galileo
     joined: other systems draw from their own random streams."""
     cfg = _config("C", duration_s=5.0)
-    alone = Simulator([e for e in _ephs() if e.prn[0] == "C"], cfg)
-    given_all = Simulator(_ephs(), cfg)  # systems "C": the others are left out
+    alone = Simulator([e for e in hksc_2021_ephemerides() if e.prn[0] == "C"], cfg)
+    given_all = Simulator(hksc_2021_ephemerides(), cfg)  # systems "C": the others are left out
     assert alone.prns == given_all.prns and all(p[0] == "C" for p in alone.prns)
     a = b"".join(d for _, d in alone.ubx_epochs())
     b = b"".join(d for _, d in given_all.ubx_epochs())
     assert a == b
-    with_others = Simulator(_ephs(), _config("CGE", duration_s=5.0))
+    with_others = Simulator(hksc_2021_ephemerides(), _config("CGE", duration_s=5.0))
     bds_pr = [
         ep.pr_m[[i for i, p in enumerate(ep.prn) if p[0] == "C"]]
         for ep, _ in with_others.ubx_epochs()
     ]
-    again = Simulator([e for e in _ephs() if e.prn[0] == "C"], cfg)  # (a run uses its draws)
+    again = Simulator(
+        [e for e in hksc_2021_ephemerides() if e.prn[0] == "C"], cfg
+    )  # (a run uses its draws)
     assert all(
         np.array_equal(x.pr_m, y) for (x, _), y in zip(again.ubx_epochs(), bds_pr, strict=True)
     )
@@ -151,7 +145,7 @@ def test_simulate_with_gps_and_galileo_then_replay(tmp_path, capsys):
 
     ubx = tmp_path / "mixed.ubx"
     out = tmp_path / "fixes.jsonl"
-    argv = ["simulate", "--nav", str(NAV), "--systems", "C,G,E", "--lat-deg", "22.3"]
+    argv = ["simulate", "--nav", str(HKSC_2021_NAV), "--systems", "C,G,E", "--lat-deg", "22.3"]
     argv += ["--lon-deg", "114.2", "--duration-s", "40", "--max-speed", "--out", str(ubx)]
     assert main(argv) == 0
     capsys.readouterr()
@@ -181,7 +175,14 @@ def test_ttff_study_includes_gps_and_galileo():
 
     docs = {}
     for systems in ("C", "C,G,E"):
-        cmd = [sys.executable, "-m", "service.commands.cli", "ttff", "--simulate", str(NAV)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "service.commands.cli",
+            "ttff",
+            "--simulate",
+            str(HKSC_2021_NAV),
+        ]
         cmd += ["--systems", systems, "--trials", "4", "--trial-s", "20", "--json"]
         cmd += ["--lat-deg", "22.3", "--lon-deg", "114.2"]
         run = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=900)
@@ -201,7 +202,7 @@ def test_builtin_scenario_flies_a_nav_files_gps_and_galileo_satellites(tmp_path,
     from service.commands.cli import main
 
     out = tmp_path / "fixes.jsonl"
-    argv = ["replay", "--max-speed", "--nav", str(NAV), "--systems", "C,G,E"]
+    argv = ["replay", "--max-speed", "--nav", str(HKSC_2021_NAV), "--systems", "C,G,E"]
     assert main([*argv, "--jsonl-out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "warm start with the nav file's ephemerides" in err

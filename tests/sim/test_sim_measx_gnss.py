@@ -16,29 +16,21 @@ import functools
 
 import numpy as np
 
-from drivers.rinex import read_nav
 from drivers.source import StreamDecoder
 from service.core.ephemeris import EphemerisStore
-from service.core.types import Ephemeris, MeasurementEpoch, NavSubframe
+from service.core.types import MeasurementEpoch, NavSubframe
 from service.engine.pipeline import Pipeline
 from service.sim.scenario import default_start_gpst
 from service.sim.simulator import SimConfig, Simulator
-from tests.support.paths import DATA
+from tests.support.nav import hksc_2021_ephemerides
 
-NAV = DATA / "hksc-2021" / "hksc1610.nav"
 C_M_S = 299_792_458.0
-
-
-@functools.cache
-def _ephs() -> tuple[Ephemeris, ...]:
-    nav = read_nav(NAV, "CGE")
-    return tuple(e for items in nav.ephemerides.values() for e in items)
 
 
 @functools.cache
 def _run(measx_systems: str) -> tuple[Simulator, list, list, Pipeline, list]:
     """12 s at 10 Hz, warm start (every set held), MEASX of ``measx_systems``."""
-    week, tow = default_start_gpst([e for e in _ephs() if e.prn[0] == "C"])
+    week, tow = default_start_gpst([e for e in hksc_2021_ephemerides() if e.prn[0] == "C"])
     cfg = SimConfig(
         lat_deg=22.3,
         lon_deg=114.2,
@@ -49,9 +41,9 @@ def _run(measx_systems: str) -> tuple[Simulator, list, list, Pipeline, list]:
         systems="CGE",
         measx_systems=measx_systems,
     )
-    sim = Simulator(_ephs(), cfg)
+    sim = Simulator(hksc_2021_ephemerides(), cfg)
     store = EphemerisStore()
-    store.add_all(_ephs())
+    store.add_all(hksc_2021_ephemerides())
     pipe = Pipeline(store=store)
     dec = StreamDecoder(mapper_options={"ubx": {"systems": frozenset("CGE")}})
     epochs, results, truth = [], [], []
