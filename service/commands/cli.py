@@ -415,6 +415,13 @@ def _simulate_flags(m: argparse.ArgumentParser) -> None:
         SystemsConfig,
         "systems (from --nav: GPS and Galileo satellites join, on their own LNAV/I/NAV timing)",
     )
+    m.add_argument(
+        "--measx-systems",
+        default="C",
+        metavar="LETTERS",
+        help="the simulated systems whose RXM-MEASX code phases are written (default C; a "
+        "real F9P writes every system: C,G,E), each also in --systems",
+    )
     m.add_argument("--lat-deg", type=float, default=39.9, help="true latitude [deg]")
     m.add_argument("--lon-deg", type=float, default=116.4, help="true longitude [deg]")
     m.add_argument("--alt-m", type=float, default=50.0, help="true ellipsoidal height [m]")

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 from service.commands.options import check_range, full_rule, parse_start, systems_of
 from service.core.errors import ConfigError, InputError
 from service.core.files import open_output
-from service.core.systems import GnssSystem, system_of
+from service.core.systems import GnssSystem, parse_systems, system_of
 from service.core.timebase import gpst_from_utc, normalize
 from service.core.types import Ephemeris, KlobucharParams
 from service.sim.rtcm import broadcast_sets, frame_1042
@@ -241,6 +241,12 @@ def main_simulate(args: argparse.Namespace) -> int:
     check_range("--lon-deg", args.lon_deg, -180.0, 360.0)
     check_range("--alt-m", args.alt_m, -1000.0, 1_100_000.0)
     systems = systems_of(args)
+    measx = parse_systems(args.measx_systems)
+    if not measx <= systems:
+        raise ConfigError(
+            f"--measx-systems {args.measx_systems!r}: {','.join(sorted(measx - systems))} "
+            f"not simulated (--systems {','.join(sorted(systems))})"
+        )
     ephs, iono, iono_gps = _ephemerides(args.nav, systems)
     if args.start:
         week, tow = gpst_from_utc(parse_start(args.start))
@@ -259,6 +265,7 @@ def main_simulate(args: argparse.Namespace) -> int:
         seed=args.seed,
         full_rule=full_rule(args),
         systems="".join(sorted(systems)),
+        measx_systems="".join(sorted(measx)),
     )
     sim = Simulator(ephs, cfg, iono, iono_gps)
     if not sim.prns:

@@ -82,3 +82,31 @@ def test_simulate_with_an_output_publishes_what_a_replay_of_its_stream_publishes
 def test_simulate_output_is_refused_with_wait_config(capsys):
     assert main(["simulate", "--pty", "--wait-config", "--output", "jsonl:-"]) == 2
     assert "--output is not with --wait-config" in capsys.readouterr().err
+
+
+def test_simulate_writes_measx_code_phases_of_the_systems_asked(tmp_path):
+    """``--measx-systems C,G,E``: RXM-MEASX carries GPS (gnssId 0) and Galileo (gnssId 2)
+    satellites beside BeiDou's (3), as a real F9P writes them; by default BeiDou alone. Read
+    back with pyubx2 itself, not bdsfix's driver."""
+    from pyubx2 import UBXReader
+
+    def measx_gnss(extra: list[str]) -> set[int]:
+        ubx = tmp_path / f"sim{len(extra)}.ubx"
+        args = ["simulate", "--nav", str(NAV), "--start", "2021-06-10T03:36:00"]
+        args += ["--lat-deg", "22.3", "--lon-deg", "114.2", "--duration-s", "2"]
+        assert main([*args, "--out", str(ubx), *extra]) == 0
+        ids: set[int] = set()
+        with ubx.open("rb") as fh:
+            for _, msg in UBXReader(fh, protfilter=2):
+                if msg is not None and msg.identity == "RXM-MEASX":
+                    ids |= {getattr(msg, f"gnssId_{k:02d}") for k in range(1, msg.numSv + 1)}
+        return ids
+
+    assert measx_gnss([]) == {3}
+    assert measx_gnss(["--measx-systems", "C,G,E"]) == {0, 2, 3}
+
+
+def test_simulate_refuses_measx_systems_it_does_not_simulate(tmp_path, capsys):
+    out = str(tmp_path / "x.ubx")
+    assert main(["simulate", "--systems", "C", "--measx-systems", "C,G", "--out", out]) == 2
+    assert "--measx-systems" in capsys.readouterr().err
