@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pyubx2 import UBXReader
 
-from drivers.ubx import UbxMapper, parse_rxm
+from drivers.ubx import UbxMapper, _measx_rows, parse_rxm
 from service.core.types import MeasurementEpoch
 from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
 from tests.support.paths import DATA
@@ -68,10 +68,12 @@ def _epoch_key(ev: object) -> object:
 
 @pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
 def test_mapper_reads_frames_as_it_reads_pyubx2_messages(path: Path):
-    """The mapper's own reading of a RAWX frame (``on_frame``: straight from its struct
-    tuples) gives the epochs, subframes and counters that pyubx2's RAWX messages give it.
-    MEASX and SFRBX go the same way to both (pyubx2 scales MEASX's code phase with other
-    float rounding, ~1e-8 m, which would hide nothing of RAWX but fail bitwise)."""
+    """The mapper's own reading of RAWX and MEASX frames (``on_frame``: straight from their
+    struct tuples) gives the epochs, subframes and counters that pyubx2's RAWX messages and
+    :func:`parse_rxm`'s MEASX messages give it (pyubx2 scales MEASX's code phase with other
+    float rounding, ~1e-8 m, which would hide nothing but fail bitwise: its MEASX fields are
+    compared with those rows in ``test_measx_rows_equal_pyubx2_on_real_captures``). SFRBX
+    goes the same way to both."""
     fast, ref = UbxMapper(), UbxMapper()
     got, want = [], []
     for raw in _rxm_frames(path):
@@ -81,6 +83,31 @@ def test_mapper_reads_frames_as_it_reads_pyubx2_messages(path: Path):
     want += ref.flush()
     assert [_epoch_key(e) for e in got] == [_epoch_key(e) for e in want]
     assert fast.counters == ref.counters
+
+
+@pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
+def test_measx_rows_equal_pyubx2_on_real_captures(path: Path):
+    """The MEASX rows the mapper reads (gpsTOW and per satellite gnssId, svId, cNo,
+    dopplerHz, wholeChips, fracChips, codePhase, intCodePhase) are pyubx2's fields."""
+    names = (
+        "gnssId", "svId", "cNo", "dopplerHz", "wholeChips", "fracChips", "codePhase",
+        "intCodePhase",
+    )  # fmt: skip
+    checked = 0
+    for raw in _rxm_frames(path):
+        if raw[3] != 0x14:
+            continue
+        got = _measx_rows(raw)
+        ref = UBXReader.parse(raw)
+        assert got is not None
+        tow_ms, rows = got
+        assert tow_ms == ref.gpsTOW and len(rows) == ref.numSv
+        for i, row in enumerate(rows, start=1):
+            for name, value in zip(names, row, strict=True):
+                assert _same(value, getattr(ref, f"{name}_{i:02d}")), (path.name, i, name)
+                checked += 1
+    if any(raw[3] == 0x14 for raw in _rxm_frames(path)):
+        assert checked > 0
 
 
 def test_real_captures_hold_both_messages():
