@@ -68,7 +68,7 @@ import datetime as dt
 import itertools
 import logging
 import math
-import statistics
+import operator
 import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -453,6 +453,17 @@ def _measx_rows(raw: bytes) -> tuple[int, list[_MeasxRow]] | None:
     return head[1], rows
 
 
+_BY_PRN = operator.attrgetter("prn")
+
+
+def _median(values: list[float]) -> float:
+    """The median as :func:`statistics.median` takes it (the middle value, or the mean of
+    the two middle ones), without the module's import and checks on the decoding path."""
+    v = sorted(values)
+    n = len(v)
+    return v[n // 2] if n % 2 else (v[n // 2 - 1] + v[n // 2]) / 2
+
+
 def _chips_at_1023_per_ms(whole_chips: int, frac_chips: int, code_ms: float) -> bool:
     """A MEASX block of a 1.023 Mchip/s signal (GPS L1 C/A, Galileo E1): its chips,
     ``wholeChips + fracChips/1024``, are 1023 x ``codePhase`` [ms] modulo 1023 chips, within
@@ -498,6 +509,7 @@ class UbxMapper:
         self._last_nav_time: tuple[int, float] | None = None  # NAV-TIMEGPS / NAV-PVT
         self._log = RateLimitedLog(log)
         self._rawx_signals: dict[tuple[int, int, int], tuple[str | None, str, str]] = {}
+        self._measx_sats: dict[tuple[int, int], tuple[str | None, str, str]] = {}
 
     # --- entry points ------------------------------------------------------------------------
     def on_frame(self, raw: bytes) -> list[Event]:
@@ -653,27 +665,27 @@ class UbxMapper:
         pending = self._pending
         if pending is None:
             return out
-        sats = pending.sats
+        counters, sats, known = self.counters, pending.sats, self._measx_sats
         for gnss_id, sv_id, cno, do_hz, chips, frac_chips, code_ms, int_ms in rows:
-            system = UBX_GNSS.get(gnss_id)
-            if system is not GnssSystem.BDS:
-                if system not in self._other:
-                    continue
-                n = int(sv_id)
-                if not 1 <= n <= SYSTEM_CONSTANTS[system].prn_max or not _chips_at_1023_per_ms(
-                    chips, frac_chips, code_ms
-                ):
-                    # L2C, E5b: the same svId, another signal
-                    self.counters[f"measx_{system.value}_other_signal"] += 1
-                    continue
+            key = (gnss_id, sv_id)
+            seen = known.get(key)
+            if seen is None:
+                seen = self._measx_sat(*key)
+                if len(known) < RAWX_SIGNALS_KEPT:
+                    known[key] = seen
+            prn, signal, other = seen
+            if other and (prn is None or not _chips_at_1023_per_ms(chips, frac_chips, code_ms)):
+                counters[other] += 1  # L2C, E5b: the same svId, another signal
+                continue
+            if prn is None:
+                continue
             int_ms = int(int_ms)
             if int_ms == MEASX_INVALID_INT_MS or int(chips) == MEASX_INVALID_CHIPS:
-                self.counters["measx_invalid"] += 1
+                counters["measx_invalid"] += 1
                 continue
-            prn = sat_id(system, int(sv_id))
             sat = sats.get(prn)
             if sat is None:
-                sat = sats[prn] = _Sat(prn, signal=SYSTEM_CONSTANTS[system].signal)
+                sat = sats[prn] = _Sat(prn, signal=signal)
             sat.code_ms = float(code_ms)
             sat.code_int_ms = int_ms
             if sat.cn0_dbhz != sat.cn0_dbhz:  # NaN: RAWX has not given it
@@ -681,6 +693,21 @@ class UbxMapper:
             if sat.doppler_hz != sat.doppler_hz:
                 sat.doppler_hz = float(do_hz)
         return out + self._maybe_complete()
+
+    def _measx_sat(self, gnss_id: int, sv_id: int) -> tuple[str | None, str, str]:
+        """What a MEASX block of (gnssId, svId) is: its satellite ID (None: not used), the
+        signal its system's MEASX measures, and, for GPS and Galileo, the counter of a block
+        of another signal ("" for BeiDou, whose blocks are all B1I, and for systems not
+        read). Worked out once per mapper for each pair seen, as :meth:`_rawx_signal`."""
+        system = UBX_GNSS.get(gnss_id)
+        if system is GnssSystem.BDS:
+            return sat_id(system, int(sv_id)), SYSTEM_CONSTANTS[system].signal, ""
+        if system not in self._other:
+            return None, "", ""
+        other = f"measx_{system.value}_other_signal"
+        if not 1 <= int(sv_id) <= SYSTEM_CONSTANTS[system].prn_max:
+            return None, "", other
+        return sat_id(system, int(sv_id)), SYSTEM_CONSTANTS[system].signal, other
 
     def _sat(self, pending: _Pending, prn: str) -> _Sat:
         sat = pending.sats.get(prn)
@@ -752,7 +779,7 @@ class UbxMapper:
         arrays this small was half the decoding of an epoch, on the path from its last byte
         to its fix. Python's float ``%`` is numpy.mod's floor-mod (fmod, then the divisor's
         sign) and ``max - min`` is ``np.ptp``: the same numbers, bit for bit."""
-        sats = sorted(p.sats.values(), key=lambda s: s.prn)
+        sats = sorted(p.sats.values(), key=_BY_PRN)
         finite = math.isfinite
         tow_ms = round(p.tow_s * 1e3)
         # MEASX fractions, uncalibrated: c * mod(tow_ms + intCodePhase + codePhase, T), the
@@ -772,7 +799,7 @@ class UbxMapper:
         for system, dd in d.items():
             spread_m = max(dd) - min(dd)
             if spread_m < 30.0:
-                self.measx_offsets_m[system] = float(statistics.median(dd))
+                self.measx_offsets_m[system] = float(_median(dd))
             else:
                 self.counters["measx_offset_rejected"] += 1
                 self._log.warning(
@@ -785,31 +812,39 @@ class UbxMapper:
                     p.tow_s,
                     self.measx_offsets_m.get(system, self.measx_offset_m),
                 )
-        kept: list[tuple[_Sat, float]] = []
+        # one row per satellite kept: prn, signal, pr, fraction, period, C/N0, Doppler, lock
+        kept: list[tuple[str, str, float, float, float, float, float, float]] = []
         for s, raw in zip(sats, raws, strict=True):
-            ct = _CODE_RANGE_M[s.prn[0]]
+            x = s.prn[0]
+            ct = _CODE_RANGE_M[x]
             if finite(s.pr_m):
-                kept.append((s, s.pr_m % ct))
+                frac = s.pr_m % ct
             elif raw == raw:
                 self.counters["measx_only_sats"] += 1
-                offset = self.measx_offsets_m.get(s.prn[0], self.measx_offset_m)
+                offset = self.measx_offsets_m.get(x, self.measx_offset_m)
                 if offset is None:
                     self.counters["measx_uncalibrated"] += 1
                     offset = 0.0
-                kept.append((s, (raw + offset) % ct))
+                frac = (raw + offset) % ct
+            else:
+                continue
+            kept.append(
+                (s.prn, s.signal, s.pr_m, frac, _PERIOD_S[x], s.cn0_dbhz, s.doppler_hz, s.lock_s)
+            )
         if not kept:
             return None
+        prn, signal, pr_m, frac_pr_m, period_s, cn0, doppler, lock = zip(*kept, strict=True)
         return MeasurementEpoch.from_columns(
             p.week,
             p.tow_s,
-            [s.prn for s, _f in kept],
-            [s.signal for s, _f in kept],
-            [s.pr_m for s, _f in kept],
-            frac_pr_m=[f for _s, f in kept],
-            period_s=[_PERIOD_S[s.prn[0]] for s, _f in kept],
-            cn0_dbhz=[s.cn0_dbhz for s, _f in kept],
-            doppler_hz=[s.doppler_hz for s, _f in kept],
-            lock_s=[s.lock_s for s, _f in kept],
+            prn,
+            signal,
+            pr_m,
+            frac_pr_m=frac_pr_m,
+            period_s=period_s,
+            cn0_dbhz=cn0,
+            doppler_hz=doppler,
+            lock_s=lock,
             source=self.source,
         )
 

@@ -189,10 +189,10 @@ def test_measx_encoder_read_by_pyubx2(tow_ms, ss):
 
 @pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
 def test_rawx_rows_map_alike_with_and_without_the_kept_signal_table(path: Path, monkeypatch):
-    """What a RAWX row's (gnssId, svId, sigId) means is worked out once per mapper and kept
-    (``RAWX_SIGNALS_KEPT`` of them): a mapper that keeps none, working each row out anew,
-    gives the same epochs, subframes and counters, with every system read (the counters
-    of other systems' signals and of other GNSS included)."""
+    """What a RAWX row's (gnssId, svId, sigId) and a MEASX block's (gnssId, svId) mean is
+    worked out once per mapper and kept (``RAWX_SIGNALS_KEPT`` of them): a mapper that keeps
+    none, working each row out anew, gives the same epochs, subframes and counters, with
+    every system read (the counters of other systems' signals and of other GNSS included)."""
     import drivers.ubx as ubx
 
     systems = frozenset({"C", "G", "E"})
@@ -206,3 +206,5 @@ def test_rawx_rows_map_alike_with_and_without_the_kept_signal_table(path: Path, 
     assert kept.counters == anew.counters
     has_rawx = any(raw[3] == 0x15 for raw in frames)
     assert not anew._rawx_signals and bool(kept._rawx_signals) == has_rawx
+    has_measx = any(raw[3] == 0x14 for raw in frames)
+    assert not anew._measx_sats and bool(kept._measx_sats) == has_measx
