@@ -74,7 +74,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from pyubx2 import UBX_MSGIDS, UBXReader
+from pyubx2 import UBX_MSGIDS, VALNONE, UBXReader
 
 from drivers import framing
 from drivers.framing import BinaryFraming, Event, WeekContext
@@ -529,7 +529,8 @@ class UbxMapper:
                     return self._measx(*measx)
         name = UBX_MSGIDS.get(raw[2:4])
         if name in USED_MESSAGES:
-            return self.on_message(parse_rxm(raw) or UBXReader.parse(raw))
+            # the framer has checked the checksum (UbxFraming.measure): not twice
+            return self.on_message(parse_rxm(raw) or UBXReader.parse(raw, validate=VALNONE))
         label = name if name is not None else f"0x{raw[2]:02x}-0x{raw[3]:02x}"
         self.counters[f"ubx:{label}"] += 1
         self.counters["ubx_ignored"] += 1
