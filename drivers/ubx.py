@@ -8,9 +8,11 @@ section 5).
 - Frame: ``B5 62 class id length(u16 LE) payload ck_a ck_b``, 8-bit Fletcher checksum over
   class..payload (:data:`FRAMING`).
 - Parsing: RXM-RAWX, RXM-MEASX and RXM-SFRBX, which arrive every epoch, are unpacked with
-  :mod:`struct` (:func:`parse_rxm`); any other message the mapper reads, and an RXM payload
-  whose length does not match its count, is parsed by pyubx2. Both give the same field
-  names and scales (the tests compare the two on every real capture).
+  :mod:`struct` (:func:`parse_rxm`; RAWX and MEASX frames are read by the mapper straight
+  from their struct tuples, :func:`_rawx_rows` and :func:`_measx_rows`); any other message
+  the mapper reads, and an RXM payload whose length does not match its count, is parsed by
+  pyubx2. Both give the same field names and scales (the tests compare the two on every
+  real capture).
 - RXM-RAWX: BDS (gnssId 3) B1I (sigId 0 = B1I D1, 1 = B1I D2) give RINEX signal ``2I``.
   ``prMes`` is a full pseudorange only when trkStat bit 0 (prValid) is set; otherwise NaN.
   The time tag is (``week``, ``rcvTow``) on the GPST scale. MEASX pairs with the RAWX whose
