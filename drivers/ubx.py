@@ -76,6 +76,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from pyubx2 import UBX_MSGIDS, VALNONE, UBXReader
 
 from drivers import framing
@@ -836,13 +837,16 @@ class UbxMapper:
             )
         if not kept:
             return None
-        prn, signal, pr_m, frac_pr_m, period_s, cn0, doppler, lock = zip(*kept, strict=True)
-        return MeasurementEpoch.from_columns(
-            p.week,
-            p.tow_s,
-            prn,
-            signal,
-            pr_m,
+        prn, signal, *columns = zip(*kept, strict=True)
+        # the six float columns in one conversion, each a row of one (6, n) array: what
+        # MeasurementEpoch.from_columns makes of them in six
+        pr_m, frac_pr_m, period_s, cn0, doppler, lock = np.array(columns, dtype=float)
+        return MeasurementEpoch(
+            gpst_week=int(p.week),
+            gpst_tow_s=float(p.tow_s),
+            prn=prn,
+            signal=signal,
+            pr_m=pr_m,
             frac_pr_m=frac_pr_m,
             period_s=period_s,
             cn0_dbhz=cn0,
