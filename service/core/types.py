@@ -84,12 +84,12 @@ class MeasurementEpoch:
         gpst_tow_s: float,
         prn: list[str] | tuple[str, ...],
         signal: list[str] | tuple[str, ...],
-        pr_m: np.ndarray | list[float],
-        frac_pr_m: np.ndarray | list[float] | None = None,
-        period_s: np.ndarray | list[float] | float | None = None,
-        cn0_dbhz: np.ndarray | list[float] | None = None,
-        doppler_hz: np.ndarray | list[float] | None = None,
-        lock_s: np.ndarray | list[float] | None = None,
+        pr_m: np.ndarray | Sequence[float],
+        frac_pr_m: np.ndarray | Sequence[float] | None = None,
+        period_s: np.ndarray | Sequence[float] | float | None = None,
+        cn0_dbhz: np.ndarray | Sequence[float] | None = None,
+        doppler_hz: np.ndarray | Sequence[float] | None = None,
+        lock_s: np.ndarray | Sequence[float] | None = None,
         source: str = "",
         time_unc_s: float = math.nan,
         restarted: bool = False,
@@ -113,7 +113,7 @@ class MeasurementEpoch:
         else:
             frac = np.asarray(frac_pr_m, dtype=float).reshape(n)
 
-        def col(v: np.ndarray | list[float] | None) -> np.ndarray:
+        def col(v: np.ndarray | Sequence[float] | None) -> np.ndarray:
             return np.full(n, np.nan) if v is None else np.asarray(v, dtype=float).reshape(n)
 
         return cls(

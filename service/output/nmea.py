@@ -242,8 +242,58 @@ def plain_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes
             keys = _GSV_KEYS[j - 1] if j <= len(_GSV_KEYS) else _gsv_keys(j)
             parts.extend([str(get(key, 0)) for key in keys])
         parts.append(str(get("signalID", "0")))
-    data = ",".join(parts).encode()
+    return _framed(",".join(parts))
+
+
+def _framed(text: str) -> bytes:
+    """``$`` text ``*`` checksum CRLF (NMEA 0183: the XOR of the characters between ``$``
+    and ``*``, two hex digits)."""
+    data = text.encode()
     return b"$" + data + b"*%02X\r\n" % reduce(xor, data, 0)
+
+
+def _plain_lead(
+    talker: str,
+    t: dt.time | str,
+    when: dt.datetime,
+    has_fix: bool,
+    pos: dict[str, object],
+    speed: tuple[object, object, object],
+    fix: Fix,
+) -> list[bytes]:
+    """RMC, VTG (with a speed) and GGA of :func:`lead_sentences`'s field values, as
+    :func:`plain_sentence` writes them, each field's text made once (the time and the
+    position serve RMC and GGA) and no field dict: these are the sentences between an
+    epoch's solve and its GGA on the socket. The same bytes as :func:`plain_sentence`
+    (compared with pynmeagps' by tests/output/test_nmea_plain.py and with the goldens)."""
+    time_text = _time_text(t, {})
+    lat, lon = pos["lat"], pos["lon"]
+    south = isinstance(lat, (int, float)) and lat < 0
+    west = isinstance(lon, (int, float)) and lon < 0
+    where = f"{_dmm(lat, 12)},{'S' if south else 'N'},{_dmm(lon, 13)},{'W' if west else 'E'}"
+    knots, kmh, course = speed
+    mode = "A" if has_fix else "N"
+    out = [
+        _framed(
+            f"{talker}RMC,{time_text},{'A' if has_fix else 'V'},{where},{knots!s},"
+            f"{course!s},{_date_text(when.date(), {})},,,{mode},V"
+        )
+    ]
+    if knots != "":
+        out.append(_framed(f"{talker}VTG,{course!s},T,,M,{knots!s},N,{kmh!s},K,A"))
+    head = f"{talker}GGA,{time_text},{where},"
+    if not has_fix:
+        out.append(_framed(f"{head}0,{len(fix.used)},,,M,,M,,"))
+        return out
+    alt_m = float(fix.alt_m)  # type: ignore[arg-type]
+    sentence = b""
+    for alt_nd, hdop_nd in _GGA_FORMS:
+        hdop, alt = _dop(fix.hdop, hdop_nd), round(alt_m, alt_nd)
+        sentence = _framed(f"{head}1,{len(fix.used)},{hdop!s},{alt!s},M,0.0,M,,")
+        if len(sentence) <= NMEA_MAX_LEN:
+            break
+    out.append(sentence)
+    return out
 
 
 def pynmeagps_sentence(talker: str, msg_id: str, fields: dict[str, object]) -> bytes:
@@ -391,6 +441,11 @@ def gsv_sentences(
     return out
 
 
+_GGA_FORMS = ((3, 2), (2, 2), (2, 1))
+"""GGA's (altitude, HDOP) decimals: millimetre altitude and 0.01 HDOP first; the shorter
+forms only to stay within :data:`NMEA_MAX_LEN`."""
+
+
 def _gga(
     talker: str, t: dt.time | str, fix: Fix, has_fix: bool, pos: dict[str, object] | None = None
 ) -> bytes:
@@ -419,8 +474,7 @@ def _gga(
             "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
         }
     sentence = b""
-    # millimetre altitude and 0.01 HDOP first; shorter forms only to stay within 82 chars
-    for alt_nd, hdop_nd in ((3, 2), (2, 2), (2, 1)):
+    for alt_nd, hdop_nd in _GGA_FORMS:
         sentence = _msg(
             talker,
             "GGA",
@@ -525,7 +579,9 @@ def lead_sentences(
             "lat": _deg_for_dmm(float(fix.lat_deg)),  # type: ignore[arg-type]
             "lon": _deg_for_dmm(float(fix.lon_deg)),  # type: ignore[arg-type]
         }
-    knots, kmh, course = _speed_course(fix) if has_fix else ("", "", "")
+    knots, kmh, course = speed = _speed_course(fix) if has_fix else ("", "", "")
+    if _serialize is plain_sentence:  # (a test may swap in pynmeagps: the generic path then)
+        return _plain_lead(talker, t, when, has_fix, pos, speed, fix)
     out = [
         _msg(
             talker,

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pyubx2 import UBXReader
 
-from drivers.ubx import UbxMapper, parse_rxm
+from drivers.ubx import UbxMapper, _measx_rows, parse_rxm
 from service.core.types import MeasurementEpoch
 from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
 from tests.support.paths import DATA
@@ -68,10 +68,12 @@ def _epoch_key(ev: object) -> object:
 
 @pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
 def test_mapper_reads_frames_as_it_reads_pyubx2_messages(path: Path):
-    """The mapper's own reading of a RAWX frame (``on_frame``: straight from its struct
-    tuples) gives the epochs, subframes and counters that pyubx2's RAWX messages give it.
-    MEASX and SFRBX go the same way to both (pyubx2 scales MEASX's code phase with other
-    float rounding, ~1e-8 m, which would hide nothing of RAWX but fail bitwise)."""
+    """The mapper's own reading of RAWX and MEASX frames (``on_frame``: straight from their
+    struct tuples) gives the epochs, subframes and counters that pyubx2's RAWX messages and
+    :func:`parse_rxm`'s MEASX messages give it (pyubx2 scales MEASX's code phase with other
+    float rounding, ~1e-8 m, which would hide nothing but fail bitwise: its MEASX fields are
+    compared with those rows in ``test_measx_rows_equal_pyubx2_on_real_captures``). SFRBX
+    goes the same way to both."""
     fast, ref = UbxMapper(), UbxMapper()
     got, want = [], []
     for raw in _rxm_frames(path):
@@ -81,6 +83,31 @@ def test_mapper_reads_frames_as_it_reads_pyubx2_messages(path: Path):
     want += ref.flush()
     assert [_epoch_key(e) for e in got] == [_epoch_key(e) for e in want]
     assert fast.counters == ref.counters
+
+
+@pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
+def test_measx_rows_equal_pyubx2_on_real_captures(path: Path):
+    """The MEASX rows the mapper reads (gpsTOW and per satellite gnssId, svId, cNo,
+    dopplerHz, wholeChips, fracChips, codePhase, intCodePhase) are pyubx2's fields."""
+    names = (
+        "gnssId", "svId", "cNo", "dopplerHz", "wholeChips", "fracChips", "codePhase",
+        "intCodePhase",
+    )  # fmt: skip
+    checked = 0
+    for raw in _rxm_frames(path):
+        if raw[3] != 0x14:
+            continue
+        got = _measx_rows(raw)
+        ref = UBXReader.parse(raw)
+        assert got is not None
+        tow_ms, rows = got
+        assert tow_ms == ref.gpsTOW and len(rows) == ref.numSv
+        for i, row in enumerate(rows, start=1):
+            for name, value in zip(names, row, strict=True):
+                assert _same(value, getattr(ref, f"{name}_{i:02d}")), (path.name, i, name)
+                checked += 1
+    if any(raw[3] == 0x14 for raw in _rxm_frames(path)):
+        assert checked > 0
 
 
 def test_real_captures_hold_both_messages():
@@ -162,10 +189,10 @@ def test_measx_encoder_read_by_pyubx2(tow_ms, ss):
 
 @pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
 def test_rawx_rows_map_alike_with_and_without_the_kept_signal_table(path: Path, monkeypatch):
-    """What a RAWX row's (gnssId, svId, sigId) means is worked out once per mapper and kept
-    (``RAWX_SIGNALS_KEPT`` of them): a mapper that keeps none, working each row out anew,
-    gives the same epochs, subframes and counters, with every system read (the counters
-    of other systems' signals and of other GNSS included)."""
+    """What a RAWX row's (gnssId, svId, sigId) and a MEASX block's (gnssId, svId) mean is
+    worked out once per mapper and kept (``RAWX_SIGNALS_KEPT`` of them): a mapper that keeps
+    none, working each row out anew, gives the same epochs, subframes and counters, with
+    every system read (the counters of other systems' signals and of other GNSS included)."""
     import drivers.ubx as ubx
 
     systems = frozenset({"C", "G", "E"})
@@ -179,3 +206,5 @@ def test_rawx_rows_map_alike_with_and_without_the_kept_signal_table(path: Path, 
     assert kept.counters == anew.counters
     has_rawx = any(raw[3] == 0x15 for raw in frames)
     assert not anew._rawx_signals and bool(kept._rawx_signals) == has_rawx
+    has_measx = any(raw[3] == 0x14 for raw in frames)
+    assert not anew._measx_sats and bool(kept._measx_sats) == has_measx

@@ -16,7 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from pynmeagps import VALCKSUM, NMEAReader
 
@@ -247,3 +247,22 @@ def test_any_fields_give_the_bytes_pynmeagps_writes(msg_id, values, when):
     assert nmea.plain_sentence("GN", msg_id, fields) == nmea.pynmeagps_sentence(
         "GN", msg_id, fields
     )
+
+
+leap_utcs = st.sampled_from(
+    [dt.datetime(2016, 12, 31, 23, 59, 59, 990_000), dt.datetime(2017, 1, 1, 0, 0, 0)]
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(fix=fixes(), utc=st.one_of(utcs, leap_utcs), talker=st.sampled_from(nmea.TALKERS))
+def test_lead_sentences_written_directly_are_the_plain_formatters(fix, utc, talker):
+    """RMC, VTG and GGA, which ``lead_sentences`` writes without field dicts on the path to
+    GGA, are the bytes the plain formatter writes from its field dicts (the generic path,
+    taken whenever another serializer is set), for fixes, declines and times of all kinds."""
+    if utc is None and fix.ok:
+        fix = replace(fix, mode="none")
+    got = nmea.lead_sentences(fix, utc=utc, talker=talker)
+    with serializer(lambda t, m, f: nmea.plain_sentence(t, m, f)):
+        want = nmea.lead_sentences(fix, utc=utc, talker=talker)
+    assert got == want
