@@ -410,6 +410,12 @@ def _up(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(alt), up
 
 
+def _row_norms(d: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(d, axis=1)`` of ``d`` (n, 3): its arithmetic, sqrt of the
+    ``add.reduce`` of the squares, without its per-call cost."""
+    return np.sqrt(np.add.reduce(d * d, axis=1))
+
+
 def _norm3(v: np.ndarray) -> float:
     """``np.linalg.norm`` of a vector (its own sqrt of the dot product, without its
     per-call cost)."""
@@ -445,11 +451,11 @@ def doppler_position(
     last: tuple[float, np.ndarray, float, np.ndarray, np.ndarray] | None = None
     halvings = 0
     for _ in range(60):
-        tau = np.linalg.norm(pos - x, axis=1) / C_M_S
+        tau = _row_norms(pos - x) / C_M_S
         s = sagnac_rotate(pos, tau, omega)
         v = sagnac_rotate(vel, tau, omega)
         dv = s - x
-        rho = np.linalg.norm(dv, axis=1)
+        rho = _row_norms(dv)
         e = dv / rho[:, None]
         ev = np.einsum("ij,ij->i", e, v - v_rx)
         pred = ev + d - C_M_S * ddts
@@ -476,7 +482,7 @@ def doppler_position(
         r[n + 1 :] = -(rot @ v_rx)
         sig = (sv, sv, ccfg.vertical_speed_sigma_m_s) if moving and sv > 0 else (1e-3,) * 3
         w[n + 1 :] = 1.0 / np.square(sig)
-        cost = float(np.sum(w * r * r))
+        cost = float(np.add.reduce(w * r * r))  # (np.sum's sum)
         if moving and last is not None and cost > last[0]:
             _, x0, d0, v0, half = last
             if halvings >= 8 or _norm3(half[:3]) < 10.0:
@@ -643,6 +649,7 @@ def _solve_candidates(
     if models is not None and models.other is not model and not bool(np.all(sats.eph.bds)):
         other = models.other
     no_tropo = replace(cfg, tropo="off")
+    bds_cols, other_cols = np.flatnonzero(sats.eph.bds), np.flatnonzero(~sats.eph.bds)
     x = x0.copy()
     dt = np.zeros(k)
     rel = bdt_sow - sats.t0  # the tag's receive time, from t0
@@ -682,11 +689,16 @@ def _solve_candidates(
             el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
             az = np.arctan2(enu[..., 0], enu[..., 1])
         if near:
-            io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
-            if other is not None:  # GPS and Galileo rows: their own broadcast model
-                io_o, _ = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, other, no_tropo)
-                if io is not None and io_o is not None:
-                    io = np.where(sats.eph.bds, io, io_o)
+            if other is None:
+                io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
+            else:  # each system's rows with its own broadcast model, the troposphere of all
+                _, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, None, cfg)
+                io = np.empty((k, n))
+                for cols, m in ((bds_cols, model), (other_cols, other)):
+                    if len(cols):
+                        t_s = bdt_sow + dt
+                        args = (lat, lon, alt, el[:, cols], az[:, cols], t_s, carrier[cols])
+                        io[:, cols] = delays(*args, m, no_tropo)[0]
             corr = total_delay(io, tr)
             sigma = measurement_sigma_m(el, sats.cn0_dbhz, io, tr, cfg)
             w = np.where(enu[..., 2] >= mask_sin, 1.0 / sigma**2, 0.0)
