@@ -251,6 +251,8 @@ class _Sats:
     drift_s_s: np.ndarray
     layout: Layout = COARSE_LAYOUT
     clk: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    groups: list[tuple[int, np.ndarray, bool, int, float]] | None = None
+    """:meth:`systems`, computed once (the rows never change)."""
 
     def at(self, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions (..., n, 3), velocities and clocks (..., n) at t0 + ``tau_s`` (..., n)."""
@@ -265,16 +267,26 @@ class _Sats:
         them is full, its reference row (the fractional row of the longest period, the
         first such) and that period times c [m] (0 with a full row): the system's
         whole-period null space when none is full (module docstring, step 2)."""
-        out = []
-        frac = self.ct_m > 0
-        for s in range(self.layout.n_clocks):
-            rows = np.flatnonzero(self.clk == s)
-            if not len(rows):
-                continue
-            has_full = bool((~frac[rows]).any())
-            ref = int(rows[np.argmax(self.ct_m[rows])])
-            out.append((s, rows, has_full, ref, 0.0 if has_full else float(self.ct_m[ref])))
-        return out
+        if self.groups is None:
+            self.groups = _groups(self.clk, self.ct_m, self.layout.n_clocks)
+        return self.groups
+
+
+def _groups(
+    clk: np.ndarray, ct_m: np.ndarray, n_clocks: int
+) -> list[tuple[int, np.ndarray, bool, int, float]]:
+    """:meth:`_Sats.systems` of rows with clock indices ``clk`` and periods times c
+    ``ct_m`` (0: full)."""
+    out = []
+    frac = ct_m > 0
+    for s in range(n_clocks):
+        rows = np.flatnonzero(clk == s)
+        if not len(rows):
+            continue
+        has_full = bool((~frac[rows]).any())
+        ref = int(rows[np.argmax(ct_m[rows])])
+        out.append((s, rows, has_full, ref, 0.0 if has_full else float(ct_m[ref])))
+    return out
 
 
 def _relative(sats: _Sats, n_int: np.ndarray) -> np.ndarray:
@@ -282,13 +294,33 @@ def _relative(sats: _Sats, n_int: np.ndarray) -> np.ndarray:
     row removed: its clock absorbs a shift of its rows by a whole reference period c L
     (every integer N_j by L / T_j at once), so each such system's integers are taken
     relative to its reference row (that row's integer 0): one integer fixed per system."""
+    return _relative_in(sats.systems(), sats.ct_m, n_int)
+
+
+def _relative_in(
+    groups: list[tuple[int, np.ndarray, bool, int, float]], ct_m: np.ndarray, n_int: np.ndarray
+) -> np.ndarray:
+    """:func:`_relative` with the rows' ``groups`` (:func:`_groups`) and ``ct_m``."""
     out = np.array(n_int, dtype=float)
-    for _, rows, has_full, ref, ct_ref in sats.systems():
+    for _, rows, has_full, ref, ct_ref in groups:
         if has_full:
             continue
-        scale = np.round(ct_ref / sats.ct_m[rows])
+        scale = np.round(ct_ref / ct_m[rows])
         out[..., rows] = out[..., rows] - out[..., ref : ref + 1] * scale
     return out
+
+
+def _median(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=1)`` of ``a`` (m, c), the same values (the middle element, or
+    the mean (lo + hi) / 2 of the middle two) without its per-call cost."""
+    c = a.shape[1]
+    if c == 0 or np.isnan(a).any():
+        return np.asarray(np.median(a, axis=1))
+    if c == 1:
+        return a[:, 0].copy()
+    srt = np.sort(a, axis=1)
+    h = c // 2
+    return srt[:, h] if c % 2 else (srt[:, h - 1] + srt[:, h]) / 2.0
 
 
 def _sats(
@@ -378,6 +410,12 @@ def _up(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(alt), up
 
 
+def _row_norms(d: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(d, axis=1)`` of ``d`` (n, 3): its arithmetic, sqrt of the
+    ``add.reduce`` of the squares, without its per-call cost."""
+    return np.sqrt(np.add.reduce(d * d, axis=1))
+
+
 def _norm3(v: np.ndarray) -> float:
     """``np.linalg.norm`` of a vector (its own sqrt of the dot product, without its
     per-call cost)."""
@@ -413,11 +451,11 @@ def doppler_position(
     last: tuple[float, np.ndarray, float, np.ndarray, np.ndarray] | None = None
     halvings = 0
     for _ in range(60):
-        tau = np.linalg.norm(pos - x, axis=1) / C_M_S
+        tau = _row_norms(pos - x) / C_M_S
         s = sagnac_rotate(pos, tau, omega)
         v = sagnac_rotate(vel, tau, omega)
         dv = s - x
-        rho = np.linalg.norm(dv, axis=1)
+        rho = _row_norms(dv)
         e = dv / rho[:, None]
         ev = np.einsum("ij,ij->i", e, v - v_rx)
         pred = ev + d - C_M_S * ddts
@@ -444,7 +482,7 @@ def doppler_position(
         r[n + 1 :] = -(rot @ v_rx)
         sig = (sv, sv, ccfg.vertical_speed_sigma_m_s) if moving and sv > 0 else (1e-3,) * 3
         w[n + 1 :] = 1.0 / np.square(sig)
-        cost = float(np.sum(w * r * r))
+        cost = float(np.add.reduce(w * r * r))  # (np.sum's sum)
         if moving and last is not None and cost > last[0]:
             _, x0, d0, v0, half = last
             if halvings >= 8 or _norm3(half[:3]) < 10.0:
@@ -553,7 +591,7 @@ def _round(sats: _Sats, pts: np.ndarray) -> np.ndarray:
     for s, rows, has_full, _, _ in sats.systems():
         if has_full:
             full_s = rows[~frac[rows]]
-            b[:, s] = np.median((sats.z_m - pred)[:, full_s], axis=1)
+            b[:, s] = _median((sats.z_m - pred)[:, full_s])
         else:
             ref = rows[np.argmin(pred[:, rows], axis=1)]
             z_ref, ct_ref = sats.z_m[ref], ct[ref]
@@ -611,6 +649,7 @@ def _solve_candidates(
     if models is not None and models.other is not model and not bool(np.all(sats.eph.bds)):
         other = models.other
     no_tropo = replace(cfg, tropo="off")
+    bds_cols, other_cols = np.flatnonzero(sats.eph.bds), np.flatnonzero(~sats.eph.bds)
     x = x0.copy()
     dt = np.zeros(k)
     rel = bdt_sow - sats.t0  # the tag's receive time, from t0
@@ -620,7 +659,7 @@ def _solve_candidates(
     if row_mask is None or group is None:
         starts = np.zeros(1, dtype=int)
         if n_clk == 1:
-            b = np.median(p - pred, axis=1)[:, None]
+            b = _median(p - pred)[:, None]
         else:
             b = _clock_medians(p - pred, None, sats.clk, n_clk)
     else:
@@ -650,11 +689,16 @@ def _solve_candidates(
             el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
             az = np.arctan2(enu[..., 0], enu[..., 1])
         if near:
-            io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
-            if other is not None:  # GPS and Galileo rows: their own broadcast model
-                io_o, _ = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, other, no_tropo)
-                if io is not None and io_o is not None:
-                    io = np.where(sats.eph.bds, io, io_o)
+            if other is None:
+                io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
+            else:  # each system's rows with its own broadcast model, the troposphere of all
+                _, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, None, cfg)
+                io = np.empty((k, n))
+                for cols, m in ((bds_cols, model), (other_cols, other)):
+                    if len(cols):
+                        t_s = bdt_sow + dt
+                        args = (lat, lon, alt, el[:, cols], az[:, cols], t_s, carrier[cols])
+                        io[:, cols] = delays(*args, m, no_tropo)[0]
             corr = total_delay(io, tr)
             sigma = measurement_sigma_m(el, sats.cn0_dbhz, io, tr, cfg)
             w = np.where(enu[..., 2] >= mask_sin, 1.0 / sigma**2, 0.0)
@@ -732,12 +776,21 @@ def _clock_medians(
             continue
         r = resid_m[:, cols]
         if row_mask is None:
-            out[:, s] = np.median(r, axis=1)
+            out[:, s] = _median(r)
             continue
         m = row_mask[:, cols]
-        vals = np.where(m, r, np.nan)
         has = m.any(axis=1)
-        out[has, s] = np.nanmedian(vals[has], axis=1)
+        if not np.isfinite(r[m]).all():
+            out[has, s] = np.nanmedian(np.where(m, r, np.nan)[has], axis=1)
+            continue
+        # np.nanmedian's values (its masked median: the middle element, or (lo + hi) / 2
+        # of the middle two, of each row's used values), without its per-call cost
+        srt = np.sort(np.where(m, r, np.inf), axis=1)
+        count = m.sum(axis=1)
+        h = count // 2
+        lo = np.take_along_axis(srt, np.maximum(np.where(count % 2 == 1, h, h - 1), 0)[:, None], 1)
+        hi = np.take_along_axis(srt, np.minimum(h, r.shape[1] - 1)[:, None], 1)
+        out[has, s] = ((lo[:, 0] + hi[:, 0]) / 2.0)[has]
     return out
 
 
@@ -1020,67 +1073,70 @@ def _exclude_one(
     the rows both use (:func:`_agree`: system by system, relative to a common fractional
     row where the system has no full row)."""
     n = len(sats.prn)
+    n_clocks = sats.layout.n_clocks
     subsets = []
     for j in range(n):
         keep = np.array([i for i in range(n) if i != j])
-        sub = _take(sats, keep)
-        cj = _relative(sub, cand[:, keep])
-        cj, first = _unique_rows(cj)
-        subsets.append((j, keep, sub, cj, first))
+        # (:func:`_relative` of the subset's rows, without building their _Sats)
+        groups = _groups(sats.clk[keep], sats.ct_m[keep], n_clocks)
+        cj, first = _unique_rows(_relative_in(groups, sats.ct_m[keep], cand[:, keep]))
+        subsets.append((j, keep, cj, first))
     # every subset's candidates in one batch (each group solved as if alone), the left-out
     # row's integer 0 and its weight 0
-    sizes = [len(cj) for _, _, _, cj, _ in subsets]
+    sizes = [len(cj) for _, _, cj, _ in subsets]
     ends = np.cumsum(sizes)
     n_all = np.zeros((int(ends[-1]), n))
     mask = np.ones((int(ends[-1]), n), dtype=bool)
     group = np.repeat(ends - np.asarray(sizes), sizes)
-    for (j, keep, _, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
+    for (j, keep, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
         n_all[e - m : e][:, keep] = cj
         mask[e - m : e, j] = False
-    x_all = np.concatenate([x0[first] for _, _, _, _, first in subsets])
+    x_all = np.concatenate([x0[first] for _, _, _, first in subsets])
     batch = _solve_candidates(sats, n_all, x_all, bdt_sow, iono, cfg, ccfg, mask, group)
-    found = []
-    for (j, keep, sub, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
-        rows = slice(e - m, e)
-        solved = _Solved(
-            batch.x[rows],
-            batch.b[rows],
-            batch.dt[rows],
-            batch.t_stat[rows],
-            batch.dof[rows],
-            batch.alt[rows],
-            batch.min_el_rad[rows],
-            batch.normal[rows],
-            batch.design[rows][:, keep],
-            batch.resid_m[rows][:, keep],
-            batch.weight[rows][:, keep],
-        )
-        found.append((j, keep, sub, cj, _judge(solved, cfg, ccfg)))
+    # judged candidate by candidate: the batch at once is each subset judged alone
+    ev_all = _judge(batch, cfg, ccfg)
+    ratio_all = np.where(ev_all.passing, batch.t_stat / ev_all.t_max, np.inf)
     best = None
-    for j, keep, sub, cj, ev in found:
-        if ev.passing.any():
-            ratio = np.where(ev.passing, ev.solved.t_stat / ev.t_max, np.inf)
+    for (j, _, _, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
+        ratio = ratio_all[e - m : e]
+        if ev_all.passing[e - m : e].any():
             k = int(np.argmin(ratio))
             if best is None or ratio[k] < best[0]:
                 best = (float(ratio[k]), j, k)
     if best is None:
         return None
     _, jb, kb = best
-    keep_b, sub_b, cand_b, ev_b = found[jb][1], found[jb][2], found[jb][3], found[jb][4]
+    keep_b, cand_b = subsets[jb][1], subsets[jb][2]
     win = dict(zip(keep_b.tolist(), cand_b[kb].tolist(), strict=True))
     rivals = 0
-    for j, keep, _, cj, ev in found:
+    for (j, keep, cj, _), e, m in zip(subsets, ends.tolist(), sizes, strict=True):
         common = [i for i in keep.tolist() if i in win]
         cols = [keep.tolist().index(i) for i in common]
         theirs = np.array([win[i] for i in common])
-        for k in np.flatnonzero(ev.rivals | ev.passing).tolist():
+        either = ev_all.rivals[e - m : e] | ev_all.passing[e - m : e]
+        for k in np.flatnonzero(either).tolist():
             if j == jb and k == kb:
                 continue
             if not _agree(sats, common, cj[k, cols], theirs):
                 rivals += 1
     if rivals:
         return f"{rivals} (one row left out)"
-    return (sats.prn[jb],), sub_b, cand_b, ev_b
+    rows = slice(int(ends[jb]) - sizes[jb], int(ends[jb]))
+    solved = _Solved(
+        batch.x[rows],
+        batch.b[rows],
+        batch.dt[rows],
+        batch.t_stat[rows],
+        batch.dof[rows],
+        batch.alt[rows],
+        batch.min_el_rad[rows],
+        batch.normal[rows],
+        batch.design[rows][:, keep_b],
+        batch.resid_m[rows][:, keep_b],
+        batch.weight[rows][:, keep_b],
+    )
+    ev_b = _Evaluation(solved, ev_all.t_max[rows], ev_all.passing[rows], ev_all.rivals[rows])
+    return (sats.prn[jb],), _take(sats, keep_b), cand_b, ev_b
 
 
 def _absolute(
