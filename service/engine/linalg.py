@@ -20,11 +20,18 @@ from numpy.linalg import _umath_linalg  # numpy's LAPACK gufuncs (numpy/linalg/_
 def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``numpy.linalg.solve(a, b)`` for float64 ``a`` (..., n, n) and ``b`` (n,) or
     (..., n, k)."""
+    return solve_finite(a, b)[0]
+
+
+def solve_finite(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
+    """:func:`solve`, and whether every element of the solution is finite (the check that
+    chooses the path, handed on so that the caller need not make it again)."""
     gufunc = _umath_linalg.solve1 if b.ndim == 1 else _umath_linalg.solve
     x = gufunc(a, b, signature="dd->d")
     if np.isfinite(x).all():
-        return x
-    return np.linalg.solve(a, b)
+        return x, True
+    x = np.linalg.solve(a, b)
+    return x, bool(np.isfinite(x).all())
 
 
 def inv(a: np.ndarray) -> np.ndarray:

@@ -283,12 +283,15 @@ pseudorange further than this from the epoch's median is impossible, not merely 
 
 def measurement_sigma_m(
     el_rad: np.ndarray,
-    cn0_dbhz: np.ndarray,
+    cn0_dbhz: np.ndarray | None,
     iono_m: np.ndarray | None,
     tropo_m: np.ndarray | None,
     cfg: SolverConfig,
+    cn0_var_m2: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Standard deviation [m] of each pseudorange's error (model in :class:`SolverConfig`).
+    """Standard deviation [m] of each pseudorange's error (model in :class:`SolverConfig`);
+    ``cn0_dbhz`` None: no C/N0 (the reference C0); ``cn0_var_m2``: the rows' C/N0 term,
+    :func:`cn0_variance_m2` (None: computed here; given, ``cn0_dbhz`` is not read).
 
     Code noise and multipath grow at low elevation and low C/N0 (the C/N0 term is what
     makes the model honest in urban canyons, where weak reflected signals carry tens of
@@ -302,8 +305,9 @@ def measurement_sigma_m(
     """
     s = np.maximum(np.sin(el_rad), 0.05)
     var = cfg.sigma_a_m**2 + (cfg.sigma_b_m / s) ** 2
-    cn0 = np.where(np.isfinite(cn0_dbhz), cn0_dbhz, cfg.cn0_ref_dbhz)
-    var = var + cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - cn0) / 10.0)
+    if cn0_var_m2 is None:
+        cn0_var_m2 = cn0_variance_m2(np.asarray(cn0_dbhz, dtype=float), cfg)
+    var = var + cn0_var_m2
     var = var + cfg.sigma_sis_m**2
     if iono_m is None:  # no broadcast model applied: the whole delay is error
         var = var + (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
@@ -316,6 +320,14 @@ def measurement_sigma_m(
     if tropo_m is not None:
         var = var + (cfg.tropo_error_m / (s + 0.1)) ** 2
     return np.sqrt(var)
+
+
+def cn0_variance_m2(cn0_dbhz: np.ndarray, cfg: SolverConfig) -> np.ndarray:
+    """The C/N0 term of :func:`measurement_sigma_m`, c^2 10^((C0 - C/N0) / 10) [m^2] (C0
+    where a row has no C/N0): it depends on the measurements alone, so the kernel computes
+    it once per chunk, not once per iteration."""
+    cn0 = np.where(np.isfinite(cn0_dbhz), cn0_dbhz, cfg.cn0_ref_dbhz)
+    return cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - cn0) / 10.0)
 
 
 def _obliquity(el_rad: np.ndarray) -> np.ndarray:
@@ -368,11 +380,15 @@ def delays(
     (e,), rows (e, s)). The ionosphere applies only below 100 km: above, None for one epoch,
     NaN for that epoch's rows in a batch (the error model then counts the whole delay as
     error)."""
-    batch = np.ndim(alt_m) > 0
+    batch = not isinstance(alt_m, float) and np.ndim(alt_m) > 0
     if batch and np.size(alt_m) == 1 and np.ndim(el_rad) == 2 and len(el_rad) == 1:
         # a batch of one: its receiver's figures as floats and its rows as one epoch's (the
         # same arithmetic, without broadcasting's per-call cost), in the batch's shapes
         alt = float(np.asarray(alt_m)[0])
+        car = carrier_hz  # (given per row or per epoch)
+        if not (isinstance(car, np.ndarray) and car.shape == el_rad.shape):
+            car = np.broadcast_to(car, el_rad.shape)
+        car = car[0]
         one = delays(
             float(np.asarray(lat_rad)[0]),
             float(np.asarray(lon_rad)[0]),
@@ -380,7 +396,7 @@ def delays(
             el_rad[0],
             az_rad[0],
             float(np.asarray(bdt_sow_s)[0]),
-            np.broadcast_to(carrier_hz, el_rad.shape)[0],  # (given per row or per epoch)
+            car,
             model,
             cfg,
         )
@@ -681,17 +697,24 @@ def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
     return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
 
 
-def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+_Step = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
+"""The least-squares steps of some epochs (e, params), the epochs whose system is singular
+(None: none) and the epochs whose step is finite (None: every one's)."""
+
+
+def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> _Step:
     """Per epoch, the weighted least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and
     16) over rows with w > 0 (rows with w = 0 are out), through the normal equations (a
     handful of unknowns, where an SVD per iteration costs more than the rest of the
     iteration). An epoch whose normal matrix is singular takes numpy's minimum-norm least
     squares; the second value marks the epochs that fails for too (None: none), whose step
-    is NaN."""
+    is NaN; the third, the epochs whose step is finite (None: all of them)."""
     ht = h.swapaxes(-1, -2) * w[:, None, :]
     a, rhs = ht @ h, ht @ dz[..., None]
     try:
-        return linalg.solve(a, rhs)[..., 0], None
+        x, finite = linalg.solve_finite(a, rhs)
+        step = x[..., 0]
+        return step, None, None if finite else np.isfinite(step).all(axis=1)
     except np.linalg.LinAlgError:
         pass
     out = np.full(dz.shape[:1] + h.shape[-1:], np.nan)
@@ -705,7 +728,7 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
                 out[k] = np.linalg.lstsq(h[k] * sw[:, None], dz[k] * sw, rcond=None)[0]
             except np.linalg.LinAlgError:
                 bad[k] = True
-    return out, bad
+    return out, bad, np.isfinite(out).all(axis=1)
 
 
 def _where(
@@ -772,7 +795,7 @@ class _Trial:
     x: np.ndarray
     b: np.ndarray
     n_int: np.ndarray
-    dn: np.ndarray | None  # the integers' moves (None: no fractional rows)
+    moves: np.ndarray | None  # per epoch, whether its integers moved (None: no fractional rows)
     moved: bool  # any integer moved
     sat0: np.ndarray
     clk: np.ndarray
@@ -794,7 +817,7 @@ class _Trial:
         self.moved = self.moved or part.moved
 
 
-_TRIAL_ARRAYS = ("x", "b", "n_int", "dn", "sat0", "clk", "los", "pred", "sat", "cost")
+_TRIAL_ARRAYS = ("x", "b", "n_int", "moves", "sat0", "clk", "los", "pred", "sat", "cost")
 
 
 def _trial(
@@ -820,20 +843,23 @@ def _trial(
         sx, sb = lp[:, None] * sx, lp[:, None] * sb
     xp, bp = st.x[rows] + sx, st.b[rows] + sb
     s0, ck, ni = st.sat0[rows], st.clk[rows], st.n_int[rows]
-    dn = None
+    mv = None
     moved = False
     if dn_m is not None:
         dm = dn_m if lp is None else lp[:, None] * dn_m
         dn = np.where(ch.frac[rows], np.rint(dm / ct1[rows]), 0.0)
         mv = np.asarray(dn.any(axis=1))
-        if mv.any():
+        m = mv.nonzero()[0]
+        if m.size:
             moved = True
             ni = ni + dn
-            m = mv.nonzero()[0]
-            s0, ck = s0.copy(), ck.copy()
-            s0[m], ck[m] = _orbits(ch, sel[m], ni[m])
+            if m.size == len(mv):  # every epoch's integers moved: their orbits, no copies
+                s0, ck = _orbits(ch, rows, ni)
+            else:
+                s0, ck = s0.copy(), ck.copy()
+                s0[m], ck[m] = _orbits(ch, sel[m], ni[m])
     lo, pr, sa = ranges(s0, ck, xp, omega[rows])
-    return _Trial(xp, bp, ni, dn, moved, s0, ck, lo, pr, sa, _cost(ch, rows, pr, bp, fullw))
+    return _Trial(xp, bp, ni, mv, moved, s0, ck, lo, pr, sa, _cost(ch, rows, pr, bp, fullw))
 
 
 def _solve_chunk(
@@ -924,7 +950,7 @@ def _solve_chunk(
         st.iters[ix] += 1
         dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix])
         h = design(st.los[ix], ix)
-        step, bad = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
+        step, bad, _ = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
         if bad is not None:
             singular[sel[bad]] = True
             active[sel[bad]] = False
@@ -972,10 +998,10 @@ def _solve_chunk(
             st.sat[ix], cost[ix] = got.sat, got.cost
         if got.moved:
             zn = ch.z + st.n_int * ch.ct
-        size = np.sqrt(np.einsum("ek,ek->e", step, step)) * lam
-        settled = size < cfg.theta_m  # eq. (14)
-        if got.dn is not None:
-            settled &= ~got.dn.any(axis=1)
+        size = np.sqrt(np.einsum("ek,ek->e", step, step))
+        settled = (size if isinstance(lam, float) else size * lam) < cfg.theta_m  # eq. (14)
+        if got.moves is not None:
+            settled &= ~got.moves
         finite = np.isfinite(got.x).all(axis=1)
         converged[ix] = finite & settled
         active[ix] = finite & ~settled
@@ -1034,22 +1060,24 @@ def _solve_chunk(
         ix = slice(None) if sel.size == n_e else sel
         iters[ix] += 1
         dz = zn[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
-        step, bad = _lsq(design(los[ix], ix), dz, validw[ix])
+        step, bad, finite = _lsq(design(los[ix], ix), dz, validw[ix])
         if bad is not None:
             for e in sel[bad].tolist():
                 numerical[e] = _SINGULAR_MESSAGE
             sel, step = sel[~bad], step[~bad]
+            finite = None if finite is None else finite[~bad]
             ix = sel
         x[ix] += step[:, :3]
         b[ix] += step[:, 3:n_par]
-        finite = np.isfinite(step).all(axis=1)  # (phase 1 ended finite)
-        if isinstance(ix, slice) and finite.all():
+        # (phase 1 ended finite: a step that is not makes the iterate so)
+        if finite is None and isinstance(ix, slice):
             los, pred, sat = ranges(sat0, clk, x, omega)
         else:
-            fin = sel[finite]
+            fin = sel if finite is None else sel[finite]
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
         size = np.sqrt(np.einsum("ek,ek->e", step, step))
-        sel = sel[finite & (size >= cfg.conv_m)]
+        more = size >= cfg.conv_m
+        sel = sel[more if finite is None else finite & more]
     it_state = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
     return _phase2(ch, d, ok, numerical, layout, it_state, iono, cfg, solver)
 
@@ -1204,7 +1232,7 @@ def _weighted(
     near = None if meaningful.all() else meaningful[:, None]
     keepw = keep.astype(float)
     models = iono.models(cfg.iono)
-    cn0 = ch.cn0[rows]
+    cn0_var = cn0_variance_m2(ch.cn0[rows], cfg)  # (the same every iteration)
     diverged = np.zeros(n1, dtype=bool)
     bad_lsq = np.zeros(n1, dtype=bool)
     act = np.arange(n1)
@@ -1223,24 +1251,28 @@ def _weighted(
         dz = dz - _where(nr, corr, 0.0)
         w = keepw[ix]
         if cfg.weighted:
-            sig = measurement_sigma_m(el, cn0[ix], io, tr, cfg)
+            sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var[ix])
             w = np.asarray(_where(nr, w / sig**2, w))
-        step, bad = _lsq(layout.design(los[ix], cix[ix]), dz, w)
+        step, bad, finite = _lsq(layout.design(los[ix], cix[ix]), dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
             act, step = act[~bad], step[~bad]
+            finite = None if finite is None else finite[~bad]
             ix = act
         x[ix] += step[:, :3]
         b[ix] += step[:, 3:n_par]
-        finite = np.isfinite(step).all(axis=1)  # (the iterate was finite)
-        if isinstance(ix, slice) and finite.all():
+        # (the iterate was finite: a step that is not makes it so)
+        if finite is None and isinstance(ix, slice):
             los, pred, sat = ranges(sat0, clk, x, omega)
         else:
-            diverged[act[~finite]] = True
-            fin = act[finite]
+            fin = act
+            if finite is not None:
+                diverged[act[~finite]] = True
+                fin = act[finite]
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
         size = np.sqrt(np.einsum("ek,ek->e", step, step))
-        act = act[finite & (size >= cfg.conv_m)]
+        more = size >= cfg.conv_m
+        act = act[more if finite is None else finite & more]
     out: list[Outcome] = [None] * n1
     for k in bad_lsq.nonzero()[0].tolist():
         out[k] = _numerical(ch.epochs[int(sel[k])], solver, "LinAlgError", _SINGULAR_MESSAGE)
@@ -1255,7 +1287,7 @@ def _weighted(
         x, b, cix, keep = x[good], b[good], cix[good], keep[good]
         near = None if near is None else near[good]
         n_int, iters, los, pred, sat = n_int[good], iters[good], los[good], pred[good], sat[good]
-        z, sow, cn0 = z[good], sow[good], cn0[good]
+        z, sow, cn0_var = z[good], sow[good], cn0_var[good]
         carrier, bds = carrier[good], bds[good]
     # ---- judge the solution ------------------------------------------------------------------
     lat, lon, alt, el, az, rot = _local(x, sat)
@@ -1264,7 +1296,8 @@ def _weighted(
     v = z - pred - _row_clocks(b, cix) - _where(near, corr, 0.0)
     v = np.where(keep, v, 0.0)
     if cfg.weighted:
-        sigma = _where(near, measurement_sigma_m(el, cn0, io, tr, cfg), cfg.sigma_uniform_m)
+        sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var)
+        sigma = _where(near, sig, cfg.sigma_uniform_m)
         sigma = np.where(keep, sigma, 1.0)
     else:
         sigma = np.full(keep.shape, cfg.sigma_uniform_m)
