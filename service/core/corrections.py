@@ -48,7 +48,7 @@ def sagnac_rotate(
 
 def _cubic(coeffs: tuple[float, ...] | list[float], x: np.ndarray) -> np.ndarray:
     """c0 + c1 x + c2 x^2 + c3 x^3 by Horner's rule (the Klobuchar amplitude and period)."""
-    c0, c1, c2, c3 = (float(c) for c in coeffs)
+    c0, c1, c2, c3 = coeffs  # (numbers: numpy takes each as a float64, as float() would)
     return ((c3 * x + c2) * x + c1) * x + c0
 
 

@@ -135,6 +135,8 @@ class EphemerisArrays:
 
 def _wrap_half_week(dt_s: np.ndarray) -> np.ndarray:
     """Account for week crossover (ICD 5.2.4.12 note on t_k)."""
+    if np.abs(dt_s).max(initial=0.0) <= _HALF_WEEK_S:  # none to wrap: dt - 0, the same bits
+        return dt_s + 0.0
     return dt_s - WEEK_S * np.round(dt_s / WEEK_S) * (np.abs(dt_s) > _HALF_WEEK_S)
 
 

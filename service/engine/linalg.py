@@ -13,8 +13,17 @@ returned, exactly as numpy's public functions give them. The solver runs under
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.linalg import _umath_linalg  # numpy's LAPACK gufuncs (numpy/linalg/_linalg.py)
+
+
+def _finite(x: np.ndarray) -> bool:
+    """Whether every element of ``x`` is finite, as one reduction: a sum is finite only if
+    every term is (it may also overflow, and the caller then takes numpy's path, which
+    gives the same result)."""
+    return math.isfinite(np.add.reduce(x, axis=None))
 
 
 def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -28,7 +37,7 @@ def solve_finite(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     chooses the path, handed on so that the caller need not make it again)."""
     gufunc = _umath_linalg.solve1 if b.ndim == 1 else _umath_linalg.solve
     x = gufunc(a, b, signature="dd->d")
-    if np.isfinite(x).all():
+    if _finite(x):
         return x, True
     x = np.linalg.solve(a, b)
     return x, bool(np.isfinite(x).all())
@@ -37,7 +46,7 @@ def solve_finite(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
 def inv(a: np.ndarray) -> np.ndarray:
     """``numpy.linalg.inv(a)`` for float64 ``a`` (..., n, n)."""
     x = _umath_linalg.inv(a, signature="d->d")
-    if np.isfinite(x).all():
+    if _finite(x):
         return x
     return np.linalg.inv(a)
 
@@ -45,6 +54,6 @@ def inv(a: np.ndarray) -> np.ndarray:
 def eigvalsh(a: np.ndarray) -> np.ndarray:
     """``numpy.linalg.eigvalsh(a)`` (lower triangle) for float64 symmetric ``a``."""
     w = _umath_linalg.eigvalsh_lo(a, signature="d->d")
-    if np.isfinite(w).all():
+    if _finite(w):
         return w
     return np.linalg.eigvalsh(a)

@@ -781,11 +781,13 @@ the Earth's centre that overshoots raises the sum many times over."""
 
 def _cost(
     ch: _Chunk, rows: _Index, pred: np.ndarray, b: np.ndarray, fullw: np.ndarray
-) -> np.ndarray:
-    """Sum of squared residuals of the full rows (no corrections) of epochs ``rows``: phase
-    1's line-search merit."""
-    r = (ch.z[rows] - pred - _row_clocks(b, ch.cix[rows])) * fullw[rows]
-    return np.einsum("es,es->e", r, r)
+) -> tuple[np.ndarray, np.ndarray]:
+    """The residuals z - pred - b of epochs ``rows`` (no corrections, no integers) and the
+    sum of squares of their full rows: phase 1's line-search merit. Without fractional
+    rows the residuals are the next iteration's dz (eqs. 7-8)."""
+    resid = ch.z[rows] - pred - _row_clocks(b, ch.cix[rows])
+    r = resid * fullw[rows]
+    return resid, np.einsum("es,es->e", r, r)
 
 
 @dataclass(slots=True, eq=False)
@@ -802,6 +804,7 @@ class _Trial:
     los: np.ndarray
     pred: np.ndarray
     sat: np.ndarray
+    resid: np.ndarray
     cost: np.ndarray
 
     def take(self, at: np.ndarray, part: _Trial, pick: np.ndarray) -> None:
@@ -817,7 +820,7 @@ class _Trial:
         self.moved = self.moved or part.moved
 
 
-_TRIAL_ARRAYS = ("x", "b", "n_int", "moves", "sat0", "clk", "los", "pred", "sat", "cost")
+_TRIAL_ARRAYS = ("x", "b", "n_int", "moves", "sat0", "clk", "los", "pred", "sat", "resid", "cost")
 
 
 def _trial(
@@ -859,7 +862,7 @@ def _trial(
                 s0, ck = s0.copy(), ck.copy()
                 s0[m], ck[m] = _orbits(ch, sel[m], ni[m])
     lo, pr, sa = ranges(s0, ck, xp, omega[rows])
-    return _Trial(xp, bp, ni, mv, moved, s0, ck, lo, pr, sa, _cost(ch, rows, pr, bp, fullw))
+    return _Trial(xp, bp, ni, mv, moved, s0, ck, lo, pr, sa, *_cost(ch, rows, pr, bp, fullw))
 
 
 def _solve_chunk(
@@ -934,10 +937,9 @@ def _solve_chunk(
     # ---- phase 1: the paper's iteration -----------------------------------------------------
     has_frac = bool(n_frac.any())
     st = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
-    cost = _cost(ch, slice(None), pred, b, fullw)
+    resid, cost = _cost(ch, slice(None), pred, b, fullw)
     one = ok & ~direct
     active = one.copy()
-    converged = np.zeros(n_e, dtype=bool)
     singular = np.zeros(n_e, dtype=bool)
     ct1 = np.where(ch.frac, ch.ct, 1.0) if has_frac else ch.ct
     zn = ch.z  # z + N c T of each row (eq. 5), as the integers move
@@ -947,8 +949,9 @@ def _solve_chunk(
             break
         whole = sel.size == n_e
         ix: _Index = slice(None) if whole else sel
-        st.iters[ix] += 1
-        dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix])
+        st.iters += active
+        # (without fractional rows zn is z: dz is the merit's residuals)
+        dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix]) if has_frac else resid[ix]
         h = design(st.los[ix], ix)
         step, bad, _ = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
         if bad is not None:
@@ -961,7 +964,9 @@ def _solve_chunk(
         # each fractional row's ambiguity step [m]: its residual after the x/b step
         dn_m = np.einsum("esk,ek->es", h, step) - dz if has_frac else None
         got = _trial(ch, st, ix, sel, step, dn_m, None, ct1, omega, fullw, layout)
-        accept = (got.cost <= cost[ix] * _MERIT_SLACK) | ~np.isfinite(cost[ix])
+        accept = got.cost <= cost[ix] * _MERIT_SLACK
+        if not accept.all():  # (an epoch without a finite merit takes any step)
+            accept |= ~np.isfinite(cost[ix])
         lam: np.ndarray | float = 1.0
         if not accept.all():
             # a step that raises the full rows' residual is halved (from the Earth's
@@ -991,11 +996,11 @@ def _solve_chunk(
                 pending = pending[~ok_p]
         if whole:  # every epoch stepped: the new arrays are the iterate
             st.x, st.b, st.n_int, st.sat0, st.clk = got.x, got.b, got.n_int, got.sat0, got.clk
-            st.los, st.pred, st.sat, cost = got.los, got.pred, got.sat, got.cost
+            st.los, st.pred, st.sat, resid, cost = got.los, got.pred, got.sat, got.resid, got.cost
         else:
             st.x[ix], st.b[ix], st.n_int[ix] = got.x, got.b, got.n_int
             st.sat0[ix], st.clk[ix], st.los[ix], st.pred[ix] = got.sat0, got.clk, got.los, got.pred
-            st.sat[ix], cost[ix] = got.sat, got.cost
+            st.sat[ix], resid[ix], cost[ix] = got.sat, got.resid, got.cost
         if got.moved:
             zn = ch.z + st.n_int * ch.ct
         size = np.sqrt(np.einsum("ek,ek->e", step, step))
@@ -1003,7 +1008,6 @@ def _solve_chunk(
         if got.moves is not None:
             settled &= ~got.moves
         finite = np.isfinite(got.x).all(axis=1)
-        converged[ix] = finite & settled
         active[ix] = finite & ~settled
     x, b, n_int, iters = st.x, st.b, st.n_int, st.iters
     sat0, clk, los, pred, sat = st.sat0, st.clk, st.los, st.pred, st.sat
@@ -1017,36 +1021,40 @@ def _solve_chunk(
         it = int(iters[e])
         d.decline(e, Declined.of(Decline.NO_CONVERGENCE, iterations=it), iterations=it)
     ok &= ~lost
+    # an epoch left (one & ok: finite, not singular) has converged unless it is still active
+    converged = ~active
     # eqs. (12), (20)-(21): the GEO-GDOP gate over the full rows at the phase-1 position
-    gated = one & ok & ((n_frac > 0) | ~converged)
+    with_frac = n_frac > 0
+    gated = one & ok & (with_frac | ~converged)
     if gated.any():
-        gs: _Index = slice(None) if gated.all() else gated.nonzero()[0]
-        gd = np.full(n_e, np.nan)
-        gd[gs] = dop(design(los[gs], gs), fullw[gs])
+        if gated.all():  # (every epoch: no other epoch's figure to leave NaN)
+            gd = dop(design(los, slice(None)), fullw)
+        else:
+            gs = gated.nonzero()[0]
+            gd = np.full(n_e, np.nan)
+            gd[gs] = dop(design(los[gs], gs), fullw[gs])
         if cfg.beta:
             beta = np.full(n_e, float(cfg.beta))
         else:  # eq. 21 with the shortest code period among the fractional rows
             t_min = np.where(ch.frac, ch.ct, np.inf).min(axis=1) / C_M_S
-            beta = np.where(n_frac > 0, C_M_S * t_min / 2.0 / cfg.range_error_m, 0.0)
-        gate = gated & (n_frac > 0) & ~(gd < beta)
-        unsettled = gated & ~gate & ~converged
-        declined_here = gate | unsettled
-        any_declined = bool(declined_here.any())
-        gd_l, beta_l, it_l = (
-            (gd.tolist(), beta.tolist(), iters.tolist()) if any_declined else ([], [], [])
-        )
-        for e in gate.nonzero()[0].tolist() if any_declined else []:
-            variant = "" if converged[e] else "unsettled"
-            it = it_l[e]
-            why = Declined.of(
-                Decline.GDOP_GATE, variant, gdop=gd_l[e], beta=beta_l[e], iterations=it
-            )
-            d.decline(e, why, gdop_full=gd_l[e], iterations=it)
-        for e in unsettled.nonzero()[0].tolist() if any_declined else []:
-            it = it_l[e]
-            why = Declined.of(Decline.NO_CONVERGENCE, iterations=it)
-            d.decline(e, why, gdop_full=gd_l[e], iterations=it)
-        if any_declined:
+            beta = np.where(with_frac, C_M_S * t_min / 2.0 / cfg.range_error_m, 0.0)
+        fails = with_frac & ~(gd < beta)
+        declined_here = gated & (fails | ~converged)
+        if declined_here.any():
+            gate = gated & fails
+            unsettled = declined_here & ~gate  # (passed the gate or had nothing to gate)
+            gd_l, beta_l, it_l = gd.tolist(), beta.tolist(), iters.tolist()
+            for e in gate.nonzero()[0].tolist():
+                variant = "" if converged[e] else "unsettled"
+                it = it_l[e]
+                why = Declined.of(
+                    Decline.GDOP_GATE, variant, gdop=gd_l[e], beta=beta_l[e], iterations=it
+                )
+                d.decline(e, why, gdop_full=gd_l[e], iterations=it)
+            for e in unsettled.nonzero()[0].tolist():
+                it = it_l[e]
+                why = Declined.of(Decline.NO_CONVERGENCE, iterations=it)
+                d.decline(e, why, gdop_full=gd_l[e], iterations=it)
             ok &= ~declined_here
 
     # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
