@@ -380,15 +380,19 @@ def delays(
     (e,), rows (e, s)). The ionosphere applies only below 100 km: above, None for one epoch,
     NaN for that epoch's rows in a batch (the error model then counts the whole delay as
     error)."""
-    batch = not isinstance(alt_m, float) and np.ndim(alt_m) > 0
-    if batch and np.size(alt_m) == 1 and np.ndim(el_rad) == 2 and len(el_rad) == 1:
+    if (
+        isinstance(alt_m, np.ndarray)
+        and alt_m.shape == (1,)
+        and isinstance(el_rad, np.ndarray)
+        and el_rad.ndim == 2
+        and len(el_rad) == 1
+    ):
         # a batch of one: its receiver's figures as floats and its rows as one epoch's (the
         # same arithmetic, without broadcasting's per-call cost), in the batch's shapes
-        alt = float(np.asarray(alt_m)[0])
+        alt = float(alt_m[0])
         car = carrier_hz  # (given per row or per epoch)
         if not (isinstance(car, np.ndarray) and car.shape == el_rad.shape):
             car = np.broadcast_to(car, el_rad.shape)
-        car = car[0]
         one = delays(
             float(np.asarray(lat_rad)[0]),
             float(np.asarray(lon_rad)[0]),
@@ -396,7 +400,7 @@ def delays(
             el_rad[0],
             az_rad[0],
             float(np.asarray(bdt_sow_s)[0]),
-            car,
+            car[0],
             model,
             cfg,
         )
@@ -404,6 +408,7 @@ def delays(
         if model is not None and io is None:  # above 100 km: NaN, as a batch gives
             io = np.full(el_rad.shape, np.nan)
         return io, tr
+    batch = not isinstance(alt_m, float) and np.ndim(alt_m) > 0
     if batch:  # receivers (e,) against rows (e, s)
         lat_rad, lon_rad = np.asarray(lat_rad)[:, None], np.asarray(lon_rad)[:, None]
         alt_m, bdt_sow_s = np.asarray(alt_m)[:, None], np.asarray(bdt_sow_s)[:, None]
@@ -423,13 +428,12 @@ def delays(
 def total_delay(iono_m: np.ndarray | None, tropo_m: np.ndarray | None) -> np.ndarray | float:
     """The delays to take from the measured ranges: ionosphere (NaN: not modelled, 0) plus
     troposphere (None: not applied)."""
-    out: np.ndarray | float = 0.0
-    if iono_m is not None:
-        # NaN (a batch's epoch above 100 km): no model there, nothing to take
-        out = out + (iono_m if iono_m.ndim == 1 else np.where(np.isfinite(iono_m), iono_m, 0.0))
-    if tropo_m is not None:
-        out = out + tropo_m
-    return out
+    if iono_m is None:
+        return 0.0 if tropo_m is None else 0.0 + tropo_m
+    # NaN (a batch's epoch above 100 km): no model there, nothing to take
+    io = iono_m if iono_m.ndim == 1 else np.where(np.isfinite(iono_m), iono_m, 0.0)
+    # (0.0 + io is io: a delay is positive, or NaN, or 0 where there is no model)
+    return io if tropo_m is None else io + tropo_m
 
 
 def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
@@ -563,7 +567,7 @@ class _Chunk:
         arr = store.arrays(unique)
         if n_e == 1 and flat.shape[0]:  # one epoch: its rows are its slots
             n_s = flat.shape[0]
-            self.valid = np.ones((1, n_s), dtype=bool)
+            self.valid = ~np.zeros((1, n_s), dtype=bool)  # (np.ones costs more)
             cols_t = flat.T
             self.z, self.ct, self.cn0 = cols_t[0:1].copy(), cols_t[1:2].copy(), cols_t[2:3].copy()
             self.prn = [tuple(prns)]
@@ -616,7 +620,7 @@ class _Chunk:
         if n_e == 1:  # one epoch: the same median and deviations, in floats
             zl = sorted(c[0] for c in cols if c[1] == 0.0)
             n = len(zl)
-            if n < 2:
+            if n < 2 or zl[-1] - zl[0] <= GROSS_SPREAD_M:  # (no row further from the median)
                 return None
             med = 0.5 * (zl[(n - 1) // 2] + zl[n // 2])
             devs = [abs(c[0] - med) for c in cols]
@@ -729,6 +733,15 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> _Step:
             except np.linalg.LinAlgError:
                 bad[k] = True
     return out, bad, np.isfinite(out).all(axis=1)
+
+
+def _add(a: np.ndarray, ix: _Index, v: np.ndarray | int) -> None:
+    """``a[ix] += v`` in place; for every epoch (a slice) without indexing (a[:] += v would
+    copy the sum onto itself)."""
+    if isinstance(ix, slice):
+        a += v
+    else:
+        a[ix] += v
 
 
 def _where(
@@ -1066,7 +1079,7 @@ def _solve_chunk(
         if not sel.size:
             break
         ix = slice(None) if sel.size == n_e else sel
-        iters[ix] += 1
+        _add(iters, ix, 1)
         dz = zn[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
         step, bad, finite = _lsq(design(los[ix], ix), dz, validw[ix])
         if bad is not None:
@@ -1075,8 +1088,8 @@ def _solve_chunk(
             sel, step = sel[~bad], step[~bad]
             finite = None if finite is None else finite[~bad]
             ix = sel
-        x[ix] += step[:, :3]
-        b[ix] += step[:, 3:n_par]
+        _add(x, ix, step[:, :3])
+        _add(b, ix, step[:, 3:n_par])
         # (phase 1 ended finite: a step that is not makes the iterate so)
         if finite is None and isinstance(ix, slice):
             los, pred, sat = ranges(sat0, clk, x, omega)
@@ -1248,7 +1261,7 @@ def _weighted(
         if not act.size:
             break
         ix: _Index = slice(None) if act.size == n1 else act
-        iters[ix] += 1
+        _add(iters, ix, 1)
         if loc is None or _it:
             loc = _local(x[ix], sat[ix])
         lat, lon, alt, el, az, _rot = loc
@@ -1267,8 +1280,8 @@ def _weighted(
             act, step = act[~bad], step[~bad]
             finite = None if finite is None else finite[~bad]
             ix = act
-        x[ix] += step[:, :3]
-        b[ix] += step[:, 3:n_par]
+        _add(x, ix, step[:, :3])
+        _add(b, ix, step[:, 3:n_par])
         # (the iterate was finite: a step that is not makes it so)
         if finite is None and isinstance(ix, slice):
             los, pred, sat = ranges(sat0, clk, x, omega)
