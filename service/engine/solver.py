@@ -313,7 +313,9 @@ def measurement_sigma_m(
         var = var + (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
     else:
         left = (cfg.iono_error_ratio * iono_m) ** 2
-        if not np.isfinite(left).all():  # NaN: no model at that row's receiver (above 100 km)
+        # NaN: no model at that row's receiver (above 100 km); (a sum of squares is finite
+        # only if every square is: one reduction, not two)
+        if not math.isfinite(np.add.reduce(left, axis=None)):
             unmodelled = (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
             left = np.where(np.isfinite(iono_m), left, unmodelled)
         var = var + left
