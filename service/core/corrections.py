@@ -151,7 +151,8 @@ def saastamoinen_m(
     below the horizon); 0 for a receiver outside -100 m to 10 km. One receiver, or one per
     row when ``lat_rad`` and ``alt_m`` are arrays that broadcast against ``el_rad``."""
     el = np.asarray(el_rad, dtype=float)
-    if np.ndim(alt_m) == 0 and np.ndim(lat_rad) == 0:
+    one = isinstance(alt_m, float) and isinstance(lat_rad, float)  # (np.ndim costs more)
+    if one or (np.ndim(alt_m) == 0 and np.ndim(lat_rad) == 0):
         zenith: float | np.ndarray = saastamoinen_zenith_m(float(lat_rad), float(alt_m), humidity)
     else:  # each receiver alone
         lat_a, alt_a = np.asarray(lat_rad, dtype=float), np.asarray(alt_m, dtype=float)

@@ -118,7 +118,7 @@ def dop(g: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
         g = g * np.asarray(weight, dtype=float)[..., None]
     d = np.einsum("...ni,...nj->...ij", g, g)
     eig = linalg.eigvalsh(d)
-    floor = 1e-12 * np.max(eig, axis=-1, keepdims=True)
+    floor = 1e-12 * eig.max(axis=-1, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(eig > floor, 1.0 / eig, np.inf)
-    return np.sqrt(np.sum(inv, axis=-1))
+    return np.sqrt(inv.sum(axis=-1))

@@ -598,6 +598,7 @@ class _Chunk:
             self.eph = _gather(arr, idx)
         self.frac = self.valid & (self.ct > 0)
         self.full = self.valid & ~self.frac
+        self.has_frac = bool(self.frac.any())  # (no fractional row: no integers to add)
         layouts = {layout_of(self.prn[0])} if n_e == 1 else {layout_of(p) for p in self.prn if p}
         # the unknowns: one layout for the chunk (None: its epochs' rows differ in their
         # systems, and :func:`_outcomes` solves each layout's epochs as a chunk of their own)
@@ -683,16 +684,17 @@ _AS_ONE_EPOCH: dict[int, tuple[EphemerisArrays, EphemerisArrays]] = {}
 the same satellites' sets epoch after epoch; the store memoises the sets' columns)."""
 
 
-def _orbits(ch: _Chunk, sel: _Index, n_int: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _orbits(ch: _Chunk, sel: _Index, n_int: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Satellite positions and clocks at the transmit times of eqs. (4)-(5) for epochs
-    ``sel`` with integers ``n_int``: they depend on the receive time and z + N cT only, not
-    on the receiver state."""
+    ``sel`` with integers ``n_int`` (None: every one 0): they depend on the receive time and
+    z + N cT only, not on the receiver state."""
     # every epoch (sel is sorted and unique): the chunk's columns as they are, not copied
     eph = ch.eph
     if not isinstance(sel, slice) and len(sel) != len(ch.z):
         eph = _gather(ch.eph, sel)
     sow = ch.bdt_sow[sel, None]
-    t1 = sow - (ch.z[sel] + n_int * ch.ct[sel]) / C_M_S
+    zn = ch.z[sel] if n_int is None else ch.z[sel] + n_int * ch.ct[sel]
+    t1 = sow - zn / C_M_S
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
     return sat_pos_clock(eph, ch.bdt_week[sel, None], t_tx)
 
@@ -944,13 +946,13 @@ def _solve_chunk(
     b = np.zeros((n_e, n_clk))
     n_int = np.zeros((n_e, n_s))
     iters = np.zeros(n_e, dtype=int)
-    sat0, clk = _orbits(ch, slice(None), n_int)
+    sat0, clk = _orbits(ch, slice(None), None)
     omega = ch.eph.omega_e_rad_s
     los, pred, sat = ranges(sat0, clk, x, omega)
     fullw = ch.full.astype(float)
 
     # ---- phase 1: the paper's iteration -----------------------------------------------------
-    has_frac = bool(n_frac.any())
+    has_frac = ch.has_frac
     st = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
     resid, cost = _cost(ch, slice(None), pred, b, fullw)
     one = ok & ~direct
@@ -1019,11 +1021,12 @@ def _solve_chunk(
         if got.moved:
             zn = ch.z + st.n_int * ch.ct
         size = np.sqrt(np.einsum("ek,ek->e", step, step))
-        settled = (size if isinstance(lam, float) else size * lam) < cfg.theta_m  # eq. (14)
+        # eq. (14): settled when the step is below theta and no integer moved
+        going = ~((size if isinstance(lam, float) else size * lam) < cfg.theta_m)
         if got.moves is not None:
-            settled &= ~got.moves
+            going |= got.moves
         finite = np.isfinite(got.x).all(axis=1)
-        active[ix] = finite & ~settled
+        active[ix] = finite & going
     x, b, n_int, iters = st.x, st.b, st.n_int, st.iters
     sat0, clk, los, pred, sat = st.sat0, st.clk, st.los, st.pred, st.sat
     for e in singular.nonzero()[0].tolist():
@@ -1249,7 +1252,7 @@ def _weighted(
     )
     eph = ch.eph
     omega, carrier, bds = eph.omega_e_rad_s[rows], eph.carrier_hz[rows], eph.bds[rows]
-    z = ch.z[rows] + n_int * ch.ct[rows]
+    z = ch.z[rows] + n_int * ch.ct[rows] if ch.has_frac else ch.z[rows]
     sow = ch.bdt_sow[rows]
     # the epochs near the Earth (None: all of them, the usual case)
     near = None if meaningful.all() else meaningful[:, None]
