@@ -116,7 +116,7 @@ def dop(g: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     the layout's columns); ``weight`` (..., n) of 0/1 masks rows out; inf where singular."""
     if weight is not None:
         g = g * np.asarray(weight, dtype=float)[..., None]
-    d = np.einsum("...ni,...nj->...ij", g, g)
+    d = linalg.einsum("...ni,...nj->...ij", g, g)
     eig = linalg.eigvalsh(d)
     floor = 1e-12 * eig.max(axis=-1, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):

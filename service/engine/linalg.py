@@ -1,5 +1,5 @@
 """Small dense linear algebra for the solver's hot path: numpy's own LAPACK gufuncs (the ones
-``numpy.linalg.solve``, ``inv`` and ``eigvalsh`` call), called directly.
+``numpy.linalg.solve``, ``inv`` and ``eigvalsh`` call) and numpy's C einsum, called directly.
 
 An epoch solves about nine 4x4 systems, inverts two matrices and takes two or three
 eigenvalue sets; ``numpy.linalg``'s per-call set-up (type checks, an error-state context)
@@ -14,9 +14,32 @@ returned, exactly as numpy's public functions give them. The solver runs under
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.linalg import _umath_linalg  # numpy's LAPACK gufuncs (numpy/linalg/_linalg.py)
+
+
+def _c_einsum() -> Callable[..., Any]:
+    """numpy's C einsum: what ``numpy.einsum`` calls when not asked to optimize."""
+    try:
+        from numpy._core.multiarray import c_einsum  # numpy >= 2
+
+        return c_einsum
+    except ImportError:  # pragma: no cover (numpy 1.x)
+        try:
+            from numpy.core.multiarray import c_einsum as c_einsum_1
+
+            return c_einsum_1
+        except ImportError:
+            return np.einsum
+
+
+einsum: Callable[..., Any] = _c_einsum()
+"""``numpy.einsum(subscripts, *operands)`` (no ``optimize``): the C function it calls, without
+its Python wrapper and dispatch, which on the solver's small arrays cost as much as the
+sum. The same function gives the same bits."""
 
 
 def _finite(x: np.ndarray) -> bool:

@@ -270,11 +270,11 @@ def assess_many(
     each solution's rows; ``w`` of an :class:`Integrity` covers every slot (padding: 0)."""
     n_e = len(v_m)
     w = 1.0 / sigma_m**2 if kept is None else np.where(kept, 1.0 / sigma_m**2, 0.0)
-    gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
+    gtw = g.swapaxes(-1, -2) * w[:, None, :]
     cov = linalg.inv(gtw @ g)
     k = cov @ gtw  # (e, p, s)
-    s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
-    cov_enu = enu_rot @ cov[:, :3, :3] @ np.swapaxes(enu_rot, -1, -2)
+    s_ii = 1.0 - linalg.einsum("esi,eis->es", g, k)
+    cov_enu = enu_rot @ cov[:, :3, :3] @ enu_rot.swapaxes(-1, -2)
     n_rows = np.full(n_e, v_m.shape[1]) if kept is None else kept.sum(axis=1)
     r = np.asarray(layout.redundancy(n_rows)).tolist()
     chi2 = (v_m * v_m * w).sum(axis=1).tolist()  # each row summed as one epoch's alone

@@ -206,9 +206,9 @@ def ranges(
     x = x_ecef_m if one else x_ecef_m[..., None, :]
     dot = "ij,ij->i" if one else "esk,esk->es"
     d = sat0_ecef_m - x
-    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(np.einsum(dot, d, d)) / C_M_S, omega_e_rad_s)
+    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(linalg.einsum(dot, d, d)) / C_M_S, omega_e_rad_s)
     d = sat - x
-    rho = np.sqrt(np.einsum(dot, d, d))
+    rho = np.sqrt(linalg.einsum(dot, d, d))
     return d / rho[..., None], rho - C_M_S * clock_s, sat
 
 
@@ -804,7 +804,7 @@ def _cost(
     rows the residuals are the next iteration's dz (eqs. 7-8)."""
     resid = ch.z[rows] - pred - _row_clocks(b, ch.cix[rows])
     r = resid * fullw[rows]
-    return resid, np.einsum("es,es->e", r, r)
+    return resid, linalg.einsum("es,es->e", r, r)
 
 
 @dataclass(slots=True, eq=False)
@@ -979,7 +979,7 @@ def _solve_chunk(
             if not sel.size:
                 continue
         # each fractional row's ambiguity step [m]: its residual after the x/b step
-        dn_m = np.einsum("esk,ek->es", h, step) - dz if has_frac else None
+        dn_m = linalg.einsum("esk,ek->es", h, step) - dz if has_frac else None
         got = _trial(ch, st, ix, sel, step, dn_m, None, ct1, omega, fullw, layout)
         accept = got.cost <= cost[ix] * _MERIT_SLACK
         if not accept.all():  # (an epoch without a finite merit takes any step)
@@ -1020,7 +1020,7 @@ def _solve_chunk(
             st.sat[ix], resid[ix], cost[ix] = got.sat, got.resid, got.cost
         if got.moved:
             zn = ch.z + st.n_int * ch.ct
-        size = np.sqrt(np.einsum("ek,ek->e", step, step))
+        size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
         # eq. (14): settled when the step is below theta and no integer moved
         going = ~((size if isinstance(lam, float) else size * lam) < cfg.theta_m)
         if got.moves is not None:
@@ -1077,7 +1077,7 @@ def _solve_chunk(
 
     # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
     validw = ch.valid.astype(float)
-    sel = np.flatnonzero(ok & one)
+    sel = (ok & one).nonzero()[0]
     numerical: dict[int, str] = {}
     zn = ch.z + n_int * ch.ct if has_frac else ch.z  # the integers are held from here
     for _it in range(cfg.max_iter):
@@ -1101,7 +1101,7 @@ def _solve_chunk(
         else:
             fin = sel if finite is None else sel[finite]
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
-        size = np.sqrt(np.einsum("ek,ek->e", step, step))
+        size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
         more = size >= cfg.conv_m
         sel = sel[more if finite is None else finite & more]
     it_state = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
@@ -1154,7 +1154,7 @@ def _phase2(
     for e in numerical:
         ok[e] = False
     ok &= finite
-    r = np.sqrt(np.einsum("ek,ek->e", x, x))
+    r = np.sqrt(linalg.einsum("ek,ek->e", x, x))
     meaningful = (r > 6.0e6) & (r < 8.5e6)
     keep = ch.valid.copy()
     sel0 = ok.nonzero()[0]
@@ -1296,7 +1296,7 @@ def _weighted(
                 diverged[act[~finite]] = True
                 fin = act[finite]
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
-        size = np.sqrt(np.einsum("ek,ek->e", step, step))
+        size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
         more = size >= cfg.conv_m
         act = act[more if finite is None else finite & more]
     out: list[Outcome] = [None] * n1
@@ -1330,7 +1330,7 @@ def _weighted(
     g = layout.design(los, cix)
     integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
     n_k = keep.sum(axis=1)
-    resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
+    resid_rms = np.sqrt(linalg.einsum("es,es->e", v, v) / n_k)
     gsel = sel[good]
     if solver == "fast":
         gd_final = dop(g, (keep & ch.full[gsel]).astype(float)).tolist()
@@ -1339,7 +1339,7 @@ def _weighted(
     gu = g * keep[..., None]
     q = linalg.inv(gu.swapaxes(-1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ rot.swapaxes(-1, -2)
-    pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
+    pdop = np.sqrt(q_enu.trace(axis1=1, axis2=2))
     numbers: dict[str, list] = {
         "x": x.tolist(),
         "b": b.tolist(),
