@@ -48,7 +48,7 @@ def sagnac_rotate(
 
 def _cubic(coeffs: tuple[float, ...] | list[float], x: np.ndarray) -> np.ndarray:
     """c0 + c1 x + c2 x^2 + c3 x^3 by Horner's rule (the Klobuchar amplitude and period)."""
-    c0, c1, c2, c3 = (float(c) for c in coeffs)
+    c0, c1, c2, c3 = coeffs  # (numbers: numpy takes each as a float64, as float() would)
     return ((c3 * x + c2) * x + c1) * x + c0
 
 
@@ -77,14 +77,16 @@ def klobuchar_bds_m(
     ratio = r_km / (r_km + h_km) * np.cos(el)
     psi = np.pi / 2 - el - np.arcsin(ratio)
     sin_lat, cos_lat = np.sin(lat_rad), np.cos(lat_rad)
-    lat_m = np.arcsin(sin_lat * np.cos(psi) + cos_lat * np.sin(psi) * np.cos(az))
-    lon_m = lon_rad + np.arcsin(np.sin(psi) * np.sin(az) / np.cos(lat_m))
+    sin_psi = np.sin(psi)
+    lat_m = np.arcsin(sin_lat * np.cos(psi) + cos_lat * sin_psi * np.cos(az))
+    lon_m = lon_rad + np.arcsin(sin_psi * np.sin(az) / np.cos(lat_m))
     phi = np.abs(lat_m / _SEMI)
     a2 = np.maximum(_cubic(params.alpha, phi), 0.0)
     a4 = np.minimum(np.maximum(_cubic(params.beta, phi), 72000.0), 172800.0)  # np.clip
     t = np.mod(bdt_sow_s + lon_m * 43200.0 / np.pi, 86400.0)
-    day = np.abs(t - 50400.0) < a4 / 4.0
-    iz = 5e-9 + np.where(day, a2 * np.cos(2 * np.pi * (t - 50400.0) / a4), 0.0)
+    since = t - 50400.0
+    day = np.abs(since) < a4 / 4.0
+    iz = 5e-9 + np.where(day, a2 * np.cos(2 * np.pi * since / a4), 0.0)
     return C_M_S * iz / np.sqrt(1.0 - ratio**2) * (_F_B1I_HZ / np.asarray(carrier_hz)) ** 2
 
 
@@ -149,7 +151,8 @@ def saastamoinen_m(
     below the horizon); 0 for a receiver outside -100 m to 10 km. One receiver, or one per
     row when ``lat_rad`` and ``alt_m`` are arrays that broadcast against ``el_rad``."""
     el = np.asarray(el_rad, dtype=float)
-    if np.ndim(alt_m) == 0 and np.ndim(lat_rad) == 0:
+    one = isinstance(alt_m, float) and isinstance(lat_rad, float)  # (np.ndim costs more)
+    if one or (np.ndim(alt_m) == 0 and np.ndim(lat_rad) == 0):
         zenith: float | np.ndarray = saastamoinen_zenith_m(float(lat_rad), float(alt_m), humidity)
     else:  # each receiver alone
         lat_a, alt_a = np.asarray(lat_rad, dtype=float), np.asarray(alt_m, dtype=float)

@@ -103,9 +103,11 @@ def geodetic_points(
         lat.append(la)
         lon.append(lo)
         alt.append(h)
-        rows.append(_enu_rows(la, lo))
+        for row in _enu_rows(la, lo):
+            rows += row
     rot = np.array(rows, dtype=float).reshape(-1, 3, 3)
-    return np.array(lat), np.array(lon), np.array(alt), rot
+    lla = np.array((lat, lon, alt), dtype=float).reshape(3, -1)  # (one array: three cost more)
+    return lla[0], lla[1], lla[2], rot
 
 
 def enu_rotations_at(x_ecef_m: np.ndarray) -> np.ndarray:

@@ -135,6 +135,8 @@ class EphemerisArrays:
 
 def _wrap_half_week(dt_s: np.ndarray) -> np.ndarray:
     """Account for week crossover (ICD 5.2.4.12 note on t_k)."""
+    if np.abs(dt_s).max(initial=0.0) <= _HALF_WEEK_S:  # none to wrap: dt - 0, the same bits
+        return dt_s + 0.0
     return dt_s - WEEK_S * np.round(dt_s / WEEK_S) * (np.abs(dt_s) > _HALF_WEEK_S)
 
 
@@ -212,7 +214,8 @@ def sat_pos_clock(
     sin_e, cos_e = np.sin(ek), np.cos(ek)
     nu = np.arctan2(k.sqrt_1_e2 * sin_e, cos_e - eph.e)
     phi = nu + eph.omega_rad
-    s2, c2 = np.sin(2 * phi), np.cos(2 * phi)
+    two_phi = 2 * phi
+    s2, c2 = np.sin(two_phi), np.cos(two_phi)
     u = phi + eph.cus_rad * s2 + eph.cuc_rad * c2
     r = a * (1.0 - eph.e * cos_e) + eph.crs_m * s2 + eph.crc_m * c2
     inc = eph.i0_rad + eph.idot_rad_s * tk + eph.cis_rad * s2 + eph.cic_rad * c2
@@ -224,8 +227,9 @@ def sat_pos_clock(
         - k.omega_e_toe_rad
     )
     cn, sn, ci, si = np.cos(node), np.sin(node), np.cos(inc), np.sin(inc)
-    x = xp * cn - yp * ci * sn
-    y = xp * sn + yp * ci * cn
+    y_ci = yp * ci
+    x = xp * cn - y_ci * sn
+    y = xp * sn + y_ci * cn
     z = yp * si
 
     if k.any_geo:
@@ -245,7 +249,9 @@ def sat_pos_clock(
     clock_s = (
         eph.af0_s + eph.af1_s_s * dtc + eph.af2_s_s2 * dtc**2 + k.f_e_sqrt_a * sin_e - eph.tgd1_s
     )
-    return np.stack([x, y, z], axis=-1), clock_s
+    pos = np.empty((*x.shape, 3))  # (np.stack's per-call cost is several times this)
+    pos[..., 0], pos[..., 1], pos[..., 2] = x, y, z
+    return pos, clock_s
 
 
 VELOCITY_STEP_S = 0.01

@@ -73,7 +73,7 @@ class Layout:
         per system). ``clock_idx``: :meth:`clock_index` of the rows (None: one system)."""
         shape = los.shape[:-1]
         if self.n_clocks == 1 and not self.coarse_time:
-            return np.concatenate([-los, np.ones((*shape, 1))], axis=-1)
+            return np.concatenate([-los, _ones(shape)], axis=-1)
         clocks = np.zeros((*shape, self.n_clocks))
         if clock_idx is None:
             clocks[..., 0] = 1.0
@@ -83,6 +83,15 @@ class Layout:
         if self.coarse_time:  # room for the coarse-time column: the range rates (not yet)
             parts.append(np.zeros((*shape, 1)))
         return np.concatenate(parts, axis=-1)
+
+
+@lru_cache(maxsize=64)
+def _ones(shape: tuple[int, ...]) -> np.ndarray:
+    """A read-only column of ones (*shape, 1): the clock column of a one-clock design, made
+    once per shape (the solver's iterations ask for the same shapes again and again)."""
+    out = np.ones((*shape, 1))
+    out.flags.writeable = False
+    return out
 
 
 BDS_ONLY = Layout()
@@ -107,9 +116,9 @@ def dop(g: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     the layout's columns); ``weight`` (..., n) of 0/1 masks rows out; inf where singular."""
     if weight is not None:
         g = g * np.asarray(weight, dtype=float)[..., None]
-    d = np.einsum("...ni,...nj->...ij", g, g)
+    d = linalg.einsum("...ni,...nj->...ij", g, g)
     eig = linalg.eigvalsh(d)
-    floor = 1e-12 * np.max(eig, axis=-1, keepdims=True)
+    floor = 1e-12 * eig.max(axis=-1, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(eig > floor, 1.0 / eig, np.inf)
-    return np.sqrt(np.sum(inv, axis=-1))
+    return np.sqrt(inv.sum(axis=-1))

@@ -270,14 +270,14 @@ def assess_many(
     each solution's rows; ``w`` of an :class:`Integrity` covers every slot (padding: 0)."""
     n_e = len(v_m)
     w = 1.0 / sigma_m**2 if kept is None else np.where(kept, 1.0 / sigma_m**2, 0.0)
-    gtw = np.swapaxes(g, -1, -2) * w[:, None, :]
+    gtw = g.swapaxes(-1, -2) * w[:, None, :]
     cov = linalg.inv(gtw @ g)
     k = cov @ gtw  # (e, p, s)
-    s_ii = 1.0 - np.einsum("esi,eis->es", g, k)
-    cov_enu = enu_rot @ cov[:, :3, :3] @ np.swapaxes(enu_rot, -1, -2)
+    s_ii = 1.0 - linalg.einsum("esi,eis->es", g, k)
+    cov_enu = enu_rot @ cov[:, :3, :3] @ enu_rot.swapaxes(-1, -2)
     n_rows = np.full(n_e, v_m.shape[1]) if kept is None else kept.sum(axis=1)
     r = np.asarray(layout.redundancy(n_rows)).tolist()
-    chi2 = np.sum(v_m * v_m * w, axis=1).tolist()  # each row summed as one epoch's alone
+    chi2 = (v_m * v_m * w).sum(axis=1).tolist()  # each row summed as one epoch's alone
     ok = s_ii > 1e-10
     with np.errstate(invalid="ignore", divide="ignore"):
         root = np.sqrt(s_ii)
@@ -288,10 +288,10 @@ def assess_many(
         if kept is not None:
             slope_h = np.where(kept, slope_h, -np.inf)
             slope_v = np.where(kept, slope_v, -np.inf)
-    all_ok = (ok.all(axis=1) if kept is None else np.all(~kept | ok, axis=1)).tolist()
+    all_ok = (ok if kept is None else ~kept | ok).all(axis=1).tolist()
     major = linalg.eigvalsh(cov_enu[:, :2, :2])[:, -1].tolist()
     up = cov_enu[:, 2, 2].tolist()
-    h_max, v_max = np.max(slope_h, axis=1).tolist(), np.max(slope_v, axis=1).tolist()
+    h_max, v_max = slope_h.max(axis=1).tolist(), slope_v.max(axis=1).tolist()
     k_h = math.sqrt(-2.0 * math.log(p_md))
     k_v = normal_two_sided_quantile(p_md)
     out = []

@@ -206,9 +206,9 @@ def ranges(
     x = x_ecef_m if one else x_ecef_m[..., None, :]
     dot = "ij,ij->i" if one else "esk,esk->es"
     d = sat0_ecef_m - x
-    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(np.einsum(dot, d, d)) / C_M_S, omega_e_rad_s)
+    sat = sagnac_rotate(sat0_ecef_m, np.sqrt(linalg.einsum(dot, d, d)) / C_M_S, omega_e_rad_s)
     d = sat - x
-    rho = np.sqrt(np.einsum(dot, d, d))
+    rho = np.sqrt(linalg.einsum(dot, d, d))
     return d / rho[..., None], rho - C_M_S * clock_s, sat
 
 
@@ -283,12 +283,15 @@ pseudorange further than this from the epoch's median is impossible, not merely 
 
 def measurement_sigma_m(
     el_rad: np.ndarray,
-    cn0_dbhz: np.ndarray,
+    cn0_dbhz: np.ndarray | None,
     iono_m: np.ndarray | None,
     tropo_m: np.ndarray | None,
     cfg: SolverConfig,
+    cn0_var_m2: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Standard deviation [m] of each pseudorange's error (model in :class:`SolverConfig`).
+    """Standard deviation [m] of each pseudorange's error (model in :class:`SolverConfig`);
+    ``cn0_dbhz`` None: no C/N0 (the reference C0); ``cn0_var_m2``: the rows' C/N0 term,
+    :func:`cn0_variance_m2` (None: computed here; given, ``cn0_dbhz`` is not read).
 
     Code noise and multipath grow at low elevation and low C/N0 (the C/N0 term is what
     makes the model honest in urban canyons, where weak reflected signals carry tens of
@@ -302,20 +305,31 @@ def measurement_sigma_m(
     """
     s = np.maximum(np.sin(el_rad), 0.05)
     var = cfg.sigma_a_m**2 + (cfg.sigma_b_m / s) ** 2
-    cn0 = np.where(np.isfinite(cn0_dbhz), cn0_dbhz, cfg.cn0_ref_dbhz)
-    var = var + cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - cn0) / 10.0)
+    if cn0_var_m2 is None:
+        cn0_var_m2 = cn0_variance_m2(np.asarray(cn0_dbhz, dtype=float), cfg)
+    var = var + cn0_var_m2
     var = var + cfg.sigma_sis_m**2
     if iono_m is None:  # no broadcast model applied: the whole delay is error
         var = var + (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
     else:
         left = (cfg.iono_error_ratio * iono_m) ** 2
-        if not np.isfinite(left).all():  # NaN: no model at that row's receiver (above 100 km)
+        # NaN: no model at that row's receiver (above 100 km); (a sum of squares is finite
+        # only if every square is: one reduction, not two)
+        if not math.isfinite(np.add.reduce(left, axis=None)):
             unmodelled = (cfg.iono_unmodelled_m * _obliquity(el_rad)) ** 2
             left = np.where(np.isfinite(iono_m), left, unmodelled)
         var = var + left
     if tropo_m is not None:
         var = var + (cfg.tropo_error_m / (s + 0.1)) ** 2
     return np.sqrt(var)
+
+
+def cn0_variance_m2(cn0_dbhz: np.ndarray, cfg: SolverConfig) -> np.ndarray:
+    """The C/N0 term of :func:`measurement_sigma_m`, c^2 10^((C0 - C/N0) / 10) [m^2] (C0
+    where a row has no C/N0): it depends on the measurements alone, so the kernel computes
+    it once per chunk, not once per iteration."""
+    cn0 = np.where(np.isfinite(cn0_dbhz), cn0_dbhz, cfg.cn0_ref_dbhz)
+    return cfg.sigma_cn0_m**2 * 10.0 ** ((cfg.cn0_ref_dbhz - cn0) / 10.0)
 
 
 def _obliquity(el_rad: np.ndarray) -> np.ndarray:
@@ -368,11 +382,19 @@ def delays(
     (e,), rows (e, s)). The ionosphere applies only below 100 km: above, None for one epoch,
     NaN for that epoch's rows in a batch (the error model then counts the whole delay as
     error)."""
-    batch = np.ndim(alt_m) > 0
-    if batch and np.size(alt_m) == 1 and np.ndim(el_rad) == 2 and len(el_rad) == 1:
+    if (
+        isinstance(alt_m, np.ndarray)
+        and alt_m.shape == (1,)
+        and isinstance(el_rad, np.ndarray)
+        and el_rad.ndim == 2
+        and len(el_rad) == 1
+    ):
         # a batch of one: its receiver's figures as floats and its rows as one epoch's (the
         # same arithmetic, without broadcasting's per-call cost), in the batch's shapes
-        alt = float(np.asarray(alt_m)[0])
+        alt = float(alt_m[0])
+        car = carrier_hz  # (given per row or per epoch)
+        if not (isinstance(car, np.ndarray) and car.shape == el_rad.shape):
+            car = np.broadcast_to(car, el_rad.shape)
         one = delays(
             float(np.asarray(lat_rad)[0]),
             float(np.asarray(lon_rad)[0]),
@@ -380,7 +402,7 @@ def delays(
             el_rad[0],
             az_rad[0],
             float(np.asarray(bdt_sow_s)[0]),
-            np.broadcast_to(carrier_hz, el_rad.shape)[0],  # (given per row or per epoch)
+            car[0],
             model,
             cfg,
         )
@@ -388,6 +410,7 @@ def delays(
         if model is not None and io is None:  # above 100 km: NaN, as a batch gives
             io = np.full(el_rad.shape, np.nan)
         return io, tr
+    batch = not isinstance(alt_m, float) and np.ndim(alt_m) > 0
     if batch:  # receivers (e,) against rows (e, s)
         lat_rad, lon_rad = np.asarray(lat_rad)[:, None], np.asarray(lon_rad)[:, None]
         alt_m, bdt_sow_s = np.asarray(alt_m)[:, None], np.asarray(bdt_sow_s)[:, None]
@@ -407,13 +430,12 @@ def delays(
 def total_delay(iono_m: np.ndarray | None, tropo_m: np.ndarray | None) -> np.ndarray | float:
     """The delays to take from the measured ranges: ionosphere (NaN: not modelled, 0) plus
     troposphere (None: not applied)."""
-    out: np.ndarray | float = 0.0
-    if iono_m is not None:
-        # NaN (a batch's epoch above 100 km): no model there, nothing to take
-        out = out + (iono_m if iono_m.ndim == 1 else np.where(np.isfinite(iono_m), iono_m, 0.0))
-    if tropo_m is not None:
-        out = out + tropo_m
-    return out
+    if iono_m is None:
+        return 0.0 if tropo_m is None else 0.0 + tropo_m
+    # NaN (a batch's epoch above 100 km): no model there, nothing to take
+    io = iono_m if iono_m.ndim == 1 else np.where(np.isfinite(iono_m), iono_m, 0.0)
+    # (0.0 + io is io: a delay is positive, or NaN, or 0 where there is no model)
+    return io if tropo_m is None else io + tropo_m
 
 
 def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[SatView, ...]:
@@ -547,7 +569,7 @@ class _Chunk:
         arr = store.arrays(unique)
         if n_e == 1 and flat.shape[0]:  # one epoch: its rows are its slots
             n_s = flat.shape[0]
-            self.valid = np.ones((1, n_s), dtype=bool)
+            self.valid = ~np.zeros((1, n_s), dtype=bool)  # (np.ones costs more)
             cols_t = flat.T
             self.z, self.ct, self.cn0 = cols_t[0:1].copy(), cols_t[1:2].copy(), cols_t[2:3].copy()
             self.prn = [tuple(prns)]
@@ -576,6 +598,7 @@ class _Chunk:
             self.eph = _gather(arr, idx)
         self.frac = self.valid & (self.ct > 0)
         self.full = self.valid & ~self.frac
+        self.has_frac = bool(self.frac.any())  # (no fractional row: no integers to add)
         layouts = {layout_of(self.prn[0])} if n_e == 1 else {layout_of(p) for p in self.prn if p}
         # the unknowns: one layout for the chunk (None: its epochs' rows differ in their
         # systems, and :func:`_outcomes` solves each layout's epochs as a chunk of their own)
@@ -600,7 +623,7 @@ class _Chunk:
         if n_e == 1:  # one epoch: the same median and deviations, in floats
             zl = sorted(c[0] for c in cols if c[1] == 0.0)
             n = len(zl)
-            if n < 2:
+            if n < 2 or zl[-1] - zl[0] <= GROSS_SPREAD_M:  # (no row further from the median)
                 return None
             med = 0.5 * (zl[(n - 1) // 2] + zl[n // 2])
             devs = [abs(c[0] - med) for c in cols]
@@ -661,16 +684,17 @@ _AS_ONE_EPOCH: dict[int, tuple[EphemerisArrays, EphemerisArrays]] = {}
 the same satellites' sets epoch after epoch; the store memoises the sets' columns)."""
 
 
-def _orbits(ch: _Chunk, sel: _Index, n_int: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _orbits(ch: _Chunk, sel: _Index, n_int: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Satellite positions and clocks at the transmit times of eqs. (4)-(5) for epochs
-    ``sel`` with integers ``n_int``: they depend on the receive time and z + N cT only, not
-    on the receiver state."""
+    ``sel`` with integers ``n_int`` (None: every one 0): they depend on the receive time and
+    z + N cT only, not on the receiver state."""
     # every epoch (sel is sorted and unique): the chunk's columns as they are, not copied
     eph = ch.eph
     if not isinstance(sel, slice) and len(sel) != len(ch.z):
         eph = _gather(ch.eph, sel)
     sow = ch.bdt_sow[sel, None]
-    t1 = sow - (ch.z[sel] + n_int * ch.ct[sel]) / C_M_S
+    zn = ch.z[sel] if n_int is None else ch.z[sel] + n_int * ch.ct[sel]
+    t1 = sow - zn / C_M_S
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
     return sat_pos_clock(eph, ch.bdt_week[sel, None], t_tx)
 
@@ -681,17 +705,24 @@ def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
     return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
 
 
-def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+_Step = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
+"""The least-squares steps of some epochs (e, params), the epochs whose system is singular
+(None: none) and the epochs whose step is finite (None: every one's)."""
+
+
+def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> _Step:
     """Per epoch, the weighted least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and
     16) over rows with w > 0 (rows with w = 0 are out), through the normal equations (a
     handful of unknowns, where an SVD per iteration costs more than the rest of the
     iteration). An epoch whose normal matrix is singular takes numpy's minimum-norm least
     squares; the second value marks the epochs that fails for too (None: none), whose step
-    is NaN."""
+    is NaN; the third, the epochs whose step is finite (None: all of them)."""
     ht = h.swapaxes(-1, -2) * w[:, None, :]
     a, rhs = ht @ h, ht @ dz[..., None]
     try:
-        return linalg.solve(a, rhs)[..., 0], None
+        x, finite = linalg.solve_finite(a, rhs)
+        step = x[..., 0]
+        return step, None, None if finite else np.isfinite(step).all(axis=1)
     except np.linalg.LinAlgError:
         pass
     out = np.full(dz.shape[:1] + h.shape[-1:], np.nan)
@@ -705,7 +736,16 @@ def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
                 out[k] = np.linalg.lstsq(h[k] * sw[:, None], dz[k] * sw, rcond=None)[0]
             except np.linalg.LinAlgError:
                 bad[k] = True
-    return out, bad
+    return out, bad, np.isfinite(out).all(axis=1)
+
+
+def _add(a: np.ndarray, ix: _Index, v: np.ndarray | int) -> None:
+    """``a[ix] += v`` in place; for every epoch (a slice) without indexing (a[:] += v would
+    copy the sum onto itself)."""
+    if isinstance(ix, slice):
+        a += v
+    else:
+        a[ix] += v
 
 
 def _where(
@@ -758,11 +798,13 @@ the Earth's centre that overshoots raises the sum many times over."""
 
 def _cost(
     ch: _Chunk, rows: _Index, pred: np.ndarray, b: np.ndarray, fullw: np.ndarray
-) -> np.ndarray:
-    """Sum of squared residuals of the full rows (no corrections) of epochs ``rows``: phase
-    1's line-search merit."""
-    r = (ch.z[rows] - pred - _row_clocks(b, ch.cix[rows])) * fullw[rows]
-    return np.einsum("es,es->e", r, r)
+) -> tuple[np.ndarray, np.ndarray]:
+    """The residuals z - pred - b of epochs ``rows`` (no corrections, no integers) and the
+    sum of squares of their full rows: phase 1's line-search merit. Without fractional
+    rows the residuals are the next iteration's dz (eqs. 7-8)."""
+    resid = ch.z[rows] - pred - _row_clocks(b, ch.cix[rows])
+    r = resid * fullw[rows]
+    return resid, linalg.einsum("es,es->e", r, r)
 
 
 @dataclass(slots=True, eq=False)
@@ -772,13 +814,14 @@ class _Trial:
     x: np.ndarray
     b: np.ndarray
     n_int: np.ndarray
-    dn: np.ndarray | None  # the integers' moves (None: no fractional rows)
+    moves: np.ndarray | None  # per epoch, whether its integers moved (None: no fractional rows)
     moved: bool  # any integer moved
     sat0: np.ndarray
     clk: np.ndarray
     los: np.ndarray
     pred: np.ndarray
     sat: np.ndarray
+    resid: np.ndarray
     cost: np.ndarray
 
     def take(self, at: np.ndarray, part: _Trial, pick: np.ndarray) -> None:
@@ -794,7 +837,7 @@ class _Trial:
         self.moved = self.moved or part.moved
 
 
-_TRIAL_ARRAYS = ("x", "b", "n_int", "dn", "sat0", "clk", "los", "pred", "sat", "cost")
+_TRIAL_ARRAYS = ("x", "b", "n_int", "moves", "sat0", "clk", "los", "pred", "sat", "resid", "cost")
 
 
 def _trial(
@@ -820,20 +863,23 @@ def _trial(
         sx, sb = lp[:, None] * sx, lp[:, None] * sb
     xp, bp = st.x[rows] + sx, st.b[rows] + sb
     s0, ck, ni = st.sat0[rows], st.clk[rows], st.n_int[rows]
-    dn = None
+    mv = None
     moved = False
     if dn_m is not None:
         dm = dn_m if lp is None else lp[:, None] * dn_m
         dn = np.where(ch.frac[rows], np.rint(dm / ct1[rows]), 0.0)
         mv = np.asarray(dn.any(axis=1))
-        if mv.any():
+        m = mv.nonzero()[0]
+        if m.size:
             moved = True
             ni = ni + dn
-            m = mv.nonzero()[0]
-            s0, ck = s0.copy(), ck.copy()
-            s0[m], ck[m] = _orbits(ch, sel[m], ni[m])
+            if m.size == len(mv):  # every epoch's integers moved: their orbits, no copies
+                s0, ck = _orbits(ch, rows, ni)
+            else:
+                s0, ck = s0.copy(), ck.copy()
+                s0[m], ck[m] = _orbits(ch, sel[m], ni[m])
     lo, pr, sa = ranges(s0, ck, xp, omega[rows])
-    return _Trial(xp, bp, ni, dn, moved, s0, ck, lo, pr, sa, _cost(ch, rows, pr, bp, fullw))
+    return _Trial(xp, bp, ni, mv, moved, s0, ck, lo, pr, sa, *_cost(ch, rows, pr, bp, fullw))
 
 
 def _solve_chunk(
@@ -900,18 +946,17 @@ def _solve_chunk(
     b = np.zeros((n_e, n_clk))
     n_int = np.zeros((n_e, n_s))
     iters = np.zeros(n_e, dtype=int)
-    sat0, clk = _orbits(ch, slice(None), n_int)
+    sat0, clk = _orbits(ch, slice(None), None)
     omega = ch.eph.omega_e_rad_s
     los, pred, sat = ranges(sat0, clk, x, omega)
     fullw = ch.full.astype(float)
 
     # ---- phase 1: the paper's iteration -----------------------------------------------------
-    has_frac = bool(n_frac.any())
+    has_frac = ch.has_frac
     st = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
-    cost = _cost(ch, slice(None), pred, b, fullw)
+    resid, cost = _cost(ch, slice(None), pred, b, fullw)
     one = ok & ~direct
     active = one.copy()
-    converged = np.zeros(n_e, dtype=bool)
     singular = np.zeros(n_e, dtype=bool)
     ct1 = np.where(ch.frac, ch.ct, 1.0) if has_frac else ch.ct
     zn = ch.z  # z + N c T of each row (eq. 5), as the integers move
@@ -921,10 +966,11 @@ def _solve_chunk(
             break
         whole = sel.size == n_e
         ix: _Index = slice(None) if whole else sel
-        st.iters[ix] += 1
-        dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix])
+        st.iters += active
+        # (without fractional rows zn is z: dz is the merit's residuals)
+        dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix]) if has_frac else resid[ix]
         h = design(st.los[ix], ix)
-        step, bad = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
+        step, bad, _ = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
         if bad is not None:
             singular[sel[bad]] = True
             active[sel[bad]] = False
@@ -933,9 +979,11 @@ def _solve_chunk(
             if not sel.size:
                 continue
         # each fractional row's ambiguity step [m]: its residual after the x/b step
-        dn_m = np.einsum("esk,ek->es", h, step) - dz if has_frac else None
+        dn_m = linalg.einsum("esk,ek->es", h, step) - dz if has_frac else None
         got = _trial(ch, st, ix, sel, step, dn_m, None, ct1, omega, fullw, layout)
-        accept = (got.cost <= cost[ix] * _MERIT_SLACK) | ~np.isfinite(cost[ix])
+        accept = got.cost <= cost[ix] * _MERIT_SLACK
+        if not accept.all():  # (an epoch without a finite merit takes any step)
+            accept |= ~np.isfinite(cost[ix])
         lam: np.ndarray | float = 1.0
         if not accept.all():
             # a step that raises the full rows' residual is halved (from the Earth's
@@ -965,20 +1013,20 @@ def _solve_chunk(
                 pending = pending[~ok_p]
         if whole:  # every epoch stepped: the new arrays are the iterate
             st.x, st.b, st.n_int, st.sat0, st.clk = got.x, got.b, got.n_int, got.sat0, got.clk
-            st.los, st.pred, st.sat, cost = got.los, got.pred, got.sat, got.cost
+            st.los, st.pred, st.sat, resid, cost = got.los, got.pred, got.sat, got.resid, got.cost
         else:
             st.x[ix], st.b[ix], st.n_int[ix] = got.x, got.b, got.n_int
             st.sat0[ix], st.clk[ix], st.los[ix], st.pred[ix] = got.sat0, got.clk, got.los, got.pred
-            st.sat[ix], cost[ix] = got.sat, got.cost
+            st.sat[ix], resid[ix], cost[ix] = got.sat, got.resid, got.cost
         if got.moved:
             zn = ch.z + st.n_int * ch.ct
-        size = np.sqrt(np.einsum("ek,ek->e", step, step)) * lam
-        settled = size < cfg.theta_m  # eq. (14)
-        if got.dn is not None:
-            settled &= ~got.dn.any(axis=1)
+        size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
+        # eq. (14): settled when the step is below theta and no integer moved
+        going = ~((size if isinstance(lam, float) else size * lam) < cfg.theta_m)
+        if got.moves is not None:
+            going |= got.moves
         finite = np.isfinite(got.x).all(axis=1)
-        converged[ix] = finite & settled
-        active[ix] = finite & ~settled
+        active[ix] = finite & going
     x, b, n_int, iters = st.x, st.b, st.n_int, st.iters
     sat0, clk, los, pred, sat = st.sat0, st.clk, st.los, st.pred, st.sat
     for e in singular.nonzero()[0].tolist():
@@ -991,65 +1039,71 @@ def _solve_chunk(
         it = int(iters[e])
         d.decline(e, Declined.of(Decline.NO_CONVERGENCE, iterations=it), iterations=it)
     ok &= ~lost
+    # an epoch left (one & ok: finite, not singular) has converged unless it is still active
+    converged = ~active
     # eqs. (12), (20)-(21): the GEO-GDOP gate over the full rows at the phase-1 position
-    gated = one & ok & ((n_frac > 0) | ~converged)
+    with_frac = n_frac > 0
+    gated = one & ok & (with_frac | ~converged)
     if gated.any():
-        gs: _Index = slice(None) if gated.all() else gated.nonzero()[0]
-        gd = np.full(n_e, np.nan)
-        gd[gs] = dop(design(los[gs], gs), fullw[gs])
+        if gated.all():  # (every epoch: no other epoch's figure to leave NaN)
+            gd = dop(design(los, slice(None)), fullw)
+        else:
+            gs = gated.nonzero()[0]
+            gd = np.full(n_e, np.nan)
+            gd[gs] = dop(design(los[gs], gs), fullw[gs])
         if cfg.beta:
             beta = np.full(n_e, float(cfg.beta))
         else:  # eq. 21 with the shortest code period among the fractional rows
             t_min = np.where(ch.frac, ch.ct, np.inf).min(axis=1) / C_M_S
-            beta = np.where(n_frac > 0, C_M_S * t_min / 2.0 / cfg.range_error_m, 0.0)
-        gate = gated & (n_frac > 0) & ~(gd < beta)
-        unsettled = gated & ~gate & ~converged
-        declined_here = gate | unsettled
-        any_declined = bool(declined_here.any())
-        gd_l, beta_l, it_l = (
-            (gd.tolist(), beta.tolist(), iters.tolist()) if any_declined else ([], [], [])
-        )
-        for e in gate.nonzero()[0].tolist() if any_declined else []:
-            variant = "" if converged[e] else "unsettled"
-            it = it_l[e]
-            why = Declined.of(
-                Decline.GDOP_GATE, variant, gdop=gd_l[e], beta=beta_l[e], iterations=it
-            )
-            d.decline(e, why, gdop_full=gd_l[e], iterations=it)
-        for e in unsettled.nonzero()[0].tolist() if any_declined else []:
-            it = it_l[e]
-            why = Declined.of(Decline.NO_CONVERGENCE, iterations=it)
-            d.decline(e, why, gdop_full=gd_l[e], iterations=it)
-        if any_declined:
+            beta = np.where(with_frac, C_M_S * t_min / 2.0 / cfg.range_error_m, 0.0)
+        fails = with_frac & ~(gd < beta)
+        declined_here = gated & (fails | ~converged)
+        if declined_here.any():
+            gate = gated & fails
+            unsettled = declined_here & ~gate  # (passed the gate or had nothing to gate)
+            gd_l, beta_l, it_l = gd.tolist(), beta.tolist(), iters.tolist()
+            for e in gate.nonzero()[0].tolist():
+                variant = "" if converged[e] else "unsettled"
+                it = it_l[e]
+                why = Declined.of(
+                    Decline.GDOP_GATE, variant, gdop=gd_l[e], beta=beta_l[e], iterations=it
+                )
+                d.decline(e, why, gdop_full=gd_l[e], iterations=it)
+            for e in unsettled.nonzero()[0].tolist():
+                it = it_l[e]
+                why = Declined.of(Decline.NO_CONVERGENCE, iterations=it)
+                d.decline(e, why, gdop_full=gd_l[e], iterations=it)
             ok &= ~declined_here
 
     # eqs. (15)-(16): the integers held, [x, b] corrected over all rows (no corrections yet)
     validw = ch.valid.astype(float)
-    sel = np.flatnonzero(ok & one)
+    sel = (ok & one).nonzero()[0]
     numerical: dict[int, str] = {}
     zn = ch.z + n_int * ch.ct if has_frac else ch.z  # the integers are held from here
     for _it in range(cfg.max_iter):
         if not sel.size:
             break
         ix = slice(None) if sel.size == n_e else sel
-        iters[ix] += 1
+        _add(iters, ix, 1)
         dz = zn[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
-        step, bad = _lsq(design(los[ix], ix), dz, validw[ix])
+        step, bad, finite = _lsq(design(los[ix], ix), dz, validw[ix])
         if bad is not None:
             for e in sel[bad].tolist():
                 numerical[e] = _SINGULAR_MESSAGE
             sel, step = sel[~bad], step[~bad]
+            finite = None if finite is None else finite[~bad]
             ix = sel
-        x[ix] += step[:, :3]
-        b[ix] += step[:, 3:n_par]
-        finite = np.isfinite(step).all(axis=1)  # (phase 1 ended finite)
-        if isinstance(ix, slice) and finite.all():
+        _add(x, ix, step[:, :3])
+        _add(b, ix, step[:, 3:n_par])
+        # (phase 1 ended finite: a step that is not makes the iterate so)
+        if finite is None and isinstance(ix, slice):
             los, pred, sat = ranges(sat0, clk, x, omega)
         else:
-            fin = sel[finite]
+            fin = sel if finite is None else sel[finite]
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
-        size = np.sqrt(np.einsum("ek,ek->e", step, step))
-        sel = sel[finite & (size >= cfg.conv_m)]
+        size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
+        more = size >= cfg.conv_m
+        sel = sel[more if finite is None else finite & more]
     it_state = _Iterate(x, b, n_int, iters, sat0, clk, los, pred, sat)
     return _phase2(ch, d, ok, numerical, layout, it_state, iono, cfg, solver)
 
@@ -1100,7 +1154,7 @@ def _phase2(
     for e in numerical:
         ok[e] = False
     ok &= finite
-    r = np.sqrt(np.einsum("ek,ek->e", x, x))
+    r = np.sqrt(linalg.einsum("ek,ek->e", x, x))
     meaningful = (r > 6.0e6) & (r < 8.5e6)
     keep = ch.valid.copy()
     sel0 = ok.nonzero()[0]
@@ -1198,13 +1252,13 @@ def _weighted(
     )
     eph = ch.eph
     omega, carrier, bds = eph.omega_e_rad_s[rows], eph.carrier_hz[rows], eph.bds[rows]
-    z = ch.z[rows] + n_int * ch.ct[rows]
+    z = ch.z[rows] + n_int * ch.ct[rows] if ch.has_frac else ch.z[rows]
     sow = ch.bdt_sow[rows]
     # the epochs near the Earth (None: all of them, the usual case)
     near = None if meaningful.all() else meaningful[:, None]
     keepw = keep.astype(float)
     models = iono.models(cfg.iono)
-    cn0 = ch.cn0[rows]
+    cn0_var = cn0_variance_m2(ch.cn0[rows], cfg)  # (the same every iteration)
     diverged = np.zeros(n1, dtype=bool)
     bad_lsq = np.zeros(n1, dtype=bool)
     act = np.arange(n1)
@@ -1212,7 +1266,7 @@ def _weighted(
         if not act.size:
             break
         ix: _Index = slice(None) if act.size == n1 else act
-        iters[ix] += 1
+        _add(iters, ix, 1)
         if loc is None or _it:
             loc = _local(x[ix], sat[ix])
         lat, lon, alt, el, az, _rot = loc
@@ -1223,24 +1277,28 @@ def _weighted(
         dz = dz - _where(nr, corr, 0.0)
         w = keepw[ix]
         if cfg.weighted:
-            sig = measurement_sigma_m(el, cn0[ix], io, tr, cfg)
+            sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var[ix])
             w = np.asarray(_where(nr, w / sig**2, w))
-        step, bad = _lsq(layout.design(los[ix], cix[ix]), dz, w)
+        step, bad, finite = _lsq(layout.design(los[ix], cix[ix]), dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
             act, step = act[~bad], step[~bad]
+            finite = None if finite is None else finite[~bad]
             ix = act
-        x[ix] += step[:, :3]
-        b[ix] += step[:, 3:n_par]
-        finite = np.isfinite(step).all(axis=1)  # (the iterate was finite)
-        if isinstance(ix, slice) and finite.all():
+        _add(x, ix, step[:, :3])
+        _add(b, ix, step[:, 3:n_par])
+        # (the iterate was finite: a step that is not makes it so)
+        if finite is None and isinstance(ix, slice):
             los, pred, sat = ranges(sat0, clk, x, omega)
         else:
-            diverged[act[~finite]] = True
-            fin = act[finite]
+            fin = act
+            if finite is not None:
+                diverged[act[~finite]] = True
+                fin = act[finite]
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
-        size = np.sqrt(np.einsum("ek,ek->e", step, step))
-        act = act[finite & (size >= cfg.conv_m)]
+        size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
+        more = size >= cfg.conv_m
+        act = act[more if finite is None else finite & more]
     out: list[Outcome] = [None] * n1
     for k in bad_lsq.nonzero()[0].tolist():
         out[k] = _numerical(ch.epochs[int(sel[k])], solver, "LinAlgError", _SINGULAR_MESSAGE)
@@ -1255,7 +1313,7 @@ def _weighted(
         x, b, cix, keep = x[good], b[good], cix[good], keep[good]
         near = None if near is None else near[good]
         n_int, iters, los, pred, sat = n_int[good], iters[good], los[good], pred[good], sat[good]
-        z, sow, cn0 = z[good], sow[good], cn0[good]
+        z, sow, cn0_var = z[good], sow[good], cn0_var[good]
         carrier, bds = carrier[good], bds[good]
     # ---- judge the solution ------------------------------------------------------------------
     lat, lon, alt, el, az, rot = _local(x, sat)
@@ -1264,14 +1322,15 @@ def _weighted(
     v = z - pred - _row_clocks(b, cix) - _where(near, corr, 0.0)
     v = np.where(keep, v, 0.0)
     if cfg.weighted:
-        sigma = _where(near, measurement_sigma_m(el, cn0, io, tr, cfg), cfg.sigma_uniform_m)
+        sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var)
+        sigma = _where(near, sig, cfg.sigma_uniform_m)
         sigma = np.where(keep, sigma, 1.0)
     else:
         sigma = np.full(keep.shape, cfg.sigma_uniform_m)
     g = layout.design(los, cix)
     integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
     n_k = keep.sum(axis=1)
-    resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
+    resid_rms = np.sqrt(linalg.einsum("es,es->e", v, v) / n_k)
     gsel = sel[good]
     if solver == "fast":
         gd_final = dop(g, (keep & ch.full[gsel]).astype(float)).tolist()
@@ -1280,7 +1339,7 @@ def _weighted(
     gu = g * keep[..., None]
     q = linalg.inv(gu.swapaxes(-1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ rot.swapaxes(-1, -2)
-    pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
+    pdop = np.sqrt(q_enu.trace(axis1=1, axis2=2))
     numbers: dict[str, list] = {
         "x": x.tolist(),
         "b": b.tolist(),
