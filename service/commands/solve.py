@@ -24,6 +24,7 @@ from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
+from service.engine.aiding import HeightAid
 from service.engine.solver import CHUNK_EPOCHS, IonoSet, SolverConfig, fractionalize, solve_many
 from service.engine.timetag import without_coarse_fractions
 from service.engine.velocity import with_velocities
@@ -88,7 +89,11 @@ def solve_epochs(
     :func:`~service.engine.solver.solve_many` (the one solver kernel, a chunk of epochs at
     a time), so a file of any length streams through in bounded memory. Each fix
     with a position gets its velocity from the epoch's Doppler, a chunk at a time
-    (:func:`~service.engine.velocity.with_velocities`)."""
+    (:func:`~service.engine.velocity.with_velocities`). With height aiding
+    (:func:`solve_aided`) the epochs are solved one at a time."""
+    if opts.cfg.height_aiding:
+        yield from solve_aided(epochs, store, iono, opts)
+        return
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
         # a receiver time coarser than 1 ms (a phone before its first fix): no fractional
         # range enters the fix (service.engine.timetag.COARSE_TIME_S)
@@ -108,6 +113,30 @@ def solve_epochs(
         per_solver = [moving[k : k + len(chunk)] for k in range(0, len(moving), len(chunk))]
         for k, epoch in enumerate(chunk):
             yield epoch, [fixes[k] for fixes in per_solver]
+
+
+def solve_aided(
+    epochs: Iterator[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
+) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
+    """:func:`solve_epochs` with height aiding (:mod:`service.engine.aiding`): each epoch's
+    aid is held from the fixes before it, so the epochs are solved one at a time, in the
+    order read, as the stream solves them. Both solvers of an epoch get the same aid (one
+    row more for each: the fast fix of the same rows is still SPP's solution), held from
+    the SPP fixes when SPP runs (the all-full solution, which the stream's fix is once every
+    satellite's time is known), else from the fast fixes."""
+    held = HeightAid()
+    for epoch in epochs:
+        view = without_coarse_fractions(epoch)[0]
+        cfg = held.cfg_for(view.gpst_week, view.gpst_tow_s, opts.cfg)
+        fixes: list[Fix] = []
+        if opts.mode in ("fast", "both"):
+            fast_in = fractionalize(view, opts.period_s) if opts.fractional == "non-geo" else view
+            fixes += solve_many((fast_in,), store, iono, cfg, "fast", opts.with_sky)
+        if opts.mode in ("spp", "both"):
+            fixes += solve_many((view,), store, iono, cfg, "spp", opts.with_sky)
+        fixes = with_velocities([(fix, view) for fix in fixes], store)
+        held.update(fixes[-1], opts.cfg)
+        yield view, fixes
 
 
 @contextlib.contextmanager

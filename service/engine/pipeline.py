@@ -44,6 +44,7 @@ from service.core.types import (
     SatView,
     TimeOffset,
 )
+from service.engine.aiding import HeightAid
 from service.engine.coarse import (
     CoarseConfig,
     solve_coarse,
@@ -196,6 +197,7 @@ class Pipeline:
     _inav: InavAssembler = field(default_factory=InavAssembler)
     _receiver_fix: ReceiverFix | None = None
     _cfg_settings: tuple[SolverConfig, dict[str, Any]] | None = None
+    _height: HeightAid = field(default_factory=HeightAid)  # cfg.height_aiding's held height
     ggto: TimeOffset | None = None
     """The latest broadcast GST - GPST offset (:mod:`service.core.gal_nav`): recorded, not
     applied (each system has its own receiver clock, which absorbs it)."""
@@ -343,11 +345,15 @@ class Pipeline:
             self.counters["receiver_restarts"] += 1
             self._recovered.clear()
             self._last_fix = None
+            self._height.reset()
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         whole = view  # with its fractional ranges, for the coarse-time fix
         view, set_aside = without_coarse_fractions(view)
-        fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        cfg = self._start_cfg(view)
+        if self.cfg.height_aiding:  # the height of the last fixes as one more row
+            cfg = self._height.cfg_for(epoch.gpst_week, epoch.gpst_tow_s, cfg)
+        fix = solve(view, self.store, self.iono, cfg, solver="fast")
         if set_aside and view.time_unc_s > self.coarse.time_prior_s:
             # the receiver's time is coarser than even the coarse-time fix's prior: its
             # fractional ranges wait for the first decoded SOW, whose full range gives the
@@ -385,6 +391,10 @@ class Pipeline:
         if self.velocity:
             fix = self._with_velocity(fix, view)
         count_fix(self.counters, fix)
+        if self.cfg.height_aiding:
+            self._height.update(fix, self.cfg)
+            if cfg.height_aid is not None and fix.ok:
+                self.counters["height_aided_fixes"] += 1
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
         if fix.mode == "fast":
@@ -457,6 +467,7 @@ class Pipeline:
         self.tracker.restart(epoch.gpst_week, epoch.gpst_tow_s, emulator)
         self._recovered.clear()
         self._last_fix = None
+        self._height.reset()
 
     def _start_cfg(self, view: MeasurementEpoch) -> SolverConfig:
         """The solver settings for ``view``: once every measurement is full (conventional

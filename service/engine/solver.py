@@ -178,12 +178,48 @@ class SolverConfig:
         low=0.0,
         low_open=True,
     )
+    height_aiding: bool = setting(
+        False,
+        "height aiding for a receiver whose height changes slowly (a car): a pseudo-"
+        "observation of the height from the last fixes joins the least squares, its test "
+        "and protection levels (service.engine.aiding; never for a first fix)",
+        kind="bool",
+    )
+    height_aid_sigma_m: float = setting(
+        3.0, "height aiding: 1-sigma of the held height [m]", kind="float", low=0.0, low_open=True
+    )
+    height_aid_window_s: float = setting(
+        60.0,
+        "height aiding: the fixes of this many seconds make the held height [s]",
+        kind="float",
+        low=0.0,
+        low_open=True,
+    )
+    height_aid_min_fixes: int = setting(
+        3, "height aiding: fewest fixes in the window", kind="int", low=1
+    )
+    height_aid_rate_m_s: float = setting(
+        0.1,
+        "height aiding: growth of the sigma per second since the newest fix held [m/s]",
+        kind="float",
+        low=0.0,
+    )
+    height_aid_grade: float = setting(
+        0.05,
+        "height aiding: road slope that grows the sigma with the distance moved (0.05: 1 in 20)",
+        kind="float",
+        low=0.0,
+    )
     # A known approximate position (a reference in studies, the last fix in a stream).
     # With every measurement full the solve is then conventional SPP from it (phase 2
     # alone) when it lies near the Earth (6,000-8,500 km from its centre); otherwise, and
     # with fractional rows, phase 1 starts there. None: the paper's start, the Earth's
     # centre (eq. 3). Either way the least-squares solution is the same.
     x0_ecef_m: tuple[float, float, float] | None = None
+    # A pseudo-observation of the receiver's ellipsoidal height, (h [m], sigma [m]): one more
+    # row of phase 2's least squares and of its test and protection levels
+    # (:func:`_height_row`; service.engine.aiding builds it from past fixes). None: no row.
+    height_aid: tuple[float, float] | None = None
 
 
 def derive_beta(period_s: float, range_error_m: float) -> float:
@@ -1225,7 +1261,10 @@ def _weighted(
         if cfg.weighted:
             sig = measurement_sigma_m(el, cn0[ix], io, tr, cfg)
             w = np.asarray(_where(nr, w / sig**2, w))
-        step, bad = _lsq(layout.design(los[ix], cix[ix]), dz, w)
+        g = layout.design(los[ix], cix[ix])
+        if cfg.height_aid is not None:
+            g, dz, w = _height_row(g, dz, w, _rot, alt, nr, cfg.height_aid, squared=True)
+        step, bad = _lsq(g, dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
             act, step = act[~bad], step[~bad]
@@ -1269,15 +1308,20 @@ def _weighted(
     else:
         sigma = np.full(keep.shape, cfg.sigma_uniform_m)
     g = layout.design(los, cix)
-    integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
     n_k = keep.sum(axis=1)
     resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
+    g_sat, keep_sat = g, keep  # the DOPs are the satellites' geometry alone
+    if cfg.height_aid is not None:
+        g, v, sigma = _height_row(g, v, sigma, rot, alt, near, cfg.height_aid, squared=False)
+        keep = np.concatenate([keep, sigma[:, -1:] < np.inf], axis=1)
+        sigma = np.where(keep, sigma, 1.0)
+    integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
     gsel = sel[good]
     if solver == "fast":
-        gd_final = dop(g, (keep & ch.full[gsel]).astype(float)).tolist()
+        gd_final = dop(g_sat, (keep_sat & ch.full[gsel]).astype(float)).tolist()
     else:
         gd_final = [None] * len(good)
-    gu = g * keep[..., None]
+    gu = g_sat * keep_sat[..., None]
     q = linalg.inv(gu.swapaxes(-1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ rot.swapaxes(-1, -2)
     pdop = np.sqrt(np.trace(q_enu, axis1=1, axis2=2))
@@ -1298,6 +1342,38 @@ def _weighted(
     for k, (g_k, e) in enumerate(zip(good.tolist(), gsel.tolist(), strict=True)):
         out[g_k] = _judged(ch, e, solver, layout, n_int[k], keep[k], integ[k], numbers, k, cfg)
     return out
+
+
+def _height_row(
+    g: np.ndarray,
+    dz: np.ndarray,
+    w: np.ndarray,
+    rot: np.ndarray,
+    alt_m: np.ndarray,
+    near: np.ndarray | None,
+    aid: tuple[float, float],
+    squared: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The design ``g`` (e, s, p), misclosures ``dz`` (e, s) and weights or sigmas ``w``
+    (e, s) joined by one row: the pseudo-observation ``aid`` = (h, sigma) of the ellipsoidal
+    height, whose partials are the local up vector (the third row of the ENU rotation
+    ``rot``) and no clock, misclosure h - height of the iterate (``alt_m``). ``squared``:
+    ``w`` holds weights 1 / sigma^2 (else sigmas). Epochs not ``near`` the Earth get no
+    row (weight 0, sigma inf): the height means nothing there."""
+    h_m, sigma_m = aid
+    n_e = len(dz)
+    row = np.zeros((n_e, 1, g.shape[-1]))
+    row[:, 0, :3] = rot[:, 2, :]
+    mis = (h_m - np.asarray(alt_m, dtype=float)).reshape(n_e, 1)
+    val = 1.0 / sigma_m**2 if squared else sigma_m
+    far = 0.0 if squared else np.inf
+    ww = np.full((n_e, 1), val) if near is None else np.where(near, val, far).reshape(n_e, 1)
+    mis = np.where(ww == far, 0.0, mis)
+    return (
+        np.concatenate([g, row], axis=1),
+        np.concatenate([dz, mis], axis=1),
+        np.concatenate([w, ww], axis=1),
+    )
 
 
 def _judged(

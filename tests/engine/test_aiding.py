@@ -1,0 +1,147 @@
+"""Height aiding (service.engine.aiding): the kernel's height row and the held height.
+
+The row, on the HKSC station (BeiDou, 2021; its surveyed position the truth): a height
+known to a centimetre pins the fix's height and adds one degree of freedom; a height
+known to a kilometre leaves the fix as it was; a wrong height at a tight sigma fails the
+chi-square test instead of moving the fix; the fast fix with the same row is SPP's
+solution. The held height, on fixes made here: the median of the window, its sigma
+sqrt(s0^2 + (rate dt)^2 + (grade d)^2) worked by hand, nothing before the minimum
+number of fixes, after a gap longer than the window or after a reset.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from functools import cache
+
+import numpy as np
+import pytest
+
+from drivers.rinex import RinexObsReader
+from service.commands.solve import load_navigation
+from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from service.core.types import Fix, MeasurementEpoch
+from service.engine.aiding import HeightAid
+from service.engine.solver import SolverConfig, fractionalize, solve
+from tests.support.independent import HKSC_TRUTH_ECEF_M
+from tests.support.paths import DATA
+
+HKSC = DATA / "hksc-2021"
+TRUE_H_M = float(ecef_to_geodetic(HKSC_TRUTH_ECEF_M)[2])
+
+
+@cache
+def _hksc() -> tuple[list[MeasurementEpoch], object, object]:
+    store, iono = load_navigation([str(HKSC / "hksc1610.nav")], systems={"C"})
+    epochs = list(RinexObsReader(HKSC / "hksc1610.obs", systems={"C"}))
+    return epochs[::20], store, iono
+
+
+def _height(fix: Fix) -> float:
+    return float(ecef_to_geodetic(np.asarray(fix.x_ecef_m))[2])
+
+
+def test_a_tight_height_row_pins_the_height_and_adds_a_degree_of_freedom():
+    epochs, store, iono = _hksc()
+    for ep in epochs:
+        plain = solve(ep, store, iono, SolverConfig(), "spp")
+        aided = solve(ep, store, iono, SolverConfig(height_aid=(TRUE_H_M, 0.01)), "spp")
+        assert plain.ok and aided.ok, (plain.reason, aided.reason)
+        assert abs(_height(aided) - TRUE_H_M) < 0.05, _height(aided)
+        assert aided.redundancy == plain.redundancy + 1
+        assert aided.used == plain.used
+        # the DOPs are the satellites' geometry; the covariance and levels take the row
+        # (at a position centimetres away)
+        assert aided.pdop == pytest.approx(plain.pdop, rel=1e-6)
+        assert aided.vdop == pytest.approx(plain.vdop, rel=1e-6)
+        assert aided.cov_enu_m2[2][2] < 0.01**2 * 1.01
+        # the row's own fault has a slope: a biased height moves the fix 1:1 and the test
+        # sees it only through the satellites, so the VPL does not shrink with the sigma
+        assert math.isfinite(aided.vpl_m) and math.isfinite(aided.hpl_m)
+        # the horizontal error stays metre-level (the station's SPP is ~1 m)
+        d = np.subtract(aided.x_ecef_m, HKSC_TRUTH_ECEF_M)
+        lat, lon, _ = ecef_to_geodetic(HKSC_TRUTH_ECEF_M)
+        enu = enu_rotation(lat, lon) @ d
+        assert math.hypot(enu[0], enu[1]) < 3.0
+
+
+def test_a_loose_height_row_leaves_the_fix_as_it_was():
+    epochs, store, iono = _hksc()
+    for ep in epochs:
+        plain = solve(ep, store, iono, SolverConfig(), "spp")
+        loose = solve(ep, store, iono, SolverConfig(height_aid=(TRUE_H_M + 50.0, 1e5)), "spp")
+        assert np.linalg.norm(np.subtract(loose.x_ecef_m, plain.x_ecef_m)) < 1e-3
+        # the levels differ by the test's one more degree of freedom only
+        assert loose.redundancy == plain.redundancy + 1
+        assert loose.hpl_m == pytest.approx(plain.hpl_m, rel=0.02)
+
+
+def test_a_wrong_tight_height_fails_the_test_instead_of_moving_the_fix():
+    """100 m off at a 1 m sigma: the satellites contradict it; the test fails and no
+    exclusion of a satellite can pass (the row is never excluded), so nothing is
+    published 100 m off."""
+    epochs, store, iono = _hksc()
+    for ep in epochs:
+        fix = solve(ep, store, iono, SolverConfig(height_aid=(TRUE_H_M + 100.0, 1.0)), "spp")
+        assert not fix.ok and fix.reason_code == "chi2", fix.reason
+
+
+def test_the_fast_fix_with_the_row_is_spp_with_the_row():
+    epochs, store, iono = _hksc()
+    cfg = SolverConfig(height_aid=(TRUE_H_M + 2.0, 3.0))
+    n = 0
+    for ep in epochs:
+        fast = solve(fractionalize(ep), store, iono, cfg, "fast")
+        spp = solve(ep, store, iono, cfg, "spp")
+        assert fast.ok and spp.ok and fast.used == spp.used, (fast.reason, spp.reason)
+        assert np.linalg.norm(np.subtract(fast.x_ecef_m, spp.x_ecef_m)) <= 1e-3
+        assert fast.redundancy == spp.redundancy and fast.vpl_m == pytest.approx(spp.vpl_m)
+        n += 1
+    assert n == len(epochs)
+
+
+# ---- the held height ----------------------------------------------------------------------
+
+LAT, LON = math.radians(22.3), math.radians(114.18)
+ROT = enu_rotation(LAT, LON)
+CFG = SolverConfig(height_aiding=True)
+
+
+def _fix(tow_s: float, h_m: float, east_m: float = 0.0, ok: bool = True) -> Fix:
+    x = geodetic_to_ecef(LAT, LON, h_m) + ROT.T @ np.array([east_m, 0.0, 0.0])
+    return Fix("spp", "spp" if ok else "none", 2051, tow_s, x_ecef_m=tuple(float(v) for v in x))
+
+
+def test_the_held_height_is_the_median_of_the_window_with_a_growing_sigma():
+    held = HeightAid()
+    assert held.prior(2051, 100.0, CFG) is None  # no history: no aid for a first fix
+    held.update(_fix(100.0, 10.0), CFG)
+    held.update(_fix(101.0, 40.0, east_m=30.0), CFG)  # an outlier: the median ignores it
+    assert held.prior(2051, 102.0, CFG) is None  # 2 < height_aid_min_fixes
+    held.update(_fix(102.0, 12.0, east_m=60.0), CFG)
+    held.update(_fix(103.0, 99.0, ok=False), CFG)  # a decline holds nothing
+    h, sigma = held.prior(2051, 112.0, CFG)
+    assert h == pytest.approx(12.0, abs=1e-3)
+    # 10 s since the newest fix (no speed known), half the 60 m span moved
+    want = math.sqrt(3.0**2 + (0.1 * 10.0) ** 2 + (0.05 * 30.0) ** 2)
+    assert sigma == pytest.approx(want, rel=1e-3)
+    tight = replace(CFG, height_aid_rate_m_s=0.0, height_aid_grade=0.0)
+    assert held.prior(2051, 112.0, tight)[1] == pytest.approx(3.0)
+    # the window: at 161.5 s only the fix of 102 s is within 60 s
+    assert held.prior(2051, 161.5, CFG) is None
+    one = replace(CFG, height_aid_min_fixes=1)
+    assert held.prior(2051, 161.5, one)[0] == pytest.approx(12.0, abs=1e-3)
+    assert held.prior(2051, 163.0, one) is None
+    held.reset()
+    assert held.prior(2051, 104.0, CFG) is None
+
+
+def test_cfg_for_gives_the_row_only_with_height_aiding_on():
+    held = HeightAid()
+    for t in range(5):
+        held.update(_fix(200.0 + t, 8.0), CFG)
+    off = SolverConfig()
+    assert held.cfg_for(2051, 205.0, off) is off
+    on = held.cfg_for(2051, 205.0, CFG)
+    assert on.height_aid is not None and on.height_aid[0] == pytest.approx(8.0, abs=1e-3)
