@@ -23,7 +23,7 @@ Files:
 - ONE: HKSC's first epoch alone: the start-up of `bdsfix solve`.
 - HKSC-GECs, TST-GECs (``--files hksc-gec,hksc-gec-strict,...``: each needs its base row):
   bdsfix with :data:`STRICT` settings; HKSC-GECa, TST-GECa (``hksc-gec-aided``,
-  ``tst-gec-aided``) with :data:`AIDED` (height aiding, 3 exclusions).
+  ``tst-gec-aided``) with :data:`AIDED` (height aiding and the prediction screen).
 - SBF-GEC (../shared/data/leuven-septentrio-sbf-2025): 12 epochs of a Septentrio mosaic,
   BDS + GPS + Galileo. bdsfix replays the SBF file (`bdsfix replay --max-speed`, its nav
   blocks the only ephemerides); rnx2rtkp reads the RINEX 3.04 obs and nav that RTKLIB's
@@ -112,8 +112,8 @@ STRICT = ("--sigma-cn0-m", "0.3", "--max-exclusions", "1", "--p-fa", "1e-3")
 1e-3 test): on the urban drive they trade availability for accuracy (docs/method.md,
 "Urban drive"); the -strict rows (HKSC-GECs, TST-GECs) run them beside the defaults."""
 
-AIDED = ("--height-aiding", "true", "--max-exclusions", "3")
-"""bdsfix with height aiding and one exclusion more than the default, the settings for a car
+AIDED = ("--height-aiding", "true", "--screen-predicted-m", "30")
+"""bdsfix with height aiding and the prediction screen, the settings for a car
 (docs/method.md, "Urban drive"); the -aided rows (HKSC-GECa, TST-GECa) run them beside the
 defaults."""
 

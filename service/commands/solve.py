@@ -15,7 +15,7 @@ import itertools
 import logging
 import sys
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import IO, Literal
 
 from service.core.counters import Counters
@@ -24,8 +24,15 @@ from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.aiding import HeightAid
-from service.engine.solver import CHUNK_EPOCHS, IonoSet, SolverConfig, fractionalize, solve_many
+from service.engine.aiding import HeightAid, Predictor
+from service.engine.solver import (
+    CHUNK_EPOCHS,
+    IonoSet,
+    SolverConfig,
+    fractionalize,
+    sky_view,
+    solve_many,
+)
 from service.engine.timetag import without_coarse_fractions
 from service.engine.velocity import with_velocities
 
@@ -89,9 +96,9 @@ def solve_epochs(
     :func:`~service.engine.solver.solve_many` (the one solver kernel, a chunk of epochs at
     a time), so a file of any length streams through in bounded memory. Each fix
     with a position gets its velocity from the epoch's Doppler, a chunk at a time
-    (:func:`~service.engine.velocity.with_velocities`). With height aiding
-    (:func:`solve_aided`) the epochs are solved one at a time."""
-    if opts.cfg.height_aiding:
+    (:func:`~service.engine.velocity.with_velocities`). With height aiding or the
+    prediction screen (:func:`solve_aided`) the epochs are solved one at a time."""
+    if opts.cfg.height_aiding or opts.cfg.screen_predicted_m > 0.0:
         yield from solve_aided(epochs, store, iono, opts)
         return
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
@@ -118,24 +125,37 @@ def solve_epochs(
 def solve_aided(
     epochs: Iterator[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
-    """:func:`solve_epochs` with height aiding (:mod:`service.engine.aiding`): each epoch's
-    aid is held from the fixes before it, so the epochs are solved one at a time, in the
-    order read, as the stream solves them. Both solvers of an epoch get the same aid (one
-    row more for each: the fast fix of the same rows is still SPP's solution), held from
-    the SPP fixes when SPP runs (the all-full solution, which the stream's fix is once every
-    satellite's time is known), else from the fast fixes."""
-    held = HeightAid()
+    """:func:`solve_epochs` with height aiding or the prediction screen
+    (:mod:`service.engine.aiding`): each epoch's aid and screen come from the fixes before
+    it, so the epochs are solved one at a time, in the order read, as the stream solves
+    them. Both solvers of an epoch get the same ranges (those the screen keeps, of the
+    full epoch) and the same aid (one row more for each): the fast fix of the same rows is
+    still SPP's solution. Aid and prediction follow the SPP fixes when SPP runs (the
+    all-full solution, which the stream's fix is once every satellite's time is known),
+    else the fast fixes."""
+    held, predictor = HeightAid(), Predictor()
     for epoch in epochs:
         view = without_coarse_fractions(epoch)[0]
         cfg = held.cfg_for(view.gpst_week, view.gpst_tow_s, opts.cfg)
+        rows, screened = predictor.screen(view, store, opts.cfg)
         fixes: list[Fix] = []
         if opts.mode in ("fast", "both"):
-            fast_in = fractionalize(view, opts.period_s) if opts.fractional == "non-geo" else view
+            fast_in = fractionalize(rows, opts.period_s) if opts.fractional == "non-geo" else rows
             fixes += solve_many((fast_in,), store, iono, cfg, "fast", opts.with_sky)
         if opts.mode in ("spp", "both"):
-            fixes += solve_many((view,), store, iono, cfg, "spp", opts.with_sky)
+            fixes += solve_many((rows,), store, iono, cfg, "spp", opts.with_sky)
+        if screened:  # (the sky: every satellite of the epoch, the screened ones unused)
+            fixes = [
+                replace(
+                    f,
+                    excluded={**screened, **f.excluded},
+                    sky=sky_view(view, store, f) if f.sky else f.sky,
+                )
+                for f in fixes
+            ]
         fixes = with_velocities([(fix, view) for fix in fixes], store)
         held.update(fixes[-1], opts.cfg)
+        predictor.update(fixes[-1])
         yield view, fixes
 
 

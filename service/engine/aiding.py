@@ -1,4 +1,6 @@
-"""Height aiding: a pseudo-observation of the receiver's ellipsoidal height from its own
+"""Height aiding and the prediction screen: what a receiver's past fixes tell its next one.
+
+**Height aiding**: a pseudo-observation of the receiver's ellipsoidal height from its own
 recent fixes, for a receiver whose height changes slowly (a car, a ship, a walker; not an
 aircraft or a drone), as land-vehicle receivers do (their "automotive" dynamic model).
 
@@ -30,6 +32,23 @@ The aid is sequential (past epochs only):
 
 The kernel's mechanism is :attr:`service.engine.solver.SolverConfig.height_aid` (phase 2
 only, so the fast fix and SPP of the same rows with the same aid are the same solution).
+
+**Prediction screen** (``screen_predicted_m``): the last published fix, at most
+:data:`PREDICTION_MAX_AGE_S` old and with a Doppler velocity (service.engine.velocity),
+moved by that velocity to the epoch's time predicts the position; each full range's
+residual there (broadcast orbit and clock, Earth rotation; no atmosphere, whose
+differences between satellites are metres) less its system's median (the receiver clock,
+with at least :data:`PREDICTION_MIN_SYSTEM_ROWS` rows of that system) is what the range
+has that the prediction does not explain. A range longer than predicted by more than the
+setting is a reflected (NLOS) signal: it is left out before the solve (``Fix.excluded``
+says so), when at least :data:`PREDICTION_MIN_ROWS` ranges remain. Only longer: a
+reflected path is never shorter than the direct one (on the TST drive 91 % of the
+residuals beyond 30 m at the true position are positive). The fix is still the snapshot
+least squares of the ranges kept, tested and protected as any; the prediction only
+chooses rows, so its error (the last fix's and the velocity's, metres) is not in the
+fix's error model, and a wrong prediction costs rows, not a biased fix. Fractional ranges
+are not screened (no integer yet): the fast fix and SPP of an epoch are given the same
+ranges by the batch (:func:`service.commands.solve.solve_aided`).
 """
 
 from __future__ import annotations
@@ -40,10 +59,23 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from service.core.geometry import ecef_to_geodetic
-from service.core.timebase import diff_s
-from service.core.types import Fix
-from service.engine.solver import SolverConfig
+from service.core.constants import C_M_S
+from service.core.declines import excluded_why
+from service.core.ephemeris import EphemerisStore
+from service.core.geometry import ecef_to_geodetic, enu_rotation
+from service.core.orbit import sat_pos_clock
+from service.core.timebase import diff_s, gpst_to_bdt
+from service.core.types import Fix, MeasurementEpoch
+from service.engine.solver import SolverConfig, ranges
+
+PREDICTION_MAX_AGE_S = 3.0
+"""The prediction screen uses a fix at most this old [s]: at 1 Hz the last two epochs'."""
+PREDICTION_MIN_ROWS = 6
+"""The screen leaves ranges out only when at least this many remain (two clocks and the
+position, with one degree of freedom for the test)."""
+PREDICTION_MIN_SYSTEM_ROWS = 3
+"""A system's ranges are screened only with at least this many (their median is the
+clock)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,3 +148,95 @@ def _horizontal_m(a: np.ndarray, b: np.ndarray) -> float:
     d = a - b
     up = a / np.linalg.norm(a)
     return float(np.linalg.norm(d - up * float(d @ up)))
+
+
+@dataclass
+class Predictor:
+    """The prediction screen's state: the last published fix with a velocity (module
+    docstring)."""
+
+    _last: Fix | None = None
+
+    def reset(self) -> None:
+        """Forget the last fix (a receiver restart)."""
+        self._last = None
+
+    def update(self, fix: Fix) -> None:
+        """Take a solver result: a published fix with a Doppler velocity is the next
+        prediction's start."""
+        if fix.ok and fix.x_ecef_m is not None and fix.velocity is not None:
+            self._last = fix
+
+    def predict(self, week: int, tow_s: float) -> np.ndarray | None:
+        """The position [m, ECEF] predicted for GPS ``week`` + ``tow_s`` (None: no fix of
+        the last :data:`PREDICTION_MAX_AGE_S`)."""
+        last = self._last
+        if last is None or last.x_ecef_m is None or last.velocity is None:
+            return None
+        dt = diff_s(week, tow_s, last.gpst_week, last.gpst_tow_s)
+        if not 0.0 < dt <= PREDICTION_MAX_AGE_S:
+            return None
+        x = np.asarray(last.x_ecef_m, dtype=float)
+        lat, lon, _ = ecef_to_geodetic(x)
+        v_ecef = enu_rotation(lat, lon).T @ np.asarray(last.velocity.v_enu_m_s, dtype=float)
+        return x + v_ecef * dt
+
+    def screen(
+        self, epoch: MeasurementEpoch, store: EphemerisStore, cfg: SolverConfig
+    ) -> tuple[MeasurementEpoch, dict[str, str]]:
+        """``epoch`` without the full ranges longer than predicted by more than
+        ``cfg.screen_predicted_m``, and why each was left out (``epoch`` itself and no
+        reasons when the screen is off, there is no prediction, none is that long, or
+        fewer than :data:`PREDICTION_MIN_ROWS` would remain)."""
+        limit = cfg.screen_predicted_m
+        if not limit > 0.0:
+            return epoch, {}
+        x = self.predict(epoch.gpst_week, epoch.gpst_tow_s)
+        if x is None:
+            return epoch, {}
+        res = predicted_residuals(epoch, store, x)
+        long = {p: r for p, r in res.items() if r > limit}
+        if not long or len(res) - len(long) < PREDICTION_MIN_ROWS:
+            return epoch, {}
+        keep = [i for i, p in enumerate(epoch.prn) if p not in long]
+        why = {p: excluded_why("predicted", res_m=r, limit_m=limit) for p, r in long.items()}
+        return epoch.rows(keep), why
+
+
+def predicted_residuals(
+    epoch: MeasurementEpoch, store: EphemerisStore, x_ecef_m: np.ndarray
+) -> dict[str, float]:
+    """Each full range of ``epoch`` less the range predicted at ``x_ecef_m`` (satellite at
+    its transmit time, eqs. 4-5 of the kernel, clock and group delay, Earth rotation during
+    the flight; no ionosphere or troposphere), less its system's median (the receiver
+    clock), for the systems with at least :data:`PREDICTION_MIN_SYSTEM_ROWS` such ranges."""
+    week, sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
+    ephs, prns, prs = [], [], []
+    for i, prn in enumerate(epoch.prn):
+        pr = float(epoch.pr_m[i])
+        if not math.isfinite(pr):
+            continue
+        e = store.select(prn, week, sow)
+        if e is None:
+            continue
+        ephs.append(e)
+        prns.append(prn)
+        prs.append(pr)
+    if not ephs:
+        return {}
+    arr = store.arrays(ephs)
+    z = np.asarray(prs)
+    t1 = sow - z / C_M_S
+    t_tx = t1 - (arr.af0_s + arr.af1_s_s * (t1 - arr.toc_sow_s))
+    sat0, clk = sat_pos_clock(arr, week, t_tx)
+    _, pred, _ = ranges(sat0, clk, np.asarray(x_ecef_m, dtype=float), arr.omega_e_rad_s)
+    v = z - pred
+    out: dict[str, float] = {}
+    for system in sorted({p[:1] for p in prns}):
+        idx = [k for k, p in enumerate(prns) if p[:1] == system]
+        if len(idx) < PREDICTION_MIN_SYSTEM_ROWS:
+            continue
+        med = float(np.median(v[idx]))
+        for k in idx:
+            out[prns[k]] = float(v[k]) - med
+    return out

@@ -210,6 +210,14 @@ class SolverConfig:
         kind="float",
         low=0.0,
     )
+    screen_predicted_m: float = setting(
+        0.0,
+        "prediction screen: a full range longer by more than this [m] than predicted at the "
+        "last fix moved by its Doppler velocity (its system's median residual removed) is "
+        "left out before the solve, as reflected (service.engine.aiding; 0: off)",
+        kind="float",
+        low=0.0,
+    )
     # A known approximate position (a reference in studies, the last fix in a stream).
     # With every measurement full the solve is then conventional SPP from it (phase 2
     # alone) when it lies near the Earth (6,000-8,500 km from its centre); otherwise, and

@@ -22,7 +22,7 @@ from drivers.rinex import RinexObsReader
 from service.commands.solve import load_navigation
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.aiding import HeightAid
+from service.engine.aiding import HeightAid, Predictor, predicted_residuals
 from service.engine.solver import SolverConfig, fractionalize, solve
 from tests.support.independent import HKSC_TRUTH_ECEF_M
 from tests.support.paths import DATA
@@ -145,3 +145,64 @@ def test_cfg_for_gives_the_row_only_with_height_aiding_on():
     assert held.cfg_for(2051, 205.0, off) is off
     on = held.cfg_for(2051, 205.0, CFG)
     assert on.height_aid is not None and on.height_aid[0] == pytest.approx(8.0, abs=1e-3)
+
+
+# ---- the prediction screen -------------------------------------------------------------------
+
+
+def _with_velocity(fix: Fix, ep: MeasurementEpoch, store) -> Fix:
+    from service.engine.velocity import with_velocity
+
+    moving = with_velocity(fix, ep, store)
+    assert moving.velocity is not None
+    return moving
+
+
+def test_the_residuals_at_the_true_position_are_metres_on_the_station():
+    """At the surveyed position every range's residual less its system's median is what
+    the atmosphere's differences and the orbits leave: metres, far below a 30 m screen."""
+    epochs, store, _ = _hksc()
+    for ep in epochs:
+        res = predicted_residuals(ep, store, HKSC_TRUTH_ECEF_M)
+        assert len(res) == int(np.isfinite(ep.pr_m).sum())
+        assert max(abs(r) for r in res.values()) < 15.0, res
+
+
+def test_the_screen_leaves_out_a_lengthened_range_and_only_it():
+    _, store, iono = _hksc()
+    ep0, ep1, *_ = RinexObsReader(HKSC / "hksc1610.obs", systems={"C"})  # 1 s apart
+    far = _hksc()[0][1]  # 20 s after ep0
+    cfg = SolverConfig(screen_predicted_m=30.0)
+    pred = Predictor()
+    pred.update(_with_velocity(solve(ep0, store, iono, cfg, "spp"), ep0, store))
+    assert pred.screen(far, store, cfg) == (far, {})  # beyond PREDICTION_MAX_AGE_S
+    assert pred.screen(ep0, store, cfg) == (ep0, {})  # (dt = 0: no prediction either)
+    assert pred.screen(ep1, store, cfg) == (ep1, {})  # nothing 30 m long
+    # one range 80 m long
+    i = int(np.flatnonzero(np.isfinite(ep1.pr_m))[2])
+    pr = ep1.pr_m.copy()
+    pr[i] += 80.0
+    bad = replace(ep1, pr_m=pr)
+    kept, why = pred.screen(bad, store, cfg)
+    assert list(why) == [ep1.prn[i]] and "m longer than predicted" in why[ep1.prn[i]]
+    assert ep1.prn[i] not in kept.prn and len(kept.prn) == len(ep1.prn) - 1
+    # off: nothing left out
+    assert pred.screen(bad, store, SolverConfig()) == (bad, {})
+
+
+def test_the_prediction_moves_the_last_fix_by_its_velocity():
+    epochs, store, iono = _hksc()
+    ep = epochs[0]
+    fix = _with_velocity(solve(ep, store, iono, SolverConfig(), "spp"), ep, store)
+    east = replace(fix.velocity, v_enu_m_s=(10.0, 0.0, 0.0))
+    pred = Predictor()
+    pred.update(replace(fix, velocity=east))
+    x = pred.predict(ep.gpst_week, ep.gpst_tow_s + 2.0)
+    lat, lon, _ = ecef_to_geodetic(np.asarray(fix.x_ecef_m))
+    enu = enu_rotation(lat, lon) @ (x - np.asarray(fix.x_ecef_m))
+    assert enu == pytest.approx([20.0, 0.0, 0.0], abs=1e-6)
+    assert pred.predict(ep.gpst_week, ep.gpst_tow_s + 3.5) is None  # too old
+    pred.update(replace(fix, velocity=None, gpst_tow_s=fix.gpst_tow_s + 1.0))  # not taken
+    assert pred.predict(ep.gpst_week, ep.gpst_tow_s + 2.0) is not None
+    pred.reset()
+    assert pred.predict(ep.gpst_week, ep.gpst_tow_s + 2.0) is None
