@@ -206,3 +206,24 @@ def test_the_prediction_moves_the_last_fix_by_its_velocity():
     assert pred.predict(ep.gpst_week, ep.gpst_tow_s + 2.0) is not None
     pred.reset()
     assert pred.predict(ep.gpst_week, ep.gpst_tow_s + 2.0) is None
+
+
+def test_bdsfix_solve_gives_both_solvers_the_same_rows_and_aid():
+    """``bdsfix solve --mode both`` with both settings on HKSC (BeiDou, every epoch in
+    order): the fast fix (non-GEO ranges fractional) equals SPP to 1 mm on every epoch,
+    as without them; the aid joined from the fourth epoch on (redundancy one more)."""
+    from service.commands.solve import BatchOptions, solve_epochs
+
+    _, store, iono = _hksc()
+    cfg = SolverConfig(height_aiding=True, screen_predicted_m=30.0)
+    opts = BatchOptions(mode="both", cfg=cfg, with_sky=False)
+    plain = BatchOptions(mode="spp", with_sky=False)
+    epochs = list(RinexObsReader(HKSC / "hksc1610.obs", systems={"C"}))
+    got = list(solve_epochs(iter(epochs), store, iono, opts))
+    ref = list(solve_epochs(iter(epochs), store, iono, plain))
+    assert len(got) == len(epochs) == 205
+    for k, ((_, (fast, spp)), (_, (unaided,))) in enumerate(zip(got, ref, strict=True)):
+        assert fast.ok and spp.ok and fast.used == spp.used, (fast.reason, spp.reason)
+        assert np.linalg.norm(np.subtract(fast.x_ecef_m, spp.x_ecef_m)) <= 1e-3
+        assert spp.redundancy == unaided.redundancy + (k >= 3), k
+        assert not spp.excluded  # the clean station: nothing 30 m longer than predicted
