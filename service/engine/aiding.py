@@ -70,6 +70,12 @@ from service.engine.solver import SolverConfig, ranges
 
 PREDICTION_MAX_AGE_S = 3.0
 """The prediction screen uses a fix at most this old [s]: at 1 Hz the last two epochs'."""
+AID_QUANTUM_M = 0.1
+"""The held height and its sigma are given to this step [m] (their error is metres, the sigma
+at least ``height_aid_sigma_m``): a change of a past fix in its last bits, or by
+centimetres, seldom changes the next epoch's aid, so ``bdsfix solve``'s batch
+(service.commands.solve.solve_aided) seldom solves an epoch twice (on the TST drive 1 mm:
+3310 solves of 1760 epochs, 1 cm: 3130, 10 cm: 2836)."""
 PREDICTION_MIN_ROWS = 6
 """The screen leaves ranges out only when at least this many remain (two clocks and the
 position, with one degree of freedom for the test)."""
@@ -118,7 +124,14 @@ class HeightAid:
             + (cfg.height_aid_rate_m_s * dt) ** 2
             + (cfg.height_aid_grade * d) ** 2
         )
-        return h, sigma
+        # to AID_QUANTUM_M: a last-bit change of a past fix leaves the aid
+        # as it was, so a batch that guesses the fixes before an epoch finds its aid exact
+        # (service.commands.solve.solve_aided) once the guesses are close enough
+        return _quantized(h), _quantized(sigma)
+
+    def copy(self) -> HeightAid:
+        """An independent copy of the held fixes (a batch's speculative pass)."""
+        return HeightAid(deque(self._held))
 
     def cfg_for(self, week: int, tow_s: float, cfg: SolverConfig) -> SolverConfig:
         """``cfg`` with the aid for the epoch at ``week`` + ``tow_s`` (``cfg`` itself when
@@ -142,6 +155,11 @@ class HeightAid:
         self._held.append(_Held(week, tow, h, x, speed if math.isfinite(speed) else 0.0))
 
 
+def _quantized(v_m: float) -> float:
+    """``v_m`` rounded to a multiple of :data:`AID_QUANTUM_M`."""
+    return round(v_m / AID_QUANTUM_M) * AID_QUANTUM_M
+
+
 def _horizontal_m(a: np.ndarray, b: np.ndarray) -> float:
     """The horizontal distance [m] between two ECEF points (the chord less its vertical
     part at ``a``)."""
@@ -160,6 +178,23 @@ class Predictor:
     def reset(self) -> None:
         """Forget the last fix (a receiver restart)."""
         self._last = None
+
+    def copy(self) -> Predictor:
+        """A copy (a batch's speculative pass)."""
+        return Predictor(self._last)
+
+    def key(self) -> tuple[object, ...] | None:
+        """What the prediction is made from (the last fix's time, position and velocity),
+        as values: equal keys, equal screens."""
+        last = self._last
+        if last is None or last.x_ecef_m is None or last.velocity is None:
+            return None
+        return (
+            last.gpst_week,
+            last.gpst_tow_s,
+            tuple(last.x_ecef_m),
+            tuple(last.velocity.v_enu_m_s),
+        )
 
     def update(self, fix: Fix) -> None:
         """Take a solver result: a published fix with a Doppler velocity is the next

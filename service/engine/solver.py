@@ -228,7 +228,44 @@ class SolverConfig:
     # A pseudo-observation of the receiver's ellipsoidal height, (h [m], sigma [m]): one more
     # row of phase 2's least squares and of its test and protection levels
     # (:func:`_height_row`; service.engine.aiding builds it from past fixes). None: no row.
-    height_aid: tuple[float, float] | None = None
+    # An :class:`EpochAids`: each epoch's own (a batch of epochs with different aids).
+    height_aid: tuple[float, float] | EpochAids | None = None
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class EpochAids:
+    """A height aid per epoch, (h [m], sigma [m]) by the epoch's GPST (week, tow), for
+    :attr:`SolverConfig.height_aid` of a batch whose epochs hold different aids (every
+    epoch of the batch must have one, and no two the same time): each epoch's row is the
+    one a solve of that epoch alone with its aid has."""
+
+    by_time: dict[tuple[int, float], tuple[float, float]]
+
+    def of(self, epochs: Iterable[MeasurementEpoch]) -> tuple[np.ndarray, np.ndarray]:
+        """The aids' heights and sigmas (e,) of ``epochs``."""
+        got = [self.by_time[(ep.gpst_week, ep.gpst_tow_s)] for ep in epochs]
+        return np.array([h for h, _ in got]), np.array([s for _, s in got])
+
+
+def _aids_of(
+    cfg: SolverConfig, epochs: Sequence[MeasurementEpoch], sel: np.ndarray
+) -> tuple[float, float] | tuple[np.ndarray, np.ndarray] | None:
+    """The height aid of the epochs ``sel`` of ``epochs``: ``cfg.height_aid`` itself (one
+    for all, or None), or each epoch's (:class:`EpochAids`) as arrays."""
+    aid = cfg.height_aid
+    if isinstance(aid, EpochAids):
+        return aid.of(epochs[int(i)] for i in sel)
+    return aid
+
+
+def _aid_at(
+    aid: tuple[float, float] | tuple[np.ndarray, np.ndarray], ix: _Index
+) -> tuple[float, float] | tuple[np.ndarray, np.ndarray]:
+    """``aid`` of the epochs ``ix`` (a scalar aid is every epoch's)."""
+    h, s = aid
+    if isinstance(h, np.ndarray) and isinstance(s, np.ndarray):
+        return h[ix], s[ix]
+    return aid
 
 
 def derive_beta(period_s: float, range_error_m: float) -> float:
@@ -1250,6 +1287,7 @@ def _weighted(
     keepw = keep.astype(float)
     models = iono.models(cfg.iono)
     cn0 = ch.cn0[rows]
+    aid = _aids_of(cfg, ch.epochs, sel)
     diverged = np.zeros(n1, dtype=bool)
     bad_lsq = np.zeros(n1, dtype=bool)
     act = np.arange(n1)
@@ -1271,8 +1309,8 @@ def _weighted(
             sig = measurement_sigma_m(el, cn0[ix], io, tr, cfg)
             w = np.asarray(_where(nr, w / sig**2, w))
         g = layout.design(los[ix], cix[ix])
-        if cfg.height_aid is not None:
-            g, dz, w = _height_row(g, dz, w, _rot, alt, nr, cfg.height_aid, squared=True)
+        if aid is not None:
+            g, dz, w = _height_row(g, dz, w, _rot, alt, nr, _aid_at(aid, ix), squared=True)
         step, bad = _lsq(g, dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
@@ -1301,6 +1339,7 @@ def _weighted(
         return out
     if good.size != n1:
         x, b, cix, keep = x[good], b[good], cix[good], keep[good]
+        aid = None if aid is None else _aid_at(aid, good)
         near = None if near is None else near[good]
         n_int, iters, los, pred, sat = n_int[good], iters[good], los[good], pred[good], sat[good]
         z, sow, cn0 = z[good], sow[good], cn0[good]
@@ -1320,8 +1359,8 @@ def _weighted(
     n_k = keep.sum(axis=1)
     resid_rms = np.sqrt(np.einsum("es,es->e", v, v) / n_k)
     g_sat, keep_sat = g, keep  # the DOPs are the satellites' geometry alone
-    if cfg.height_aid is not None:
-        g, v, sigma = _height_row(g, v, sigma, rot, alt, near, cfg.height_aid, squared=False)
+    if aid is not None:
+        g, v, sigma = _height_row(g, v, sigma, rot, alt, near, aid, squared=False)
         keep = np.concatenate([keep, sigma[:, -1:] < np.inf], axis=1)
         sigma = np.where(keep, sigma, 1.0)
     integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
@@ -1360,7 +1399,7 @@ def _height_row(
     rot: np.ndarray,
     alt_m: np.ndarray,
     near: np.ndarray | None,
-    aid: tuple[float, float],
+    aid: tuple[float, float] | tuple[np.ndarray, np.ndarray],
     squared: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The design ``g`` (e, s, p), misclosures ``dz`` (e, s) and weights or sigmas ``w``
@@ -1368,7 +1407,8 @@ def _height_row(
     height, whose partials are the local up vector (the third row of the ENU rotation
     ``rot``) and no clock, misclosure h - height of the iterate (``alt_m``). ``squared``:
     ``w`` holds weights 1 / sigma^2 (else sigmas). Epochs not ``near`` the Earth get no
-    row (weight 0, sigma inf): the height means nothing there."""
+    row (weight 0, sigma inf): the height means nothing there. ``aid``: one for every
+    epoch, or each epoch's as arrays (e,)."""
     h_m, sigma_m = aid
     n_e = len(dz)
     row = np.zeros((n_e, 1, g.shape[-1]))
@@ -1376,7 +1416,12 @@ def _height_row(
     mis = (h_m - np.asarray(alt_m, dtype=float)).reshape(n_e, 1)
     val = 1.0 / sigma_m**2 if squared else sigma_m
     far = 0.0 if squared else np.inf
-    ww = np.full((n_e, 1), val) if near is None else np.where(near, val, far).reshape(n_e, 1)
+    if isinstance(val, np.ndarray):
+        val = val.reshape(n_e, 1)
+        ww = val if near is None else np.where(near, val, far)
+    else:
+        ww = np.full((n_e, 1), val) if near is None else np.where(near, val, far)
+    ww = ww.reshape(n_e, 1)
     mis = np.where(ww == far, 0.0, mis)
     return (
         np.concatenate([g, row], axis=1),
