@@ -24,7 +24,7 @@ from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.aiding import HeightAid, Predictor
+from service.engine.aiding import HeightAid, Predictor, SatSide, sat_side
 from service.engine.solver import (
     CHUNK_EPOCHS,
     EpochAids,
@@ -155,13 +155,14 @@ def solve_aided(
         used: list[_Inputs | None] = [None] * n  # the inputs each was solved with
         want: list[_Inputs | None] = [None] * n  # the inputs from the fixes as last solved
         cache: dict[int, tuple[object, MeasurementEpoch, dict[str, str]]] = {}
+        sides: dict[int, SatSide | None] = {}
         front = passes = resolved = 0  # the epochs before the front are final
         done: list[list[Fix]] = []  # their fixes
         while front < n:
             h, p = held.copy(), predictor.copy()  # (the state at the front: final)
             todo: dict[int, _Inputs] = {}
             for k in range(front, min(n, front + AIDED_WINDOW)):
-                inputs = want[k] = _inputs(k, views[k], h, p, store, opts.cfg, cache)
+                inputs = want[k] = _inputs(k, views[k], h, p, store, opts.cfg, cache, sides)
                 if used[k] != inputs:
                     todo[k] = inputs
                 fixes = moved[k]
@@ -222,14 +223,18 @@ def _inputs(
     store: EphemerisStore,
     cfg: SolverConfig,
     cache: dict[int, tuple[object, MeasurementEpoch, dict[str, str]]],
+    sides: dict[int, SatSide | None],
 ) -> _Inputs:
     """Epoch ``k``'s aid and screen from the state of the fixes before it (the screen of
-    the same prediction as last time, from ``cache``, not computed again)."""
+    the same prediction as last time from ``cache``; the satellites' side of the epoch's
+    predicted ranges computed once, ``sides``)."""
     aid = held.prior(view.gpst_week, view.gpst_tow_s, cfg) if cfg.height_aiding else None
     key = predictor.key()
     got = cache.get(k)
     if got is None or got[0] != key:
-        rows, screened = predictor.screen(view, store, cfg)
+        if key is not None and cfg.screen_predicted_m > 0.0 and k not in sides:
+            sides[k] = sat_side(view, store)
+        rows, screened = predictor.screen(view, store, cfg, sides.get(k))
         got = cache[k] = (key, rows, screened)
     _, rows, screened = got
     return _Inputs(aid, rows, screened, frozenset(screened))
@@ -273,11 +278,27 @@ def _solve_inputs(
             per_solver.append(solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky))
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(rows, store, iono, cfg, "spp", opts.with_sky))
-        # the velocities an epoch at a time, as the sequential definition has them: the
-        # aid and the prediction use them, and with_velocities of several epochs differs
-        # from one by one in the last bits (and, rarely, in finding a velocity at all)
         for j, k in enumerate(batch):
-            out[k] = with_velocities([(fixes[j], views[k]) for fixes in per_solver], store)
+            out[k] = [fixes[j] for fixes in per_solver]
+    return _with_velocities(out, views, store)
+
+
+def _with_velocities(
+    fixes: dict[int, list[Fix]], views: list[MeasurementEpoch], store: EphemerisStore
+) -> dict[int, list[Fix]]:
+    """The fixes of each epoch with their velocities, computed together for the epochs
+    whose fixes use the same systems: with_velocities solves one set of clock drifts for
+    all its epochs, and an epoch without a system of that set gets no velocity there, a
+    velocity it has alone (the aid and the prediction use them)."""
+    groups: dict[tuple[frozenset[str], ...], list[int]] = {}
+    for k, fx in fixes.items():
+        groups.setdefault(tuple(frozenset(p[:1] for p in f.used) for f in fx), []).append(k)
+    out: dict[int, list[Fix]] = {}
+    for ks in groups.values():
+        m = len(fixes[ks[0]])
+        moving = with_velocities([(f, views[k]) for k in ks for f in fixes[k]], store)
+        for j, k in enumerate(ks):
+            out[k] = moving[j * m : (j + 1) * m]
     return out
 
 

@@ -217,19 +217,24 @@ class Predictor:
         return x + v_ecef * dt
 
     def screen(
-        self, epoch: MeasurementEpoch, store: EphemerisStore, cfg: SolverConfig
+        self,
+        epoch: MeasurementEpoch,
+        store: EphemerisStore,
+        cfg: SolverConfig,
+        sats: SatSide | None = None,
     ) -> tuple[MeasurementEpoch, dict[str, str]]:
         """``epoch`` without the full ranges longer than predicted by more than
         ``cfg.screen_predicted_m``, and why each was left out (``epoch`` itself and no
         reasons when the screen is off, there is no prediction, none is that long, or
-        fewer than :data:`PREDICTION_MIN_ROWS` would remain)."""
+        fewer than :data:`PREDICTION_MIN_ROWS` would remain). ``sats``: the epoch's
+        :func:`sat_side`, when already computed."""
         limit = cfg.screen_predicted_m
         if not limit > 0.0:
             return epoch, {}
         x = self.predict(epoch.gpst_week, epoch.gpst_tow_s)
         if x is None:
             return epoch, {}
-        res = predicted_residuals(epoch, store, x)
+        res = predicted_residuals(epoch, store, x, sats)
         long = {p: r for p, r in res.items() if r > limit}
         if not long or len(res) - len(long) < PREDICTION_MIN_ROWS:
             return epoch, {}
@@ -238,13 +243,21 @@ class Predictor:
         return epoch.rows(keep), why
 
 
-def predicted_residuals(
-    epoch: MeasurementEpoch, store: EphemerisStore, x_ecef_m: np.ndarray
-) -> dict[str, float]:
-    """Each full range of ``epoch`` less the range predicted at ``x_ecef_m`` (satellite at
-    its transmit time, eqs. 4-5 of the kernel, clock and group delay, Earth rotation during
-    the flight; no ionosphere or troposphere), less its system's median (the receiver
-    clock), for the systems with at least :data:`PREDICTION_MIN_SYSTEM_ROWS` such ranges."""
+@dataclass(frozen=True, slots=True)
+class SatSide:
+    """What :func:`predicted_residuals` needs of an epoch that does not depend on the
+    position: its full ranges with an ephemeris, each satellite at its transmit time."""
+
+    prns: list[str]
+    z_m: np.ndarray
+    sat0_ecef_m: np.ndarray
+    clk_m: np.ndarray
+    omega_e_rad_s: np.ndarray
+
+
+def sat_side(epoch: MeasurementEpoch, store: EphemerisStore) -> SatSide | None:
+    """The satellites of ``epoch``'s full ranges at their transmit times (eqs. 4-5 of the
+    kernel; None: no full range with an ephemeris)."""
     week, sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     ephs, prns, prs = [], [], []
     for i, prn in enumerate(epoch.prn):
@@ -258,14 +271,34 @@ def predicted_residuals(
         prns.append(prn)
         prs.append(pr)
     if not ephs:
-        return {}
+        return None
     arr = store.arrays(ephs)
     z = np.asarray(prs)
     t1 = sow - z / C_M_S
     t_tx = t1 - (arr.af0_s + arr.af1_s_s * (t1 - arr.toc_sow_s))
     sat0, clk = sat_pos_clock(arr, week, t_tx)
-    _, pred, _ = ranges(sat0, clk, np.asarray(x_ecef_m, dtype=float), arr.omega_e_rad_s)
-    v = z - pred
+    return SatSide(prns, z, sat0, clk, arr.omega_e_rad_s)
+
+
+def predicted_residuals(
+    epoch: MeasurementEpoch,
+    store: EphemerisStore,
+    x_ecef_m: np.ndarray,
+    sats: SatSide | None = None,
+) -> dict[str, float]:
+    """Each full range of ``epoch`` less the range predicted at ``x_ecef_m`` (satellite at
+    its transmit time, eqs. 4-5 of the kernel, clock and group delay, Earth rotation during
+    the flight; no ionosphere or troposphere), less its system's median (the receiver
+    clock), for the systems with at least :data:`PREDICTION_MIN_SYSTEM_ROWS` such ranges.
+    ``sats``: the epoch's :func:`sat_side`, when already computed."""
+    side = sats if sats is not None else sat_side(epoch, store)
+    if side is None:
+        return {}
+    prns = side.prns
+    _, pred, _ = ranges(
+        side.sat0_ecef_m, side.clk_m, np.asarray(x_ecef_m, dtype=float), side.omega_e_rad_s
+    )
+    v = side.z_m - pred
     out: dict[str, float] = {}
     for system in sorted({p[:1] for p in prns}):
         idx = [k for k, p in enumerate(prns) if p[:1] == system]
