@@ -196,6 +196,14 @@ class Predictor:
             tuple(last.velocity.v_enu_m_s),
         )
 
+    def guess(self, week: int, tow_s: float) -> Fix | None:
+        """The last fix moved to GPS ``week`` + ``tow_s`` by its velocity (:meth:`predict`),
+        as a stand-in for a fix not solved yet (a batch's first guess), or None."""
+        x = self.predict(week, tow_s)
+        if x is None or self._last is None:
+            return None
+        return replace(self._last, gpst_week=week, gpst_tow_s=tow_s, x_ecef_m=tuple(x.tolist()))
+
     def update(self, fix: Fix) -> None:
         """Take a solver result: a published fix with a Doppler velocity is the next
         prediction's start."""
