@@ -53,7 +53,7 @@ STRICT = SolverConfig(sigma_cn0_m=0.3, max_exclusions=1, p_fa=1e-3)
 AIDED = SolverConfig(height_aiding=True, screen_predicted_m=30.0)
 """Height aiding and the prediction screen (bench/bench_vs_rtklib.py AIDED)."""
 AIDED_AVAILABILITY_MIN = 0.85  # the issue's targets; measured 90.5 % (439 of 485)
-AIDED_P50_MAX_M = 10.0  # measured 8.7 m
+AIDED_P50_MAX_M = 10.0  # measured 8.6 m
 AIDED_P95_MAX_M = 40.0  # measured 19.9 m (max 35.3 m)
 RTKLIB_CONF = """\
 pos1-posmode       =single
@@ -199,7 +199,7 @@ def test_height_aided_drive_meets_the_issue_targets():
 def test_the_held_height_is_honest_against_the_truth():
     """The aid each epoch got (the held height of the fixes before it, as solve_epochs
     keeps it), against the truth's ellipsoidal height, in units of its sigma: measured 68 %
-    within 1.17 sigma, 95 % within 1.73, all within 2.01."""
+    within 1.17 sigma, 95 % within 1.73, all within 2.02."""
     truth = _truth()
     systems = parse_systems("C,G,E")
     held, ratios = HeightAid(), []
