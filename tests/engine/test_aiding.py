@@ -259,3 +259,17 @@ def test_the_batched_aided_solve_is_the_one_epoch_at_a_time_solve_on_hksc():
     ]
     assert len(got) == 2 * len(epochs) == 410
     assert got == ref
+
+
+def test_the_median_is_numpys_to_the_last_bit():
+    """The held height's and the screen's median (aiding._median, without numpy's per-call
+    cost) is numpy.median's float on odd and even counts, ties and NaN."""
+    from service.engine.aiding import _median
+
+    rng = np.random.default_rng(7)
+    for n in range(1, 80):
+        values = (rng.normal(0.0, 30.0, n) * rng.choice([1e-3, 1.0, 1e5])).tolist()
+        assert _median(values) == float(np.median(values)), n
+        rounded = [round(v) for v in values]  # ties
+        assert _median([float(v) for v in rounded]) == float(np.median(rounded))
+    assert math.isnan(_median([1.0, math.nan, 2.0]))
