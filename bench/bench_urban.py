@@ -8,6 +8,11 @@ comparison, with fault exclusion off (detection only) and with the chi-square te
 With ``--systems C,G`` (or ``C,G,E``) the drive's GPS rows join (its GPS nav file beside the
 BDS one; it has no Galileo nav file, so Galileo rows go unused), each system with its clock.
 
+The sequential modes (service.engine.aiding: height aiding, the prediction screen) solve
+every epoch of the file in order, as ``bdsfix solve`` does (solve_epochs), and are scored
+on the same truth epochs; their rows also give |held height - true height| / sigma (68th
+and 95th percentiles, largest) where the aid was given.
+
 Run: python bench/bench_urban.py [--systems C,G]   (prints figures; no assertions)
 """
 
@@ -16,6 +21,7 @@ from __future__ import annotations
 import csv
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from drivers.rinex import RinexObsReader  # noqa: E402
-from service.commands.solve import load_navigation  # noqa: E402
+from service.commands.solve import BatchOptions, load_navigation, solve_epochs  # noqa: E402
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef  # noqa: E402
+from service.engine.aiding import HeightAid  # noqa: E402
 from service.engine.solver import SolverConfig, fractionalize, solve  # noqa: E402
 
 TST = ROOT.parent / "shared" / "data" / "hk-tst-urban-2019"
@@ -60,6 +67,15 @@ def main() -> None:
         for ep in RinexObsReader(TST / "COM3_190428_124409.obs", systems=systems)
         if (ep.gpst_week, round(ep.gpst_tow_s)) in truth
     ]
+    every = list(RinexObsReader(TST / "COM3_190428_124409.obs", systems=systems))
+    aided = SolverConfig(height_aiding=True)
+    sequential = {
+        "height aiding, 2 exclusions": aided,
+        "height aiding, 3 exclusions": replace(aided, max_exclusions=3),
+        "prediction screen 30 m": SolverConfig(screen_predicted_m=30.0),
+        "height aiding + screen 30 m": replace(aided, screen_predicted_m=30.0),
+        "aiding + screen, 3 exclusions": replace(aided, screen_predicted_m=30.0, max_exclusions=3),
+    }
     configs = {
         "defaults (FDE, 2 exclusions)": SolverConfig(),
         "detection only": SolverConfig(max_exclusions=0),
@@ -67,10 +83,20 @@ def main() -> None:
     }
     print(f"bench_urban: {len(epochs)} TST epochs with ground truth, systems {sorted(systems)}")
     for solver in ("spp", "fast"):
-        for name, cfg in configs.items():
+        for name, cfg in {**configs, **sequential}.items():
             errs, over, over_h = [], 0, 0
-            for ep in epochs:
-                fix = solve(fractionalize(ep) if solver == "fast" else ep, store, iono, cfg, solver)
+            if name in sequential:
+                opts = BatchOptions(mode=solver, cfg=cfg, with_sky=False)  # type: ignore[arg-type]
+                fixes = [f[0] for _, f in solve_epochs(iter(every), store, iono, opts)]
+                aid_ratios = _aid_ratios(every, fixes, truth, cfg)
+                fixes = [f for f in fixes if (f.gpst_week, round(f.gpst_tow_s)) in truth]
+            else:
+                fixes = [
+                    solve(fractionalize(ep) if solver == "fast" else ep, store, iono, cfg, solver)
+                    for ep in epochs
+                ]
+                aid_ratios = ""
+            for ep, fix in zip(epochs, fixes, strict=True):
                 if not fix.ok:
                     continue
                 t = truth[(ep.gpst_week, round(ep.gpst_tow_s))]
@@ -89,7 +115,27 @@ def main() -> None:
                 f"error p50 {p50:6.1f}  p95 {p95:6.1f}  p99 {p99:6.1f}  max "
                 f"{e.max() if e.size else math.nan:6.1f}  RMS {rms:6.1f}"
                 f" m; beyond HPL {over_h} ({100 * over_h / max(len(e), 1):.1f} %), HPL/VPL {over}"
+                f"{aid_ratios}"
             )
+
+
+def _aid_ratios(every: list, fixes: list, truth: dict, cfg: SolverConfig) -> str:
+    """|held height - true height| / sigma of the aid each truth epoch got (the held height
+    of the fixes before it, as solve_epochs keeps it): its 68th / 95th percentiles and
+    largest, as text ("" without aiding)."""
+    if not cfg.height_aiding:
+        return ""
+    held, ratios = HeightAid(), []
+    for ep, fix in zip(every, fixes, strict=True):
+        aid = held.prior(ep.gpst_week, ep.gpst_tow_s, cfg)
+        held.update(fix, cfg)
+        t = truth.get((ep.gpst_week, round(ep.gpst_tow_s)))
+        if aid is not None and t is not None:
+            ratios.append(abs(aid[0] - float(ecef_to_geodetic(t)[2])) / aid[1])
+    if not ratios:
+        return "; no aid"
+    p68, p95 = np.percentile(ratios, [68, 95])
+    return f"; aid error / sigma p68 {p68:.2f} p95 {p95:.2f} max {max(ratios):.2f}"
 
 
 if __name__ == "__main__":

@@ -22,7 +22,8 @@ Files:
   position.
 - ONE: HKSC's first epoch alone: the start-up of `bdsfix solve`.
 - HKSC-GECs, TST-GECs (``--files hksc-gec,hksc-gec-strict,...``: each needs its base row):
-  bdsfix with :data:`STRICT` settings.
+  bdsfix with :data:`STRICT` settings; HKSC-GECa, TST-GECa (``hksc-gec-aided``,
+  ``tst-gec-aided``) with :data:`AIDED` (height aiding and the prediction screen).
 - SBF-GEC (../shared/data/leuven-septentrio-sbf-2025): 12 epochs of a Septentrio mosaic,
   BDS + GPS + Galileo. bdsfix replays the SBF file (`bdsfix replay --max-speed`, its nav
   blocks the only ephemerides); rnx2rtkp reads the RINEX 3.04 obs and nav that RTKLIB's
@@ -116,6 +117,11 @@ STRICT = ("--sigma-cn0-m", "0.3", "--max-exclusions", "1", "--p-fa", "1e-3")
 """bdsfix settings closer to RTKLIB's single point (a weaker C/N0 term, one exclusion, a
 1e-3 test): on the urban drive they trade availability for accuracy (docs/method.md,
 "Urban drive"); the -strict rows (HKSC-GECs, TST-GECs) run them beside the defaults."""
+
+AIDED = ("--height-aiding", "true", "--screen-predicted-m", "30")
+"""bdsfix with height aiding and the prediction screen, the settings for a car
+(docs/method.md, "Urban drive"); the -aided rows (HKSC-GECa, TST-GECa) run them beside the
+defaults."""
 
 Truth = Callable[[int, float], np.ndarray | None]
 
@@ -585,6 +591,9 @@ def main() -> None:
             if f"{name}-strict" in want:
                 base = next(c for c in cases if c.name == name.upper())
                 cases.append(replace(base, name=f"{base.name}s", bdsfix_flags=STRICT))
+            if f"{name}-aided" in want:  # height aiding (a car's settings)
+                base = next(c for c in cases if c.name == name.upper())
+                cases.append(replace(base, name=f"{base.name}a", bdsfix_flags=AIDED))
         if "3geo" in want or "3geo-gec" in want:
             xyz = rtklib_reference(
                 URBAN3 / "rover.obs", URBAN3 / "navigation_message.nav", "C,G,E", workdir

@@ -234,10 +234,12 @@ EXCLUSIONS: dict[str, str] = {
     "gross": "pseudorange {dev_km:.4g} km from the epoch's median: impossible",
     "chi2": "chi-square test failed ({chi2:.1f} > {chi2_max:.1f}), w-test {w:.1f}",
     "coarse": "coarse-time fix: no integer candidate passes with it, one passes without",
+    "predicted": "{res_m:.1f} m longer than predicted from the last fix and its velocity "
+    "(> {limit_m:.0f} m): a reflected signal",
 }
 """Why fault exclusion removed a satellite (``Fix.excluded``): an impossible range, the coarse-time
-fix's exclusion (service.engine.coarse), or the
-failed test and the satellite's w-test."""
+fix's exclusion (service.engine.coarse), the
+failed test and the satellite's w-test, or the prediction screen (service.engine.aiding)."""
 
 
 NO_REASON = "declined without a reason"

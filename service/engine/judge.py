@@ -130,6 +130,19 @@ def fit_ratio(chi2: float | None, chi2_max: float | None) -> float:
     return chi2 / chi2_max if chi2 is not None and chi2_max else math.inf
 
 
+TIE_RTOL = 1e-9
+"""Fault exclusion's candidates whose chi2 / threshold differ by less than this fraction are
+equals (the first is taken): two satellites whose removal leaves the same solution (the only
+other row of a system, whose clock then absorbs it) give the same chi2 but for the last
+bits, which depend on what else is solved with them in a batch."""
+
+
+def _better(ratio: float, best: float) -> bool:
+    """A candidate's :func:`fit_ratio` ranks before the best so far (not merely equal to
+    it within :data:`TIE_RTOL`)."""
+    return ratio < best - TIE_RTOL * abs(best)
+
+
 @dataclass(frozen=True, slots=True)
 class Failed:
     """A solution that failed the chi-square test: what fault exclusion needs."""
@@ -174,10 +187,10 @@ def exclude(
     At each stage every used satellite is excluded in turn and the rest re-solved (phase 1
     included: a fault on a full row can corrupt every integer). Of the candidates that pass
     the chi-square test and the other checks, the one with the smallest chi2 / threshold
-    (:func:`fit_ratio`; the first of equals) is taken; when none passes, the best-fitting
-    failed candidate is the start of the next stage. An exclusion must leave a testable
-    solution (redundancy >= 1 after it), so it needs redundancy >= 2 before. Why a
-    satellite went is its w-test in the failed solution (:meth:`Failed.why`).
+    (:func:`fit_ratio`; the first of equals, :data:`TIE_RTOL`) is taken; when none passes,
+    the best-fitting failed candidate is the start of the next stage. An exclusion must
+    leave a testable solution (redundancy >= 1 after it), so it needs redundancy >= 2
+    before. Why a satellite went is its w-test in the failed solution (:meth:`Failed.why`).
 
     Returns the fixes of the solutions an exclusion resolved (``excluded`` says which
     satellites went and why) and the keys with none (their fix is :func:`no_exclusion` of
@@ -207,11 +220,11 @@ def exclude(
             elif isinstance(res, Fix):
                 if res.ok:
                     ratio = fit_ratio(res.chi2, res.chi2_max)
-                    if key not in passed or ratio < passed[key][0]:
+                    if key not in passed or _better(ratio, passed[key][0]):
                         passed[key] = (ratio, res, k)
             else:
                 ratio = fit_ratio(res.chi2, res.chi2_max)
-                if key not in failing or ratio < failing[key][0]:
+                if key not in failing or _better(ratio, failing[key][0]):
                     failing[key] = (ratio, res, k, after)
         nxt: dict[Key, tuple[Failed, State, dict[str, str]]] = {}
         for key, (f, _, removed) in current.items():

@@ -44,6 +44,7 @@ from service.core.types import (
     SatView,
     TimeOffset,
 )
+from service.engine.aiding import HeightAid, Predictor
 from service.engine.coarse import (
     CoarseConfig,
     solve_coarse,
@@ -196,6 +197,8 @@ class Pipeline:
     _inav: InavAssembler = field(default_factory=InavAssembler)
     _receiver_fix: ReceiverFix | None = None
     _cfg_settings: tuple[SolverConfig, dict[str, Any]] | None = None
+    _height: HeightAid = field(default_factory=HeightAid)  # cfg.height_aiding's held height
+    _predictor: Predictor = field(default_factory=Predictor)  # cfg.screen_predicted_m's
     ggto: TimeOffset | None = None
     """The latest broadcast GST - GPST offset (:mod:`service.core.gal_nav`): recorded, not
     applied (each system has its own receiver clock, which absorbs it)."""
@@ -343,11 +346,20 @@ class Pipeline:
             self.counters["receiver_restarts"] += 1
             self._recovered.clear()
             self._last_fix = None
+            self._height.reset()
+            self._predictor.reset()
         view, events = self.tracker.on_epoch(epoch)
         checks = self._check_integrity(view, events)
         whole = view  # with its fractional ranges, for the coarse-time fix
         view, set_aside = without_coarse_fractions(view)
-        fix = solve(view, self.store, self.iono, self._start_cfg(view), solver="fast")
+        cfg = self._start_cfg(view)
+        if self.cfg.height_aiding:  # the height of the last fixes as one more row
+            cfg = self._height.cfg_for(epoch.gpst_week, epoch.gpst_tow_s, cfg)
+        # the ranges longer than the last fix and its velocity predict: left out (reflected)
+        rows, screened = self._predictor.screen(view, self.store, self.cfg)
+        fix = solve(rows, self.store, self.iono, cfg, solver="fast")
+        if screened:
+            fix = replace(fix, excluded={**screened, **fix.excluded})
         if set_aside and view.time_unc_s > self.coarse.time_prior_s:
             # the receiver's time is coarser than even the coarse-time fix's prior: its
             # fractional ranges wait for the first decoded SOW, whose full range gives the
@@ -385,6 +397,11 @@ class Pipeline:
         if self.velocity:
             fix = self._with_velocity(fix, view)
         count_fix(self.counters, fix)
+        self._predictor.update(fix)
+        if self.cfg.height_aiding:
+            self._height.update(fix, self.cfg)
+            if cfg.height_aid is not None and fix.ok:
+                self.counters["height_aided_fixes"] += 1
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
         if fix.mode == "fast":
@@ -457,6 +474,8 @@ class Pipeline:
         self.tracker.restart(epoch.gpst_week, epoch.gpst_tow_s, emulator)
         self._recovered.clear()
         self._last_fix = None
+        self._height.reset()
+        self._predictor.reset()
 
     def _start_cfg(self, view: MeasurementEpoch) -> SolverConfig:
         """The solver settings for ``view``: once every measurement is full (conventional

@@ -14,9 +14,10 @@ Two phases, so that fast and SPP share one fixed point:
    before the position does): the paper's iteration, gate and final correction.
 2. From that position: elevation mask (a masked fractional satellite loses its row; its
    integer is already fixed), Klobuchar and Saastamoinen corrections, weights from the
-   error model, iterated to convergence. Then the integrity checks of docs/method.md: the
-   chi-square test of the weighted residuals, fault exclusion, the PDOP gate, the plausible
-   shell and the protection levels (:mod:`service.engine.raim`).
+   error model (and, given ``SolverConfig.height_aid``, one pseudo-observation row of the
+   height: :func:`_height_row`), iterated to convergence. Then the integrity checks of
+   docs/method.md: the chi-square test of the weighted residuals, fault exclusion, the PDOP
+   gate, the plausible shell and the protection levels (:mod:`service.engine.raim`).
 
 With every measurement full and an approximate position given (``x0_ecef_m``), phase 1 has
 nothing to resolve and phase 2 starts there: conventional SPP, the same solution.
@@ -178,12 +179,93 @@ class SolverConfig:
         low=0.0,
         low_open=True,
     )
+    height_aiding: bool = setting(
+        False,
+        "height aiding for a receiver whose height changes slowly (a car): a pseudo-"
+        "observation of the height from the last fixes joins the least squares, its test "
+        "and protection levels (service.engine.aiding; never for a first fix)",
+        kind="bool",
+    )
+    height_aid_sigma_m: float = setting(
+        3.0, "height aiding: 1-sigma of the held height [m]", kind="float", low=0.0, low_open=True
+    )
+    height_aid_window_s: float = setting(
+        60.0,
+        "height aiding: the fixes of this many seconds make the held height [s]",
+        kind="float",
+        low=0.0,
+        low_open=True,
+    )
+    height_aid_min_fixes: int = setting(
+        3, "height aiding: fewest fixes in the window", kind="int", low=1
+    )
+    height_aid_rate_m_s: float = setting(
+        0.1,
+        "height aiding: growth of the sigma per second since the newest fix held [m/s]",
+        kind="float",
+        low=0.0,
+    )
+    height_aid_grade: float = setting(
+        0.05,
+        "height aiding: road slope that grows the sigma with the distance moved (0.05: 1 in 20)",
+        kind="float",
+        low=0.0,
+    )
+    screen_predicted_m: float = setting(
+        0.0,
+        "prediction screen: a full range longer by more than this [m] than predicted at the "
+        "last fix moved by its Doppler velocity (its system's median residual removed) is "
+        "left out before the solve, as reflected (service.engine.aiding; 0: off)",
+        kind="float",
+        low=0.0,
+    )
     # A known approximate position (a reference in studies, the last fix in a stream).
     # With every measurement full the solve is then conventional SPP from it (phase 2
     # alone) when it lies near the Earth (6,000-8,500 km from its centre); otherwise, and
     # with fractional rows, phase 1 starts there. None: the paper's start, the Earth's
     # centre (eq. 3). Either way the least-squares solution is the same.
     x0_ecef_m: tuple[float, float, float] | None = None
+    # A pseudo-observation of the receiver's ellipsoidal height, (h [m], sigma [m]): one more
+    # row of phase 2's least squares and of its test and protection levels
+    # (:func:`_height_row`; service.engine.aiding builds it from past fixes). None: no row.
+    # An :class:`EpochAids`: each epoch's own (a batch of epochs with different aids).
+    height_aid: tuple[float, float] | EpochAids | None = None
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class EpochAids:
+    """A height aid per epoch, (h [m], sigma [m]) by the epoch's GPST (week, tow), for
+    :attr:`SolverConfig.height_aid` of a batch whose epochs hold different aids (every
+    epoch of the batch must have one, and no two the same time): each epoch's row is the
+    one a solve of that epoch alone with its aid has."""
+
+    by_time: dict[tuple[int, float], tuple[float, float]]
+
+    def of(self, epochs: Iterable[MeasurementEpoch]) -> tuple[np.ndarray, np.ndarray]:
+        """The aids' heights and sigmas (e,) of ``epochs``."""
+        got = [self.by_time[(ep.gpst_week, ep.gpst_tow_s)] for ep in epochs]
+        return np.array([h for h, _ in got]), np.array([s for _, s in got])
+
+
+def _aids_of(
+    cfg: SolverConfig, epochs: Sequence[MeasurementEpoch], sel: np.ndarray
+) -> tuple[float, float] | tuple[np.ndarray, np.ndarray] | None:
+    """The height aid of the epochs ``sel`` of ``epochs``: ``cfg.height_aid`` itself (one
+    for all, or None), or each epoch's (:class:`EpochAids`) as arrays."""
+    aid = cfg.height_aid
+    if isinstance(aid, EpochAids):
+        return aid.of(epochs[int(i)] for i in sel)
+    return aid
+
+
+def _aid_at(
+    aid: tuple[float, float] | tuple[np.ndarray, np.ndarray], ix: _Index
+) -> tuple[float, float] | tuple[np.ndarray, np.ndarray]:
+    """``aid`` of the epochs ``ix`` (a scalar aid is every epoch's)."""
+    h, s = aid
+    if isinstance(h, np.ndarray) and isinstance(s, np.ndarray):
+        return h[ix], s[ix]
+    return aid
 
 
 def derive_beta(period_s: float, range_error_m: float) -> float:
@@ -1259,6 +1341,7 @@ def _weighted(
     keepw = keep.astype(float)
     models = iono.models(cfg.iono)
     cn0_var = cn0_variance_m2(ch.cn0[rows], cfg)  # (the same every iteration)
+    aid = _aids_of(cfg, ch.epochs, sel)
     diverged = np.zeros(n1, dtype=bool)
     bad_lsq = np.zeros(n1, dtype=bool)
     act = np.arange(n1)
@@ -1279,7 +1362,10 @@ def _weighted(
         if cfg.weighted:
             sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var[ix])
             w = np.asarray(_where(nr, w / sig**2, w))
-        step, bad, finite = _lsq(layout.design(los[ix], cix[ix]), dz, w)
+        g = layout.design(los[ix], cix[ix])
+        if aid is not None:
+            g, dz, w = _height_row(g, dz, w, _rot, alt, nr, _aid_at(aid, ix), squared=True)
+        step, bad, finite = _lsq(g, dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
             act, step = act[~bad], step[~bad]
@@ -1311,6 +1397,7 @@ def _weighted(
         return out
     if good.size != n1:
         x, b, cix, keep = x[good], b[good], cix[good], keep[good]
+        aid = None if aid is None else _aid_at(aid, good)
         near = None if near is None else near[good]
         n_int, iters, los, pred, sat = n_int[good], iters[good], los[good], pred[good], sat[good]
         z, sow, cn0_var = z[good], sow[good], cn0_var[good]
@@ -1328,15 +1415,20 @@ def _weighted(
     else:
         sigma = np.full(keep.shape, cfg.sigma_uniform_m)
     g = layout.design(los, cix)
-    integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
     n_k = keep.sum(axis=1)
     resid_rms = np.sqrt(linalg.einsum("es,es->e", v, v) / n_k)
+    g_sat, keep_sat = g, keep  # the DOPs are the satellites' geometry alone
+    if aid is not None:
+        g, v, sigma = _height_row(g, v, sigma, rot, alt, near, aid, squared=False)
+        keep = np.concatenate([keep, sigma[:, -1:] < np.inf], axis=1)
+        sigma = np.where(keep, sigma, 1.0)
+    integ = assess_many(g, v, sigma, keep, rot, cfg.p_fa, cfg.p_md, layout)
     gsel = sel[good]
     if solver == "fast":
-        gd_final = dop(g, (keep & ch.full[gsel]).astype(float)).tolist()
+        gd_final = dop(g_sat, (keep_sat & ch.full[gsel]).astype(float)).tolist()
     else:
         gd_final = [None] * len(good)
-    gu = g * keep[..., None]
+    gu = g_sat * keep_sat[..., None]
     q = linalg.inv(gu.swapaxes(-1, -2) @ gu)[:, :3, :3]
     q_enu = rot @ q @ rot.swapaxes(-1, -2)
     pdop = np.sqrt(q_enu.trace(axis1=1, axis2=2))
@@ -1357,6 +1449,44 @@ def _weighted(
     for k, (g_k, e) in enumerate(zip(good.tolist(), gsel.tolist(), strict=True)):
         out[g_k] = _judged(ch, e, solver, layout, n_int[k], keep[k], integ[k], numbers, k, cfg)
     return out
+
+
+def _height_row(
+    g: np.ndarray,
+    dz: np.ndarray,
+    w: np.ndarray,
+    rot: np.ndarray,
+    alt_m: np.ndarray,
+    near: np.ndarray | None,
+    aid: tuple[float, float] | tuple[np.ndarray, np.ndarray],
+    squared: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The design ``g`` (e, s, p), misclosures ``dz`` (e, s) and weights or sigmas ``w``
+    (e, s) joined by one row: the pseudo-observation ``aid`` = (h, sigma) of the ellipsoidal
+    height, whose partials are the local up vector (the third row of the ENU rotation
+    ``rot``) and no clock, misclosure h - height of the iterate (``alt_m``). ``squared``:
+    ``w`` holds weights 1 / sigma^2 (else sigmas). Epochs not ``near`` the Earth get no
+    row (weight 0, sigma inf): the height means nothing there. ``aid``: one for every
+    epoch, or each epoch's as arrays (e,)."""
+    h_m, sigma_m = aid
+    n_e = len(dz)
+    row = np.zeros((n_e, 1, g.shape[-1]))
+    row[:, 0, :3] = rot[:, 2, :]
+    mis = (h_m - np.asarray(alt_m, dtype=float)).reshape(n_e, 1)
+    val = 1.0 / sigma_m**2 if squared else sigma_m
+    far = 0.0 if squared else np.inf
+    if isinstance(val, np.ndarray):
+        val = val.reshape(n_e, 1)
+        ww = val if near is None else np.where(near, val, far)
+    else:
+        ww = np.full((n_e, 1), val) if near is None else np.where(near, val, far)
+    ww = ww.reshape(n_e, 1)
+    mis = np.where(ww == far, 0.0, mis)
+    return (
+        np.concatenate([g, row], axis=1),
+        np.concatenate([dz, mis], axis=1),
+        np.concatenate([w, ww], axis=1),
+    )
 
 
 def _judged(

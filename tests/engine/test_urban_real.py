@@ -10,6 +10,12 @@ availability or integrity in the canyon fails here. They are NOT the issue's tar
 (availability >= 85 %, p50 <= 10 m, p95 <= 40 m), which today's snapshot SPP misses.
 The second test runs rnx2rtkp (GPS + Galileo + BDS single point) on the same files and
 holds bdsfix with settings near RTKLIB's to at least its availability and at most its RMS.
+
+With height aiding and the prediction screen (service.engine.aiding: ``--height-aiding
+true --screen-predicted-m 30``,
+every epoch of the file solved in order, as ``bdsfix solve`` and the stream do) the drive
+meets the issue's targets; the held height is checked against the truth's height, and the
+stream (Pipeline) against ``bdsfix solve``'s path.
 """
 
 from __future__ import annotations
@@ -23,9 +29,12 @@ import numpy as np
 import pytest
 
 from drivers.rinex import RinexObsReader
-from service.commands.solve import load_navigation
+from service.commands.solve import BatchOptions, load_navigation, solve_epochs
 from service.core.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.core.systems import parse_systems
+from service.core.types import Fix
+from service.engine.aiding import HeightAid
+from service.engine.pipeline import Pipeline
 from service.engine.solver import SolverConfig, solve
 from tests.support.paths import DATA
 
@@ -41,6 +50,11 @@ OBS = TST / "COM3_190428_124409.obs"
 DEFAULTS = SolverConfig()
 STRICT = SolverConfig(sigma_cn0_m=0.3, max_exclusions=1, p_fa=1e-3)
 """Settings near RTKLIB's single point (bench/bench_vs_rtklib.py STRICT)."""
+AIDED = SolverConfig(height_aiding=True, screen_predicted_m=30.0)
+"""Height aiding and the prediction screen (bench/bench_vs_rtklib.py AIDED)."""
+AIDED_AVAILABILITY_MIN = 0.85  # the issue's targets; measured 90.5 % (439 of 485)
+AIDED_P50_MAX_M = 10.0  # measured 8.6 m
+AIDED_P95_MAX_M = 40.0  # measured 19.9 m (max 35.3 m)
 RTKLIB_CONF = """\
 pos1-posmode       =single
 pos1-frequency     =l1
@@ -133,3 +147,118 @@ def test_strict_settings_fix_as_often_as_rnx2rtkp_and_closer(tmp_path):
     figures = (len(mine), _rms(mine), len(rtk), _rms(np.asarray(rtk)))
     assert n == TRUTH_EPOCHS and len(rtk) > 0.3 * n, figures
     assert len(mine) >= len(rtk) and _rms(mine) <= _rms(np.asarray(rtk)), figures
+
+
+@cache
+def _aided_fixes() -> tuple[Fix, ...]:
+    """``bdsfix solve``'s path (solve_epochs, SPP) with :data:`AIDED`: every epoch of the
+    file, in order (the held height needs the fixes before the truth's first epoch too)."""
+    systems = parse_systems("C,G,E")
+    store, iono = load_navigation([str(p) for p in NAVS], systems=systems)
+    opts = BatchOptions(mode="spp", cfg=AIDED, with_sky=False)
+    epochs = iter(RinexObsReader(OBS, systems=systems))
+    return tuple(fixes[0] for _, fixes in solve_epochs(epochs, store, iono, opts))
+
+
+@pytest.mark.slow
+def test_height_aided_drive_meets_the_issue_targets():
+    truth = _truth()
+    n, errs, outside, outside_v = 0, [], 0, 0
+    for fix in _aided_fixes():
+        t = truth.get((fix.gpst_week, round(fix.gpst_tow_s)))
+        if t is None:
+            continue
+        n += 1
+        if not fix.ok:
+            continue
+        d = np.subtract(fix.x_ecef_m, t)
+        errs.append(float(np.linalg.norm(d)))
+        lat, lon, _ = ecef_to_geodetic(t)
+        enu = enu_rotation(lat, lon) @ d
+        assert fix.hpl_m is not None and fix.vpl_m is not None
+        outside += math.hypot(enu[0], enu[1]) > fix.hpl_m
+        outside_v += abs(enu[2]) > fix.vpl_m
+    availability = len(errs) / n
+    p50, p95 = np.percentile(errs, [50, 95])
+    figures = (availability, p50, p95, max(errs), outside, outside_v)
+    assert n == TRUTH_EPOCHS
+    assert availability >= AIDED_AVAILABILITY_MIN, figures
+    assert p50 <= AIDED_P50_MAX_M and p95 <= AIDED_P95_MAX_M, figures
+    assert outside <= 0.01 * len(errs) and outside_v <= 0.01 * len(errs), figures
+    # the defaults (snapshot SPP) publish fewer fixes on the same epochs, further off
+    _, plain, _ = _errors()
+    assert len(plain) < len(errs), figures
+    assert p50 < np.percentile(plain, 50) and p95 < np.percentile(plain, 95), figures
+    # a fix with a range the screen left out says so
+    assert any(
+        "longer than predicted" in why for f in _aided_fixes() for why in f.excluded.values()
+    )
+
+
+@pytest.mark.slow
+def test_the_held_height_is_honest_against_the_truth():
+    """The aid each epoch got (the held height of the fixes before it, as solve_epochs
+    keeps it), against the truth's ellipsoidal height, in units of its sigma: measured 68 %
+    within 1.17 sigma, 95 % within 1.73, all within 2.02."""
+    truth = _truth()
+    systems = parse_systems("C,G,E")
+    held, ratios = HeightAid(), []
+    for ep, fix in zip(RinexObsReader(OBS, systems=systems), _aided_fixes(), strict=True):
+        aid = held.prior(ep.gpst_week, ep.gpst_tow_s, AIDED)
+        held.update(fix, AIDED)
+        t = truth.get((ep.gpst_week, round(ep.gpst_tow_s)))
+        if t is not None and aid is not None:
+            ratios.append(abs(aid[0] - float(ecef_to_geodetic(t)[2])) / aid[1])
+    assert len(ratios) >= 0.95 * TRUTH_EPOCHS, len(ratios)
+    p68, p95 = np.percentile(ratios, [68, 95])
+    assert p68 <= 1.3 and p95 <= 2.0 and max(ratios) <= 3.0, (p68, p95, max(ratios))
+
+
+@pytest.mark.slow
+def test_the_stream_holds_the_same_height_as_bdsfix_solve():
+    """The daemon's Pipeline with height aiding gives the fixes of ``bdsfix solve --mode
+    spp`` (every RINEX range is full, so its fast fix is SPP) on every epoch."""
+    systems = parse_systems("C,G,E")
+    store, iono = load_navigation([str(p) for p in NAVS], systems=systems)
+    pipe = Pipeline(store, iono, cfg=AIDED)
+    batch = _aided_fixes()
+    n = 0
+    for ep, ref in zip(RinexObsReader(OBS, systems=systems), batch, strict=True):
+        fix = pipe.on_epoch(ep).fix
+        # (as many rows: where a system keeps one row, which of its satellites that is has
+        # no redundancy to choose by, and the stream's rows come in another order)
+        assert fix.ok == ref.ok and len(fix.used) == len(ref.used), (ep.gpst_tow_s, fix.reason)
+        if fix.ok:
+            assert np.linalg.norm(np.subtract(fix.x_ecef_m, ref.x_ecef_m)) < 1e-6
+            n += 1
+    assert pipe.counters["height_aided_fixes"] >= n - 10
+
+
+@pytest.mark.slow
+def test_the_batched_aided_solve_is_the_one_epoch_at_a_time_solve_on_the_drive():
+    """``bdsfix solve`` solves the aided epochs in batches (solve_aided's fixed point): on
+    the drive with :data:`AIDED` (the screen leaving ranges out, fault exclusion at work),
+    both solvers, every field of every fix is the one of solving each epoch alone from the
+    fixes before it, to the output's bytes (the kernel solving several epochs together
+    differs from one alone in the last bits of a float: numpy's stacked products sum in
+    another order; the aid, given to 10 cm, does not pass such bits on)."""
+    from service.output.records import fix_json_line
+    from tests.support.aided import aided_one_at_a_time
+
+    systems = parse_systems("C,G,E")
+    store, iono = load_navigation([str(p) for p in NAVS], systems=systems)
+    opts = BatchOptions(mode="both", cfg=AIDED, with_sky=False)
+    epochs = list(RinexObsReader(OBS, systems=systems))
+    got = [
+        fix_json_line(f)
+        for _, fixes in solve_epochs(iter(epochs), store, iono, opts)
+        for f in fixes
+    ]
+    ref = [
+        fix_json_line(f)
+        for _, fixes in aided_one_at_a_time(epochs, store, iono, opts)
+        for f in fixes
+    ]
+    assert len(got) == 2 * len(epochs)
+    assert got == ref
+    assert sum("longer than predicted" in f for f in got) > 10

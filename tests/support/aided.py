@@ -1,0 +1,46 @@
+"""The definition ``bdsfix solve``'s batched height aiding and prediction screen
+(service.commands.solve.solve_aided) must meet: every epoch solved alone, in order, its aid
+and screen from the fixes before it (as the daemon's Pipeline solves a stream)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import replace
+
+from service.commands.solve import BatchOptions
+from service.core.ephemeris import EphemerisStore
+from service.core.types import Fix, MeasurementEpoch
+from service.engine.aiding import HeightAid, Predictor
+from service.engine.solver import IonoSet, fractionalize, sky_view, solve_many
+from service.engine.timetag import without_coarse_fractions
+from service.engine.velocity import with_velocities
+
+
+def aided_one_at_a_time(
+    epochs: Iterable[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
+) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
+    """Each epoch's fixes (fast, then SPP, as ``opts.mode`` asks) solved alone, in order."""
+    held, predictor = HeightAid(), Predictor()
+    for epoch in epochs:
+        view = without_coarse_fractions(epoch)[0]
+        cfg = held.cfg_for(view.gpst_week, view.gpst_tow_s, opts.cfg)
+        rows, screened = predictor.screen(view, store, opts.cfg)
+        fixes: list[Fix] = []
+        if opts.mode in ("fast", "both"):
+            fast_in = fractionalize(rows, opts.period_s) if opts.fractional == "non-geo" else rows
+            fixes += solve_many((fast_in,), store, iono, cfg, "fast", opts.with_sky)
+        if opts.mode in ("spp", "both"):
+            fixes += solve_many((rows,), store, iono, cfg, "spp", opts.with_sky)
+        if screened:  # (the sky: every satellite of the epoch, the screened ones unused)
+            fixes = [
+                replace(
+                    f,
+                    excluded={**screened, **f.excluded},
+                    sky=sky_view(view, store, f) if f.sky else f.sky,
+                )
+                for f in fixes
+            ]
+        fixes = with_velocities([(fix, view) for fix in fixes], store)
+        held.update(fixes[-1], opts.cfg)
+        predictor.update(fixes[-1])
+        yield view, fixes
