@@ -98,7 +98,8 @@ def solve_epochs(
     a time), so a file of any length streams through in bounded memory. Each fix
     with a position gets its velocity from the epoch's Doppler, a chunk at a time
     (:func:`~service.engine.velocity.with_velocities`). With height aiding or the
-    prediction screen (:func:`solve_aided`) the epochs are solved one at a time."""
+    prediction screen each epoch's inputs depend on the fixes before it: :func:`solve_aided`
+    solves them in batches until those inputs settle."""
     if opts.cfg.height_aiding or opts.cfg.screen_predicted_m > 0.0:
         yield from solve_aided(epochs, store, iono, opts)
         return
@@ -147,7 +148,10 @@ def solve_aided(
     (the kernel solving several epochs together differs from one alone in the last bits of
     a float; the aid, given to a step of
     :data:`~service.engine.aiding.AID_QUANTUM_M`,
-    does not pass such bits on). Each chunk's passes and solves are logged (debug)."""
+    does not pass such bits on), except where such a last bit falls on a boundary: a held
+    height or sigma half a step from a rounding, a range's residual at the screen's limit
+    (not met on the TST drive or HKSC, whose outputs the tests compare byte for byte).
+    Each chunk's passes and solves are logged (debug)."""
     held, predictor = HeightAid(), Predictor()
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
         views = [without_coarse_fractions(e)[0] for e in chunk]
@@ -292,20 +296,13 @@ def _solve_inputs(
 def _with_velocities(
     fixes: dict[int, list[Fix]], views: list[MeasurementEpoch], store: EphemerisStore
 ) -> dict[int, list[Fix]]:
-    """The fixes of each epoch with their velocities, computed together for the epochs
-    whose fixes use the same systems: with_velocities solves one set of clock drifts for
-    all its epochs, and an epoch without a system of that set gets no velocity there, a
-    velocity it has alone (the aid and the prediction use them)."""
-    groups: dict[tuple[frozenset[str], ...], list[int]] = {}
-    for k, fx in fixes.items():
-        groups.setdefault(tuple(frozenset(p[:1] for p in f.used) for f in fx), []).append(k)
-    out: dict[int, list[Fix]] = {}
-    for ks in groups.values():
-        m = len(fixes[ks[0]])
-        moving = with_velocities([(f, views[k]) for k in ks for f in fixes[k]], store)
-        for j, k in enumerate(ks):
-            out[k] = moving[j * m : (j + 1) * m]
-    return out
+    """The fixes of each epoch (the same number each) with their velocities, computed
+    together (:func:`~service.engine.velocity.with_velocities`: each the same as alone;
+    the aid and the prediction use them)."""
+    ks = list(fixes)
+    m = len(fixes[ks[0]]) if ks else 0
+    moving = with_velocities([(f, views[k]) for k in ks for f in fixes[k]], store)
+    return {k: moving[j * m : (j + 1) * m] for j, k in enumerate(ks)}
 
 
 def _finished(

@@ -23,7 +23,8 @@ The aid is sequential (past epochs only):
   receiver may have moved from where the held fixes were taken (half their span plus the
   newest fix's Doppler speed times dt) along a road of slope ``height_aid_grade``.
   Measured on the TST drive against its ground truth: |held - true height| / sigma has
-  its 68th percentile at 0.84 and its 95th at 1.27 (docs/method.md).
+  its 68th percentile at 1.17 and its 95th at 1.73 with the prediction screen at 30 m
+  (0.84 and 1.27 with the aid alone; docs/method.md).
 - The row is in the error model: weighted by its sigma, it enters the chi-square test and
   the protection levels like a range (a fault in the aid has its slope too); fault
   exclusion never removes it. The DOPs stay the satellites' geometry.
@@ -71,8 +72,8 @@ from service.engine.solver import SolverConfig, ranges
 PREDICTION_MAX_AGE_S = 3.0
 """The prediction screen uses a fix at most this old [s]: at 1 Hz the last two epochs'."""
 AID_QUANTUM_M = 0.1
-"""The held height and its sigma are given to this step [m] (their error is metres, the sigma
-at least ``height_aid_sigma_m``): a change of a past fix in its last bits, or by
+"""The held height and its sigma are given to this step [m] (their error is metres; the sigma
+is never below ``height_aid_sigma_m``): a change of a past fix in its last bits, or by
 centimetres, seldom changes the next epoch's aid, so ``bdsfix solve``'s batch
 (service.commands.solve.solve_aided) seldom solves an epoch twice (on the TST drive 1 mm:
 3310 solves of 1760 epochs, 1 cm: 3130, 10 cm: 2836)."""
@@ -127,7 +128,9 @@ class HeightAid:
         # to AID_QUANTUM_M: a last-bit change of a past fix leaves the aid
         # as it was, so a batch that guesses the fixes before an epoch finds its aid exact
         # (service.commands.solve.solve_aided) once the guesses are close enough
-        return _quantized(h), _quantized(sigma)
+        # the sigma never below the setting (nor 0: a sigma smaller than half the step
+        # would round to nothing)
+        return _quantized(h), max(_quantized(sigma), cfg.height_aid_sigma_m)
 
     def copy(self) -> HeightAid:
         """An independent copy of the held fixes (a batch's speculative pass)."""

@@ -140,6 +140,8 @@ bits, which depend on what else is solved with them in a batch."""
 def _better(ratio: float, best: float) -> bool:
     """A candidate's :func:`fit_ratio` ranks before the best so far (not merely equal to
     it within :data:`TIE_RTOL`)."""
+    if math.isinf(best):  # no test so far (inf - inf would be NaN: nothing could win)
+        return ratio < best
     return ratio < best - TIE_RTOL * abs(best)
 
 

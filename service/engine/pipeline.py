@@ -355,7 +355,9 @@ class Pipeline:
         cfg = self._start_cfg(view)
         if self.cfg.height_aiding:  # the height of the last fixes as one more row
             cfg = self._height.cfg_for(epoch.gpst_week, epoch.gpst_tow_s, cfg)
-        # the ranges longer than the last fix and its velocity predict: left out (reflected)
+        # the ranges longer than the last fix and its velocity predict: left out (reflected).
+        # A coarse-time fix below replaces this fix with one of its own rows (every range
+        # of the epoch, no aid: a first fix has no past) and its own exclusions
         rows, screened = self._predictor.screen(view, self.store, self.cfg)
         fix = solve(rows, self.store, self.iono, cfg, solver="fast")
         if screened:

@@ -1363,8 +1363,10 @@ def _weighted(
             sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var[ix])
             w = np.asarray(_where(nr, w / sig**2, w))
         g = layout.design(los[ix], cix[ix])
-        if aid is not None:
-            g, dz, w = _height_row(g, dz, w, _rot, alt, nr, _aid_at(aid, ix), squared=True)
+        if aid is not None:  # (unweighted, a range's weight 1 stands for sigma_uniform_m)
+            unit_m = 1.0 if cfg.weighted else cfg.sigma_uniform_m
+            at = _aid_at(aid, ix)
+            g, dz, w = _height_row(g, dz, w, _rot, alt, nr, at, squared=True, unit_m=unit_m)
         step, bad, finite = _lsq(g, dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
@@ -1460,12 +1462,14 @@ def _height_row(
     near: np.ndarray | None,
     aid: tuple[float, float] | tuple[np.ndarray, np.ndarray],
     squared: bool,
+    unit_m: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The design ``g`` (e, s, p), misclosures ``dz`` (e, s) and weights or sigmas ``w``
     (e, s) joined by one row: the pseudo-observation ``aid`` = (h, sigma) of the ellipsoidal
     height, whose partials are the local up vector (the third row of the ENU rotation
     ``rot``) and no clock, misclosure h - height of the iterate (``alt_m``). ``squared``:
-    ``w`` holds weights 1 / sigma^2 (else sigmas). Epochs not ``near`` the Earth get no
+    ``w`` holds weights 1 / sigma^2 (else sigmas), or (unit_m / sigma)^2 where a weight
+    of 1 stands for a sigma of ``unit_m``. Epochs not ``near`` the Earth get no
     row (weight 0, sigma inf): the height means nothing there. ``aid``: one for every
     epoch, or each epoch's as arrays (e,)."""
     h_m, sigma_m = aid
@@ -1473,7 +1477,7 @@ def _height_row(
     row = np.zeros((n_e, 1, g.shape[-1]))
     row[:, 0, :3] = rot[:, 2, :]
     mis = (h_m - np.asarray(alt_m, dtype=float)).reshape(n_e, 1)
-    val = 1.0 / sigma_m**2 if squared else sigma_m
+    val = unit_m**2 / sigma_m**2 if squared else sigma_m
     far = 0.0 if squared else np.inf
     if isinstance(val, np.ndarray):
         val = val.reshape(n_e, 1)

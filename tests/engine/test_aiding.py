@@ -137,6 +137,38 @@ def test_the_held_height_is_the_median_of_the_window_with_a_growing_sigma():
     assert held.prior(2051, 104.0, CFG) is None
 
 
+def test_a_small_sigma_is_never_rounded_below_its_setting():
+    """The held sigma is given to a 10 cm step: a 4 cm setting stays 4 cm (rounded it was
+    0, and every aided fix a ZeroDivisionError decline), and the aided solve is a fix."""
+    held = HeightAid()
+    small = replace(CFG, height_aid_sigma_m=0.04, height_aid_rate_m_s=0.0, height_aid_grade=0.0)
+    for t in range(3):
+        held.update(_fix(100.0 + t, 10.0), small)
+    h, sigma = held.prior(2051, 103.0, small)
+    assert h == pytest.approx(10.0) and sigma == pytest.approx(0.04)
+    epochs, store, iono = _hksc()
+    fix = solve(epochs[0], store, iono, SolverConfig(height_aid=(TRUE_H_M, sigma)), "spp")
+    assert fix.ok, fix.reason
+
+
+def test_unweighted_the_row_weighs_as_its_sigma_against_the_uniform_sigma():
+    """weighted=False (the studies): every range weighs as ``sigma_uniform_m``, so the
+    height row weighs (sigma_uniform / sigma_aid)^2 in the estimate, as in the test and
+    protection levels. An aid 5 m above the plain fix at 3 m weighs as one range: the
+    height moves by 5 m x q / (q + 1), q the plain fix's vertical variance over
+    sigma_uniform^2 (Sherman-Morrison: one row added to the normal equations)."""
+    epochs, store, iono = _hksc()
+    cfg = SolverConfig(weighted=False)
+    ep = epochs[0]
+    plain = solve(ep, store, iono, cfg, "spp")
+    h0 = _height(plain)
+    aided = solve(ep, store, iono, replace(cfg, height_aid=(h0 + 5.0, 3.0)), "spp")
+    assert plain.ok and aided.ok
+    q_uu = plain.cov_enu_m2[2][2] / 3.0**2
+    want = 5.0 * q_uu / (q_uu + 1.0)
+    assert _height(aided) - h0 == pytest.approx(want, rel=0.02), q_uu
+
+
 def test_cfg_for_gives_the_row_only_with_height_aiding_on():
     held = HeightAid()
     for t in range(5):

@@ -182,3 +182,18 @@ def test_the_no_epoch_lines_of_the_summaries_come_from_the_table():
     assert (
         no_epochs_hint("run", {"source_open_failures": 3, "source_events": 1}) == NO_EPOCHS["run"]
     )
+
+
+def test_exclusion_ranks_a_tested_candidate_before_an_untested_one():
+    """Fault exclusion's ranking (judge._better): equal within TIE_RTOL is no better, a
+    smaller chi2 / threshold is, and any tested candidate beats one without a test (its
+    ratio inf: inf - TIE_RTOL x inf is NaN, which had let nothing win)."""
+    import math
+
+    from service.engine.judge import TIE_RTOL, _better, fit_ratio
+
+    assert _better(0.5, 0.9) and not _better(0.9, 0.5)
+    assert not _better(0.7 * (1 - TIE_RTOL / 10), 0.7)
+    assert fit_ratio(None, 3.0) == math.inf
+    assert _better(1.0, math.inf) and _better(50.0, fit_ratio(2.0, 0.0))
+    assert not _better(math.inf, math.inf)
