@@ -85,6 +85,7 @@ from drivers.sfrbx import UBX_GNSS, nav_subframe_from_sfrbx
 from service.core.constants import C_M_S, WEEK_S
 from service.core.counters import Counters
 from service.core.ratelog import RateLimitedLog
+from service.core.stats import median
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
 from service.core.timebase import diff_s, gpst_from_utc, normalize
 from service.core.types import UNKNOWN_WEEK, MeasurementEpoch
@@ -459,14 +460,6 @@ def _measx_rows(raw: bytes) -> tuple[int, list[_MeasxRow]] | None:
 _BY_PRN = operator.attrgetter("prn")
 
 
-def _median(values: list[float]) -> float:
-    """The median as :func:`statistics.median` takes it (the middle value, or the mean of
-    the two middle ones), without the module's import and checks on the decoding path."""
-    v = sorted(values)
-    n = len(v)
-    return v[n // 2] if n % 2 else (v[n // 2 - 1] + v[n // 2]) / 2
-
-
 def _chips_at_1023_per_ms(whole_chips: int, frac_chips: int, code_ms: float) -> bool:
     """A MEASX block of a 1.023 Mchip/s signal (GPS L1 C/A, Galileo E1): its chips,
     ``wholeChips + fracChips/1024``, are 1023 x ``codePhase`` [ms] modulo 1023 chips, within
@@ -803,7 +796,7 @@ class UbxMapper:
         for system, dd in d.items():
             spread_m = max(dd) - min(dd)
             if spread_m < 30.0:
-                self.measx_offsets_m[system] = float(_median(dd))
+                self.measx_offsets_m[system] = median(dd)
             else:
                 self.counters["measx_offset_rejected"] += 1
                 self._log.warning(

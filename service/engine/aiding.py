@@ -65,6 +65,7 @@ from service.core.declines import excluded_why
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.orbit import sat_pos_clock
+from service.core.stats import median
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.solver import SolverConfig, ranges
@@ -115,7 +116,7 @@ class HeightAid:
         ]
         if len(held) < cfg.height_aid_min_fixes:
             return None
-        h = _median([f.h_m for f in held])
+        h = median([f.h_m for f in held])
         newest, oldest = held[-1], held[0]
         dt = diff_s(week, tow_s, newest.week, newest.tow_s)
         span = _horizontal_m(newest.x_ecef_m, oldest.x_ecef_m)
@@ -156,16 +157,6 @@ class HeightAid:
         h = float(ecef_to_geodetic(x)[2])  # ellipsoidal, as the kernel's height row
         speed = fix.velocity.speed_m_s if fix.velocity is not None else 0.0
         self._held.append(_Held(week, tow, h, x, speed if math.isfinite(speed) else 0.0))
-
-
-def _median(values: list[float]) -> float:
-    """numpy.median of a few floats (the same float: the middle one, or the mean of the
-    two middle ones, (a + b) / 2), without numpy's per-call cost (NaN: NaN)."""
-    if any(v != v for v in values):
-        return math.nan
-    s = sorted(values)
-    mid = len(s) // 2
-    return s[mid] if len(s) % 2 else (s[mid - 1] + s[mid]) / 2.0
 
 
 def _quantized(v_m: float) -> float:
@@ -325,7 +316,7 @@ def predicted_residuals(
         idx = [k for k, p in enumerate(prns) if p[:1] == system]
         if len(idx) < PREDICTION_MIN_SYSTEM_ROWS:
             continue
-        med = _median(v[idx].tolist())
+        med = median(v[idx].tolist())
         for k in idx:
             out[prns[k]] = float(v[k]) - med
     return out

@@ -294,9 +294,10 @@ def test_the_batched_aided_solve_is_the_one_epoch_at_a_time_solve_on_hksc():
 
 
 def test_the_median_is_numpys_to_the_last_bit():
-    """The held height's and the screen's median (aiding._median, without numpy's per-call
-    cost) is numpy.median's float on odd and even counts, ties and NaN."""
-    from service.engine.aiding import _median
+    """The held height's, the screen's and the MEASX calibration's median
+    (service.core.stats.median, without numpy's per-call cost) is numpy.median's float on
+    odd and even counts, ties and NaN."""
+    from service.core.stats import median as _median
 
     rng = np.random.default_rng(7)
     for n in range(1, 80):
