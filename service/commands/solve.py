@@ -24,14 +24,13 @@ from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.aiding import HeightAid, Predictor, SatSide, sat_side
+from service.engine.aiding import HeightAid, Predictor, SatSide, sat_side, with_screened
 from service.engine.solver import (
     CHUNK_EPOCHS,
     EpochAids,
     IonoSet,
     SolverConfig,
     fractionalize,
-    sky_view,
     solve_many,
 )
 from service.engine.timetag import without_coarse_fractions
@@ -310,16 +309,7 @@ def _finished(
 ) -> list[Fix]:
     """The fixes of an epoch with the ranges the screen left out (and the sky: every
     satellite of the epoch, the screened ones unused)."""
-    if not inputs.screened:
-        return fixes
-    return [
-        replace(
-            f,
-            excluded={**inputs.screened, **f.excluded},
-            sky=sky_view(view, store, f) if f.sky else f.sky,
-        )
-        for f in fixes
-    ]
+    return [with_screened(f, inputs.screened, view, store) for f in fixes]
 
 
 @contextlib.contextmanager

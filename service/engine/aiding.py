@@ -68,7 +68,7 @@ from service.core.orbit import sat_pos_clock
 from service.core.stats import median
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.solver import SolverConfig, ranges
+from service.engine.solver import SolverConfig, ranges, sky_view
 
 PREDICTION_MAX_AGE_S = 3.0
 """The prediction screen uses a fix at most this old [s]: at 1 Hz the last two epochs'."""
@@ -290,6 +290,21 @@ def sat_side(epoch: MeasurementEpoch, store: EphemerisStore) -> SatSide | None:
     t_tx = t1 - (arr.af0_s + arr.af1_s_s * (t1 - arr.toc_sow_s))
     sat0, clk = sat_pos_clock(arr, week, t_tx)
     return SatSide(prns, z, sat0, clk, arr.omega_e_rad_s)
+
+
+def with_screened(
+    fix: Fix, screened: dict[str, str], epoch: MeasurementEpoch, store: EphemerisStore
+) -> Fix:
+    """``fix`` (solved without the ranges the screen left out) naming them in ``excluded``
+    with their reasons, and its sky (if it has one) of every satellite of ``epoch``, the
+    screened ones unused: what the stream and ``bdsfix solve`` publish of a screened epoch."""
+    if not screened:
+        return fix
+    return replace(
+        fix,
+        excluded={**screened, **fix.excluded},
+        sky=sky_view(epoch, store, fix) if fix.sky else fix.sky,
+    )
 
 
 def predicted_residuals(

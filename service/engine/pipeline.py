@@ -44,7 +44,7 @@ from service.core.types import (
     SatView,
     TimeOffset,
 )
-from service.engine.aiding import HeightAid, Predictor
+from service.engine.aiding import HeightAid, Predictor, with_screened
 from service.engine.coarse import (
     CoarseConfig,
     solve_coarse,
@@ -360,8 +360,7 @@ class Pipeline:
         # of the epoch, no aid: a first fix has no past) and its own exclusions
         rows, screened = self._predictor.screen(view, self.store, self.cfg)
         fix = solve(rows, self.store, self.iono, cfg, solver="fast")
-        if screened:
-            fix = replace(fix, excluded={**screened, **fix.excluded})
+        fix = with_screened(fix, screened, view, self.store)
         if set_aside and view.time_unc_s > self.coarse.time_prior_s:
             # the receiver's time is coarser than even the coarse-time fix's prior: its
             # fractional ranges wait for the first decoded SOW, whose full range gives the

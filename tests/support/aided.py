@@ -5,13 +5,12 @@ and screen from the fixes before it (as the daemon's Pipeline solves a stream)."
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import replace
 
 from service.commands.solve import BatchOptions
 from service.core.ephemeris import EphemerisStore
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.aiding import HeightAid, Predictor
-from service.engine.solver import IonoSet, fractionalize, sky_view, solve_many
+from service.engine.aiding import HeightAid, Predictor, with_screened
+from service.engine.solver import IonoSet, fractionalize, solve_many
 from service.engine.timetag import without_coarse_fractions
 from service.engine.velocity import with_velocities
 
@@ -31,15 +30,7 @@ def aided_one_at_a_time(
             fixes += solve_many((fast_in,), store, iono, cfg, "fast", opts.with_sky)
         if opts.mode in ("spp", "both"):
             fixes += solve_many((rows,), store, iono, cfg, "spp", opts.with_sky)
-        if screened:  # (the sky: every satellite of the epoch, the screened ones unused)
-            fixes = [
-                replace(
-                    f,
-                    excluded={**screened, **f.excluded},
-                    sky=sky_view(view, store, f) if f.sky else f.sky,
-                )
-                for f in fixes
-            ]
+        fixes = [with_screened(f, screened, view, store) for f in fixes]
         fixes = with_velocities([(fix, view) for fix in fixes], store)
         held.update(fixes[-1], opts.cfg)
         predictor.update(fixes[-1])
