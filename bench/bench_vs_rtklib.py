@@ -351,16 +351,21 @@ def bdsfix_env(workdir: Path, bytecode: bool) -> dict[str, str]:
     return env
 
 
+def rtklib_conf(systems: str, exclusion: bool = True) -> str:
+    """:data:`RTKLIB_CONF` for ``systems`` (navsys), without RAIM FDE unless ``exclusion``."""
+    text = RTKLIB_CONF
+    if not exclusion:
+        text = text.replace("pos1-posopt5       =on\n", "")
+    navsys = sum(NAVSYS[s] for s in systems.split(","))
+    return text.replace("pos1-navsys        =32", f"pos1-navsys        ={navsys}")
+
+
 def rtklib_reference(obs: Path, nav: Path, systems: str, workdir: Path) -> np.ndarray:
     """The median of rnx2rtkp's single-point fixes of a static receiver's file: a reference
     for a file without a truth of its own, from the independent program (so it favours
     rnx2rtkp's RMS: a bdsfix RMS at or below rnx2rtkp's about it is a conservative result)."""
-    navsys = sum(NAVSYS[s] for s in systems.split(","))
     conf = workdir / "reference.conf"
-    conf.write_text(
-        RTKLIB_CONF.replace("pos1-navsys        =32", f"pos1-navsys        ={navsys}"),
-        encoding="ascii",
-    )
+    conf.write_text(rtklib_conf(systems), encoding="ascii")
     out = workdir / "reference.pos"
     cmd = ["rnx2rtkp", "-x", "0", "-k", str(conf), "-o", str(out), str(obs), str(nav)]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -436,12 +441,9 @@ def bench_case(
         args = ["replay", str(case.raw), "--max-speed", "--nmea-out", os.devnull]
         args += ["--systems", case.systems]
         out_flag = "--jsonl-out"
-    text = RTKLIB_CONF
     if not case.exclusion:
         args += ["--max-exclusions", "0"]
-        text = text.replace("pos1-posopt5       =on\n", "")
-    navsys = sum(NAVSYS[s] for s in case.systems.split(","))
-    text = text.replace("pos1-navsys        =32", f"pos1-navsys        ={navsys}")
+    text = rtklib_conf(case.systems, case.exclusion)
     if text != RTKLIB_CONF:
         conf = conf.with_name(f"{case.name}.conf")
         conf.write_text(text, encoding="ascii")
