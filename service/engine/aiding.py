@@ -60,15 +60,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from service.core.constants import C_M_S
 from service.core.declines import excluded_why
 from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation
-from service.core.orbit import sat_pos_clock
 from service.core.stats import median
 from service.core.timebase import diff_s, gpst_to_bdt
 from service.core.types import Fix, MeasurementEpoch
-from service.engine.solver import SolverConfig, ranges, sky_view
+from service.engine.solver import SolverConfig, ranges, sky_view, transmit_orbits
 
 PREDICTION_MAX_AGE_S = 3.0
 """The prediction screen uses a fix at most this old [s]: at 1 Hz the last two epochs'."""
@@ -286,9 +284,7 @@ def sat_side(epoch: MeasurementEpoch, store: EphemerisStore) -> SatSide | None:
         return None
     arr = store.arrays(ephs)
     z = np.asarray(prs)
-    t1 = sow - z / C_M_S
-    t_tx = t1 - (arr.af0_s + arr.af1_s_s * (t1 - arr.toc_sow_s))
-    sat0, clk = sat_pos_clock(arr, week, t_tx)
+    sat0, clk = transmit_orbits(arr, week, sow, z)
     return SatSide(prns, z, sat0, clk, arr.omega_e_rad_s)
 
 

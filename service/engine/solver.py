@@ -774,11 +774,19 @@ def _orbits(ch: _Chunk, sel: _Index, n_int: np.ndarray | None) -> tuple[np.ndarr
     eph = ch.eph
     if not isinstance(sel, slice) and len(sel) != len(ch.z):
         eph = _gather(ch.eph, sel)
-    sow = ch.bdt_sow[sel, None]
     zn = ch.z[sel] if n_int is None else ch.z[sel] + n_int * ch.ct[sel]
-    t1 = sow - zn / C_M_S
+    return transmit_orbits(eph, ch.bdt_week[sel, None], ch.bdt_sow[sel, None], zn)
+
+
+def transmit_orbits(
+    eph: EphemerisArrays, bdt_week: int | np.ndarray, bdt_sow: float | np.ndarray, z_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Satellite positions and clocks at the transmit times of full pseudoranges ``z_m``
+    received at BDT ``bdt_week`` + ``bdt_sow`` (paper eqs. 4-5: the receive time less the
+    flight time z/c, less the satellite clock's af0 + af1 (t - toc) there)."""
+    t1 = bdt_sow - z_m / C_M_S
     t_tx = t1 - (eph.af0_s + eph.af1_s_s * (t1 - eph.toc_sow_s))
-    return sat_pos_clock(eph, ch.bdt_week[sel, None], t_tx)
+    return sat_pos_clock(eph, bdt_week, t_tx)
 
 
 def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
