@@ -74,7 +74,7 @@ import operator
 import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from pyubx2 import UBX_MSGIDS, VALNONE, UBXReader
@@ -460,6 +460,18 @@ def _measx_rows(raw: bytes) -> tuple[int, list[_MeasxRow]] | None:
 _BY_PRN = operator.attrgetter("prn")
 
 
+_Mapped = TypeVar("_Mapped")
+
+
+def _kept(table: dict[Any, _Mapped], key: Any, mapped: _Mapped) -> _Mapped:
+    """``mapped``, what a row of ``key`` was worked out to be, kept in ``table`` for the
+    next such row while the table holds fewer than :data:`RAWX_SIGNALS_KEPT` (the bound
+    holds against a stream of damaged rows, which are then worked out each time)."""
+    if len(table) < RAWX_SIGNALS_KEPT:
+        table[key] = mapped
+    return mapped
+
+
 def _chips_at_1023_per_ms(whole_chips: int, frac_chips: int, code_ms: float) -> bool:
     """A MEASX block of a 1.023 Mchip/s signal (GPS L1 C/A, Galileo E1): its chips,
     ``wholeChips + fracChips/1024``, are 1023 x ``codePhase`` [ms] modulo 1023 chips, within
@@ -592,11 +604,7 @@ class UbxMapper:
         counters, sats, rows_seen = self.counters, pending.sats, self._rawx_signals
         for gnss_id, sv_id, sig_id, pr_m, do_hz, lock_ms, cno, pr_valid in rows:
             key = (gnss_id, sv_id, sig_id)
-            seen = rows_seen.get(key)
-            if seen is None:
-                seen = self._rawx_signal(*key)
-                if len(rows_seen) < RAWX_SIGNALS_KEPT:
-                    rows_seen[key] = seen
+            seen = rows_seen.get(key) or _kept(rows_seen, key, self._rawx_signal(*key))
             prn, sig, count = seen
             if count:
                 counters[count] += 1
@@ -665,11 +673,7 @@ class UbxMapper:
         counters, sats, known = self.counters, pending.sats, self._measx_sats
         for gnss_id, sv_id, cno, do_hz, chips, frac_chips, code_ms, int_ms in rows:
             key = (gnss_id, sv_id)
-            seen = known.get(key)
-            if seen is None:
-                seen = self._measx_sat(*key)
-                if len(known) < RAWX_SIGNALS_KEPT:
-                    known[key] = seen
+            seen = known.get(key) or _kept(known, key, self._measx_sat(*key))
             prn, signal, other = seen
             if other and (prn is None or not _chips_at_1023_per_ms(chips, frac_chips, code_ms)):
                 counters[other] += 1  # L2C, E5b: the same svId, another signal
