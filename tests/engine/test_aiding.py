@@ -269,26 +269,16 @@ def test_the_batched_aided_solve_is_the_one_epoch_at_a_time_solve_on_hksc():
     several epochs together differs from one alone in the last bits of a float: numpy's
     stacked products sum in another order; the aid, given to 10 cm, does not
     pass such bits on)."""
-    from service.commands.solve import BatchOptions, solve_epochs
+    from service.commands.solve import BatchOptions
     from service.core.systems import parse_systems
-    from service.output.records import fix_json_line
-    from tests.support.aided import aided_one_at_a_time
+    from tests.support.aided import batched_and_alone
 
     systems = parse_systems("C,G,E")
     store, iono = load_navigation([str(HKSC / "hksc1610.nav")], systems=systems)
     cfg = SolverConfig(height_aiding=True, screen_predicted_m=30.0)
     opts = BatchOptions(mode="both", cfg=cfg, with_sky=True)
     epochs = list(RinexObsReader(HKSC / "hksc1610.obs", systems=systems))
-    got = [
-        fix_json_line(f)
-        for _, fixes in solve_epochs(iter(epochs), store, iono, opts)
-        for f in fixes
-    ]
-    ref = [
-        fix_json_line(f)
-        for _, fixes in aided_one_at_a_time(epochs, store, iono, opts)
-        for f in fixes
-    ]
+    got, ref = batched_and_alone(epochs, store, iono, opts)
     assert len(got) == 2 * len(epochs) == 410
     assert got == ref
 

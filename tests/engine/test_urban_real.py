@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import math
 import subprocess
+from collections.abc import Iterable
 from functools import cache
 
 import numpy as np
@@ -90,22 +91,35 @@ def _errors(cfg: SolverConfig = DEFAULTS) -> tuple[int, np.ndarray, int]:
     truth = _truth()
     systems = parse_systems("C,G,E")
     store, iono = load_navigation([str(p) for p in NAVS], systems=systems)
-    n, errs, outside = 0, [], 0
-    for ep in RinexObsReader(OBS, systems=systems):
-        t = truth.get((ep.gpst_week, round(ep.gpst_tow_s)))
+    fixes = (
+        solve(ep, store, iono, cfg, "spp")
+        for ep in RinexObsReader(OBS, systems=systems)
+        if (ep.gpst_week, round(ep.gpst_tow_s)) in truth
+    )
+    n, errs, outside, _ = _scored(fixes)
+    return n, np.asarray(errs), outside
+
+
+def _scored(fixes: Iterable[Fix]) -> tuple[int, list[float], int, int]:
+    """Of ``fixes``, those of the epochs with a truth: how many, the 3D errors of the
+    published ones, and how many of those lie outside their HPL (horizontally) and VPL."""
+    truth = _truth()
+    n, errs, outside, outside_v = 0, [], 0, 0
+    for fix in fixes:
+        t = truth.get((fix.gpst_week, round(fix.gpst_tow_s)))
         if t is None:
             continue
         n += 1
-        fix = solve(ep, store, iono, cfg, "spp")
         if not fix.ok:
             continue
         d = np.subtract(fix.x_ecef_m, t)
         errs.append(float(np.linalg.norm(d)))
         lat, lon, _ = ecef_to_geodetic(t)
         enu = enu_rotation(lat, lon) @ d
-        assert fix.hpl_m is not None
+        assert fix.hpl_m is not None and fix.vpl_m is not None
         outside += math.hypot(enu[0], enu[1]) > fix.hpl_m
-    return n, np.asarray(errs), outside
+        outside_v += abs(enu[2]) > fix.vpl_m
+    return n, errs, outside, outside_v
 
 
 @pytest.mark.slow
@@ -162,22 +176,7 @@ def _aided_fixes() -> tuple[Fix, ...]:
 
 @pytest.mark.slow
 def test_height_aided_drive_meets_the_issue_targets():
-    truth = _truth()
-    n, errs, outside, outside_v = 0, [], 0, 0
-    for fix in _aided_fixes():
-        t = truth.get((fix.gpst_week, round(fix.gpst_tow_s)))
-        if t is None:
-            continue
-        n += 1
-        if not fix.ok:
-            continue
-        d = np.subtract(fix.x_ecef_m, t)
-        errs.append(float(np.linalg.norm(d)))
-        lat, lon, _ = ecef_to_geodetic(t)
-        enu = enu_rotation(lat, lon) @ d
-        assert fix.hpl_m is not None and fix.vpl_m is not None
-        outside += math.hypot(enu[0], enu[1]) > fix.hpl_m
-        outside_v += abs(enu[2]) > fix.vpl_m
+    n, errs, outside, outside_v = _scored(_aided_fixes())
     availability = len(errs) / n
     p50, p95 = np.percentile(errs, [50, 95])
     figures = (availability, p50, p95, max(errs), outside, outside_v)
@@ -242,23 +241,13 @@ def test_the_batched_aided_solve_is_the_one_epoch_at_a_time_solve_on_the_drive()
     fixes before it, to the output's bytes (the kernel solving several epochs together
     differs from one alone in the last bits of a float: numpy's stacked products sum in
     another order; the aid, given to 10 cm, does not pass such bits on)."""
-    from service.output.records import fix_json_line
-    from tests.support.aided import aided_one_at_a_time
+    from tests.support.aided import batched_and_alone
 
     systems = parse_systems("C,G,E")
     store, iono = load_navigation([str(p) for p in NAVS], systems=systems)
     opts = BatchOptions(mode="both", cfg=AIDED, with_sky=False)
     epochs = list(RinexObsReader(OBS, systems=systems))
-    got = [
-        fix_json_line(f)
-        for _, fixes in solve_epochs(iter(epochs), store, iono, opts)
-        for f in fixes
-    ]
-    ref = [
-        fix_json_line(f)
-        for _, fixes in aided_one_at_a_time(epochs, store, iono, opts)
-        for f in fixes
-    ]
+    got, ref = batched_and_alone(epochs, store, iono, opts)
     assert len(got) == 2 * len(epochs)
     assert got == ref
     assert sum("longer than predicted" in f for f in got) > 10

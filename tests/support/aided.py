@@ -35,3 +35,17 @@ def aided_one_at_a_time(
         held.update(fixes[-1], opts.cfg)
         predictor.update(fixes[-1])
         yield view, fixes
+
+
+def batched_and_alone(
+    epochs: list[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
+) -> tuple[list[str], list[str]]:
+    """The JSON lines of every fix of ``bdsfix solve``'s batched aided solve
+    (:func:`service.commands.solve.solve_epochs`) and of :func:`aided_one_at_a_time`, in
+    order: what the two must give byte for byte."""
+    from service.commands.solve import solve_epochs
+    from service.output.records import fix_json_line
+
+    got = [fix_json_line(f) for _, fx in solve_epochs(iter(epochs), store, iono, opts) for f in fx]
+    ref = [fix_json_line(f) for _, fx in aided_one_at_a_time(epochs, store, iono, opts) for f in fx]
+    return got, ref
