@@ -52,6 +52,7 @@ from service.engine.coarse import (
     sow_time_shift,
 )
 from service.engine.layout import BDS_ONLY
+from service.engine.recovered import integer_agrees, recovered_ranges
 from service.engine.solver import (
     IonoSet,
     SolverConfig,
@@ -164,6 +165,117 @@ def count_fix(counters: Counters, fix: Fix) -> None:
             counters[f"excluded_{prn}"] += 1
 
 
+def fix_with_velocity(fix: Fix, view: MeasurementEpoch, store: EphemerisStore) -> Fix:
+    """``fix`` with its velocity from ``view``'s Doppler (the stream's and, for its
+    coarse-time fixes, ``bdsfix solve``'s). A coarse-time fix with every range fractional
+    is at the tag plus its solved offset (seconds, with a host clock off): its Doppler rows
+    are taken at that receive time (the clock handed to them is -c x offset), so the
+    satellites' positions and velocities are those of its solution, not up to seconds away
+    along their orbits (1 m/s of range rate per second); the fix itself keeps its clock
+    relative to the tag."""
+    if fix.method != "coarse_time" or fix.full:
+        return with_velocity(fix, view, store)
+    if fix.time_offset_s is None or not math.isfinite(fix.time_offset_s):
+        return fix
+    at_rx = replace(fix, clock_bias_m=-C_M_S * fix.time_offset_s)
+    return replace(fix, velocity=with_velocity(at_rx, view, store).velocity)
+
+
+def coarse_time_fix(
+    paper: Fix,
+    whole: MeasurementEpoch,
+    view: MeasurementEpoch,
+    set_aside: int,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    coarse: CoarseConfig,
+    counters: Counters,
+) -> Fix:
+    """The fix of an epoch after the paper's method gave ``paper``: the coarse-time fix
+    (:mod:`service.engine.coarse`) where the paper's method declined for want of four full
+    ranges (issue 20: the paper's method with >= 4 full GEO ranges, this one otherwise),
+    else ``paper`` itself. The one decision of the stream (:class:`Pipeline`) and of
+    ``bdsfix solve`` alike.
+
+    ``whole``: the epoch with its fractional ranges; ``view``: the same without those
+    :func:`~service.engine.timetag.without_coarse_fractions` set aside (``set_aside`` of
+    them), the rows ``paper`` was solved from. Time prior: an epoch whose time is within
+    ``coarse.time_prior_s`` takes :func:`time_prior`'s; one coarser (a phone before its
+    first fix) is declined ``coarse_time`` (counted ``coarse_time_epochs``) and then tried
+    at the time of its first decoded SOW (:func:`~service.engine.coarse.sow_time_shift`,
+    :func:`~service.engine.coarse.solve_coarse_at_sow`), or with no SOW yet with
+    :func:`wide_time_prior`'s prior where that is within :data:`WIDE_PRIOR_MAX_S`; else it
+    waits. A coarse-time fix published is counted ``coarse_fixes``."""
+    if set_aside and view.time_unc_s > coarse.time_prior_s:
+        # the receiver's time is coarser than even the coarse-time fix's prior: its
+        # fractional ranges wait for the first decoded SOW, whose full range gives the
+        # time to ~10 ms (issue 20); with one, the coarse-time fix is tried at that time
+        if paper.reason_code not in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
+            return paper
+        counters["coarse_time_epochs"] += 1
+        sow = (
+            coarse.coarse_fix
+            and paper.reason_code == Decline.TOO_FEW_FULL
+            and sow_time_shift(whole, store) is not None
+        )
+        # the full ranges the solve needed (its layout's unknowns); with no row at all,
+        # one system's position and clock
+        figures = dict(paper.decline.fields) if paper.decline is not None else {}
+        need = figures.get("need", BDS_ONLY.n_params)
+        why = Declined.of(
+            Decline.COARSE_TIME,
+            time_unc_s=view.time_unc_s,
+            n_frac=set_aside,
+            n_full=int(np.isfinite(view.pr_m).sum()),
+            need=need,
+        )
+        waits = declined(view, why)
+        if sow:  # its decline, if it has no candidates, is this one
+            return _coarse_fix(whole, waits, store, iono, cfg, coarse, counters, at_sow=True)
+        wide = wide_time_prior(view, coarse) if coarse.coarse_fix else None
+        if wide is not None:
+            # no SOW yet: the phone's own uncertainty (5 sigma, <= 30 s) is the prior
+            return _coarse_fix(whole, waits, store, iono, cfg, wide, counters)
+        return waits
+    if coarse.coarse_fix and (
+        paper.reason_code == Decline.TOO_FEW_FULL
+        or (set_aside and paper.reason_code == Decline.NO_MEASUREMENTS)
+    ):
+        return _coarse_fix(whole, paper, store, iono, cfg, time_prior(whole, coarse), counters)
+    return paper
+
+
+def _coarse_fix(
+    view: MeasurementEpoch,
+    paper: Fix,
+    store: EphemerisStore,
+    iono: IonoSet,
+    cfg: SolverConfig,
+    coarse: CoarseConfig,
+    counters: Counters,
+    at_sow: bool = False,
+) -> Fix:
+    """The coarse-time fix (:mod:`service.engine.coarse`) of an epoch the paper's method
+    declined for want of four full ranges, with the settings ``coarse``: its fix, or its
+    decline when it found candidates and none was safe to publish (``chi2``,
+    ``ambiguous``, ``pdop_gate``); else (too few rows, no Doppler) the paper's decline
+    stands, the reason to wait. ``at_sow``: the tag is no prior (``time_unc_s`` beyond
+    ``time_prior_s``), the first decoded SOW is
+    (:func:`service.engine.coarse.solve_coarse_at_sow`)."""
+    if at_sow:
+        result = solve_coarse_at_sow(view, store, iono, cfg, coarse)
+    else:
+        result = solve_coarse(view, store, iono, cfg, coarse)
+    fix = result.fix
+    if fix.ok:
+        counters["coarse_fixes"] += 1
+        return fix
+    if fix.reason_code in {Decline.CHI2, Decline.AMBIGUOUS, Decline.PDOP_GATE}:
+        return fix
+    return paper
+
+
 @dataclass(slots=True)
 class _Recovered:
     week: int
@@ -228,20 +340,6 @@ class Pipeline:
                 self.counters[f"ephemeris_refused_{self.store.last_refusal.check}"] += 1
             if self.store.dropped_unhealthy != unhealthy:
                 self.counters["ephemeris_dropped_unhealthy"] += 1
-
-    def _with_velocity(self, fix: Fix, view: MeasurementEpoch) -> Fix:
-        """``fix`` with its velocity from ``view``'s Doppler. A coarse-time fix with every
-        range fractional is at the tag plus its solved offset (seconds, with a host clock
-        off): its Doppler rows are taken at that receive time (the clock handed to them is
-        -c x offset), so the satellites' positions and velocities are those of its
-        solution, not up to seconds away along their orbits (1 m/s of range rate per
-        second); the fix itself keeps its clock relative to the tag."""
-        if fix.method != "coarse_time" or fix.full:
-            return with_velocity(fix, view, self.store)
-        if fix.time_offset_s is None or not math.isfinite(fix.time_offset_s):
-            return fix
-        at_rx = replace(fix, clock_bias_m=-C_M_S * fix.time_offset_s)
-        return replace(fix, velocity=with_velocity(at_rx, view, self.store).velocity)
 
     def prune_store(self) -> int:
         """Drop ephemerides a day older than the latest measurement and their satellite's
@@ -361,42 +459,11 @@ class Pipeline:
         rows, screened = self._predictor.screen(view, self.store, self.cfg)
         fix = solve(rows, self.store, self.iono, cfg, solver="fast")
         fix = with_screened(fix, screened, view, self.store)
-        if set_aside and view.time_unc_s > self.coarse.time_prior_s:
-            # the receiver's time is coarser than even the coarse-time fix's prior: its
-            # fractional ranges wait for the first decoded SOW, whose full range gives the
-            # time to ~10 ms (issue 20); with one, the coarse-time fix is tried at that time
-            if fix.reason_code in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
-                self.counters["coarse_time_epochs"] += 1
-                sow = (
-                    self.coarse.coarse_fix
-                    and fix.reason_code == Decline.TOO_FEW_FULL
-                    and sow_time_shift(whole, self.store) is not None
-                )
-                # the full ranges the solve needed (its layout's unknowns); with no row at all,
-                # one system's position and clock
-                figures = dict(fix.decline.fields) if fix.decline is not None else {}
-                need = figures.get("need", BDS_ONLY.n_params)
-                why = Declined.of(
-                    Decline.COARSE_TIME,
-                    time_unc_s=view.time_unc_s,
-                    n_frac=set_aside,
-                    n_full=int(np.isfinite(view.pr_m).sum()),
-                    need=need,
-                )
-                fix = declined(view, why)
-                wide = wide_time_prior(view, self.coarse) if self.coarse.coarse_fix else None
-                if sow:  # its decline, if it has no candidates, is this one
-                    fix = self._coarse_fix(whole, fix, at_sow=True)
-                elif wide is not None and fix.reason_code == Decline.COARSE_TIME:
-                    # no SOW yet: the phone's own uncertainty (5 sigma, <= 30 s) is the prior
-                    fix = self._coarse_fix(whole, fix, ccfg=wide)
-        elif self.coarse.coarse_fix and (
-            fix.reason_code == Decline.TOO_FEW_FULL
-            or (set_aside and fix.reason_code == Decline.NO_MEASUREMENTS)
-        ):
-            fix = self._coarse_fix(whole, fix)
+        fix = coarse_time_fix(
+            fix, whole, view, set_aside, self.store, self.iono, self.cfg, self.coarse, self.counters
+        )
         if self.velocity:
-            fix = self._with_velocity(fix, view)
+            fix = fix_with_velocity(fix, view, self.store)
         count_fix(self.counters, fix)
         self._predictor.update(fix)
         if self.cfg.height_aiding:
@@ -406,7 +473,7 @@ class Pipeline:
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
         if fix.mode == "fast":
-            for prn, pr in _recovered_ranges(view, fix).items():
+            for prn, pr in recovered_ranges(view, fix).items():
                 i = view.prn.index(prn)
                 self._recovered[prn] = _Recovered(
                     epoch.gpst_week, epoch.gpst_tow_s, pr, float(view.period_s[i])
@@ -423,33 +490,6 @@ class Pipeline:
             restarted_now,
             self._receiver_fix_near(epoch),
         )
-
-    def _coarse_fix(
-        self,
-        view: MeasurementEpoch,
-        paper: Fix,
-        at_sow: bool = False,
-        ccfg: CoarseConfig | None = None,
-    ) -> Fix:
-        """The coarse-time fix (:mod:`service.engine.coarse`) of an epoch the paper's method
-        declined for want of four full ranges: its fix, or its decline when it found
-        candidates and none was safe to publish (``chi2``, ``ambiguous``, ``pdop_gate``);
-        else (too few rows, no Doppler) the paper's decline stands, the reason to wait.
-        ``at_sow``: the tag is no prior (``time_unc_s`` beyond ``time_prior_s``), the first
-        decoded SOW is (:func:`service.engine.coarse.solve_coarse_at_sow`). ``ccfg``: the
-        settings to solve with (None: :func:`time_prior`'s)."""
-        if at_sow:
-            result = solve_coarse_at_sow(view, self.store, self.iono, self.cfg, self.coarse)
-        else:
-            ccfg = ccfg or time_prior(view, self.coarse)
-            result = solve_coarse(view, self.store, self.iono, self.cfg, ccfg)
-        fix = result.fix
-        if fix.ok:
-            self.counters["coarse_fixes"] += 1
-            return fix
-        if fix.reason_code in {Decline.CHI2, Decline.AMBIGUOUS, Decline.PDOP_GATE}:
-            return fix
-        return paper
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
         """The declined fix of an epoch without a week or not after the latest one."""
@@ -519,7 +559,7 @@ class Pipeline:
             i = view.prn.index(ev.prn)
             full = float(view.pr_m[i])
             dt = diff_s(view.gpst_week, view.gpst_tow_s, rec.week, rec.tow_s)
-            ok = bool(np.isfinite(full)) and abs(full - rec.pr_m) < C_M_S * rec.period_s / 2
+            ok = integer_agrees(rec.pr_m, full, rec.period_s)
             checks.append(
                 IntegrityCheck(ev.prn, view.gpst_week, view.gpst_tow_s, rec.pr_m, full, dt, ok)
             )
@@ -535,15 +575,3 @@ class Pipeline:
         if self.on_track is not None:
             for ev in events:
                 self.on_track(ev)
-
-
-def _recovered_ranges(view: MeasurementEpoch, fix: Fix) -> dict[str, float]:
-    """The full ranges a fast fix recovered: ``recovered_pr_m`` (the systems solved with the
-    GEOs' full rows), and for the other systems' fractional rows, whose integers the solver
-    gives only in ``ambiguity`` (paper eq. 11 with the BeiDou clock), fraction + N c T."""
-    out = dict(fix.recovered_pr_m)
-    for prn, n in fix.ambiguity.items():
-        if prn not in out and prn in view.prn:
-            i = view.prn.index(prn)
-            out[prn] = float(view.frac_pr_m[i] + n * C_M_S * view.period_s[i])
-    return out
