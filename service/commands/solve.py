@@ -16,25 +16,31 @@ import logging
 import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, replace
-from typing import IO, Literal
+from typing import IO, TYPE_CHECKING, Literal
 
 from service.core.counters import Counters
+from service.core.declines import Decline
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.aiding import HeightAid, Predictor, SatSide, sat_side, with_screened
+from service.engine.recovered import integer_agrees, recovered_ranges
 from service.engine.solver import (
     CHUNK_EPOCHS,
     EpochAids,
     IonoSet,
     SolverConfig,
     fractionalize,
+    sky_view,
     solve_many,
 )
 from service.engine.timetag import without_coarse_fractions
 from service.engine.velocity import with_velocities
+
+if TYPE_CHECKING:
+    from service.engine.coarse import CoarseConfig
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +56,12 @@ class BatchOptions:
     cfg: SolverConfig = field(default_factory=SolverConfig)
     with_sky: bool = True
     """Attach the sky view to each fix (only the NMEA output shows it: GSV)."""
+    coarse: CoarseConfig | None = None
+    """The coarse-time fix's settings (None: its defaults; ``coarse_fix=False``: none), for
+    the fast solver's epochs with too few full ranges, as the stream
+    (:func:`service.engine.pipeline.coarse_time_fix`)."""
+    counters: Counters = field(default_factory=Counters, compare=False)
+    """Where the coarse-time fix counts ``coarse_time_epochs`` and ``coarse_fixes``."""
 
 
 def load_navigation(
@@ -98,29 +110,150 @@ def solve_epochs(
     with a position gets its velocity from the epoch's Doppler, a chunk at a time
     (:func:`~service.engine.velocity.with_velocities`). With height aiding or the
     prediction screen each epoch's inputs depend on the fixes before it: :func:`solve_aided`
-    solves them in batches until those inputs settle."""
+    solves them in batches until those inputs settle. The fast solver's epochs with too few
+    full ranges get the stream's coarse-time fix (:func:`with_coarse_fixes`), and the ranges
+    its fixes recover are checked against the file's full ones (:func:`_checked`)."""
     if opts.cfg.height_aiding or opts.cfg.screen_predicted_m > 0.0:
-        yield from solve_aided(epochs, store, iono, opts)
-        return
+        solved = solve_aided(epochs, store, iono, opts)
+    else:
+        solved = _solve_plain(epochs, store, iono, opts)
+    if opts.mode == "spp":
+        yield from solved
+    else:
+        yield from _checked(solved, opts)
+
+
+def _solve_plain(
+    epochs: Iterator[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
+) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
+    """:func:`solve_epochs` without height aiding or the prediction screen."""
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
+        read = chunk
         # a receiver time coarser than 1 ms (a phone before its first fix): no fractional
         # range enters the fix (service.engine.timetag.COARSE_TIME_S)
         chunk = [without_coarse_fractions(e)[0] for e in chunk]
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
-            fast_in = chunk
-            if opts.fractional == "non-geo":
-                fast_in = [fractionalize(e, opts.period_s) for e in chunk]
-            per_solver.append(solve_many(fast_in, store, iono, opts.cfg, "fast", opts.with_sky))
+            # (a time coarser than 1 ms: the ranges made fractional set aside too)
+            fast_in = [without_coarse_fractions(_fast_whole(e, opts))[0] for e in read]
+            fast = solve_many(fast_in, store, iono, opts.cfg, "fast", opts.with_sky)
+            per_solver.append(with_coarse_fixes(fast, read, store, iono, opts))
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(chunk, store, iono, opts.cfg, "spp", opts.with_sky))
         # the velocities of every solver's fixes in one computation (each fix's the same as
         # alone: with_velocities)
         pairs = [pair for fixes in per_solver for pair in zip(fixes, chunk, strict=True)]
-        moving = with_velocities(pairs, store)
+        moving = _coarse_velocities(with_velocities(pairs, store), pairs, store, opts)
         per_solver = [moving[k : k + len(chunk)] for k in range(0, len(moving), len(chunk))]
         for k, epoch in enumerate(chunk):
             yield epoch, [fixes[k] for fixes in per_solver]
+
+
+def _checked(
+    solved: Iterator[tuple[MeasurementEpoch, list[Fix]]], opts: BatchOptions
+) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
+    """``solved`` as it is, each range a fast fix recovered (paper eq. 11, or the
+    coarse-time fix's integers) checked as the stream checks it once the satellite's SOW
+    decodes (:func:`service.engine.recovered.integer_agrees`): against the file's full range
+    of the satellite, that of the same epoch where the file has it (every non-GEO range
+    with ``--fractional non-geo``), else the next one read (a phone's range fractional in
+    the file). Counted in ``opts.counters`` as ``integrity_checks`` and
+    ``integrity_failures`` (each failure logged)."""
+    counters = opts.counters
+    pending: dict[str, tuple[float, float]] = {}  # PRN: (recovered range [m], period [s])
+
+    def check(prn: str, rec_m: float, full_m: float, period_s: float) -> None:
+        counters["integrity_checks"] += 1
+        if not integer_agrees(rec_m, full_m, period_s):
+            counters["integrity_failures"] += 1
+            log.error("integrity: %s recovered %.1f m, the file gives %.1f m", prn, rec_m, full_m)
+
+    for epoch, fixes in solved:
+        full = {p: float(pr) for p, pr in zip(epoch.prn, epoch.pr_m, strict=True) if pr == pr}
+        for prn in [p for p in pending if p in full]:
+            rec_m, period_s = pending.pop(prn)
+            check(prn, rec_m, full[prn], period_s)
+        fast = fixes[0]
+        if fast.mode == "fast":
+            view = without_coarse_fractions(_fast_whole(epoch, opts))[0]
+            for prn, rec_m in recovered_ranges(view, fast).items():
+                period_s = float(view.period_s[view.prn.index(prn)])
+                if prn in full:
+                    check(prn, rec_m, full[prn], period_s)
+                else:
+                    pending[prn] = (rec_m, period_s)
+        yield epoch, fixes
+
+
+COARSE_REASONS = frozenset({Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS})
+"""The declines of the paper's method after which the stream may try the coarse-time fix
+(:func:`service.engine.pipeline.coarse_time_fix` leaves every other fix as it is)."""
+
+
+def _fast_whole(epoch: MeasurementEpoch, opts: BatchOptions) -> MeasurementEpoch:
+    """``epoch`` as the fast solver takes it, before the fractional ranges of a coarse time
+    are set aside: its non-GEO ranges fractional with ``--fractional non-geo``."""
+    if opts.fractional == "non-geo":
+        return fractionalize(epoch, opts.period_s)
+    return epoch
+
+
+def with_coarse_fixes(
+    fixes: list[Fix],
+    epochs: list[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet,
+    opts: BatchOptions,
+) -> list[Fix]:
+    """The fast solver's ``fixes`` of ``epochs`` (as read: their fractional ranges, those
+    of ``--fractional non-geo`` too, are the coarse-time fix's rows), the coarse-time fix
+    in place of the declines after which the stream tries it:
+    the stream's own decision and time prior rules
+    (:func:`service.engine.pipeline.coarse_time_fix`), an epoch at a time (the epochs
+    with too few full ranges; none on a file whose every epoch has four GEOs). The
+    solver's settings are ``opts.cfg`` without an epoch's aid, as the stream's; with
+    ``opts.with_sky`` a fix gets its sky view as the kernel's do."""
+    todo = [k for k, fix in enumerate(fixes) if fix.reason_code in COARSE_REASONS]
+    if not todo:
+        return fixes
+    from service.engine.coarse import CoarseConfig
+    from service.engine.pipeline import coarse_time_fix
+
+    coarse = opts.coarse or CoarseConfig()
+    out = list(fixes)
+    for k in todo:
+        whole = _fast_whole(epochs[k], opts)
+        view, set_aside = without_coarse_fractions(whole)
+        fix = coarse_time_fix(
+            fixes[k], whole, view, set_aside, store, iono, opts.cfg, coarse, opts.counters
+        )
+        if opts.with_sky and fix.ok and fix is not fixes[k]:
+            fix = replace(fix, sky=sky_view(view, store, fix))
+        out[k] = fix
+    return out
+
+
+def _coarse_velocities(
+    moving: list[Fix],
+    pairs: list[tuple[Fix, MeasurementEpoch]],
+    store: EphemerisStore,
+    opts: BatchOptions,
+) -> list[Fix]:
+    """``moving`` (the velocities of ``pairs`` computed together), those of the coarse-time
+    fixes as the stream gives them (:func:`service.engine.pipeline.fix_with_velocity`: an
+    all-fractional one at its solved receive time), from the rows the fast solver had (the
+    satellites' transmit times from its fractional ranges, as the stream's)."""
+    todo = [j for j, (fix, _) in enumerate(pairs) if fix.method == "coarse_time"]
+    if not todo:
+        return moving
+    from service.engine.pipeline import fix_with_velocity
+
+    out = list(moving)
+    for j in todo:
+        fix, epoch = pairs[j]
+        view = without_coarse_fractions(_fast_whole(epoch, opts))[0]
+        out[j] = fix_with_velocity(fix, view, store)
+    return out
 
 
 def solve_aided(
@@ -192,7 +325,7 @@ def solve_aided(
                 continue
             passes += 1
             resolved += len(todo)
-            for k, fixes in _solve_inputs(views, todo, store, iono, opts).items():
+            for k, fixes in _solve_inputs(views, todo, store, iono, opts, chunk).items():
                 moved[k], used[k] = fixes, todo[k]
         log.debug(
             "aided chunk of %d epochs: %d passes, %d epochs solved (%d again)",
@@ -255,11 +388,14 @@ def _solve_inputs(
     store: EphemerisStore,
     iono: IonoSet,
     opts: BatchOptions,
+    read: list[MeasurementEpoch],
 ) -> dict[int, list[Fix]]:
     """The fixes (with velocities, without the screen's reasons) of the epochs ``todo``
     given their inputs, solved together: the epochs without an aid in one batch, those
     with one in others (each epoch its own aid, :class:`EpochAids`; no two of one time in
-    a batch)."""
+    a batch). A fast fix declined for too few full ranges: the coarse-time fix of the
+    epoch as ``read`` (:func:`with_coarse_fixes`, unscreened and without an aid, as the
+    stream's)."""
     batches: list[tuple[list[int], SolverConfig]] = [([], opts.cfg)]
     aids: list[dict[tuple[int, float], tuple[float, float]]] = []
     for k, inputs in todo.items():
@@ -281,26 +417,30 @@ def _solve_inputs(
         rows = [todo[k].rows for k in batch]
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
-            fast_in = rows
-            if opts.fractional == "non-geo":
-                fast_in = [fractionalize(r, opts.period_s) for r in rows]
-            per_solver.append(solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky))
+            # (a time coarser than 1 ms: the ranges made fractional set aside too)
+            fast_in = [without_coarse_fractions(_fast_whole(r, opts))[0] for r in rows]
+            fast = solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky)
+            per_solver.append(with_coarse_fixes(fast, [read[k] for k in batch], store, iono, opts))
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(rows, store, iono, cfg, "spp", opts.with_sky))
         for j, k in enumerate(batch):
             out[k] = [fixes[j] for fixes in per_solver]
-    return _with_velocities(out, views, store)
+    return _with_velocities(out, views, store, opts)
 
 
 def _with_velocities(
-    fixes: dict[int, list[Fix]], views: list[MeasurementEpoch], store: EphemerisStore
+    fixes: dict[int, list[Fix]],
+    views: list[MeasurementEpoch],
+    store: EphemerisStore,
+    opts: BatchOptions,
 ) -> dict[int, list[Fix]]:
     """The fixes of each epoch (the same number each) with their velocities, computed
     together (:func:`~service.engine.velocity.with_velocities`: each the same as alone;
     the aid and the prediction use them)."""
     ks = list(fixes)
     m = len(fixes[ks[0]]) if ks else 0
-    moving = with_velocities([(f, views[k]) for k in ks for f in fixes[k]], store)
+    pairs = [(f, views[k]) for k in ks for f in fixes[k]]
+    moving = _coarse_velocities(with_velocities(pairs, store), pairs, store, opts)
     return {k: moving[j * m : (j + 1) * m] for j, k in enumerate(ks)}
 
 
@@ -405,6 +545,19 @@ def main_solve(args: argparse.Namespace) -> int:
             n_fixes = ran - counts[f"{solver}:none"]
             parts.append(f"{solver} solver {n_fixes} fixes ({modes or 'none'})")
     print(f"bdsfix solve: {n_epochs} epochs; " + "; ".join(parts), file=sys.stderr)
+    if opts.counters["integrity_checks"]:
+        print(
+            f"  fast solver integrity checks {opts.counters['integrity_checks']} (recovered "
+            "ranges against the file's full ones), failures "
+            f"{opts.counters['integrity_failures']}",
+            file=sys.stderr,
+        )
+    if opts.counters["coarse_fixes"]:
+        print(
+            f"  fast solver coarse-time fixes {opts.counters['coarse_fixes']} (fewer full "
+            "ranges than the paper's method needs: Doppler prior, coarse time)",
+            file=sys.stderr,
+        )
     for solver, c in declined.items():
         for line in decline_lines(c, indent=f"  {solver} solver ", command="solve"):
             print(line, file=sys.stderr)

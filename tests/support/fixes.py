@@ -5,6 +5,7 @@ under test."""
 from __future__ import annotations
 
 import math
+import re
 
 from service.core.declines import Decline, Declined
 from service.core.types import Fix, SatView
@@ -107,3 +108,10 @@ def declined_fix(**changes: object) -> Fix:
     }
     fields.update(changes)
     return Fix(**fields)  # type: ignore[arg-type]
+
+
+def without_since_start(line: str) -> str:
+    """A stream's FIX JSON line without its ``since_start_s`` (the time since the stream's
+    first epoch, which ``bdsfix solve`` does not write): the same bytes as solve's record
+    of the same fix."""
+    return re.sub(r',"since_start_s":[^,}]*', "", line)

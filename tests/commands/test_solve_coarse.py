@@ -1,0 +1,79 @@
+"""``bdsfix solve`` takes the stream's coarse-time fix where the paper's method has too few
+full ranges (issue 20: the paper's method with >= 4 GEO full ranges, this method otherwise),
+on a real RINEX file with no GEO: the u-blox F9P beside the HKSC station."""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+
+from service.commands.cli import main
+from tests.support.fixes import without_since_start
+from tests.support.paths import DATA
+
+OBS = DATA / "hksc-2021" / "20210610.klt1.ublox.f9p.obs"
+NAV = DATA / "hksc-2021" / "hksc1610.nav"
+
+
+def test_solve_gives_the_streams_coarse_time_fixes_of_a_file_without_geos(tmp_path, capsys):
+    """The stream after a receiver restart (``replay --restart-at 0``) has every range
+    fractional until the first SOWs decode: its first epochs are coarse-time fixes. ``solve
+    --fractional non-geo`` gives the fast solver the same rows (no GEO in the file: every
+    range fractional) at every epoch: the same FIX records, byte for byte bar the stream's
+    ``since_start_s``, at those epochs, and a coarse-time fix at every epoch (the paper's
+    method declined them all for too few full ranges before). The receiver clock is 9.7 ms
+    off, so the millisecond common to every range stays in doubt: each fix is the
+    coarse-time solution itself (coarse.py step 5; no absolute integer, so no range to
+    check against the file's full one, in the stream neither), within 10 m of SPP of the
+    file's full ranges (median under 1 m)."""
+    out = tmp_path / "solve.jsonl"
+    assert main(["solve", str(OBS), str(NAV), "--mode", "both", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "205 epochs; fast solver 205 fixes" in err
+    assert "fast solver coarse-time fixes 205 " in err
+    lines = out.read_text().splitlines()
+    fast = [x for x in lines if '"solver":"fast"' in x]
+    spp = [json.loads(x) for x in lines if '"solver":"spp"' in x]
+    records = [json.loads(x) for x in fast]
+    assert all(r["method"] == "coarse_time" and not r.get("ambiguity") for r in records)
+    assert all(r["mode"] == "spp" for r in spp)
+    apart_m = [math.dist(r["x_ecef_m"], s["x_ecef_m"]) for r, s in zip(records, spp, strict=True)]
+    assert max(apart_m) < 10.0 and statistics.median(apart_m) < 1.0
+    replayed = tmp_path / "replay.jsonl"
+    args = ["replay", str(OBS), "--nav", str(NAV), "--restart-at", "0", "--max-speed"]
+    assert main([*args, "--jsonl-out", str(replayed)]) == 0
+    capsys.readouterr()
+    stream = [x for x in replayed.read_text().splitlines() if '"class":"FIX"' in x]
+    assert len(stream) == len(fast) == 205
+    coarse = [k for k, x in enumerate(stream) if '"method":"coarse_time"' in x]
+    assert coarse == [0, 1, 2, 3]
+    assert [without_since_start(stream[k]) for k in coarse] == [fast[k] for k in coarse]
+
+
+def test_solve_checks_the_coarse_time_fixes_integers_against_the_files_full_ranges(capsys):
+    """A real urban receiver with 3 GEOs (hk-urban-3geo-2020): the paper's method declines
+    every epoch (too few full ranges), the coarse-time fix gives one at each, its integers
+    absolute (the GEOs' full rows anchor them): every range it recovers is checked against
+    the file's full range of the same epoch (2834 of them) and none is wrong. Where its
+    fault exclusion left out the same satellites as SPP's, the fix is SPP of the full
+    ranges to the bit (coarse.py step 5)."""
+    obs = DATA / "hk-urban-3geo-2020" / "rover.obs"
+    nav = DATA / "hk-urban-3geo-2020" / "navigation_message.nav"
+    assert main(["solve", str(obs), str(nav), "--mode", "both"]) == 0
+    captured = capsys.readouterr()
+    assert "fast solver 300 fixes" in captured.err
+    assert "fast solver coarse-time fixes 300 " in captured.err
+    assert "fast solver integrity checks 2834 " in captured.err
+    assert "failures 0" in captured.err
+    records = [json.loads(x) for x in captured.out.splitlines()]
+    fast = [r for r in records if r["solver"] == "fast"]
+    spp = [r for r in records if r["solver"] == "spp"]
+    assert all(r["method"] == "coarse_time" and r["ambiguity"] for r in fast)
+    same = [
+        (f, s)
+        for f, s in zip(fast, spp, strict=True)
+        if s["mode"] == "spp" and f.get("excluded") == s.get("excluded")
+    ]
+    assert len(same) > 100
+    assert all(f["x_ecef_m"] == s["x_ecef_m"] for f, s in same)
