@@ -60,8 +60,6 @@ class BatchOptions:
     """The coarse-time fix's settings (None: its defaults; ``coarse_fix=False``: none), for
     the fast solver's epochs with too few full ranges, as the stream
     (:func:`service.engine.pipeline.coarse_time_fix`)."""
-    counters: Counters = field(default_factory=Counters, compare=False)
-    """Where the coarse-time fix counts ``coarse_time_epochs`` and ``coarse_fixes``."""
 
 
 def load_navigation(
@@ -100,7 +98,11 @@ def load_navigation(
 
 
 def solve_epochs(
-    epochs: Iterator[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
+    epochs: Iterator[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet,
+    opts: BatchOptions,
+    counters: Counters | None = None,
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
     """Yield each epoch with its fixes (fast first, then SPP, as the mode asks).
 
@@ -112,7 +114,9 @@ def solve_epochs(
     prediction screen each epoch's inputs depend on the fixes before it: :func:`solve_aided`
     solves them in batches until those inputs settle. The fast solver's epochs with too few
     full ranges get the stream's coarse-time fix (:func:`with_coarse_fixes`), and the ranges
-    its fixes recover are checked against the file's full ones (:func:`_checked`)."""
+    its fixes recover are checked against the file's full ones (:func:`_checked`), counted
+    in ``counters`` (``integrity_checks``, ``integrity_failures``) when given."""
+    counters = Counters() if counters is None else counters
     if opts.cfg.height_aiding or opts.cfg.screen_predicted_m > 0.0:
         solved = solve_aided(epochs, store, iono, opts)
     else:
@@ -120,11 +124,14 @@ def solve_epochs(
     if opts.mode == "spp":
         yield from solved
     else:
-        yield from _checked(solved, opts)
+        yield from _checked(solved, opts, counters)
 
 
 def _solve_plain(
-    epochs: Iterator[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
+    epochs: Iterator[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet,
+    opts: BatchOptions,
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
     """:func:`solve_epochs` without height aiding or the prediction screen."""
     while chunk := list(itertools.islice(epochs, CHUNK_EPOCHS)):
@@ -150,16 +157,15 @@ def _solve_plain(
 
 
 def _checked(
-    solved: Iterator[tuple[MeasurementEpoch, list[Fix]]], opts: BatchOptions
+    solved: Iterator[tuple[MeasurementEpoch, list[Fix]]], opts: BatchOptions, counters: Counters
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
     """``solved`` as it is, each range a fast fix recovered (paper eq. 11, or the
     coarse-time fix's integers) checked as the stream checks it once the satellite's SOW
     decodes (:func:`service.engine.recovered.integer_agrees`): against the file's full range
     of the satellite, that of the same epoch where the file has it (every non-GEO range
     with ``--fractional non-geo``), else the next one read (a phone's range fractional in
-    the file). Counted in ``opts.counters`` as ``integrity_checks`` and
+    the file). Counted in ``counters`` as ``integrity_checks`` and
     ``integrity_failures`` (each failure logged)."""
-    counters = opts.counters
     pending: dict[str, tuple[float, float]] = {}  # PRN: (recovered range [m], period [s])
 
     def check(prn: str, rec_m: float, full_m: float, period_s: float) -> None:
@@ -212,7 +218,9 @@ def with_coarse_fixes(
     (:func:`service.engine.pipeline.coarse_time_fix`), an epoch at a time (the epochs
     with too few full ranges; none on a file whose every epoch has four GEOs). The
     solver's settings are ``opts.cfg`` without an epoch's aid, as the stream's; with
-    ``opts.with_sky`` a fix gets its sky view as the kernel's do."""
+    ``opts.with_sky`` a fix gets its sky view as the kernel's do. (Its counters are not
+    kept: the aided path solves an epoch more than once; the summary counts the coarse-time
+    fixes written.)"""
     todo = [k for k, fix in enumerate(fixes) if fix.reason_code in COARSE_REASONS]
     if not todo:
         return fixes
@@ -225,7 +233,7 @@ def with_coarse_fixes(
         whole = _fast_whole(epochs[k], opts)
         view, set_aside = without_coarse_fractions(whole)
         fix = coarse_time_fix(
-            fixes[k], whole, view, set_aside, store, iono, opts.cfg, coarse, opts.counters
+            fixes[k], whole, view, set_aside, store, iono, opts.cfg, coarse, Counters()
         )
         if opts.with_sky and fix.ok and fix is not fixes[k]:
             fix = replace(fix, sky=sky_view(view, store, fix))
@@ -257,7 +265,10 @@ def _coarse_velocities(
 
 
 def solve_aided(
-    epochs: Iterator[MeasurementEpoch], store: EphemerisStore, iono: IonoSet, opts: BatchOptions
+    epochs: Iterator[MeasurementEpoch],
+    store: EphemerisStore,
+    iono: IonoSet,
+    opts: BatchOptions,
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
     """:func:`solve_epochs` with height aiding or the prediction screen
     (:mod:`service.engine.aiding`): each epoch's aid and screen come from the fixes before
@@ -420,7 +431,8 @@ def _solve_inputs(
             # (a time coarser than 1 ms: the ranges made fractional set aside too)
             fast_in = [without_coarse_fractions(_fast_whole(r, opts))[0] for r in rows]
             fast = solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky)
-            per_solver.append(with_coarse_fixes(fast, [read[k] for k in batch], store, iono, opts))
+            fast = with_coarse_fixes(fast, [read[k] for k in batch], store, iono, opts)
+            per_solver.append(fast)
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(rows, store, iono, cfg, "spp", opts.with_sky))
         for j, k in enumerate(batch):
@@ -509,18 +521,20 @@ def main_solve(args: argparse.Namespace) -> int:
             ((e.gpst_week, e.gpst_tow_s) for e in head if isinstance(e, MeasurementEpoch)), None
         )
     store, iono = load_navigation(list(args.nav), first=first, systems=systems)
-    counts, excluded = Counters(), Counters()
+    counts, excluded, engine = Counters(), Counters(), Counters()
     declined = {"fast": Counters(), "spp": Counters()}
     n_epochs = 0
     with _open_out(args.out) as out, batch_gc():
         if args.format == "csv":
             out.write(csv_header() + "\n")
-        for _epoch, fixes in solve_epochs(epochs, store, iono, opts):
+        for _epoch, fixes in solve_epochs(epochs, store, iono, opts, engine):
             n_epochs += 1
             if n_epochs % CHUNK_EPOCHS == 0:
                 gc.collect()
             for fix in fixes:
                 counts[f"{fix.solver}:{fix.mode}"] += 1
+                if fix.ok and fix.method == "coarse_time":
+                    engine["coarse_fixes"] += 1
                 if fix.reason_code:
                     declined[fix.solver][f"declined_{fix.reason_code}"] += 1
                 for prn in fix.excluded:
@@ -545,16 +559,16 @@ def main_solve(args: argparse.Namespace) -> int:
             n_fixes = ran - counts[f"{solver}:none"]
             parts.append(f"{solver} solver {n_fixes} fixes ({modes or 'none'})")
     print(f"bdsfix solve: {n_epochs} epochs; " + "; ".join(parts), file=sys.stderr)
-    if opts.counters["integrity_checks"]:
+    if engine["integrity_checks"]:
         print(
-            f"  fast solver integrity checks {opts.counters['integrity_checks']} (recovered "
+            f"  fast solver integrity checks {engine['integrity_checks']} (recovered "
             "ranges against the file's full ones), failures "
-            f"{opts.counters['integrity_failures']}",
+            f"{engine['integrity_failures']}",
             file=sys.stderr,
         )
-    if opts.counters["coarse_fixes"]:
+    if engine["coarse_fixes"]:
         print(
-            f"  fast solver coarse-time fixes {opts.counters['coarse_fixes']} (fewer full "
+            f"  fast solver coarse-time fixes {engine['coarse_fixes']} (fewer full "
             "ranges than the paper's method needs: Doppler prior, coarse time)",
             file=sys.stderr,
         )
