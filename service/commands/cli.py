@@ -218,6 +218,7 @@ def _solve_flags(s: argparse.ArgumentParser) -> None:
     """The flags of ``bdsfix solve``."""
     from service.core.settings import add_flags
     from service.core.systems import SystemsConfig
+    from service.engine.coarse import CoarseConfig
     from service.engine.solver import SolverConfig
 
     s.add_argument(
@@ -253,6 +254,9 @@ def _solve_flags(s: argparse.ArgumentParser) -> None:
     s.add_argument("--out", default="-", help="output file, - for stdout")
     add_flags(s, SolverConfig, "solver")
     add_flags(s, SystemsConfig, "systems")
+    add_flags(
+        s, CoarseConfig, "coarse-time first fix (fast solver; fewer full ranges than unknowns)"
+    )
 
 
 def _coverage_flags(c: argparse.ArgumentParser) -> None:

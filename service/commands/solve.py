@@ -497,7 +497,7 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.source import file_epochs
-    from service.commands.options import solver_config, systems_of
+    from service.commands.options import coarse_config, solver_config, systems_of
     from service.commands.summary import decline_lines, no_epochs_hint, skipped_line
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
@@ -511,6 +511,7 @@ def main_solve(args: argparse.Namespace) -> int:
         period_s=None if args.period_ms is None else args.period_ms * 1e-3,
         cfg=cfg,
         with_sky=args.format == "nmea",
+        coarse=coarse_config(args),
     )
     systems = systems_of(args)
     events, read_counters = file_epochs(args.obs, systems=systems)

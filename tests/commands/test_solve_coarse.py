@@ -77,3 +77,17 @@ def test_solve_checks_the_coarse_time_fixes_integers_against_the_files_full_rang
     ]
     assert len(same) > 100
     assert all(f["x_ecef_m"] == s["x_ecef_m"] for f, s in same)
+
+
+def test_solve_coarse_fix_false_leaves_the_papers_declines(capsys):
+    """``--coarse-fix false`` (the stream's flag, now also solve's): the same 3-GEO file's
+    fast solver publishes no fix (the paper's method has three full ranges, it needs four)
+    and every fast record is the paper's decline, too few full ranges."""
+    obs = DATA / "hk-urban-3geo-2020" / "rover.obs"
+    nav = DATA / "hk-urban-3geo-2020" / "navigation_message.nav"
+    assert main(["solve", str(obs), str(nav), "--mode", "fast", "--coarse-fix", "false"]) == 0
+    captured = capsys.readouterr()
+    assert "fast solver 0 fixes" in captured.err
+    records = [json.loads(x) for x in captured.out.splitlines()]
+    assert len(records) == 300
+    assert all(r["reason_code"] == "too_few_full" for r in records)
