@@ -91,10 +91,14 @@ from service.engine.solver import (
     IonoSet,
     SolverConfig,
     declined,
-    delays,
+    lsq_step,
     measurement_sigma_m,
+    normal_matrix,
+    pseudo_rows,
     ranges,
     solve,
+    system_delays,
+    time_prior_row,
     total_delay,
 )
 from service.engine.velocity import range_rate_m_s
@@ -635,21 +639,17 @@ def _solve_candidates(
     rows, its own convergence test, frozen once it has converged; a left-out row weighs 0
     and counts nowhere (redundancy, elevation, statistic)."""
     k, n = n_int.shape
-    n_clk = sats.layout.n_clocks
-    i_t = 3 + n_clk  # the coarse-time column
+    layout = sats.layout
+    n_clk = layout.n_clocks
+    i_t = layout.time_column
     onehot = np.zeros((n, n_clk))
     onehot[np.arange(n), sats.clk] = 1.0
+    cix = None if n_clk == 1 else np.broadcast_to(sats.clk, (k, n))
     p = sats.z_m + n_int * sats.ct_m  # (k, n)
     omega = np.broadcast_to(sats.eph.omega_e_rad_s, (k, n))
     # each row's system's ionosphere, as the solver's (IonoSet.models: BeiDou's set for
     # BeiDou rows, GPS's for GPS and Galileo rows), each on its own carrier
     models = iono.models(cfg.iono)
-    model = None if models is None else models.bds
-    other = None
-    if models is not None and models.other is not model and not bool(np.all(sats.eph.bds)):
-        other = models.other
-    no_tropo = replace(cfg, tropo="off")
-    bds_cols, other_cols = np.flatnonzero(sats.eph.bds), np.flatnonzero(~sats.eph.bds)
     x = x0.copy()
     dt = np.zeros(k)
     rel = bdt_sow - sats.t0  # the tag's receive time, from t0
@@ -667,14 +667,11 @@ def _solve_candidates(
         b = _clock_medians(p - pred, row_mask, sats.clk, n_clk)
     batched = len(starts) > 1 or row_mask is not None
     active = np.ones(k, dtype=bool)
-    w_prior = 1.0 / ccfg.time_prior_s**2
     mask_sin = math.sin(math.radians(cfg.elmask_deg))
     carrier = sats.eph.carrier_hz
     el = np.zeros((k, n))
     alt = np.zeros(k)
-    v = np.zeros((k, n))
-    w = np.ones((k, n))
-    diag = np.arange(3, i_t)
+    hold = _hold_rows(k, layout) if n_clk > 1 else None
     for it in range(ccfg.iterations):
         d = pos - x[:, None, :]
         tau = np.sqrt(np.einsum("kni,kni->kn", d, d)) / C_M_S
@@ -689,16 +686,8 @@ def _solve_candidates(
             el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
             az = np.arctan2(enu[..., 0], enu[..., 1])
         if near:
-            if other is None:
-                io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
-            else:  # each system's rows with its own broadcast model, the troposphere of all
-                _, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, None, cfg)
-                io = np.empty((k, n))
-                for cols, m in ((bds_cols, model), (other_cols, other)):
-                    if len(cols):
-                        t_s = bdt_sow + dt
-                        args = (lat, lon, alt, el[:, cols], az[:, cols], t_s, carrier[cols])
-                        io[:, cols] = delays(*args, m, no_tropo)[0]
+            t_s = bdt_sow + dt
+            io, tr = system_delays(lat, lon, alt, el, az, t_s, carrier, sats.eph.bds, models, cfg)
             corr = total_delay(io, tr)
             sigma = measurement_sigma_m(el, sats.cn0_dbhz, io, tr, cfg)
             w = np.where(enu[..., 2] >= mask_sin, 1.0 / sigma**2, 0.0)
@@ -709,21 +698,13 @@ def _solve_candidates(
         if row_mask is not None:
             w = np.where(row_mask, w, 0.0)
             v = np.where(row_mask, v, 0.0)
-        h = np.concatenate([-los, np.broadcast_to(onehot, (k, n, n_clk)), rdot[..., None]], axis=-1)
-        hw = h * w[..., None]
-        normal = np.einsum("kni,knj->kij", hw, h)
-        normal[:, i_t, i_t] += w_prior
-        if n_clk > 1:  # a system with no row left (the mask): its clock held where it is
+        h = layout.design(los, cix, rdot)
+        # the time prior, a row of the least squares (and of the statistic below)
+        g_all, v_all, w_all = time_prior_row(h, v, w, layout, dt, ccfg.time_prior_s)
+        if hold is not None:  # a system with no row left (the mask): its clock held
             empty = (w > 0).astype(float) @ onehot == 0.0  # (k, S)
-            normal[:, diag, diag] += empty
-        rhs = np.einsum("kni,kn->ki", hw, v)
-        rhs[:, i_t] += w_prior * (0.0 - dt)
-        try:
-            step = np.linalg.solve(normal, rhs[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.stack(
-                [np.linalg.lstsq(a, r, rcond=None)[0] for a, r in zip(normal, rhs, strict=True)]
-            )
+            g_all, v_all, w_all = pseudo_rows(g_all, v_all, w_all, hold, 0.0 * empty, empty)
+        step, _, _ = lsq_step(g_all, v_all, w_all)
         if not batched:
             x = x + step[:, :3]
             b = b + step[:, 3:i_t]
@@ -741,9 +722,9 @@ def _solve_candidates(
         b = b + step[:, 3:i_t]
         dt = dt + step[:, i_t]
         if it == 0:
-            out = [v, w, h, normal, el, np.asarray(alt)]
+            out = [v, w, h, g_all, v_all, w_all, el, np.asarray(alt)]
         else:
-            now = [v, w, h, normal, el, np.asarray(alt)]
+            now = [v, w, h, g_all, v_all, w_all, el, np.asarray(alt)]
             out = [np.where(_cast(active, o), a, o) for a, o in zip(now, out, strict=True)]
         if it >= 2:
             moved_g = np.maximum.reduceat(np.abs(step[:, :i_t]).max(axis=1), starts)
@@ -753,14 +734,25 @@ def _solve_candidates(
             if not active.any():
                 break
     if batched:
-        v, w, h, normal, el, alt = out
-    t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
-    # rows + the prior's row - the parameters: position, the time and a clock per system
-    # with rows (Layout.redundancy of the systems each candidate uses)
+        v, w, h, g_all, v_all, w_all, el, alt = out
+    # the statistic: the range rows' weighted squares at the last linearization and the
+    # time prior row's at the solution (the held clocks' rows have misclosure 0); the
+    # redundancy: the layout's, the prior a row, with the clocks that have rows
+    t_stat = np.einsum("kn,kn->k", w * v, v) + w_all[:, n] * (0.0 - dt) ** 2
     n_sys = ((w > 0).astype(float) @ onehot > 0).sum(axis=1)
-    dof = (w > 0).sum(axis=1) + PRIOR_ROWS - (4 + n_sys)
+    dof = layout.redundancy((w > 0).sum(axis=1) + PRIOR_ROWS, n_sys)
     min_el = el.min(axis=1) if row_mask is None else np.where(row_mask, el, np.inf).min(axis=1)
-    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), min_el, normal, h, v, w)
+    normal = normal_matrix(g_all, w_all)[1]
+    return _Solved(x, b, dt, t_stat, np.asarray(dof), np.asarray(alt), min_el, normal, h, v, w)
+
+
+def _hold_rows(k: int, layout: Layout) -> np.ndarray:
+    """Pseudo-observation rows (k, clocks, p) that hold each clock where it is (partial 1
+    on it, misclosure 0): weighted 1 for a system the mask left without rows, 0 else."""
+    rows = np.zeros((k, layout.n_clocks, layout.n_params))
+    idx = np.arange(layout.n_clocks)
+    rows[:, idx, 3 + idx] = 1.0
+    return rows
 
 
 def _clock_medians(

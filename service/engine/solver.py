@@ -800,15 +800,22 @@ _Step = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
 (None: none) and the epochs whose step is finite (None: every one's)."""
 
 
-def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> _Step:
+def normal_matrix(h: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """H^T W and the normal matrix H^T W H (e, p, p) of designs ``h`` (e, n, p) with row
+    weights ``w`` (e, n) (paper eq. 10): the matrix :func:`lsq_step` solves with."""
+    ht = h.swapaxes(-1, -2) * w[:, None, :]
+    return ht, ht @ h
+
+
+def lsq_step(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> _Step:
     """Per epoch, the weighted least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and
     16) over rows with w > 0 (rows with w = 0 are out), through the normal equations (a
     handful of unknowns, where an SVD per iteration costs more than the rest of the
     iteration). An epoch whose normal matrix is singular takes numpy's minimum-norm least
     squares; the second value marks the epochs that fails for too (None: none), whose step
     is NaN; the third, the epochs whose step is finite (None: all of them)."""
-    ht = h.swapaxes(-1, -2) * w[:, None, :]
-    a, rhs = ht @ h, ht @ dz[..., None]
+    ht, a = normal_matrix(h, w)
+    rhs = ht @ dz[..., None]
     try:
         x, finite = linalg.solve_finite(a, rhs)
         step = x[..., 0]
@@ -1060,7 +1067,7 @@ def _solve_chunk(
         # (without fractional rows zn is z: dz is the merit's residuals)
         dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix]) if has_frac else resid[ix]
         h = design(st.los[ix], ix)
-        step, bad, _ = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
+        step, bad, _ = lsq_step(h, dz, fullw[ix])  # eq. (10) over the full rows
         if bad is not None:
             singular[sel[bad]] = True
             active[sel[bad]] = False
@@ -1176,7 +1183,7 @@ def _solve_chunk(
         ix = slice(None) if sel.size == n_e else sel
         _add(iters, ix, 1)
         dz = zn[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
-        step, bad, finite = _lsq(design(los[ix], ix), dz, validw[ix])
+        step, bad, finite = lsq_step(design(los[ix], ix), dz, validw[ix])
         if bad is not None:
             for e in sel[bad].tolist():
                 numerical[e] = _SINGULAR_MESSAGE
@@ -1375,7 +1382,7 @@ def _weighted(
             unit_m = 1.0 if cfg.weighted else cfg.sigma_uniform_m
             at = _aid_at(aid, ix)
             g, dz, w = _height_row(g, dz, w, _rot, alt, nr, at, squared=True, unit_m=unit_m)
-        step, bad, finite = _lsq(g, dz, w)
+        step, bad, finite = lsq_step(g, dz, w)
         if bad is not None:
             bad_lsq[act[bad]] = True
             act, step = act[~bad], step[~bad]
@@ -1494,11 +1501,42 @@ def _height_row(
         ww = np.full((n_e, 1), val) if near is None else np.where(near, val, far)
     ww = ww.reshape(n_e, 1)
     mis = np.where(ww == far, 0.0, mis)
+    return pseudo_rows(g, dz, w, row, mis, ww)
+
+
+def pseudo_rows(
+    g: np.ndarray,
+    dz: np.ndarray,
+    w: np.ndarray,
+    rows: np.ndarray,
+    misclosure: np.ndarray,
+    weight: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The design ``g`` (e, s, p), misclosures ``dz`` (e, s) and weights (or sigmas) ``w``
+    (e, s) of some problems joined by pseudo-observation rows: their partials ``rows``
+    (e, r, p), misclosures (e, r) and weights (or sigmas) (e, r). A pseudo-observation is
+    a row like any other: it enters the least squares (:func:`lsq_step`), the chi-square
+    statistic and the redundancy (:meth:`Layout.redundancy`)."""
     return (
-        np.concatenate([g, row], axis=1),
-        np.concatenate([dz, mis], axis=1),
-        np.concatenate([w, ww], axis=1),
+        np.concatenate([g, rows], axis=1),
+        np.concatenate([dz, misclosure], axis=1),
+        np.concatenate([w, weight], axis=1),
     )
+
+
+def time_prior_row(
+    g: np.ndarray, dz: np.ndarray, w: np.ndarray, layout: Layout, dt_s: np.ndarray, sigma_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The design ``g`` (e, s, p) of a coarse-time ``layout``, misclosures ``dz`` and
+    weights ``w`` (e, s) joined by the time prior (:func:`pseudo_rows`): the tag is an
+    observation of the receive time with its own sigma, dt = 0 +- ``sigma_s`` (van
+    Diggelen, *A-GPS*, ch. 4): partial 1 on the coarse-time column, misclosure 0 - dt of
+    the iterate ``dt_s`` (e,), weight 1 / sigma^2."""
+    n_e = len(dz)
+    row = np.zeros((n_e, 1, layout.n_params))
+    row[:, 0, layout.time_column] = 1.0
+    weight = np.full((n_e, 1), 1.0 / sigma_s**2)
+    return pseudo_rows(g, dz, w, row, (0.0 - dt_s)[:, None], weight)
 
 
 def _judged(
