@@ -90,16 +90,15 @@ from service.engine.raim import assess, chi2_threshold
 from service.engine.solver import (
     IonoSet,
     SolverConfig,
+    cn0_variance_m2,
     declined,
     lsq_step,
-    measurement_sigma_m,
     normal_matrix,
     pseudo_rows,
     ranges,
     solve,
-    system_delays,
     time_prior_row,
-    total_delay,
+    weighted_rows,
 )
 from service.engine.velocity import range_rate_m_s
 
@@ -650,6 +649,8 @@ def _solve_candidates(
     # each row's system's ionosphere, as the solver's (IonoSet.models: BeiDou's set for
     # BeiDou rows, GPS's for GPS and Galileo rows), each on its own carrier
     models = iono.models(cfg.iono)
+    wcfg = cfg if cfg.weighted else replace(cfg, weighted=True)  # (always the error model)
+    cn0_var = cn0_variance_m2(sats.cn0_dbhz, cfg)
     x = x0.copy()
     dt = np.zeros(k)
     rel = bdt_sow - sats.t0  # the tag's receive time, from t0
@@ -685,20 +686,33 @@ def _solve_candidates(
             enu = np.einsum("kij,knj->kni", rot, los)
             el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
             az = np.arctan2(enu[..., 0], enu[..., 1])
-        if near:
-            t_s = bdt_sow + dt
-            io, tr = system_delays(lat, lon, alt, el, az, t_s, carrier, sats.eph.bds, models, cfg)
-            corr = total_delay(io, tr)
-            sigma = measurement_sigma_m(el, sats.cn0_dbhz, io, tr, cfg)
-            w = np.where(enu[..., 2] >= mask_sin, 1.0 / sigma**2, 0.0)
+        if near:  # the kernel's rows (delays at the receive time tag + dt, weights)
+            keepw = (enu[..., 2] >= mask_sin).astype(float)
+            loc = (lat, lon, alt, el, az)
+            h, v, w = weighted_rows(
+                layout,
+                los,
+                cix,
+                rdot,
+                p - pred,
+                b,
+                loc,
+                bdt_sow + dt,
+                carrier,
+                sats.eph.bds,
+                models,
+                keepw,
+                cn0_var,
+                None,
+                wcfg,
+            )
         else:
-            corr = 0.0
+            h = layout.design(los, cix, rdot)
+            v = p - pred - b[:, sats.clk]
             w = np.full((k, n), 1e-2)
-        v = p - pred - b[:, sats.clk] - corr
         if row_mask is not None:
             w = np.where(row_mask, w, 0.0)
             v = np.where(row_mask, v, 0.0)
-        h = layout.design(los, cix, rdot)
         # the time prior, a row of the least squares (and of the statistic below)
         g_all, v_all, w_all = time_prior_row(h, v, w, layout, dt, ccfg.time_prior_s)
         if hold is not None:  # a system with no row left (the mask): its clock held

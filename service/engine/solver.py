@@ -1368,16 +1368,24 @@ def _weighted(
         if loc is None or _it:
             loc = _local(x[ix], sat[ix])
         lat, lon, alt, el, az, _rot = loc
-        io, tr = system_delays(lat, lon, alt, el, az, sow[ix], carrier[ix], bds[ix], models, cfg)
-        dz = z[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
-        corr = total_delay(io, tr)
         nr = None if near is None else near[ix]
-        dz = dz - _where(nr, corr, 0.0)
-        w = keepw[ix]
-        if cfg.weighted:
-            sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var[ix])
-            w = np.asarray(_where(nr, w / sig**2, w))
-        g = layout.design(los[ix], cix[ix])
+        g, dz, w = weighted_rows(
+            layout,
+            los[ix],
+            cix[ix],
+            None,
+            z[ix] - pred[ix],
+            b[ix],
+            (lat, lon, alt, el, az),
+            sow[ix],
+            carrier[ix],
+            bds[ix],
+            models,
+            keepw[ix],
+            cn0_var[ix],
+            nr,
+            cfg,
+        )
         if aid is not None:  # (unweighted, a range's weight 1 stands for sigma_uniform_m)
             unit_m = 1.0 if cfg.weighted else cfg.sigma_uniform_m
             at = _aid_at(aid, ix)
@@ -1466,6 +1474,46 @@ def _weighted(
     for k, (g_k, e) in enumerate(zip(good.tolist(), gsel.tolist(), strict=True)):
         out[g_k] = _judged(ch, e, solver, layout, n_int[k], keep[k], integ[k], numbers, k, cfg)
     return out
+
+
+def weighted_rows(
+    layout: Layout,
+    los: np.ndarray,
+    cix: np.ndarray | None,
+    rate_m_s: np.ndarray | None,
+    resid_m: np.ndarray,
+    b: np.ndarray,
+    loc: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    bdt_sow_s: np.ndarray,
+    carrier_hz: np.ndarray,
+    bds_rows: np.ndarray,
+    models: IonoModels | None,
+    keepw: np.ndarray,
+    cn0_var_m2: np.ndarray,
+    near: np.ndarray | None,
+    cfg: SolverConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One weighted iteration's rows of some problems (e) with fixed integers, s rows
+    each, at the iterate's geometry: the design (e, s, p) (:meth:`Layout.design`: lines of
+    sight ``los``, clock indices ``cix``, with a coarse-time layout the range rates
+    ``rate_m_s``), the misclosures z - pred - b - delays (``resid_m``: z - pred, ``b``
+    the clocks (e, clocks)) and the weights ``keepw`` / sigma^2 (``keepw``: 1 for a row
+    in, 0 out; :func:`measurement_sigma_m`, C/N0 term ``cn0_var_m2``; unweighted
+    (``cfg.weighted`` False): ``keepw`` itself). ``loc``: latitude, longitude, height (e,),
+    elevation, azimuth (e, s) of the receivers; delays per row's system
+    (:func:`system_delays`) at receive times ``bdt_sow_s`` (e,). Problems not ``near``
+    the Earth (e, 1; None: all near) get no delays and ``keepw``. The kernel's phase 2
+    (:func:`_weighted`) and the coarse-time fix's candidates both iterate with these."""
+    lat, lon, alt, el, az = loc
+    io, tr = system_delays(lat, lon, alt, el, az, bdt_sow_s, carrier_hz, bds_rows, models, cfg)
+    dz = resid_m - _row_clocks(b, cix) if cix is not None else resid_m - b
+    corr = total_delay(io, tr)
+    dz = dz - _where(near, corr, 0.0)
+    w = keepw
+    if cfg.weighted:
+        sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var_m2)
+        w = np.asarray(_where(near, w / sig**2, w))
+    return layout.design(los, cix, rate_m_s), dz, w
 
 
 def _height_row(
