@@ -34,7 +34,11 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    tag + dt - rho_j / c (each one's position interpolated to second order over the time
    prior), Klobuchar and Saastamoinen delays and the weights of the solver's error model
    (:func:`service.engine.solver.measurement_sigma_m`), and the time prior
-   dt = 0 +- ``time_prior_s`` as one more row.
+   dt = 0 +- ``time_prior_s`` as one more row (a pseudo-observation:
+   :func:`service.engine.solver.time_prior_row`). The iteration is the kernel's
+   (:func:`service.engine.solver.iterate_fixed` with its ``weighted_rows`` and
+   ``lsq_step``): only the geometry (the orbits again at each iterate's receive time) and
+   the convergence (group by group for fault exclusion's row subsets) are this module's.
 4. **Validation.** A candidate passes when its redundancy (rows + the time prior's row -
    the layout's parameters, 3 + systems + 1) is at least
    ``min_redundancy`` and its weighted residuals pass the chi-square test at the solver's
@@ -89,10 +93,11 @@ from service.engine.layout import Layout
 from service.engine.raim import assess, chi2_threshold
 from service.engine.solver import (
     IonoSet,
+    LsqStep,
     SolverConfig,
     cn0_variance_m2,
     declined,
-    lsq_step,
+    iterate_fixed,
     normal_matrix,
     pseudo_rows,
     ranges,
@@ -630,7 +635,8 @@ def _solve_candidates(
     row_mask: np.ndarray | None = None,
     group: np.ndarray | None = None,
 ) -> _Solved:
-    """The coarse-time solve (module docstring, step 3) of every candidate at once.
+    """The coarse-time solve (module docstring, step 3) of every candidate at once, by the
+    kernel's iteration (:func:`service.engine.solver.iterate_fixed`).
 
     ``row_mask`` (k, n), True where a candidate uses a row, and ``group`` (k,), the start
     index of each candidate's group in the (contiguous) groups: several row subsets in one
@@ -673,7 +679,13 @@ def _solve_candidates(
     el = np.zeros((k, n))
     alt = np.zeros(k)
     hold = _hold_rows(k, layout) if n_clk > 1 else None
-    for it in range(ccfg.iterations):
+    h = v = w = g_all = v_all = w_all = np.zeros(0)
+    out: list[np.ndarray] = []
+
+    def linearize(ix: object, it: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # (every candidate, every iteration: a frozen group keeps its state, step 0)
+        nonlocal pos, el, alt, h, v, w, g_all, v_all, w_all
+        # the orbits again at the receive time the iterate's dt moves (tag + dt - flight)
         d = pos - x[:, None, :]
         tau = np.sqrt(np.einsum("kni,kni->kn", d, d)) / C_M_S
         pos, vel, clk = sats.at(rel + dt[:, None] - tau)
@@ -718,7 +730,11 @@ def _solve_candidates(
         if hold is not None:  # a system with no row left (the mask): its clock held
             empty = (w > 0).astype(float) @ onehot == 0.0  # (k, S)
             g_all, v_all, w_all = pseudo_rows(g_all, v_all, w_all, hold, 0.0 * empty, empty)
-        step, _, _ = lsq_step(g_all, v_all, w_all)
+        return g_all, v_all, w_all
+
+    def advance(ix: object, act: np.ndarray, got: LsqStep, it: int) -> np.ndarray:
+        nonlocal x, b, dt, out, active
+        step = got[0]  # (a singular candidate's step is NaN: it cannot pass)
         if not batched:
             x = x + step[:, :3]
             b = b + step[:, 3:i_t]
@@ -727,26 +743,26 @@ def _solve_candidates(
             # 30 km, 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is < 0.1 mm
             moved = np.abs(step[:, :i_t]).max(initial=0.0)
             moved += 1e3 * np.abs(step[:, i_t]).max(initial=0.0)
-            if it >= 2 and moved < 0.05:
-                break
-            continue
+            return act[:0] if it >= 2 and moved < 0.05 else act
         # several groups: the frozen ones keep their state and last figures
         step = np.where(active[:, None], step, 0.0)
         x = x + step[:, :3]
         b = b + step[:, 3:i_t]
         dt = dt + step[:, i_t]
+        now = [v, w, h, g_all, v_all, w_all, el, np.asarray(alt)]
         if it == 0:
-            out = [v, w, h, g_all, v_all, w_all, el, np.asarray(alt)]
+            out = now
         else:
-            now = [v, w, h, g_all, v_all, w_all, el, np.asarray(alt)]
             out = [np.where(_cast(active, o), a, o) for a, o in zip(now, out, strict=True)]
         if it >= 2:
             moved_g = np.maximum.reduceat(np.abs(step[:, :i_t]).max(axis=1), starts)
             moved_g = moved_g + 1e3 * np.maximum.reduceat(np.abs(step[:, i_t]), starts)
             done = np.repeat(moved_g < 0.05, np.diff(np.r_[starts, k]))
             active &= ~done
-            if not active.any():
-                break
+        return act if active.any() else act[:0]
+
+    # the kernel's iteration (solver.iterate_fixed), every candidate at once
+    iterate_fixed(k, ccfg.iterations, linearize, advance)
     if batched:
         v, w, h, g_all, v_all, w_all, el, alt = out
     # the statistic: the range rows' weighted squares at the last linearization and the

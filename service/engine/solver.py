@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -795,7 +795,7 @@ def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
     return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
 
 
-_Step = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
+LsqStep = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
 """The least-squares steps of some epochs (e, params), the epochs whose system is singular
 (None: none) and the epochs whose step is finite (None: every one's)."""
 
@@ -807,7 +807,7 @@ def normal_matrix(h: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return ht, ht @ h
 
 
-def lsq_step(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> _Step:
+def lsq_step(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> LsqStep:
     """Per epoch, the weighted least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and
     16) over rows with w > 0 (rows with w = 0 are out), through the normal equations (a
     handful of unknowns, where an SVD per iteration costs more than the rest of the
@@ -1334,7 +1334,8 @@ def _weighted(
     solver: Literal["fast", "spp"],
 ) -> list[Outcome]:
     """Phase 2's iterations for epochs ``sel`` (rows ``keep``, clocks ``b`` of ``layout``
-    at the rows' indices ``cix``), then the judgement of each solution."""
+    at the rows' indices ``cix``; :func:`iterate_fixed`, the loop the coarse-time fix's
+    candidates share), then the judgement of each solution."""
     n_par = layout.n_params
     n1 = len(sel)
     rows: _Index = slice(None) if n1 == len(ch.z) else sel  # (all: views, no copies)
@@ -1359,13 +1360,11 @@ def _weighted(
     aid = _aids_of(cfg, ch.epochs, sel)
     diverged = np.zeros(n1, dtype=bool)
     bad_lsq = np.zeros(n1, dtype=bool)
-    act = np.arange(n1)
-    for _it in range(cfg.max_iter):
-        if not act.size:
-            break
-        ix: _Index = slice(None) if act.size == n1 else act
+
+    def linearize(ix: _Index, it: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nonlocal loc
         _add(iters, ix, 1)
-        if loc is None or _it:
+        if loc is None or it:
             loc = _local(x[ix], sat[ix])
         lat, lon, alt, el, az, _rot = loc
         nr = None if near is None else near[ix]
@@ -1390,7 +1389,11 @@ def _weighted(
             unit_m = 1.0 if cfg.weighted else cfg.sigma_uniform_m
             at = _aid_at(aid, ix)
             g, dz, w = _height_row(g, dz, w, _rot, alt, nr, at, squared=True, unit_m=unit_m)
-        step, bad, finite = lsq_step(g, dz, w)
+        return g, dz, w
+
+    def advance(ix: _Index, act: np.ndarray, got: LsqStep, it: int) -> np.ndarray:
+        nonlocal los, pred, sat
+        step, bad, finite = got
         if bad is not None:
             bad_lsq[act[bad]] = True
             act, step = act[~bad], step[~bad]
@@ -1409,7 +1412,9 @@ def _weighted(
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
         size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
         more = size >= cfg.conv_m
-        act = act[more if finite is None else finite & more]
+        return act[more if finite is None else finite & more]
+
+    iterate_fixed(n1, cfg.max_iter, linearize, advance)
     out: list[Outcome] = [None] * n1
     for k in bad_lsq.nonzero()[0].tolist():
         out[k] = _numerical(ch.epochs[int(sel[k])], solver, "LinAlgError", _SINGULAR_MESSAGE)
@@ -1474,6 +1479,31 @@ def _weighted(
     for k, (g_k, e) in enumerate(zip(good.tolist(), gsel.tolist(), strict=True)):
         out[g_k] = _judged(ch, e, solver, layout, n_int[k], keep[k], integ[k], numbers, k, cfg)
     return out
+
+
+def iterate_fixed(
+    n: int,
+    max_iter: int,
+    linearize: Callable[[_Index, int], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    advance: Callable[[_Index, np.ndarray, LsqStep, int], np.ndarray],
+) -> None:
+    """The weighted least-squares iteration with the integers fixed, of ``n`` problems at
+    once: the kernel's phase 2 (:func:`_weighted`) and the coarse-time fix's candidates
+    (:mod:`service.engine.coarse`). Each iteration takes the rows of the problems still
+    active, ``linearize(ix, it)`` -> design, misclosures, weights (:func:`weighted_rows` and
+    any pseudo-observation rows: a held height, the time prior), solves their step
+    (:func:`lsq_step`, paper eq. 10) and hands it to ``advance(ix, act, step, it)``, which
+    applies it, computes the geometry at the new iterate (the kernel: the ranges from its
+    fixed orbits; coarse time: the orbits again at the moved receive time), tests
+    convergence and returns the problems still active (``act``: their indices; ``ix``
+    the same, or a slice when every problem is active)."""
+    act = np.arange(n)
+    for it in range(max_iter):
+        if not act.size:
+            break
+        ix: _Index = slice(None) if act.size == n else act
+        g, dz, w = linearize(ix, it)
+        act = advance(ix, act, lsq_step(g, dz, w), it)
 
 
 def weighted_rows(
