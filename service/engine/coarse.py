@@ -34,7 +34,11 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    tag + dt - rho_j / c (each one's position interpolated to second order over the time
    prior), Klobuchar and Saastamoinen delays and the weights of the solver's error model
    (:func:`service.engine.solver.measurement_sigma_m`), and the time prior
-   dt = 0 +- ``time_prior_s`` as one more row.
+   dt = 0 +- ``time_prior_s`` as one more row (a pseudo-observation:
+   :func:`service.engine.solver.time_prior_row`). The iteration is the kernel's
+   (:func:`service.engine.solver.iterate_fixed` with its ``weighted_rows`` and
+   ``lsq_step``): only the geometry (the orbits again at each iterate's receive time) and
+   the convergence (group by group for fault exclusion's row subsets) are this module's.
 4. **Validation.** A candidate passes when its redundancy (rows + the time prior's row -
    the layout's parameters, 3 + systems + 1) is at least
    ``min_redundancy`` and its weighted residuals pass the chi-square test at the solver's
@@ -89,13 +93,17 @@ from service.engine.layout import Layout
 from service.engine.raim import assess, chi2_threshold
 from service.engine.solver import (
     IonoSet,
+    LsqStep,
     SolverConfig,
+    cn0_variance_m2,
     declined,
-    delays,
-    measurement_sigma_m,
+    iterate_fixed,
+    normal_matrix,
+    pseudo_rows,
     ranges,
     solve,
-    total_delay,
+    time_prior_row,
+    weighted_rows,
 )
 from service.engine.velocity import range_rate_m_s
 
@@ -627,7 +635,8 @@ def _solve_candidates(
     row_mask: np.ndarray | None = None,
     group: np.ndarray | None = None,
 ) -> _Solved:
-    """The coarse-time solve (module docstring, step 3) of every candidate at once.
+    """The coarse-time solve (module docstring, step 3) of every candidate at once, by the
+    kernel's iteration (:func:`service.engine.solver.iterate_fixed`).
 
     ``row_mask`` (k, n), True where a candidate uses a row, and ``group`` (k,), the start
     index of each candidate's group in the (contiguous) groups: several row subsets in one
@@ -635,21 +644,19 @@ def _solve_candidates(
     rows, its own convergence test, frozen once it has converged; a left-out row weighs 0
     and counts nowhere (redundancy, elevation, statistic)."""
     k, n = n_int.shape
-    n_clk = sats.layout.n_clocks
-    i_t = 3 + n_clk  # the coarse-time column
+    layout = sats.layout
+    n_clk = layout.n_clocks
+    i_t = layout.time_column
     onehot = np.zeros((n, n_clk))
     onehot[np.arange(n), sats.clk] = 1.0
+    cix = None if n_clk == 1 else np.broadcast_to(sats.clk, (k, n))
     p = sats.z_m + n_int * sats.ct_m  # (k, n)
     omega = np.broadcast_to(sats.eph.omega_e_rad_s, (k, n))
     # each row's system's ionosphere, as the solver's (IonoSet.models: BeiDou's set for
     # BeiDou rows, GPS's for GPS and Galileo rows), each on its own carrier
     models = iono.models(cfg.iono)
-    model = None if models is None else models.bds
-    other = None
-    if models is not None and models.other is not model and not bool(np.all(sats.eph.bds)):
-        other = models.other
-    no_tropo = replace(cfg, tropo="off")
-    bds_cols, other_cols = np.flatnonzero(sats.eph.bds), np.flatnonzero(~sats.eph.bds)
+    wcfg = cfg if cfg.weighted else replace(cfg, weighted=True)  # (always the error model)
+    cn0_var = cn0_variance_m2(sats.cn0_dbhz, cfg)
     x = x0.copy()
     dt = np.zeros(k)
     rel = bdt_sow - sats.t0  # the tag's receive time, from t0
@@ -667,15 +674,18 @@ def _solve_candidates(
         b = _clock_medians(p - pred, row_mask, sats.clk, n_clk)
     batched = len(starts) > 1 or row_mask is not None
     active = np.ones(k, dtype=bool)
-    w_prior = 1.0 / ccfg.time_prior_s**2
     mask_sin = math.sin(math.radians(cfg.elmask_deg))
     carrier = sats.eph.carrier_hz
     el = np.zeros((k, n))
     alt = np.zeros(k)
-    v = np.zeros((k, n))
-    w = np.ones((k, n))
-    diag = np.arange(3, i_t)
-    for it in range(ccfg.iterations):
+    hold = _hold_rows(k, layout) if n_clk > 1 else None
+    h = v = w = g_all = v_all = w_all = np.zeros(0)
+    out: list[np.ndarray] = []
+
+    def linearize(ix: object, it: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # (every candidate, every iteration: a frozen group keeps its state, step 0)
+        nonlocal pos, el, alt, h, v, w, g_all, v_all, w_all
+        # the orbits again at the receive time the iterate's dt moves (tag + dt - flight)
         d = pos - x[:, None, :]
         tau = np.sqrt(np.einsum("kni,kni->kn", d, d)) / C_M_S
         pos, vel, clk = sats.at(rel + dt[:, None] - tau)
@@ -688,42 +698,43 @@ def _solve_candidates(
             enu = np.einsum("kij,knj->kni", rot, los)
             el = np.arcsin(np.clip(enu[..., 2], -1.0, 1.0))
             az = np.arctan2(enu[..., 0], enu[..., 1])
-        if near:
-            if other is None:
-                io, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, model, cfg)
-            else:  # each system's rows with its own broadcast model, the troposphere of all
-                _, tr = delays(lat, lon, alt, el, az, bdt_sow + dt, carrier, None, cfg)
-                io = np.empty((k, n))
-                for cols, m in ((bds_cols, model), (other_cols, other)):
-                    if len(cols):
-                        t_s = bdt_sow + dt
-                        args = (lat, lon, alt, el[:, cols], az[:, cols], t_s, carrier[cols])
-                        io[:, cols] = delays(*args, m, no_tropo)[0]
-            corr = total_delay(io, tr)
-            sigma = measurement_sigma_m(el, sats.cn0_dbhz, io, tr, cfg)
-            w = np.where(enu[..., 2] >= mask_sin, 1.0 / sigma**2, 0.0)
+        if near:  # the kernel's rows (delays at the receive time tag + dt, weights)
+            keepw = (enu[..., 2] >= mask_sin).astype(float)
+            loc = (lat, lon, alt, el, az)
+            h, v, w = weighted_rows(
+                layout,
+                los,
+                cix,
+                rdot,
+                p - pred,
+                b,
+                loc,
+                bdt_sow + dt,
+                carrier,
+                sats.eph.bds,
+                models,
+                keepw,
+                cn0_var,
+                None,
+                wcfg,
+            )
         else:
-            corr = 0.0
+            h = layout.design(los, cix, rdot)
+            v = p - pred - b[:, sats.clk]
             w = np.full((k, n), 1e-2)
-        v = p - pred - b[:, sats.clk] - corr
         if row_mask is not None:
             w = np.where(row_mask, w, 0.0)
             v = np.where(row_mask, v, 0.0)
-        h = np.concatenate([-los, np.broadcast_to(onehot, (k, n, n_clk)), rdot[..., None]], axis=-1)
-        hw = h * w[..., None]
-        normal = np.einsum("kni,knj->kij", hw, h)
-        normal[:, i_t, i_t] += w_prior
-        if n_clk > 1:  # a system with no row left (the mask): its clock held where it is
+        # the time prior, a row of the least squares (and of the statistic below)
+        g_all, v_all, w_all = time_prior_row(h, v, w, layout, dt, ccfg.time_prior_s)
+        if hold is not None:  # a system with no row left (the mask): its clock held
             empty = (w > 0).astype(float) @ onehot == 0.0  # (k, S)
-            normal[:, diag, diag] += empty
-        rhs = np.einsum("kni,kn->ki", hw, v)
-        rhs[:, i_t] += w_prior * (0.0 - dt)
-        try:
-            step = np.linalg.solve(normal, rhs[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.stack(
-                [np.linalg.lstsq(a, r, rcond=None)[0] for a, r in zip(normal, rhs, strict=True)]
-            )
+            g_all, v_all, w_all = pseudo_rows(g_all, v_all, w_all, hold, 0.0 * empty, empty)
+        return g_all, v_all, w_all
+
+    def advance(ix: object, act: np.ndarray, got: LsqStep, it: int) -> np.ndarray:
+        nonlocal x, b, dt, out, active
+        step = got[0]  # (a singular candidate's step is NaN: it cannot pass)
         if not batched:
             x = x + step[:, :3]
             b = b + step[:, 3:i_t]
@@ -732,35 +743,46 @@ def _solve_candidates(
             # 30 km, 175 m, 2.4 cm, 6e-5 m), so after one below 5 cm the next is < 0.1 mm
             moved = np.abs(step[:, :i_t]).max(initial=0.0)
             moved += 1e3 * np.abs(step[:, i_t]).max(initial=0.0)
-            if it >= 2 and moved < 0.05:
-                break
-            continue
+            return act[:0] if it >= 2 and moved < 0.05 else act
         # several groups: the frozen ones keep their state and last figures
         step = np.where(active[:, None], step, 0.0)
         x = x + step[:, :3]
         b = b + step[:, 3:i_t]
         dt = dt + step[:, i_t]
+        now = [v, w, h, g_all, v_all, w_all, el, np.asarray(alt)]
         if it == 0:
-            out = [v, w, h, normal, el, np.asarray(alt)]
+            out = now
         else:
-            now = [v, w, h, normal, el, np.asarray(alt)]
             out = [np.where(_cast(active, o), a, o) for a, o in zip(now, out, strict=True)]
         if it >= 2:
             moved_g = np.maximum.reduceat(np.abs(step[:, :i_t]).max(axis=1), starts)
             moved_g = moved_g + 1e3 * np.maximum.reduceat(np.abs(step[:, i_t]), starts)
             done = np.repeat(moved_g < 0.05, np.diff(np.r_[starts, k]))
             active &= ~done
-            if not active.any():
-                break
+        return act if active.any() else act[:0]
+
+    # the kernel's iteration (solver.iterate_fixed), every candidate at once
+    iterate_fixed(k, ccfg.iterations, linearize, advance)
     if batched:
-        v, w, h, normal, el, alt = out
-    t_stat = np.einsum("kn,kn->k", w * v, v) + w_prior * dt**2
-    # rows + the prior's row - the parameters: position, the time and a clock per system
-    # with rows (Layout.redundancy of the systems each candidate uses)
+        v, w, h, g_all, v_all, w_all, el, alt = out
+    # the statistic: the range rows' weighted squares at the last linearization and the
+    # time prior row's at the solution (the held clocks' rows have misclosure 0); the
+    # redundancy: the layout's, the prior a row, with the clocks that have rows
+    t_stat = np.einsum("kn,kn->k", w * v, v) + w_all[:, n] * (0.0 - dt) ** 2
     n_sys = ((w > 0).astype(float) @ onehot > 0).sum(axis=1)
-    dof = (w > 0).sum(axis=1) + PRIOR_ROWS - (4 + n_sys)
+    dof = layout.redundancy((w > 0).sum(axis=1) + PRIOR_ROWS, n_sys)
     min_el = el.min(axis=1) if row_mask is None else np.where(row_mask, el, np.inf).min(axis=1)
-    return _Solved(x, b, dt, t_stat, dof, np.asarray(alt), min_el, normal, h, v, w)
+    normal = normal_matrix(g_all, w_all)[1]
+    return _Solved(x, b, dt, t_stat, np.asarray(dof), np.asarray(alt), min_el, normal, h, v, w)
+
+
+def _hold_rows(k: int, layout: Layout) -> np.ndarray:
+    """Pseudo-observation rows (k, clocks, p) that hold each clock where it is (partial 1
+    on it, misclosure 0): weighted 1 for a system the mask left without rows, 0 else."""
+    rows = np.zeros((k, layout.n_clocks, layout.n_params))
+    idx = np.arange(layout.n_clocks)
+    rows[:, idx, 3 + idx] = 1.0
+    return rows
 
 
 def _clock_medians(

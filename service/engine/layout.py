@@ -5,8 +5,10 @@ satellite system among the rows (each system's time scale and signal delays diff
 each has its own clock: the inter-system bias is the difference of two of them); the
 fast fix adds one integer-millisecond column per fractional row (paper eq. 11), which is
 not part of the layout (they are resolved, then held). A velocity problem solves the
-receiver velocity and one clock drift per system. There is room for a coarse-time
-offset (the unknown receive time of a fix without a time tag), not solved yet.
+receiver velocity and one clock drift per system. The coarse-time fix
+(:mod:`service.engine.coarse`) adds a coarse-time offset dt (the unknown receive time of a
+tag that may be seconds off: true receive time = tag + dt), whose column is each row's
+range rate (van Diggelen, *A-GPS*, ch. 4: d rho_j / d dt = e_j . V_j).
 
 Every statistic that depends on the number of unknowns (redundancy, the chi-square test
 and its degrees of freedom, w-tests, protection levels, DOPs, the least number of rows of
@@ -34,7 +36,7 @@ _ORDER = tuple(GnssSystem)
 class Layout:
     """The parameters of one problem, in column order: 3 position (or velocity)
     components, one clock (or clock drift) per system of ``systems``, then a coarse-time
-    offset when ``coarse_time``."""
+    offset [s] when ``coarse_time`` (its column: the rows' range rates, :meth:`design`)."""
 
     systems: tuple[GnssSystem, ...] = (GnssSystem.BDS,)
     problem: Literal["position", "velocity"] = "position"
@@ -58,19 +60,41 @@ class Layout:
         tail = ("coarse_time",) if self.coarse_time else ()
         return (*pos, *(f"{clk}_{s.value}" for s in self.systems), *tail)
 
-    def redundancy(self, n_rows: int | np.ndarray) -> int | np.ndarray:
-        """Rows minus parameters: the degrees of freedom of the chi-square test."""
-        return n_rows - self.n_params
+    def redundancy(
+        self, n_rows: int | np.ndarray, clocks_used: int | np.ndarray | None = None
+    ) -> int | np.ndarray:
+        """Rows minus parameters: the degrees of freedom of the chi-square test. A
+        pseudo-observation (a held height, the coarse-time fix's time prior) is a row.
+        ``clocks_used``: how many of the clocks have rows (a system the elevation mask
+        left without rows has no clock to solve; None: every one)."""
+        if clocks_used is None:
+            return n_rows - self.n_params
+        return n_rows - (self.n_params - self.n_clocks + clocks_used)
+
+    @property
+    def time_column(self) -> int:
+        """The index of the coarse-time column (the last)."""
+        if not self.coarse_time:
+            raise ValueError("this layout has no coarse-time column")
+        return self.n_params - 1
 
     def clock_index(self, sats: Sequence[str]) -> np.ndarray:
         """For each row (satellite ID), the index of its system's clock among the clocks."""
         where = {s.value: k for k, s in enumerate(self.systems)}
         return np.fromiter((where[p[:1]] for p in sats), dtype=np.intp, count=len(sats))
 
-    def design(self, los: np.ndarray, clock_idx: np.ndarray | None = None) -> np.ndarray:
+    def design(
+        self,
+        los: np.ndarray,
+        clock_idx: np.ndarray | None = None,
+        rate_m_s: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The design matrix (..., n, n_params) of line-of-sight unit vectors ``los``
         (..., n, 3): rows [-e^T, one-hot of the row's clock] (paper eq. 9 with a clock
-        per system). ``clock_idx``: :meth:`clock_index` of the rows (None: one system)."""
+        per system), and with ``coarse_time`` the row's range rate ``rate_m_s`` (..., n)
+        [m/s], e_j . V_j (the partial of the predicted range by the receive time,
+        van Diggelen's coarse-time column). ``clock_idx``: :meth:`clock_index` of the rows
+        (None: one system)."""
         shape = los.shape[:-1]
         if self.n_clocks == 1 and not self.coarse_time:
             return np.concatenate([-los, _ones(shape)], axis=-1)
@@ -80,8 +104,10 @@ class Layout:
         else:
             np.put_along_axis(clocks, np.asarray(clock_idx)[..., None], 1.0, axis=-1)
         parts = [-los, clocks]
-        if self.coarse_time:  # room for the coarse-time column: the range rates (not yet)
-            parts.append(np.zeros((*shape, 1)))
+        if self.coarse_time:
+            if rate_m_s is None:
+                raise ValueError("a coarse-time design needs the rows' range rates")
+            parts.append(np.broadcast_to(np.asarray(rate_m_s)[..., None], (*shape, 1)))
         return np.concatenate(parts, axis=-1)
 
 

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -795,20 +795,27 @@ def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
     return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
 
 
-_Step = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
+LsqStep = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
 """The least-squares steps of some epochs (e, params), the epochs whose system is singular
 (None: none) and the epochs whose step is finite (None: every one's)."""
 
 
-def _lsq(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> _Step:
+def normal_matrix(h: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """H^T W and the normal matrix H^T W H (e, p, p) of designs ``h`` (e, n, p) with row
+    weights ``w`` (e, n) (paper eq. 10): the matrix :func:`lsq_step` solves with."""
+    ht = h.swapaxes(-1, -2) * w[:, None, :]
+    return ht, ht @ h
+
+
+def lsq_step(h: np.ndarray, dz: np.ndarray, w: np.ndarray) -> LsqStep:
     """Per epoch, the weighted least-squares step (H^T W H)^-1 H^T W dz (paper eqs. 10 and
     16) over rows with w > 0 (rows with w = 0 are out), through the normal equations (a
     handful of unknowns, where an SVD per iteration costs more than the rest of the
     iteration). An epoch whose normal matrix is singular takes numpy's minimum-norm least
     squares; the second value marks the epochs that fails for too (None: none), whose step
     is NaN; the third, the epochs whose step is finite (None: all of them)."""
-    ht = h.swapaxes(-1, -2) * w[:, None, :]
-    a, rhs = ht @ h, ht @ dz[..., None]
+    ht, a = normal_matrix(h, w)
+    rhs = ht @ dz[..., None]
     try:
         x, finite = linalg.solve_finite(a, rhs)
         step = x[..., 0]
@@ -1060,7 +1067,7 @@ def _solve_chunk(
         # (without fractional rows zn is z: dz is the merit's residuals)
         dz = zn[ix] - st.pred[ix] - _row_clocks(st.b[ix], cix[ix]) if has_frac else resid[ix]
         h = design(st.los[ix], ix)
-        step, bad, _ = _lsq(h, dz, fullw[ix])  # eq. (10) over the full rows
+        step, bad, _ = lsq_step(h, dz, fullw[ix])  # eq. (10) over the full rows
         if bad is not None:
             singular[sel[bad]] = True
             active[sel[bad]] = False
@@ -1176,7 +1183,7 @@ def _solve_chunk(
         ix = slice(None) if sel.size == n_e else sel
         _add(iters, ix, 1)
         dz = zn[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
-        step, bad, finite = _lsq(design(los[ix], ix), dz, validw[ix])
+        step, bad, finite = lsq_step(design(los[ix], ix), dz, validw[ix])
         if bad is not None:
             for e in sel[bad].tolist():
                 numerical[e] = _SINGULAR_MESSAGE
@@ -1327,7 +1334,8 @@ def _weighted(
     solver: Literal["fast", "spp"],
 ) -> list[Outcome]:
     """Phase 2's iterations for epochs ``sel`` (rows ``keep``, clocks ``b`` of ``layout``
-    at the rows' indices ``cix``), then the judgement of each solution."""
+    at the rows' indices ``cix``; :func:`iterate_fixed`, the loop the coarse-time fix's
+    candidates share), then the judgement of each solution."""
     n_par = layout.n_params
     n1 = len(sel)
     rows: _Index = slice(None) if n1 == len(ch.z) else sel  # (all: views, no copies)
@@ -1352,30 +1360,40 @@ def _weighted(
     aid = _aids_of(cfg, ch.epochs, sel)
     diverged = np.zeros(n1, dtype=bool)
     bad_lsq = np.zeros(n1, dtype=bool)
-    act = np.arange(n1)
-    for _it in range(cfg.max_iter):
-        if not act.size:
-            break
-        ix: _Index = slice(None) if act.size == n1 else act
+
+    def linearize(ix: _Index, it: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nonlocal loc
         _add(iters, ix, 1)
-        if loc is None or _it:
+        if loc is None or it:
             loc = _local(x[ix], sat[ix])
         lat, lon, alt, el, az, _rot = loc
-        io, tr = system_delays(lat, lon, alt, el, az, sow[ix], carrier[ix], bds[ix], models, cfg)
-        dz = z[ix] - pred[ix] - _row_clocks(b[ix], cix[ix])
-        corr = total_delay(io, tr)
         nr = None if near is None else near[ix]
-        dz = dz - _where(nr, corr, 0.0)
-        w = keepw[ix]
-        if cfg.weighted:
-            sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var[ix])
-            w = np.asarray(_where(nr, w / sig**2, w))
-        g = layout.design(los[ix], cix[ix])
+        g, dz, w = weighted_rows(
+            layout,
+            los[ix],
+            cix[ix],
+            None,
+            z[ix] - pred[ix],
+            b[ix],
+            (lat, lon, alt, el, az),
+            sow[ix],
+            carrier[ix],
+            bds[ix],
+            models,
+            keepw[ix],
+            cn0_var[ix],
+            nr,
+            cfg,
+        )
         if aid is not None:  # (unweighted, a range's weight 1 stands for sigma_uniform_m)
             unit_m = 1.0 if cfg.weighted else cfg.sigma_uniform_m
             at = _aid_at(aid, ix)
             g, dz, w = _height_row(g, dz, w, _rot, alt, nr, at, squared=True, unit_m=unit_m)
-        step, bad, finite = _lsq(g, dz, w)
+        return g, dz, w
+
+    def advance(ix: _Index, act: np.ndarray, got: LsqStep, it: int) -> np.ndarray:
+        nonlocal los, pred, sat
+        step, bad, finite = got
         if bad is not None:
             bad_lsq[act[bad]] = True
             act, step = act[~bad], step[~bad]
@@ -1394,7 +1412,9 @@ def _weighted(
             los[fin], pred[fin], sat[fin] = ranges(sat0[fin], clk[fin], x[fin], omega[fin])
         size = np.sqrt(linalg.einsum("ek,ek->e", step, step))
         more = size >= cfg.conv_m
-        act = act[more if finite is None else finite & more]
+        return act[more if finite is None else finite & more]
+
+    iterate_fixed(n1, cfg.max_iter, linearize, advance)
     out: list[Outcome] = [None] * n1
     for k in bad_lsq.nonzero()[0].tolist():
         out[k] = _numerical(ch.epochs[int(sel[k])], solver, "LinAlgError", _SINGULAR_MESSAGE)
@@ -1461,6 +1481,71 @@ def _weighted(
     return out
 
 
+def iterate_fixed(
+    n: int,
+    max_iter: int,
+    linearize: Callable[[_Index, int], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    advance: Callable[[_Index, np.ndarray, LsqStep, int], np.ndarray],
+) -> None:
+    """The weighted least-squares iteration with the integers fixed, of ``n`` problems at
+    once: the kernel's phase 2 (:func:`_weighted`) and the coarse-time fix's candidates
+    (:mod:`service.engine.coarse`). Each iteration takes the rows of the problems still
+    active, ``linearize(ix, it)`` -> design, misclosures, weights (:func:`weighted_rows` and
+    any pseudo-observation rows: a held height, the time prior), solves their step
+    (:func:`lsq_step`, paper eq. 10) and hands it to ``advance(ix, act, step, it)``, which
+    applies it, computes the geometry at the new iterate (the kernel: the ranges from its
+    fixed orbits; coarse time: the orbits again at the moved receive time), tests
+    convergence and returns the problems still active (``act``: their indices; ``ix``
+    the same, or a slice when every problem is active)."""
+    act = np.arange(n)
+    for it in range(max_iter):
+        if not act.size:
+            break
+        ix: _Index = slice(None) if act.size == n else act
+        g, dz, w = linearize(ix, it)
+        act = advance(ix, act, lsq_step(g, dz, w), it)
+
+
+def weighted_rows(
+    layout: Layout,
+    los: np.ndarray,
+    cix: np.ndarray | None,
+    rate_m_s: np.ndarray | None,
+    resid_m: np.ndarray,
+    b: np.ndarray,
+    loc: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    bdt_sow_s: np.ndarray,
+    carrier_hz: np.ndarray,
+    bds_rows: np.ndarray,
+    models: IonoModels | None,
+    keepw: np.ndarray,
+    cn0_var_m2: np.ndarray,
+    near: np.ndarray | None,
+    cfg: SolverConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One weighted iteration's rows of some problems (e) with fixed integers, s rows
+    each, at the iterate's geometry: the design (e, s, p) (:meth:`Layout.design`: lines of
+    sight ``los``, clock indices ``cix``, with a coarse-time layout the range rates
+    ``rate_m_s``), the misclosures z - pred - b - delays (``resid_m``: z - pred, ``b``
+    the clocks (e, clocks)) and the weights ``keepw`` / sigma^2 (``keepw``: 1 for a row
+    in, 0 out; :func:`measurement_sigma_m`, C/N0 term ``cn0_var_m2``; unweighted
+    (``cfg.weighted`` False): ``keepw`` itself). ``loc``: latitude, longitude, height (e,),
+    elevation, azimuth (e, s) of the receivers; delays per row's system
+    (:func:`system_delays`) at receive times ``bdt_sow_s`` (e,). Problems not ``near``
+    the Earth (e, 1; None: all near) get no delays and ``keepw``. The kernel's phase 2
+    (:func:`_weighted`) and the coarse-time fix's candidates both iterate with these."""
+    lat, lon, alt, el, az = loc
+    io, tr = system_delays(lat, lon, alt, el, az, bdt_sow_s, carrier_hz, bds_rows, models, cfg)
+    dz = resid_m - _row_clocks(b, cix) if cix is not None else resid_m - b
+    corr = total_delay(io, tr)
+    dz = dz - _where(near, corr, 0.0)
+    w = keepw
+    if cfg.weighted:
+        sig = measurement_sigma_m(el, None, io, tr, cfg, cn0_var_m2)
+        w = np.asarray(_where(near, w / sig**2, w))
+    return layout.design(los, cix, rate_m_s), dz, w
+
+
 def _height_row(
     g: np.ndarray,
     dz: np.ndarray,
@@ -1494,11 +1579,42 @@ def _height_row(
         ww = np.full((n_e, 1), val) if near is None else np.where(near, val, far)
     ww = ww.reshape(n_e, 1)
     mis = np.where(ww == far, 0.0, mis)
+    return pseudo_rows(g, dz, w, row, mis, ww)
+
+
+def pseudo_rows(
+    g: np.ndarray,
+    dz: np.ndarray,
+    w: np.ndarray,
+    rows: np.ndarray,
+    misclosure: np.ndarray,
+    weight: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The design ``g`` (e, s, p), misclosures ``dz`` (e, s) and weights (or sigmas) ``w``
+    (e, s) of some problems joined by pseudo-observation rows: their partials ``rows``
+    (e, r, p), misclosures (e, r) and weights (or sigmas) (e, r). A pseudo-observation is
+    a row like any other: it enters the least squares (:func:`lsq_step`), the chi-square
+    statistic and the redundancy (:meth:`Layout.redundancy`)."""
     return (
-        np.concatenate([g, row], axis=1),
-        np.concatenate([dz, mis], axis=1),
-        np.concatenate([w, ww], axis=1),
+        np.concatenate([g, rows], axis=1),
+        np.concatenate([dz, misclosure], axis=1),
+        np.concatenate([w, weight], axis=1),
     )
+
+
+def time_prior_row(
+    g: np.ndarray, dz: np.ndarray, w: np.ndarray, layout: Layout, dt_s: np.ndarray, sigma_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The design ``g`` (e, s, p) of a coarse-time ``layout``, misclosures ``dz`` and
+    weights ``w`` (e, s) joined by the time prior (:func:`pseudo_rows`): the tag is an
+    observation of the receive time with its own sigma, dt = 0 +- ``sigma_s`` (van
+    Diggelen, *A-GPS*, ch. 4): partial 1 on the coarse-time column, misclosure 0 - dt of
+    the iterate ``dt_s`` (e,), weight 1 / sigma^2."""
+    n_e = len(dz)
+    row = np.zeros((n_e, 1, layout.n_params))
+    row[:, 0, layout.time_column] = 1.0
+    weight = np.full((n_e, 1), 1.0 / sigma_s**2)
+    return pseudo_rows(g, dz, w, row, (0.0 - dt_s)[:, None], weight)
 
 
 def _judged(

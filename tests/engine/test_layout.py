@@ -118,3 +118,39 @@ def test_a_chunk_solves_the_mixed_epochs_with_a_clock_per_system(hksc, take):
             assert abs(b.clocks_m[s] - c) <= 1e-6
         assert np.linalg.norm(np.subtract(a.x_ecef_m, b.x_ecef_m)) <= 1e-6
     assert sum(len(f.clocks_m) == 2 for f in many) == (len(epochs) // 2 if take else 0)
+
+
+def test_the_coarse_time_column_is_each_rows_range_rate(hksc):
+    """``Layout(coarse_time=True)``: the fifth column is d rho / d t of each row (van
+    Diggelen's coarse-time row), checked against the ranges of HKSC's broadcast orbits
+    10 ms apart; the time prior is a row of the redundancy."""
+    from service.core.orbit import sat_pos_clock
+    from service.core.timebase import gpst_to_bdt
+
+    epochs, store, _ = hksc
+    ep = epochs[0]
+    week, sow = gpst_to_bdt(ep.gpst_week, ep.gpst_tow_s)
+    ephs = [e for p in ep.prn if (e := store.select(p, week, sow)) is not None]
+    arr = store.arrays(ephs)
+    t = np.full(len(ephs), sow - 0.075)
+    p0, _ = sat_pos_clock(arr, week, t)
+    p1, _ = sat_pos_clock(arr, week, t + 0.01)
+    x = np.asarray(HKSC_TRUTH_ECEF_M)
+    los = (p0 - x) / np.linalg.norm(p0 - x, axis=1)[:, None]
+    rate = np.einsum("ij,ij->i", los, (p1 - p0) / 0.01)
+    lay = Layout(coarse_time=True)
+    g = lay.design(los, None, rate)
+    assert lay.names[-1] == "coarse_time" and lay.time_column == 4 and g.shape == (len(ephs), 5)
+    drho = (np.linalg.norm(p1 - x, axis=1) - np.linalg.norm(p0 - x, axis=1)) / 0.01
+    assert np.abs(g[:, 4]).max() > 100.0  # (MEOs: hundreds of m/s)
+    np.testing.assert_allclose(g[:, 4], drho, atol=0.05)
+    np.testing.assert_array_equal(g[:, :4], BDS_ONLY.design(los))
+    with pytest.raises(ValueError):
+        lay.design(los)
+    with pytest.raises(ValueError):
+        _ = BDS_ONLY.time_column
+    # six ranges and the time prior's row against five unknowns: redundancy 2; two
+    # systems' layout with one system's rows only: that system's clock alone is solved
+    assert lay.redundancy(6 + 1) == 2
+    two = Layout((GnssSystem.BDS, GnssSystem.GPS), coarse_time=True)
+    assert two.redundancy(7, clocks_used=1) == 2 and two.redundancy(7) == 1
