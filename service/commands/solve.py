@@ -300,6 +300,7 @@ def solve_aided(
         views = [without_coarse_fractions(e)[0] for e in chunk]
         n = len(views)
         moved: list[list[Fix] | None] = [None] * n  # the fixes (with velocities), unscreened
+        coarse = [False] * n  # whether the fast fix is the coarse-time fix's (not screened)
         used: list[_Inputs | None] = [None] * n  # the inputs each was solved with
         want: list[_Inputs | None] = [None] * n  # the inputs from the fixes as last solved
         cache: dict[int, tuple[object, MeasurementEpoch, dict[str, str]]] = {}
@@ -315,7 +316,7 @@ def solve_aided(
                     todo[k] = inputs
                 fixes = moved[k]
                 if fixes is not None:
-                    guess: Fix | None = _finished(fixes, inputs, views[k], store)[-1]
+                    guess: Fix | None = _finished(fixes, inputs, views[k], store, coarse[k])[-1]
                 else:  # not solved yet: the last fix moved on by its velocity stands in
                     guess = p.guess(views[k].gpst_week, views[k].gpst_tow_s)
                 if guess is not None:
@@ -328,7 +329,7 @@ def solve_aided(
                 fixes, final = moved[k], want[k]
                 if fixes is None or final is None:  # (solved with its inputs, or in todo)
                     raise RuntimeError(f"aided epoch {k} has no fixes")
-                done.append(_finished(fixes, final, views[k], store))
+                done.append(_finished(fixes, final, views[k], store, coarse[k]))
                 held.update(done[-1][-1], opts.cfg)
                 predictor.update(done[-1][-1])
             front = stop
@@ -336,8 +337,9 @@ def solve_aided(
                 continue
             passes += 1
             resolved += len(todo)
-            for k, fixes in _solve_inputs(views, todo, store, iono, opts, chunk).items():
-                moved[k], used[k] = fixes, todo[k]
+            solved, from_coarse = _solve_inputs(views, todo, store, iono, opts, chunk)
+            for k, fixes in solved.items():
+                moved[k], used[k], coarse[k] = fixes, todo[k], k in from_coarse
         log.debug(
             "aided chunk of %d epochs: %d passes, %d epochs solved (%d again)",
             n,
@@ -400,13 +402,13 @@ def _solve_inputs(
     iono: IonoSet,
     opts: BatchOptions,
     read: list[MeasurementEpoch],
-) -> dict[int, list[Fix]]:
+) -> tuple[dict[int, list[Fix]], set[int]]:
     """The fixes (with velocities, without the screen's reasons) of the epochs ``todo``
     given their inputs, solved together: the epochs without an aid in one batch, those
     with one in others (each epoch its own aid, :class:`EpochAids`; no two of one time in
     a batch). A fast fix declined for too few full ranges: the coarse-time fix of the
     epoch as ``read`` (:func:`with_coarse_fixes`, unscreened and without an aid, as the
-    stream's)."""
+    stream's); the second value, the epochs whose fast fix the coarse-time fix replaced."""
     batches: list[tuple[list[int], SolverConfig]] = [([], opts.cfg)]
     aids: list[dict[tuple[int, float], tuple[float, float]]] = []
     for k, inputs in todo.items():
@@ -422,6 +424,7 @@ def _solve_inputs(
         aids[g][t] = inputs.aid
         batches[g + 1][0].append(k)
     out: dict[int, list[Fix]] = {}
+    from_coarse: set[int] = set()
     for batch, cfg in batches:
         if not batch:
             continue
@@ -430,14 +433,15 @@ def _solve_inputs(
         if opts.mode in ("fast", "both"):
             # (a time coarser than 1 ms: the ranges made fractional set aside too)
             fast_in = [without_coarse_fractions(_fast_whole(r, opts))[0] for r in rows]
-            fast = solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky)
-            fast = with_coarse_fixes(fast, [read[k] for k in batch], store, iono, opts)
+            paper = solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky)
+            fast = with_coarse_fixes(paper, [read[k] for k in batch], store, iono, opts)
+            from_coarse.update(k for k, a, b in zip(batch, paper, fast, strict=True) if a is not b)
             per_solver.append(fast)
         if opts.mode in ("spp", "both"):
             per_solver.append(solve_many(rows, store, iono, cfg, "spp", opts.with_sky))
         for j, k in enumerate(batch):
             out[k] = [fixes[j] for fixes in per_solver]
-    return _with_velocities(out, views, store, opts)
+    return _with_velocities(out, views, store, opts), from_coarse
 
 
 def _with_velocities(
@@ -457,11 +461,21 @@ def _with_velocities(
 
 
 def _finished(
-    fixes: list[Fix], inputs: _Inputs, view: MeasurementEpoch, store: EphemerisStore
+    fixes: list[Fix],
+    inputs: _Inputs,
+    view: MeasurementEpoch,
+    store: EphemerisStore,
+    coarse: bool = False,
 ) -> list[Fix]:
     """The fixes of an epoch with the ranges the screen left out (and the sky: every
-    satellite of the epoch, the screened ones unused)."""
-    return [with_screened(f, inputs.screened, view, store) for f in fixes]
+    satellite of the epoch, the screened ones unused); ``coarse``: the first (the fast
+    solver's) is the coarse-time fix, solved from every range of the epoch: no range was
+    screened out of it (the stream screens the paper's fix, which the coarse-time fix then
+    replaces with its own rows and exclusions)."""
+    return [
+        f if coarse and j == 0 else with_screened(f, inputs.screened, view, store)
+        for j, f in enumerate(fixes)
+    ]
 
 
 @contextlib.contextmanager

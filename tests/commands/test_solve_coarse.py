@@ -7,9 +7,14 @@ from __future__ import annotations
 import json
 import math
 import statistics
+from dataclasses import replace
 
+from drivers.rinex import RinexObsReader
 from service.commands.cli import main
+from service.engine.solver import fractionalize
+from service.output.records import fix_json_line
 from tests.support.fixes import without_since_start
+from tests.support.nav import pipeline_with_nav
 from tests.support.paths import DATA
 
 OBS = DATA / "hksc-2021" / "20210610.klt1.ublox.f9p.obs"
@@ -91,3 +96,28 @@ def test_solve_coarse_fix_false_leaves_the_papers_declines(capsys):
     records = [json.loads(x) for x in captured.out.splitlines()]
     assert len(records) == 300
     assert all(r["reason_code"] == "too_few_full" for r in records)
+
+
+def test_aided_solve_of_coarse_time_fixes_equals_the_stream(capsys):
+    """Height aiding and the prediction screen on (a car's settings), the 3-GEO urban file
+    with GPS and Galileo: ``bdsfix solve`` (batched, the aided fixed point) publishes the
+    fast records of the stream's own pipeline fed the same epochs one at a time (non-GEO
+    ranges fractional, as ``--fractional non-geo`` gives them), JSON line for JSON line.
+    Every one is a coarse-time fix (three GEOs): solved from every range of the epoch, so
+    it names no range as screened, as in the stream, whose screen acts on the paper's fix
+    that the coarse-time fix replaces."""
+    obs = DATA / "hk-urban-3geo-2020" / "rover.obs"
+    nav = DATA / "hk-urban-3geo-2020" / "navigation_message.nav"
+    aided = ["--height-aiding", "true", "--screen-predicted-m", "30"]
+    args = ["solve", str(obs), str(nav), "--mode", "fast", "--systems", "C,G,E", *aided]
+    assert main(args) == 0
+    solved = capsys.readouterr().out.splitlines()
+    pipe = pipeline_with_nav(nav, ("C", "G", "E"))
+    pipe.cfg = replace(pipe.cfg, height_aiding=True, screen_predicted_m=30.0)
+    streamed = [
+        fix_json_line(pipe.on_epoch(fractionalize(ep, None)).fix)
+        for ep in RinexObsReader(obs, systems="CGE")
+    ]
+    assert len(solved) == len(streamed) == 300
+    assert all('"method":"coarse_time"' in line for line in streamed)
+    assert solved == streamed

@@ -18,35 +18,19 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from drivers.rinex import read_nav
 from drivers.source import open_source
 from service.core.constants import C_M_S
-from service.core.ephemeris import EphemerisStore
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.types import MeasurementEpoch
 from service.engine.coarse import moved
-from service.engine.pipeline import Pipeline
 from service.engine.solver import fractionalize
+from tests.support.nav import pipeline_with_nav
 from tests.support.paths import DATA
 
 OBS = DATA / "hksc-2021" / "hksc1610.obs"
 NAV = DATA / "hksc-2021" / "hksc1610.nav"
 PERTH = DATA / "android-perth-s8-2017"
 PERIODS_S = (1e-3, 2e-3, 0.02, 0.1, 0.6, 2.0, 6.0)
-
-
-def _pipeline(nav, systems: tuple[str, ...] = ("C",)) -> Pipeline:
-    """A pipeline holding the nav file's ephemerides of ``systems`` and its ionosphere, as
-    replay's stream head gives them."""
-    pipe = Pipeline(EphemerisStore())
-    data = read_nav(nav, systems)
-    for ephs in data.ephemerides.values():
-        for eph in ephs:
-            pipe.add_ephemeris(eph)
-    for params in (data.iono_gps, data.iono_bds):  # BDS last: preferred when both
-        if params is not None:
-            pipe.set_iono(params)
-    return pipe
 
 
 def _hksc_epoch() -> MeasurementEpoch:
@@ -71,10 +55,10 @@ def _partial(epoch: MeasurementEpoch, n_full: int, time_unc_s: float) -> Measure
 
 def test_fast_fix_with_periods_from_2_ms_to_6_s_recovers_the_full_ranges():
     epoch = _hksc_epoch()
-    spp = _pipeline(NAV).on_epoch(epoch).fix
+    spp = pipeline_with_nav(NAV).on_epoch(epoch).fix
     partial = _partial(epoch, 4, time_unc_s=5e-9)
     assert set(partial.period_s[np.isnan(partial.pr_m)]) == set(PERIODS_S)
-    fix = _pipeline(NAV).on_epoch(partial).fix
+    fix = pipeline_with_nav(NAV).on_epoch(partial).fix
     assert fix.mode == "fast" and fix.ok
     assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp.x_ecef_m)) < 1e-3
     assert len(fix.recovered_pr_m) == len(epoch) - 4
@@ -83,7 +67,7 @@ def test_fast_fix_with_periods_from_2_ms_to_6_s_recovers_the_full_ranges():
 
 
 def spp_of(epoch):
-    return _pipeline(NAV).on_epoch(epoch).fix
+    return pipeline_with_nav(NAV).on_epoch(epoch).fix
 
 
 def test_a_coarse_time_keeps_fractional_ranges_out_and_says_why():
@@ -91,36 +75,36 @@ def test_a_coarse_time_keeps_fractional_ranges_out_and_says_why():
     # no full range: with a time uncertain by 7.25 s (beyond the coarse-time fix's 2 s, and 5
     # sigma beyond the 30 s it takes from a phone) the fractional rows are set aside and the
     # decline names the prior: wait for the first SOW
-    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=7.25)).fix
+    fix = pipeline_with_nav(NAV).on_epoch(_partial(epoch, 0, time_unc_s=7.25)).fix
     assert fix.reason_code == "coarse_time"
     assert "+-7.25 s" in fix.reason and "16 fractional" in fix.reason and "0 full" in fix.reason
     # the Perth phone's 5.97 s: 5 sigma (29.8 s) is the coarse-time fix's prior, which takes
     # the epoch (the common millisecond in doubt: the coarse-time solution, within 1 m of SPP)
-    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=5.968969500122643)).fix
+    fix = pipeline_with_nav(NAV).on_epoch(_partial(epoch, 0, time_unc_s=5.968969500122643)).fix
     assert fix.ok and fix.method == "coarse_time"
     assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp_of(epoch).x_ecef_m)) < 1.0
     # so too with no time uncertainty given at all (a phone that does not say: inf)
-    fix = _pipeline(NAV).on_epoch(_partial(epoch, 0, time_unc_s=math.inf)).fix
+    fix = pipeline_with_nav(NAV).on_epoch(_partial(epoch, 0, time_unc_s=math.inf)).fix
     assert fix.reason_code == "coarse_time"
     # with a fine time the paper's fast fix still needs 4 full ranges (its 4 GEOs); the
     # coarse-time fix (service.engine.coarse) takes the epoch instead and gives SPP's position
-    fine = _pipeline(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5e-9)).fix
+    fine = pipeline_with_nav(NAV).on_epoch(_partial(epoch, 3, time_unc_s=5e-9)).fix
     assert fine.ok and fine.method == "coarse_time"
     assert np.linalg.norm(np.subtract(fine.x_ecef_m, spp_of(epoch).x_ecef_m)) < 1e-3
     # 4 full GEOs: the fast fix with a fine time; with a coarse time the four GEOs are
     # solved alone (the fractional rows set aside), and their geometry fails the PDOP gate
-    assert _pipeline(NAV).on_epoch(_partial(epoch, 4, time_unc_s=5e-9)).fix.mode == "fast"
-    fix = _pipeline(NAV).on_epoch(_partial(epoch, 4, time_unc_s=5.97)).fix
+    assert pipeline_with_nav(NAV).on_epoch(_partial(epoch, 4, time_unc_s=5e-9)).fix.mode == "fast"
+    fix = pipeline_with_nav(NAV).on_epoch(_partial(epoch, 4, time_unc_s=5.97)).fix
     assert fix.reason_code == "pdop_gate"
 
 
-def test_perth_replay_through_the_pipeline():
+def test_perth_replay_through_thepipeline_with_nav():
     """The Perth start-up with its day's nav (BDS sets read): the first fix is SPP from the
     four BDS IGSO/MEO at 26.18 s (the engine has no GPS sets yet; measured 25.9 m from the
     converged position), every published fix within 100 m of the median of the last 5
     minutes (measured at most 58.5 m), and what comes before is declined for the phone's
     coarse time, the GPS satellites' missing ephemerides or too few full BDS ranges."""
-    pipe = _pipeline(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx")
+    pipe = pipeline_with_nav(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx")
     with open_source(str(PERTH / "SensorLog20171005.txt")) as src:
         results = [pipe.on_epoch(e) for e in src if isinstance(e, MeasurementEpoch)]
     assert len(results) == 445
@@ -152,7 +136,7 @@ def test_perth_with_gps_and_galileo_fixes_from_the_first_epoch():
     Every fix within 100 m of the median of the last 5 minutes (measured at most 26.9 m),
     the coarse-time ones within their HPL of it (measured 3.7-18 m against HPLs of
     21-57 m)."""
-    pipe = _pipeline(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx", ("C", "G", "E"))
+    pipe = pipeline_with_nav(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx", ("C", "G", "E"))
     with open_source(str(PERTH / "SensorLog20171005.txt")) as src:
         results = [pipe.on_epoch(e) for e in src if isinstance(e, MeasurementEpoch)]
     t0 = results[0].epoch.gpst_tow_s
@@ -190,7 +174,7 @@ def test_the_first_decoded_sow_is_the_time_prior_when_the_tag_is_none(n_full, ti
     epoch = _hksc_epoch()
     spp = spp_of(epoch)
     phone = moved(_partial(epoch, n_full, time_unc_s), clock_s)
-    fix = _pipeline(NAV).on_epoch(phone).fix
+    fix = pipeline_with_nav(NAV).on_epoch(phone).fix
     assert fix.ok and fix.method == "coarse_time"
     assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp.x_ecef_m)) <= 1e-3
     assert fix.gpst_tow_s == phone.gpst_tow_s
@@ -213,12 +197,12 @@ def test_a_phone_time_known_to_microseconds_resolves_the_common_millisecond(time
     epoch = _hksc_epoch()
     spp = spp_of(epoch)
     fractional = fractionalize(epoch, keep_full=())  # every range modulo 1 ms
-    fix = _pipeline(NAV).on_epoch(replace(fractional, time_unc_s=time_unc_s)).fix
+    fix = pipeline_with_nav(NAV).on_epoch(replace(fractional, time_unc_s=time_unc_s)).fix
     assert fix.ok and fix.method == "coarse_time"
     assert np.linalg.norm(np.subtract(fix.x_ecef_m, spp.x_ecef_m)) <= 1e-3
     assert len(fix.recovered_pr_m) == len(epoch)
     for prn, pr in fix.recovered_pr_m.items():
         assert pr == pytest.approx(epoch.pr_m[epoch.prn.index(prn)], abs=1e-3)
-    file_tag = _pipeline(NAV).on_epoch(fractional).fix
+    file_tag = pipeline_with_nav(NAV).on_epoch(fractional).fix
     assert file_tag.ok and file_tag.method == "coarse_time" and not file_tag.recovered_pr_m
     assert 1e-3 < np.linalg.norm(np.subtract(file_tag.x_ecef_m, spp.x_ecef_m)) < 1.0

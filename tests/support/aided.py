@@ -36,6 +36,7 @@ def aided_one_at_a_time(
             fast_in = fractionalize(rows, opts.period_s) if opts.fractional == "non-geo" else rows
             fast_in = without_coarse_fractions(fast_in)[0]
             (fast,) = solve_many((fast_in,), store, iono, cfg, "fast", opts.with_sky)
+            fast = with_screened(fast, screened, view, store)  # (the stream's order)
             # too few full ranges: the stream's coarse-time fix, of every range of the epoch
             # (unscreened), without the aid (the stream's solver settings)
             whole = fractionalize(epoch, opts.period_s) if opts.fractional == "non-geo" else epoch
@@ -47,8 +48,8 @@ def aided_one_at_a_time(
                 fast = replace(fast, sky=sky_view(fast_view, store, fast))
             fixes.append(fast)
         if opts.mode in ("spp", "both"):
-            fixes += solve_many((rows,), store, iono, cfg, "spp", opts.with_sky)
-        fixes = [with_screened(f, screened, view, store) for f in fixes]
+            (spp,) = solve_many((rows,), store, iono, cfg, "spp", opts.with_sky)
+            fixes.append(with_screened(spp, screened, view, store))
         fixes = [
             fix_with_velocity(f, fast_view, store)
             if f.method == "coarse_time"
