@@ -945,13 +945,12 @@ def _solve_sats(
             frac = sats.ct_m > 0
     solved, passing, rivals, t_max = ev.solved, ev.passing, ev.rivals, ev.t_max
     if not passing.any():
-        best_dof = int(solved.dof.max())
-        if best_dof < ccfg.min_redundancy:
-            why = Declined.of(
-                Decline.TOO_FEW_ROWS,
-                rows=best_dof + sats.layout.n_params - PRIOR_ROWS,
-                need=need,
-            )
+        most = int(np.argmax(solved.dof))
+        if int(solved.dof[most]) < ccfg.min_redundancy:
+            # (the rows of that candidate above the mask: its redundancy counts the clocks
+            # of the systems with rows only)
+            rows = int((solved.weight[most] > 0).sum())
+            why = Declined.of(Decline.TOO_FEW_ROWS, rows=rows, need=need)
             return result(declined(epoch, why))
         why = Declined.of(Decline.CHI2, "coarse", candidates=len(cand))
         return result(declined(epoch, why))
@@ -981,7 +980,7 @@ def _solve_sats(
             if f
         }
     else:
-        fix = _coarse_fix(epoch, sats, solved, best, cfg)
+        fix = _coarse_fix(epoch, sats, solved, best, cfg, ccfg)
         recovered = {}
     if fix.ok:
         # a row SPP's own FDE left out keeps its integer unpublished (never checked, never
@@ -1223,29 +1222,39 @@ def _absolute(
 
 
 def _coarse_fix(
-    epoch: MeasurementEpoch, sats: _Sats, solved: _Solved, best: int, cfg: SolverConfig
+    epoch: MeasurementEpoch,
+    sats: _Sats,
+    solved: _Solved,
+    best: int,
+    cfg: SolverConfig,
+    ccfg: CoarseConfig,
 ) -> Fix:
     """The coarse-time solution itself as a fix (the common millisecond unresolved): the
     winner's position, its integrity from the coarse-time design (position, a clock per
-    system with rows above the mask, the time: chi-square, protection levels:
-    :func:`service.engine.raim.assess` with that coarse-time layout), the PDOP gate."""
+    system with rows above the mask, the time) and the rows that accepted it, the time
+    prior's row among them (:func:`service.engine.solver.time_prior_row`: the chi-square,
+    its redundancy and the protection levels of :func:`service.engine.raim.assess` with
+    that coarse-time layout are those of the candidate's test, step 4), the PDOP gate (the
+    satellites' geometry alone)."""
     used = solved.weight[best] > 0
     x = solved.x[best]
     lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
     rot = enu_rotation(lat, lon)
-    sigma = 1.0 / np.sqrt(solved.weight[best][used])
     with_rows = sorted({int(c) for c in sats.clk[used]})
     layout = Layout(tuple(sats.layout.systems[c] for c in with_rows), coarse_time=True)
     cols = [0, 1, 2, *(3 + c for c in with_rows), 3 + sats.layout.n_clocks]
     g = solved.design[best][used][:, cols]
-    integ = assess(g, solved.resid_m[best][used], sigma, rot, cfg.p_fa, cfg.p_md, layout)
+    resid = solved.resid_m[best][used]
+    dt = solved.dt[best : best + 1]
+    w = solved.weight[best][used]
+    g_p, v_p, w_p = time_prior_row(g[None], resid[None], w[None], layout, dt, ccfg.time_prior_s)
+    integ = assess(g_p[0], v_p[0], 1.0 / np.sqrt(w_p[0]), rot, cfg.p_fa, cfg.p_md, layout)
     pdop = math.sqrt(max(float(np.sum(_inv_diag(g.T @ g)[:3])), 0.0))
     if not pdop <= cfg.pdop_max:  # the geometry's, with the coarse-time column
         why = Declined.of(Decline.PDOP_GATE, pdop=pdop, pdop_max=cfg.pdop_max)
         return declined(epoch, why)
     cov = integ.cov_enu_m2
     prns = tuple(p for p, u in zip(sats.prn, used, strict=True) if u)
-    resid = solved.resid_m[best][used]
     return Fix(
         solver="fast",
         mode="fast",
