@@ -803,20 +803,32 @@ class UbxMapper:
         sats = sorted(p.sats.values(), key=_BY_PRN)
         finite = math.isfinite
         tow_ms = round(p.tow_s * 1e3)
-        # MEASX fractions, uncalibrated: c * mod(tow_ms + intCodePhase + codePhase, T), the
-        # whole ms reduced in integers (module docstring, RXM-MEASX); Python's float % is
-        # numpy.mod's floor-mod (fmod, then the divisor's sign)
-        raws: list[float] = []
+        # One pass: a row per satellite kept (prn, signal, pr, fraction, period, C/N0,
+        # Doppler, lock); a satellite with a full range has its fraction mod(prMes, c*T) at
+        # once; one with a MEASX code phase only waits (its place kept) for its system's
+        # calibration, which needs every satellite's. The MEASX fraction, uncalibrated, is
+        # c * mod(tow_ms + intCodePhase + codePhase, T), the whole ms reduced in integers
+        # (module docstring, RXM-MEASX).
+        kept: list[tuple[str, str, float, float, float, float, float, float] | None] = []
+        waiting: list[tuple[int, _Sat, float]] = []  # (row, satellite, raw fraction)
         d: dict[str, list[float]] = {}  # per system: mod(prMes, c*T) - fraction
         for s in sats:
-            raw = math.nan
+            x = s.prn[0]
+            ct = _CODE_RANGE_M[x]
+            pr_m = s.pr_m
             if s.code_ms == s.code_ms:  # not NaN: MEASX gave a code phase
-                x = s.prn[0]
-                ct = _CODE_RANGE_M[x]
                 raw = (C_M_S * ((tow_ms + s.code_int_ms) % _PERIOD_MS[x] + s.code_ms) * 1e-3) % ct
-                if finite(s.pr_m):
-                    d.setdefault(x, []).append(((s.pr_m % ct - raw) + ct / 2) % ct - ct / 2)
-            raws.append(raw)
+                if not finite(pr_m):
+                    if raw == raw:
+                        waiting.append((len(kept), s, raw))
+                        kept.append(None)
+                    continue
+                d.setdefault(x, []).append(((pr_m % ct - raw) + ct / 2) % ct - ct / 2)
+            elif not finite(pr_m):
+                continue
+            kept.append(
+                (s.prn, s.signal, pr_m, pr_m % ct, _PERIOD_S[x], s.cn0_dbhz, s.doppler_hz, s.lock_s)
+            )
         for system, dd in d.items():
             spread_m = max(dd) - min(dd)
             if spread_m < 30.0:
@@ -833,24 +845,23 @@ class UbxMapper:
                     p.tow_s,
                     self.measx_offsets_m.get(system, self.measx_offset_m),
                 )
-        # one row per satellite kept: prn, signal, pr, fraction, period, C/N0, Doppler, lock
-        kept: list[tuple[str, str, float, float, float, float, float, float]] = []
-        for s, raw in zip(sats, raws, strict=True):
+        for row, s, raw in waiting:
             x = s.prn[0]
-            ct = _CODE_RANGE_M[x]
-            if finite(s.pr_m):
-                frac = s.pr_m % ct
-            elif raw == raw:
-                self.counters["measx_only_sats"] += 1
-                offset = self.measx_offsets_m.get(x, self.measx_offset_m)
-                if offset is None:
-                    self.counters["measx_uncalibrated"] += 1
-                    offset = 0.0
-                frac = (raw + offset) % ct
-            else:
-                continue
-            kept.append(
-                (s.prn, s.signal, s.pr_m, frac, _PERIOD_S[x], s.cn0_dbhz, s.doppler_hz, s.lock_s)
+            self.counters["measx_only_sats"] += 1
+            offset = self.measx_offsets_m.get(x, self.measx_offset_m)
+            if offset is None:
+                self.counters["measx_uncalibrated"] += 1
+                offset = 0.0
+            frac = (raw + offset) % _CODE_RANGE_M[x]
+            kept[row] = (
+                s.prn,
+                s.signal,
+                s.pr_m,
+                frac,
+                _PERIOD_S[x],
+                s.cn0_dbhz,
+                s.doppler_hz,
+                s.lock_s,
             )
         if not kept:
             return None
