@@ -57,32 +57,55 @@ WORD_MASK = (1 << 30) - 1
 
 
 def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavSubframe | None:
-    """The subframe of a BDS B1I RXM-SFRBX, time-tagged with the receive time (GPST).
+    """The subframe of a parsed RXM-SFRBX (pyubx2 or :func:`drivers.ubx.parse_rxm`): its
+    fields to :func:`nav_subframe`."""
+    return nav_subframe(
+        int(msg.gnssId), int(msg.svId), int(msg.sigId), sfrbx_dwords(msg), gpst_week, gpst_tow_s
+    )
 
-    None for other GNSS or signals, a word count other than 10, or a subframe that fails
-    the preamble/header checks (:func:`service.core.bds_nav.parse_header`).
+
+def sfrbx_dwords(msg: Any) -> tuple[int, ...]:
+    """The ``numWords`` data words of a parsed RXM-SFRBX, as delivered (padding included)."""
+    blocks = getattr(msg, "blocks", None)  # drivers.ubx.parse_rxm: one dict per word
+    if blocks is not None:
+        return tuple(int(b["dwrd"]) for b in blocks)
+    # pyubx2: dwrd_01 .. dwrd_NN
+    return tuple(int(getattr(msg, f"dwrd_{i:02d}")) for i in range(1, int(msg.numWords) + 1))
+
+
+def nav_subframe(
+    gnss_id: int,
+    sv_id: int,
+    sig_id: int,
+    dwords: tuple[int, ...],
+    gpst_week: int,
+    gpst_tow_s: float,
+) -> NavSubframe | None:
+    """The subframe of a RXM-SFRBX (its gnssId, svId, sigId and data words), time-tagged
+    with the receive time (GPST): BDS B1I, GPS L1 C/A LNAV or Galileo I/NAV (module
+    docstring).
+
+    None for other GNSS or signals, a word count other than 10 (8 for Galileo), or a
+    subframe that fails the preamble/header checks
+    (:func:`service.core.bds_nav.parse_header`).
     """
-    if UBX_GNSS.get(int(msg.gnssId)) is GnssSystem.GPS:
-        return _gps_lnav(msg, gpst_week, gpst_tow_s)
-    if UBX_GNSS.get(int(msg.gnssId)) is GnssSystem.GAL:
-        return _gal_inav(msg, gpst_week, gpst_tow_s)
-    if UBX_GNSS.get(int(msg.gnssId)) is not GnssSystem.BDS or int(msg.numWords) != 10:
+    system = UBX_GNSS.get(gnss_id)
+    if system is GnssSystem.GPS:
+        return _gps_lnav(sv_id, sig_id, dwords, gpst_week, gpst_tow_s)
+    if system is GnssSystem.GAL:
+        return _gal_inav(sv_id, sig_id, dwords, gpst_week, gpst_tow_s)
+    if system is not GnssSystem.BDS or len(dwords) != 10:
         return None
-    sig_type = B1I_SIGIDS.get(int(msg.sigId))
+    sig_type = B1I_SIGIDS.get(sig_id)
     if sig_type is None:
         return None
-    svid = int(msg.svId)
-    prn = sat_id(GnssSystem.BDS, svid)
+    prn = sat_id(GnssSystem.BDS, sv_id)
     nav_type: Literal["D1", "D2"] = bds_nav_type(prn)
     if sig_type != nav_type:
         log.debug(
-            "%s: sigId %d says %s, the satellite broadcasts %s",
-            prn,
-            int(msg.sigId),
-            sig_type,
-            nav_type,
+            "%s: sigId %d says %s, the satellite broadcasts %s", prn, sig_id, sig_type, nav_type
         )
-    words = _words(msg)
+    words = tuple(w & WORD_MASK for w in dwords)
     try:
         return b1i_subframe(prn, nav_type, words, gpst_week, gpst_tow_s)
     except DecodeError as exc:
@@ -90,21 +113,15 @@ def nav_subframe_from_sfrbx(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavS
         return None
 
 
-def _words(msg: Any) -> tuple[int, ...]:
-    blocks = getattr(msg, "blocks", None)  # drivers.ubx.parse_rxm: one dict per word
-    if blocks is not None:
-        return tuple(int(b["dwrd"]) & WORD_MASK for b in blocks)
-    # pyubx2: dwrd_01 .. dwrd_10
-    return tuple(int(getattr(msg, f"dwrd_{i:02d}")) & WORD_MASK for i in range(1, 11))
-
-
-def _gps_lnav(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavSubframe | None:
+def _gps_lnav(
+    sv_id: int, sig_id: int, dwords: tuple[int, ...], gpst_week: int, gpst_tow_s: float
+) -> NavSubframe | None:
     """The LNAV subframe of a GPS L1 C/A SFRBX (sigId 0, 10 words), else None."""
-    if int(msg.sigId) != 0 or int(msg.numWords) != 10:
+    if sig_id != 0 or len(dwords) != 10:
         return None
-    prn = sat_id(GnssSystem.GPS, int(msg.svId))
+    prn = sat_id(GnssSystem.GPS, sv_id)
     try:
-        return lnav_subframe(prn, _words(msg), gpst_week, gpst_tow_s)
+        return lnav_subframe(prn, tuple(w & WORD_MASK for w in dwords), gpst_week, gpst_tow_s)
     except DecodeError as exc:
         log.debug("%s SFRBX rejected: %s", prn, exc)
         return None
@@ -114,17 +131,14 @@ GAL_INAV_SIGIDS = {1: "1B", 5: "7I"}
 """u-blox sigId -> RINEX signal of the Galileo I/NAV pages: E1-B and E5b-I."""
 
 
-def _gal_inav(msg: Any, gpst_week: int, gpst_tow_s: float) -> NavSubframe | None:
+def _gal_inav(
+    sv_id: int, sig_id: int, dwords: tuple[int, ...], gpst_week: int, gpst_tow_s: float
+) -> NavSubframe | None:
     """The I/NAV word of a Galileo E1-B or E5b-I SFRBX (8 dwords), else None."""
-    signal = GAL_INAV_SIGIDS.get(int(msg.sigId))
-    if signal is None or int(msg.numWords) != 8 or not 1 <= int(msg.svId) <= 36:
+    signal = GAL_INAV_SIGIDS.get(sig_id)
+    if signal is None or len(dwords) != 8 or not 1 <= sv_id <= 36:
         return None
-    prn = sat_id(GnssSystem.GAL, int(msg.svId))
-    blocks = getattr(msg, "blocks", None)
-    if blocks is not None:
-        dwords = [int(b["dwrd"]) for b in blocks]
-    else:
-        dwords = [int(getattr(msg, f"dwrd_{i:02d}")) for i in range(1, 9)]
+    prn = sat_id(GnssSystem.GAL, sv_id)
     try:
         word = inav_word(dwords)
     except DecodeError as exc:

@@ -8,8 +8,9 @@ section 5).
 - Frame: ``B5 62 class id length(u16 LE) payload ck_a ck_b``, 8-bit Fletcher checksum over
   class..payload (:data:`FRAMING`).
 - Parsing: RXM-RAWX, RXM-MEASX and RXM-SFRBX, which arrive every epoch, are unpacked with
-  :mod:`struct` (:func:`parse_rxm`; RAWX and MEASX frames are read by the mapper straight
-  from their struct tuples, :func:`_rawx_rows` and :func:`_measx_rows`); any other message
+  :mod:`struct` (:func:`parse_rxm`; the mapper reads RAWX, MEASX and SFRBX frames straight
+  from their struct tuples, :func:`_rawx_rows`, :func:`_measx_rows` and
+  :func:`_sfrbx_fields`); any other message
   the mapper reads, and an RXM payload whose length does not match its count, is parsed by
   pyubx2. Both give the same field names and scales (the tests compare the two on every
   real capture).
@@ -81,7 +82,7 @@ from pyubx2 import UBX_MSGIDS, VALNONE, UBXReader
 
 from drivers import framing
 from drivers.framing import BinaryFraming, Event, WeekContext
-from drivers.sfrbx import UBX_GNSS, nav_subframe_from_sfrbx
+from drivers.sfrbx import UBX_GNSS, nav_subframe, sfrbx_dwords
 from service.core.constants import C_M_S, WEEK_S
 from service.core.counters import Counters
 from service.core.ratelog import RateLimitedLog
@@ -403,7 +404,7 @@ def parse_rxm(raw: bytes) -> RxmMessage | None:
     return RxmMessage(layout.identity, fields, blocks)
 
 
-_RAWX_COUNTER, _MEASX_COUNTER = f"ubx:{RAWX}", f"ubx:{MEASX}"
+_RAWX_COUNTER, _MEASX_COUNTER, _SFRBX_COUNTER = f"ubx:{RAWX}", f"ubx:{MEASX}", f"ubx:{SFRBX}"
 
 RAWX_SIGNALS_KEPT = 1024
 """(gnssId, svId, sigId) triples whose mapping a :class:`UbxMapper` keeps (a receiver's few
@@ -455,6 +456,20 @@ def _measx_rows(raw: bytes) -> tuple[int, list[_MeasxRow]] | None:
         for v in _MEASX_SV.iter_unpack(payload[_MEASX_HEAD.size :])
     ]
     return head[1], rows
+
+
+def _sfrbx_fields(raw: bytes) -> tuple[int, int, int, tuple[int, ...]] | None:
+    """gnssId, svId, sigId and the data words of a whole RXM-SFRBX frame of consistent
+    length (None otherwise), straight from the struct tuples as :func:`_rawx_rows` reads
+    RAWX: a receiver's subframes come just before its epoch's measurements, where
+    :func:`parse_rxm`'s dict per word was most of their decoding."""
+    payload = memoryview(raw)[6:-2]
+    if len(payload) < _SFRBX_HEAD.size:
+        return None
+    gnss_id, sv_id, sig_id, _freq, n, _chn, _version = _SFRBX_HEAD.unpack_from(payload)
+    if len(payload) != _SFRBX_HEAD.size + n * _SFRBX_WORD.size:
+        return None
+    return gnss_id, sv_id, sig_id, struct.unpack_from(f"<{n}I", payload, _SFRBX_HEAD.size)
 
 
 _BY_PRN = operator.attrgetter("prn")
@@ -535,6 +550,11 @@ class UbxMapper:
                 if measx is not None:  # else as any other message
                     self.counters[_MEASX_COUNTER] += 1
                     return self._measx(*measx)
+            elif raw[3] == _ID_SFRBX:
+                sfrbx = _sfrbx_fields(raw)
+                if sfrbx is not None:  # else as any other message
+                    self.counters[_SFRBX_COUNTER] += 1
+                    return self._sfrbx(*sfrbx)
         name = UBX_MSGIDS.get(raw[2:4])
         if name in USED_MESSAGES:
             # the framer has checked the checksum (UbxFraming.measure): not twice
@@ -783,20 +803,32 @@ class UbxMapper:
         sats = sorted(p.sats.values(), key=_BY_PRN)
         finite = math.isfinite
         tow_ms = round(p.tow_s * 1e3)
-        # MEASX fractions, uncalibrated: c * mod(tow_ms + intCodePhase + codePhase, T), the
-        # whole ms reduced in integers (module docstring, RXM-MEASX); Python's float % is
-        # numpy.mod's floor-mod (fmod, then the divisor's sign)
-        raws: list[float] = []
+        # One pass: a row per satellite kept (prn, signal, pr, fraction, period, C/N0,
+        # Doppler, lock); a satellite with a full range has its fraction mod(prMes, c*T) at
+        # once; one with a MEASX code phase only waits (its place kept) for its system's
+        # calibration, which needs every satellite's. The MEASX fraction, uncalibrated, is
+        # c * mod(tow_ms + intCodePhase + codePhase, T), the whole ms reduced in integers
+        # (module docstring, RXM-MEASX).
+        kept: list[tuple[str, str, float, float, float, float, float, float] | None] = []
+        waiting: list[tuple[int, _Sat, float]] = []  # (row, satellite, raw fraction)
         d: dict[str, list[float]] = {}  # per system: mod(prMes, c*T) - fraction
         for s in sats:
-            raw = math.nan
+            x = s.prn[0]
+            ct = _CODE_RANGE_M[x]
+            pr_m = s.pr_m
             if s.code_ms == s.code_ms:  # not NaN: MEASX gave a code phase
-                x = s.prn[0]
-                ct = _CODE_RANGE_M[x]
                 raw = (C_M_S * ((tow_ms + s.code_int_ms) % _PERIOD_MS[x] + s.code_ms) * 1e-3) % ct
-                if finite(s.pr_m):
-                    d.setdefault(x, []).append(((s.pr_m % ct - raw) + ct / 2) % ct - ct / 2)
-            raws.append(raw)
+                if not finite(pr_m):
+                    if raw == raw:
+                        waiting.append((len(kept), s, raw))
+                        kept.append(None)
+                    continue
+                d.setdefault(x, []).append(((pr_m % ct - raw) + ct / 2) % ct - ct / 2)
+            elif not finite(pr_m):
+                continue
+            kept.append(
+                (s.prn, s.signal, pr_m, pr_m % ct, _PERIOD_S[x], s.cn0_dbhz, s.doppler_hz, s.lock_s)
+            )
         for system, dd in d.items():
             spread_m = max(dd) - min(dd)
             if spread_m < 30.0:
@@ -813,24 +845,23 @@ class UbxMapper:
                     p.tow_s,
                     self.measx_offsets_m.get(system, self.measx_offset_m),
                 )
-        # one row per satellite kept: prn, signal, pr, fraction, period, C/N0, Doppler, lock
-        kept: list[tuple[str, str, float, float, float, float, float, float]] = []
-        for s, raw in zip(sats, raws, strict=True):
+        for row, s, raw in waiting:
             x = s.prn[0]
-            ct = _CODE_RANGE_M[x]
-            if finite(s.pr_m):
-                frac = s.pr_m % ct
-            elif raw == raw:
-                self.counters["measx_only_sats"] += 1
-                offset = self.measx_offsets_m.get(x, self.measx_offset_m)
-                if offset is None:
-                    self.counters["measx_uncalibrated"] += 1
-                    offset = 0.0
-                frac = (raw + offset) % ct
-            else:
-                continue
-            kept.append(
-                (s.prn, s.signal, s.pr_m, frac, _PERIOD_S[x], s.cn0_dbhz, s.doppler_hz, s.lock_s)
+            self.counters["measx_only_sats"] += 1
+            offset = self.measx_offsets_m.get(x, self.measx_offset_m)
+            if offset is None:
+                self.counters["measx_uncalibrated"] += 1
+                offset = 0.0
+            frac = (raw + offset) % _CODE_RANGE_M[x]
+            kept[row] = (
+                s.prn,
+                s.signal,
+                s.pr_m,
+                frac,
+                _PERIOD_S[x],
+                s.cn0_dbhz,
+                s.doppler_hz,
+                s.lock_s,
             )
         if not kept:
             return None
@@ -872,7 +903,12 @@ class UbxMapper:
 
     # --- navigation subframes ---------------------------------------------------------------
     def _on_sfrbx(self, msg: Any) -> list[Event]:
-        system = UBX_GNSS.get(int(msg.gnssId))
+        return self._sfrbx(int(msg.gnssId), int(msg.svId), int(msg.sigId), sfrbx_dwords(msg))
+
+    def _sfrbx(self, gnss_id: int, sv_id: int, sig_id: int, dwords: tuple[int, ...]) -> list[Event]:
+        """A SFRBX's subframe (:func:`drivers.sfrbx.nav_subframe`), time-tagged with the
+        latest measurement or navigation epoch."""
+        system = UBX_GNSS.get(gnss_id)
         if system is GnssSystem.GPS and GnssSystem.GPS in self._other:
             self.counters["sfrbx_gps"] += 1
         elif system is GnssSystem.GAL and GnssSystem.GAL in self._other:
@@ -886,7 +922,7 @@ class UbxMapper:
         if when is None:
             self.counters["sfrbx_no_time"] += 1
             return []
-        sub = nav_subframe_from_sfrbx(msg, *when)
+        sub = nav_subframe(gnss_id, sv_id, sig_id, dwords, *when)
         if sub is None:
             self.counters["sfrbx_unmapped"] += 1
             return []

@@ -196,6 +196,49 @@ def test_bad_words_and_headers_raise_decode_error():
     assert bn.subframe_data(one_bit) == (data, 1)
 
 
+def _header_of_whole_subframe(words: list[int], nav_type: str) -> object:
+    """The header as read from the whole decoded subframe (every word BCH-decoded), or the
+    DecodeError text: what :func:`bn.parse_header` must give though it decodes words 1-2."""
+    try:
+        data, _ = bn.subframe_data(words)
+        return bn._header(data, nav_type)
+    except DecodeError as exc:
+        return str(exc)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.sampled_from(["D1", "D2"]),
+    st.integers(0, 4),
+    st.integers(0, 2000),
+    st.lists(st.tuples(st.integers(0, 9), st.integers(0, 31)), max_size=4),
+    st.integers(0, 10),
+    st.integers(0, 9),
+)
+def test_parse_header_reads_the_whole_subframes_header(nav_type, frame, sow_step, flips, n, big):
+    """parse_header decodes only words 1-2 (the header's bits 0-47): its header, or its
+    DecodeError, is the one the whole decoded subframe gives, for real encoded subframes
+    with bit flips (parity, data and beyond 30 bits), wrong word counts and damaged words."""
+    eph = _georinex_ephemerides()[0]
+    sfs = (
+        bn.encode_d1_subframes(eph, 300 + 30 * sow_step)
+        if nav_type == "D1"
+        else bn.encode_d2_frame(eph, 300 + 3 * sow_step, 1 + sow_step % 10)
+    )
+    words = list(sfs[frame])
+    for k, bit in flips:
+        words[k] ^= 1 << bit  # bit 30-31: not a 30-bit word
+    if n < 10:
+        words = words[:n]
+    elif big < 3:
+        words[7 + big] = -1  # not a word at all, in words 8-10
+    try:
+        got: object = bn.parse_header(words, nav_type)
+    except DecodeError as exc:
+        got = str(exc)
+    assert got == _header_of_whole_subframe(words, nav_type)
+
+
 # --- encode -> decode ----------------------------------------------------------------------
 
 

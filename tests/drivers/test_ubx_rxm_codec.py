@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pyubx2 import UBXReader
 
-from drivers.ubx import UbxMapper, _measx_rows, parse_rxm
+from drivers.ubx import UbxMapper, _measx_rows, _sfrbx_fields, parse_rxm
 from service.core.types import MeasurementEpoch
 from service.sim.ubx import MeasxSv, RawxMeas, measx_frame, rawx_frame
 from tests.support.paths import DATA
@@ -73,12 +73,14 @@ def test_mapper_reads_frames_as_it_reads_pyubx2_messages(path: Path):
     :func:`parse_rxm`'s MEASX messages give it (pyubx2 scales MEASX's code phase with other
     float rounding, ~1e-8 m, which would hide nothing but fail bitwise: its MEASX fields are
     compared with those rows in ``test_measx_rows_equal_pyubx2_on_real_captures``). SFRBX
-    goes the same way to both."""
-    fast, ref = UbxMapper(), UbxMapper()
+    frames (``on_frame``: :func:`_sfrbx_fields`) give what pyubx2's SFRBX messages give,
+    with every system's subframes read."""
+    systems = frozenset({"C", "G", "E"})
+    fast, ref = UbxMapper(systems=systems), UbxMapper(systems=systems)
     got, want = [], []
     for raw in _rxm_frames(path):
         got += fast.on_frame(raw)
-        want += ref.on_message(UBXReader.parse(raw) if raw[3] == 0x15 else parse_rxm(raw))
+        want += ref.on_message(UBXReader.parse(raw) if raw[3] != 0x14 else parse_rxm(raw))
     got += fast.flush()
     want += ref.flush()
     assert [_epoch_key(e) for e in got] == [_epoch_key(e) for e in want]
@@ -107,6 +109,25 @@ def test_measx_rows_equal_pyubx2_on_real_captures(path: Path):
                 assert _same(value, getattr(ref, f"{name}_{i:02d}")), (path.name, i, name)
                 checked += 1
     if any(raw[3] == 0x14 for raw in _rxm_frames(path)):
+        assert checked > 0
+
+
+@pytest.mark.parametrize("path", CAPTURES, ids=lambda p: p.name)
+def test_sfrbx_fields_equal_pyubx2_on_real_captures(path: Path):
+    """The SFRBX fields the mapper reads (gnssId, svId, sigId and the numWords data words)
+    are pyubx2's."""
+    checked = 0
+    for raw in _rxm_frames(path):
+        if raw[3] != 0x13:
+            continue
+        got = _sfrbx_fields(raw)
+        ref = UBXReader.parse(raw)
+        assert got is not None
+        gnss_id, sv_id, sig_id, dwords = got
+        assert (gnss_id, sv_id, sig_id) == (ref.gnssId, ref.svId, ref.sigId)
+        assert dwords == tuple(getattr(ref, f"dwrd_{i:02d}") for i in range(1, ref.numWords + 1))
+        checked += 1
+    if any(raw[3] == 0x13 for raw in _rxm_frames(path)):
         assert checked > 0
 
 
