@@ -38,7 +38,7 @@ def child(tree: str, out: str, trials: int) -> None:
     """Run the corpora with the tree's coarse-time fix; write the outcomes and times (JSON)."""
     sys.path.insert(0, tree)
     import service.engine.coarse as coarse_module
-    from bench.bench_coarse import HKSC, TST, TST_NAVS, restarted
+    from bench.bench_coarse import restarted
     from drivers.rinex import RinexObsReader
     from service.commands.solve import load_navigation
     from service.engine.coarse import CoarseConfig, CoarseResult, solve_coarse
@@ -64,12 +64,15 @@ def child(tree: str, out: str, trials: int) -> None:
             "offset": res.time_offset_s,
         }
 
+    # the recordings beside this script's tree (a tree exported to /tmp has none beside it)
+    hksc, tst = DATA / "hksc-2021", DATA / "hk-tst-urban-2019"
+    tst_navs = [tst / "hksc1180.19b", tst / "hksc1180.19n"]
     cfg, ccfg = SolverConfig(), CoarseConfig()
     got: dict[str, list[dict[str, Any]]] = {}
     cpu: dict[str, list[float]] = {}
     corpora = (
-        ("HKSC", HKSC / "hksc1610.obs", [HKSC / "hksc1610.nav"], (0.0, 2.0, -2.0)),
-        ("TST", TST / "COM3_190428_124409.obs", TST_NAVS, (0.0,)),
+        ("HKSC", hksc / "hksc1610.obs", [hksc / "hksc1610.nav"], (0.0, 2.0, -2.0)),
+        ("TST", tst / "COM3_190428_124409.obs", tst_navs, (0.0,)),
     )
     for name, obs, navs, shifts in corpora:
         store, iono = load_navigation([str(n) for n in navs], systems="CGE")

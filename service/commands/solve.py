@@ -19,7 +19,6 @@ from dataclasses import dataclass, field, replace
 from typing import IO, TYPE_CHECKING, Literal
 
 from service.core.counters import Counters
-from service.core.declines import Decline
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
 from service.core.files import open_output
@@ -142,7 +141,7 @@ def _solve_plain(
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
             # (a time coarser than 1 ms: the ranges made fractional set aside too)
-            fast_in = [without_coarse_fractions(_fast_whole(e, opts))[0] for e in read]
+            fast_in = [_fast_view(e, opts) for e in read]
             fast = solve_many(fast_in, store, iono, opts.cfg, "fast", opts.with_sky)
             per_solver.append(with_coarse_fixes(fast, read, store, iono, opts))
         if opts.mode in ("spp", "both"):
@@ -175,13 +174,15 @@ def _checked(
             log.error("integrity: %s recovered %.1f m, the file gives %.1f m", prn, rec_m, full_m)
 
     for epoch, fixes in solved:
+        if epoch.restarted:  # the receiver's clock restarted: nothing recovered before
+            pending.clear()  # it is checked after it (the stream's rule)
         full = {p: float(pr) for p, pr in zip(epoch.prn, epoch.pr_m, strict=True) if pr == pr}
         for prn in [p for p in pending if p in full]:
             rec_m, period_s = pending.pop(prn)
             check(prn, rec_m, full[prn], period_s)
         fast = fixes[0]
         if fast.mode == "fast":
-            view = without_coarse_fractions(_fast_whole(epoch, opts))[0]
+            view = _fast_view(epoch, opts)
             for prn, rec_m in recovered_ranges(view, fast).items():
                 period_s = float(view.period_s[view.prn.index(prn)])
                 if prn in full:
@@ -191,9 +192,11 @@ def _checked(
         yield epoch, fixes
 
 
-COARSE_REASONS = frozenset({Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS})
-"""The declines of the paper's method after which the stream may try the coarse-time fix
-(:func:`service.engine.pipeline.coarse_time_fix` leaves every other fix as it is)."""
+def _fast_view(epoch: MeasurementEpoch, opts: BatchOptions) -> MeasurementEpoch:
+    """The rows of ``epoch`` the fast solver (the paper's method) is given: those of
+    :func:`_fast_whole` without the fractional ranges of a receiver time coarser than 1 ms
+    (:func:`~service.engine.timetag.without_coarse_fractions`)."""
+    return without_coarse_fractions(_fast_whole(epoch, opts))[0]
 
 
 def _fast_whole(epoch: MeasurementEpoch, opts: BatchOptions) -> MeasurementEpoch:
@@ -221,10 +224,11 @@ def with_coarse_fixes(
     ``opts.with_sky`` a fix gets its sky view as the kernel's do. (Its counters are not
     kept: the aided path solves an epoch more than once; the summary counts the coarse-time
     fixes written.)"""
-    todo = [k for k, fix in enumerate(fixes) if fix.reason_code in COARSE_REASONS]
+    from service.engine.coarse import TRIED_AFTER, CoarseConfig  # (loaded by solve's flags)
+
+    todo = [k for k, fix in enumerate(fixes) if fix.reason_code in TRIED_AFTER]
     if not todo:
         return fixes
-    from service.engine.coarse import CoarseConfig
     from service.engine.pipeline import coarse_time_fix
 
     coarse = opts.coarse or CoarseConfig()
@@ -259,7 +263,7 @@ def _coarse_velocities(
     out = list(moving)
     for j in todo:
         fix, epoch = pairs[j]
-        view = without_coarse_fractions(_fast_whole(epoch, opts))[0]
+        view = _fast_view(epoch, opts)
         out[j] = fix_with_velocity(fix, view, store)
     return out
 
@@ -432,7 +436,7 @@ def _solve_inputs(
         per_solver: list[list[Fix]] = []
         if opts.mode in ("fast", "both"):
             # (a time coarser than 1 ms: the ranges made fractional set aside too)
-            fast_in = [without_coarse_fractions(_fast_whole(r, opts))[0] for r in rows]
+            fast_in = [_fast_view(r, opts) for r in rows]
             paper = solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky)
             fast = with_coarse_fixes(paper, [read[k] for k in batch], store, iono, opts)
             from_coarse.update(k for k, a, b in zip(batch, paper, fast, strict=True) if a is not b)

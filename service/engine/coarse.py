@@ -114,6 +114,13 @@ COARSE_TIME = "coarse_time"
 COARSE_LAYOUT = Layout(coarse_time=True)
 """The layout of a BeiDou-only candidate: x, y, z, the clock and the coarse-time offset."""
 
+TRIED_AFTER = frozenset({Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS})
+"""The declines of the paper's method after which this method is tried (issue 20: the
+paper's method with >= 4 full GEO ranges, this one otherwise): too few full ranges, or
+none left once the fractional ranges of a coarse receiver time are set aside (the one
+rule of the stream's :func:`service.engine.pipeline.coarse_time_fix` and of ``bdsfix
+solve``)."""
+
 N_PARAMS = COARSE_LAYOUT.n_params
 """Unknowns of a BeiDou-only candidate's solve: x, y, z, the clock and the coarse-time
 offset; with GPS or Galileo rows, one clock more per extra system

@@ -46,6 +46,7 @@ from service.core.types import (
 )
 from service.engine.aiding import HeightAid, Predictor, with_screened
 from service.engine.coarse import (
+    TRIED_AFTER,
     CoarseConfig,
     solve_coarse,
     solve_coarse_at_sow,
@@ -211,7 +212,7 @@ def coarse_time_fix(
         # the receiver's time is coarser than even the coarse-time fix's prior: its
         # fractional ranges wait for the first decoded SOW, whose full range gives the
         # time to ~10 ms (issue 20); with one, the coarse-time fix is tried at that time
-        if paper.reason_code not in (Decline.TOO_FEW_FULL, Decline.NO_MEASUREMENTS):
+        if paper.reason_code not in TRIED_AFTER:
             return paper
         counters["coarse_time_epochs"] += 1
         sow = (

@@ -1,7 +1,7 @@
 """The ranges a fast fix recovered and their integrity check against the full ones, for the
 stream's pipeline (:mod:`service.engine.pipeline`: once the satellite's SOW decodes) and
 ``bdsfix solve`` (against the file's full range) alike; a module of its own so that the
-batch command does not import the pipeline to apply it."""
+batch command imports the pipeline only for a file that needs the coarse-time fix."""
 
 from __future__ import annotations
 

@@ -1489,14 +1489,17 @@ def iterate_fixed(
 ) -> None:
     """The weighted least-squares iteration with the integers fixed, of ``n`` problems at
     once: the kernel's phase 2 (:func:`_weighted`) and the coarse-time fix's candidates
-    (:mod:`service.engine.coarse`). Each iteration takes the rows of the problems still
-    active, ``linearize(ix, it)`` -> design, misclosures, weights (:func:`weighted_rows` and
-    any pseudo-observation rows: a held height, the time prior), solves their step
+    (:mod:`service.engine.coarse`). Each iteration asks ``linearize(ix, it)`` for the
+    design, misclosures and weights of the problems ``ix`` (:func:`weighted_rows` and any
+    pseudo-observation rows: a held height, the time prior), solves their step
     (:func:`lsq_step`, paper eq. 10) and hands it to ``advance(ix, act, step, it)``, which
     applies it, computes the geometry at the new iterate (the kernel: the ranges from its
     fixed orbits; coarse time: the orbits again at the moved receive time), tests
     convergence and returns the problems still active (``act``: their indices; ``ix``
-    the same, or a slice when every problem is active)."""
+    the same, or a slice when every problem is active). The kernel linearizes and moves
+    the active problems only; the coarse-time candidates, all of them each time (a
+    converged group's step is zeroed, its figures kept), until every group has
+    converged."""
     act = np.arange(n)
     for it in range(max_iter):
         if not act.size:
