@@ -1242,7 +1242,7 @@ def _coarse_fix(
     prior's row among them (:func:`service.engine.solver.time_prior_row`: the chi-square,
     its redundancy and the protection levels of :func:`service.engine.raim.assess` with
     that coarse-time layout are those of the candidate's test, step 4), the PDOP gate (the
-    satellites' geometry alone)."""
+    satellites' rows with the coarse-time column, without the prior's row)."""
     used = solved.weight[best] > 0
     x = solved.x[best]
     lat, lon, alt = (float(v) for v in ecef_to_geodetic(x))
