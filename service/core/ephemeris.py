@@ -715,3 +715,23 @@ def write_store(path: str | Path, snapshot: StoreSnapshot) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def select_rows(
+    store: EphemerisStore,
+    prns: Sequence[str],
+    rows: Iterable[int],
+    bdt_week: int,
+    bdt_sow_s: float,
+) -> tuple[list[Ephemeris], list[int]]:
+    """The ephemerides (:meth:`EphemerisStore.select`) of the rows ``rows`` (indices into
+    ``prns``, in their order) that have one, and the indices of those rows. (Of the store it
+    asks ``select`` alone, as the solver does.)"""
+    ephs: list[Ephemeris] = []
+    idx: list[int] = []
+    for i in rows:
+        e = store.select(prns[i], bdt_week, bdt_sow_s)
+        if e is not None:
+            ephs.append(e)
+            idx.append(i)
+    return ephs, idx

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from service.core.declines import excluded_why
-from service.core.ephemeris import EphemerisStore
+from service.core.ephemeris import EphemerisStore, select_rows
 from service.core.geometry import ecef_to_geodetic, enu_rotation
 from service.core.stats import median
 from service.core.timebase import diff_s, gpst_to_bdt
@@ -269,21 +269,13 @@ def sat_side(epoch: MeasurementEpoch, store: EphemerisStore) -> SatSide | None:
     """The satellites of ``epoch``'s full ranges at their transmit times (eqs. 4-5 of the
     kernel; None: no full range with an ephemeris)."""
     week, sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-    ephs, prns, prs = [], [], []
-    for i, prn in enumerate(epoch.prn):
-        pr = float(epoch.pr_m[i])
-        if not math.isfinite(pr):
-            continue
-        e = store.select(prn, week, sow)
-        if e is None:
-            continue
-        ephs.append(e)
-        prns.append(prn)
-        prs.append(pr)
+    full = np.flatnonzero(np.isfinite(epoch.pr_m)).tolist()
+    ephs, idx = select_rows(store, epoch.prn, full, week, sow)
     if not ephs:
         return None
+    prns = [epoch.prn[i] for i in idx]
     arr = store.arrays(ephs)
-    z = np.asarray(prs)
+    z = np.asarray(epoch.pr_m, dtype=float)[idx]
     sat0, clk = transmit_orbits(arr, week, sow, z)
     return SatSide(prns, z, sat0, clk, arr.omega_e_rad_s)
 

@@ -77,7 +77,7 @@ import numpy as np
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import sagnac_rotate
 from service.core.declines import Decline, Declined, excluded_why
-from service.core.ephemeris import EphemerisStore
+from service.core.ephemeris import EphemerisStore, select_rows
 from service.core.geometry import (
     ecef_to_geodetic,
     enu_rotation,
@@ -88,7 +88,7 @@ from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
 from service.core.systems import GnssSystem, system_of
 from service.core.timebase import gpst_to_bdt, normalize
-from service.core.types import Ephemeris, Fix, MeasurementEpoch
+from service.core.types import Fix, MeasurementEpoch
 from service.engine.layout import Layout
 from service.engine.raim import assess, chi2_threshold
 from service.engine.solver import (
@@ -351,20 +351,13 @@ def _sats(
     system's single row only sets its own clock). A fractional row whose period does not
     divide its system's longest is left out (its integer has no whole-period relation to
     the reference row's)."""
-    idx: list[int] = []
-    ephs: list[Ephemeris] = []
     full = np.isfinite(epoch.pr_m)
     frac = ~full & np.isfinite(epoch.frac_pr_m) & np.isfinite(epoch.period_s)
     letters = {GnssSystem.BDS.value}
     if multi_system:
         letters = {s.value for s in CODED_SYSTEMS}
-    for i in np.flatnonzero(full | frac).tolist():
-        if epoch.prn[i][:1] not in letters:
-            continue
-        e = store.select(epoch.prn[i], bdt_week, bdt_sow)
-        if e is not None:
-            idx.append(i)
-            ephs.append(e)
+    rows = [i for i in np.flatnonzero(full | frac).tolist() if epoch.prn[i][:1] in letters]
+    ephs, idx = select_rows(store, epoch.prn, rows, bdt_week, bdt_sow)
     # the longest period of each system's fractional rows; rows of a period not dividing it
     # out, then systems of a single row out
     longest: dict[str, float] = {}

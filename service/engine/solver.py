@@ -48,7 +48,7 @@ from service.core.bds import is_geo
 from service.core.constants import C_M_S, NOMINAL_FLIGHT_TIME_S
 from service.core.corrections import klobuchar_bds_m, klobuchar_gps_m, saastamoinen_m, sagnac_rotate
 from service.core.declines import Decline, Declined, excluded_why
-from service.core.ephemeris import EphemerisStore
+from service.core.ephemeris import EphemerisStore, select_rows
 from service.core.geometry import geodetic_points, look_angles
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.settings import setting
@@ -525,12 +525,7 @@ def sky_view(epoch: MeasurementEpoch, store: EphemerisStore, fix: Fix) -> tuple[
     if fix.x_ecef_m is None:
         return ()
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
-    ephs, idx = [], []
-    for i, prn in enumerate(epoch.prn):
-        e = store.select(prn, bdt_week, bdt_sow)
-        if e is not None:
-            ephs.append(e)
-            idx.append(i)
+    ephs, idx = select_rows(store, epoch.prn, range(len(epoch.prn)), bdt_week, bdt_sow)
     if not ephs:
         return ()
     arr = store.arrays(ephs)
@@ -1939,12 +1934,7 @@ def _with_other_systems(
     bdt_week, bdt_sow = gpst_to_bdt(epoch.gpst_week, epoch.gpst_tow_s)
     x = np.asarray(fix.x_ecef_m, dtype=float)
     b = fix.clocks_m.get("C", fix.clock_bias_m or 0.0)
-    ephs, idx = [], []
-    for i in todo:
-        e = store.select(epoch.prn[i], bdt_week, bdt_sow)
-        if e is not None:
-            ephs.append(e)
-            idx.append(i)
+    ephs, idx = select_rows(store, epoch.prn, todo, bdt_week, bdt_sow)
     if not ephs:
         return fix
     arr = store.arrays(ephs)
