@@ -35,6 +35,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -46,6 +47,7 @@ from service.core.orbit import sat_pos_clock, sat_pos_vel_clock
 from service.core.systems import wavelength_m
 from service.core.timebase import gpst_to_bdt
 from service.core.types import Ephemeris, Fix, MeasurementEpoch, Velocity
+from service.engine import linalg
 from service.engine.layout import Layout, layout_of
 from service.engine.raim import chi2_threshold
 
@@ -135,12 +137,17 @@ def _solve_velocities(
     n_ep = len(problems)
     if n_ep == 0:
         return []
-    counts = np.array([len(rows.prn) for rows, _ in problems])
-    width = int(counts.max())
+    counts = [len(rows.prn) for rows, _ in problems]
+    width = max(counts)
     # the rows of all epochs, one after the other; (epoch, slot) places each in the padding
-    ep_of = np.repeat(np.arange(n_ep), counts)
-    slot = np.arange(len(ep_of)) - np.repeat(np.cumsum(counts) - counts, counts)
-    cat = np.concatenate
+    # (one epoch: its rows are its slots, no padding)
+    one = n_ep == 1
+    if one:
+        ep_of = np.zeros(width, dtype=np.intp)
+    else:
+        ep_of = np.repeat(np.arange(n_ep), counts)
+        slot = np.arange(len(ep_of)) - np.repeat(np.cumsum(counts) - counts, counts)
+    cat = np.concatenate if not one else _first
     sat = cat([rows.sat_ecef_m for rows, _ in problems])
     x_ep = np.array([np.asarray(x, dtype=float) for _, x in problems])
     d = sat - x_ep[ep_of]
@@ -159,17 +166,22 @@ def _solve_velocities(
         (cfg.cn0_ref_dbhz - cn0) / 10.0
     )
     # the unknowns: velocity (ECEF) and one clock drift per system (service/engine/layout.py)
-    prn_all = [p for rows, _ in problems for p in rows.prn]
-    layout = replace(layout_of(prn_all), problem="velocity")
+    prn_all = [p for rows, _ in problems for p in rows.prn] if not one else problems[0][0].prn
+    layout = _velocity_layout(layout_of(prn_all))
     n_params = layout.n_params
-    h = np.zeros((n_ep, width, n_params))
-    h[ep_of, slot] = layout.design(e, None if layout.n_clocks == 1 else layout.clock_index(prn_all))
-    y = np.zeros((n_ep, width))
-    y[ep_of, slot] = y_row
-    var = np.ones((n_ep, width))
-    var[ep_of, slot] = var_row
-    keep = np.zeros((n_ep, width), dtype=bool)
-    keep[ep_of, slot] = np.isfinite(y_row) & (sin_el >= math.sin(math.radians(cfg.elmask_deg)))
+    design = layout.design(e, None if layout.n_clocks == 1 else layout.clock_index(prn_all))
+    keep_row = np.isfinite(y_row) & (sin_el >= math.sin(math.radians(cfg.elmask_deg)))
+    if one:  # every slot a row: the rows' arrays as the one epoch's
+        h, y, var, keep = design[None], y_row[None], var_row[None], keep_row[None]
+    else:
+        h = np.zeros((n_ep, width, n_params))
+        h[ep_of, slot] = design
+        y = np.zeros((n_ep, width))
+        y[ep_of, slot] = y_row
+        var = np.ones((n_ep, width))
+        var[ep_of, slot] = var_row
+        keep = np.zeros((n_ep, width), dtype=bool)
+        keep[ep_of, slot] = keep_row
     y = np.where(keep, y, 0.0)
     w = 1.0 / var
     out: list[Velocity | None] = [None] * n_ep
@@ -184,7 +196,7 @@ def _solve_velocities(
         hw = hk * wk[:, :, None]  # (epochs, rows, unknowns): rows of H weighted
         normal = hw.transpose(0, 2, 1) @ hk
         try:
-            cov = np.linalg.inv(normal)
+            cov = linalg.inv(normal)
         except np.linalg.LinAlgError:  # some epoch singular: find it, go on without
             ok = np.array([np.linalg.matrix_rank(m) == n_params for m in normal])
             todo, hk, yk, kk, wk, hw = todo[ok], hk[ok], yk[ok], kk[ok], wk[ok], hw[ok]
@@ -270,12 +282,24 @@ def _velocity(
         std_course_deg=std_course,
         clock_drift_m_s=float(sol[3]),
         std_clock_drift_m_s=math.sqrt(max(float(cov[3, 3]), 0.0)),
-        used=tuple(rows.prn[i] for i in np.flatnonzero(keep[: len(rows.prn)])),
+        used=tuple(rows.prn[i] for i in np.flatnonzero(keep[: len(rows.prn)]).tolist()),
         excluded=tuple(excluded),
         redundancy=redundancy,
         chi2=chi2,
         chi2_max=chi2_max,
     )
+
+
+def _first(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    """The one array of ``arrays`` (one epoch's rows: nothing to concatenate)."""
+    return arrays[0]
+
+
+@lru_cache(maxsize=64)
+def _velocity_layout(position: Layout) -> Layout:
+    """The velocity problem's unknowns for rows of ``position``'s systems: velocity and a
+    clock drift per system."""
+    return replace(position, problem="velocity")
 
 
 @dataclass(frozen=True, slots=True)
@@ -380,7 +404,11 @@ def doppler_rows_many(
         if id(e) not in position:
             position[id(e)] = len(distinct)
             distinct.append(e)
-    arr = store.arrays(distinct).take([position[id(e)] for e in row_sets])
+    arr = store.arrays(distinct)
+    if len(distinct) != len(row_sets):
+        arr = arr.take([position[id(e)] for e in row_sets])
+    # else each row its own set, in order (one epoch): the store's arrays themselves, not a
+    # copy, so the orbit's per-set terms are the ones memoised for them (orbit._constants)
     tau_all = np.array(taus)
     pos, vel, _, drift = sat_pos_vel_clock(arr, np.array(weeks), np.array(times))
     omega = arr.omega_e_rad_s
