@@ -98,11 +98,11 @@ class Layout:
         shape = los.shape[:-1]
         if self.n_clocks == 1 and not self.coarse_time:
             return np.concatenate([-los, _ones(shape)], axis=-1)
-        clocks = np.zeros((*shape, self.n_clocks))
         if clock_idx is None:
+            clocks = np.zeros((*shape, self.n_clocks))
             clocks[..., 0] = 1.0
-        else:
-            np.put_along_axis(clocks, np.asarray(clock_idx)[..., None], 1.0, axis=-1)
+        else:  # each row's one-hot: its clock's row of the identity
+            clocks = _eye(self.n_clocks)[np.asarray(clock_idx)]
         parts = [-los, clocks]
         if self.coarse_time:
             if rate_m_s is None:
@@ -116,6 +116,14 @@ def _ones(shape: tuple[int, ...]) -> np.ndarray:
     """A read-only column of ones (*shape, 1): the clock column of a one-clock design, made
     once per shape (the solver's iterations ask for the same shapes again and again)."""
     out = np.ones((*shape, 1))
+    out.flags.writeable = False
+    return out
+
+
+@lru_cache(maxsize=8)
+def _eye(n: int) -> np.ndarray:
+    """A read-only n x n identity: row k is the one-hot of clock k."""
+    out = np.eye(n)
     out.flags.writeable = False
     return out
 

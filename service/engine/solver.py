@@ -787,7 +787,9 @@ def transmit_orbits(
 def _row_clocks(b: np.ndarray, cix: np.ndarray) -> np.ndarray:
     """Each row's receiver clock [m]: the clocks ``b`` (e, clocks) at the rows' clock
     indices ``cix`` (e, s); with one clock, ``b`` itself (it broadcasts over the rows)."""
-    return b if b.shape[1] == 1 else np.take_along_axis(b, cix, axis=1)
+    if b.shape[1] == 1:
+        return b
+    return b[np.arange(len(b))[:, None], cix]  # (np.take_along_axis: the same, at more cost)
 
 
 LsqStep = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
