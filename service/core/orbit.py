@@ -260,6 +260,9 @@ error (h^2/6 times the orbit's third derivative, ~1e-5 m/s^3) is far below 1e-6 
 rounding error (1e-8 m over 2 h) a few 1e-7 m/s."""
 
 
+_STEPS_S = np.array([[-VELOCITY_STEP_S], [VELOCITY_STEP_S]])
+
+
 def sat_pos_vel_clock(
     eph: EphemerisArrays, bdt_week: int | np.ndarray, bdt_sow_s: np.ndarray | float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -274,10 +277,13 @@ def sat_pos_vel_clock(
     Earth frame (ECEF). The position and clock are the means of the two evaluations (within
     1e-4 m and 1e-15 s of those at the time itself).
     """
-    t = np.broadcast_to(np.asarray(bdt_sow_s, dtype=float), (len(eph),))
+    t = np.asarray(bdt_sow_s, dtype=float)
+    if t.shape != (len(eph),):
+        t = np.broadcast_to(t, (len(eph),))
     h = VELOCITY_STEP_S
-    # both evaluations in one call: times (2, n) broadcast against the (n,) ephemerides
-    pos, clk = sat_pos_clock(eph, bdt_week, np.stack([t - h, t + h]))
+    # both evaluations in one call: times (2, n) broadcast against the (n,) ephemerides,
+    # t + (-h) and t + h (t - h is t + (-h), the same bits)
+    pos, clk = sat_pos_clock(eph, bdt_week, t + _STEPS_S)
     vel = (pos[1] - pos[0]) / (2 * h)
     drift = (clk[1] - clk[0]) / (2 * h)
     return (pos[0] + pos[1]) / 2, vel, (clk[0] + clk[1]) / 2, drift
