@@ -435,16 +435,104 @@ def system_delays(
     """:func:`delays` with each row's system's ionosphere: BeiDou rows (``bds_rows``) with
     ``models.bds``, GPS and Galileo rows with ``models.other`` (:meth:`IonoSet.models`), each
     on its own carrier. One epoch or a batch, as :func:`delays` (the kernel, and the
-    coarse-time fix's candidates)."""
+    coarse-time fix's candidates). One receiver below 100 km (one epoch, or a batch of
+    one: the stream's every solve) has each model computed on its own system's rows only;
+    a batch of more, both on every row and each row's taken (the same bits either way:
+    each row's delay depends on its own figures alone)."""
     model = None if models is None else models.bds
     args = (lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, carrier_hz)
-    iono, tropo = delays(*args, model, cfg)
     mixed = models is not None and models.other is not model and not bds_rows.all()
+    if models is not None and mixed:
+        one = _one_receiver(lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, carrier_hz)
+        if one is not None and one[0][2] < 100e3:  # one receiver: each model on its own rows
+            (lat, lon, alt, el, az, sow, car), batch = one
+            b = np.asarray(bds_rows, dtype=bool).reshape(el.shape)
+            o = ~b
+            each = np.empty(el.shape)
+            each[b] = iono_m(models.bds, lat, lon, el[b], az[b], sow, car[b])
+            each[o] = iono_m(models.other, lat, lon, el[o], az[o], sow, car[o])
+            slant = saastamoinen_m(lat, alt, el) if cfg.tropo != "off" else None
+            if not batch:
+                return each, slant
+            return each[None], None if slant is None else slant[None]  # (a batch of one)
+    iono, tropo = delays(*args, model, cfg)
     if iono is not None and models is not None and mixed:
         other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
         if other is not None:
             iono = np.where(bds_rows, iono, other)
     return iono, tropo
+
+
+_OneReceiver = tuple[
+    tuple[
+        float | np.ndarray,
+        float | np.ndarray,
+        float,
+        np.ndarray,
+        np.ndarray,
+        float | np.ndarray,
+        np.ndarray,
+    ],
+    bool,
+]
+
+
+def _one_receiver(
+    lat_rad: float | np.ndarray,
+    lon_rad: float | np.ndarray,
+    alt_m: float | np.ndarray,
+    el_rad: np.ndarray,
+    az_rad: np.ndarray,
+    bdt_sow_s: float | np.ndarray,
+    carrier_hz: np.ndarray,
+) -> _OneReceiver | None:
+    """The arguments of :func:`delays` for one receiver (figures as floats, rows (n,) with
+    a carrier each), as :func:`delays` takes a batch of one, and whether they came as a
+    batch of one; None for a batch of more."""
+    if isinstance(alt_m, float):
+        if el_rad.ndim != 1:
+            return None
+        car = carrier_hz
+        if not (isinstance(car, np.ndarray) and car.shape == el_rad.shape):
+            car = np.broadcast_to(car, el_rad.shape)
+        return (lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, car), False
+    if not (
+        isinstance(alt_m, np.ndarray)
+        and alt_m.shape == (1,)
+        and el_rad.ndim == 2
+        and len(el_rad) == 1
+    ):
+        return None
+    car = carrier_hz
+    if not (isinstance(car, np.ndarray) and car.shape == el_rad.shape):
+        car = np.broadcast_to(car, el_rad.shape)
+    figures = (
+        float(np.asarray(lat_rad)[0]),
+        float(np.asarray(lon_rad)[0]),
+        float(alt_m[0]),
+        el_rad[0],
+        az_rad[0],
+        float(np.asarray(bdt_sow_s)[0]),
+        car[0],
+    )
+    return figures, True
+
+
+def iono_m(
+    model: KlobucharParams,
+    lat_rad: float | np.ndarray,
+    lon_rad: float | np.ndarray,
+    el_rad: np.ndarray,
+    az_rad: np.ndarray,
+    bdt_sow_s: float | np.ndarray,
+    carrier_hz: np.ndarray,
+) -> np.ndarray:
+    """Klobuchar delay [m] of rows on ``carrier_hz`` by ``model``'s form: BDS (ICD B1I
+    5.2.4.7) or GPS (IS-GPS-200 20.3.3.5.2.5, on GPS time), as :func:`delays` applies it."""
+    if model.system == "BDS":
+        return klobuchar_bds_m(model, lat_rad, lon_rad, el_rad, az_rad, bdt_sow_s, carrier_hz)
+    gpst_tow = bdt_sow_s + BDT_GPST_OFFSET_S
+    return klobuchar_gps_m(model, lat_rad, lon_rad, el_rad, az_rad, gpst_tow, carrier_hz)
 
 
 def delays(
@@ -498,11 +586,7 @@ def delays(
         alt_m, bdt_sow_s = np.asarray(alt_m)[:, None], np.asarray(bdt_sow_s)[:, None]
     iono = None
     if model is not None and (batch or alt_m < 100e3):
-        if model.system == "BDS":
-            iono = klobuchar_bds_m(model, lat_rad, lon_rad, el_rad, az_rad, bdt_sow_s, carrier_hz)
-        else:
-            gpst_tow = bdt_sow_s + BDT_GPST_OFFSET_S
-            iono = klobuchar_gps_m(model, lat_rad, lon_rad, el_rad, az_rad, gpst_tow, carrier_hz)
+        iono = iono_m(model, lat_rad, lon_rad, el_rad, az_rad, bdt_sow_s, carrier_hz)
         if batch and not np.all(alt_m < 100e3):
             iono = np.where(alt_m < 100e3, iono, np.nan)
     tropo = saastamoinen_m(lat_rad, alt_m, el_rad) if cfg.tropo != "off" else None

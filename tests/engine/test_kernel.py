@@ -456,3 +456,67 @@ def test_epochs_the_kernel_must_decide_without_raising(hksc):
         odd = replace(mixed, pr_m=pr, period_s=per, frac_pr_m=np.mod(mixed.pr_m, C_M_S * 1e-3))
         fix = solve(odd, Relabelled(store), iono, solver="fast")  # type: ignore[arg-type]
         assert fix.ok and not any(p.startswith("G") for p in fix.used), period_s
+
+
+@pytest.mark.parametrize("rows", ["every system", "GPS and Galileo only"])
+def test_each_ionosphere_model_on_its_own_rows_is_both_models_on_every_row(rows):
+    """:func:`service.engine.solver.system_delays` of one receiver computes BeiDou's
+    Klobuchar model on the BeiDou rows only and GPS's on the GPS and Galileo rows only:
+    the same bits as both models on every row with each row's taken, for one epoch given
+    with its figures as floats or as a batch of one, on every HKSC epoch with BeiDou, GPS
+    and Galileo rows (look angles from the station) and both coefficient sets of its nav
+    file; a batch of several epochs (both models on every row) agrees with them."""
+    from service.core.ephemeris import select_rows
+    from service.core.geometry import ecef_to_geodetic, look_angles
+    from service.core.orbit import sat_pos_clock
+    from service.core.timebase import gpst_to_bdt
+    from service.engine.solver import delays, system_delays
+
+    nav = str(DATA / "hksc-2021" / "hksc1610.nav")
+    store, iono = load_navigation([nav], systems=frozenset("CGE"))
+    assert iono.bds is not None and iono.gps is not None
+    models = iono.models("auto")
+    assert models is not None and models.other is iono.gps
+    cfg, no_tropo = SolverConfig(), SolverConfig(tropo="off")
+    lat, lon, alt = (float(v) for v in ecef_to_geodetic(HKSC_TRUTH_ECEF_M))
+    epochs = list(RinexObsReader(DATA / "hksc-2021" / "hksc1610.obs", systems="CGE"))
+    batch: list[tuple[np.ndarray, ...]] = []
+    n_mixed = 0
+    for ep in epochs:
+        week, sow = gpst_to_bdt(ep.gpst_week, ep.gpst_tow_s)
+        want = range(len(ep.prn))
+        if rows != "every system":
+            want = [i for i, p in enumerate(ep.prn) if p[0] in "GE"]
+        ephs, _ = select_rows(store, ep.prn, want, week, sow)
+        arr = store.arrays(ephs)
+        sat, _ = sat_pos_clock(arr, week, np.full(len(ephs), sow - 0.075))
+        el, az = look_angles(HKSC_TRUTH_ECEF_M, sat)
+        car, bds = arr.carrier_hz, arr.bds
+        n_mixed += bool(bds.any()) and not bds.all()
+        io_b, tr = delays(lat, lon, alt, el, az, sow, car, models.bds, cfg)
+        io_o, _ = delays(lat, lon, alt, el, az, sow, car, models.other, no_tropo)
+        assert io_b is not None and io_o is not None and tr is not None
+        both = np.where(bds, io_b, io_o)
+        io1, tr1 = system_delays(lat, lon, alt, el, az, sow, car, bds, models, cfg)
+        assert io1 is not None and tr1 is not None
+        np.testing.assert_array_equal(io1, both)
+        np.testing.assert_array_equal(tr1, tr)
+        f = np.array
+        io2, tr2 = system_delays(
+            f([lat]), f([lon]), f([alt]), el[None], az[None], f([sow]), car[None], bds[None],
+            models, cfg,
+        )  # fmt: skip
+        assert io2 is not None and tr2 is not None and io2.shape == tr2.shape == (1, len(el))
+        np.testing.assert_array_equal(io2[0], both)
+        np.testing.assert_array_equal(tr2[0], tr)
+        if len(batch) < 3 and len(el) == (len(batch[0][0]) if batch else len(el)):
+            batch.append((el, az, car, bds, f(sow), both, tr))
+    assert n_mixed == (len(epochs) if rows == "every system" else 0)
+    el3, az3, car3, bds3, sow3, both3, tr3 = (np.stack(col) for col in zip(*batch, strict=True))
+    n = len(batch)
+    io3, t3 = system_delays(
+        np.full(n, lat), np.full(n, lon), np.full(n, alt), el3, az3, sow3, car3, bds3, models,
+        cfg,
+    )  # fmt: skip
+    np.testing.assert_array_equal(io3, both3)
+    np.testing.assert_array_equal(t3, tr3)
