@@ -151,13 +151,13 @@ def _solve_velocities(
     sat = cat([rows.sat_ecef_m for rows, _ in problems])
     x_ep = np.array([np.asarray(x, dtype=float) for _, x in problems])
     d = sat - x_ep[ep_of]
-    e = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+    e = d / np.sqrt(linalg.einsum("ij,ij->i", d, d))[:, None]
     rots = enu_rotations_at(x_ep)
-    sin_el = np.einsum("ij,ij->i", e, rots[ep_of, 2])
+    sin_el = linalg.einsum("ij,ij->i", e, rots[ep_of, 2])
     y_row = (
         cat([rows.range_rate_m_s for rows, _ in problems])
         + C_M_S * cat([rows.sat_clock_drift_s_s for rows, _ in problems])
-        - np.einsum("ij,ij->i", e, cat([rows.sat_vel_ecef_m_s for rows, _ in problems]))
+        - linalg.einsum("ij,ij->i", e, cat([rows.sat_vel_ecef_m_s for rows, _ in problems]))
     )
     cn0 = cat([rows.cn0_dbhz for rows, _ in problems])
     cn0 = np.where(np.isfinite(cn0), cn0, cfg.cn0_ref_dbhz)
@@ -235,7 +235,7 @@ def _solve_velocities(
             break
         # w-test: each residual over its own standard deviation, sigma_i^2 - (H Q H^T)_ii
         hf, covf = hk[failed], cov[failed]
-        q_v = 1.0 / w[todo[failed]] - np.einsum("esi,eij,esj->es", hf, covf, hf)
+        q_v = 1.0 / w[todo[failed]] - linalg.einsum("esi,eij,esj->es", hf, covf, hf)
         wtest = np.abs(resid[failed]) / np.sqrt(np.maximum(q_v, 1e-12))
         worst = np.argmax(np.where(kk[failed], wtest, -1.0), axis=1)
         for k, i in zip(todo[failed].tolist(), worst.tolist(), strict=True):
