@@ -426,6 +426,8 @@ def gsv_sentences(
     sats = sorted(sky, key=_prn_of)
     n_sv = len(sats)
     n_msg = max(1, math.ceil(n_sv / GSV_SATS_PER_SENTENCE))
+    if _serialize is plain_sentence:
+        return _plain_gsv(sats, n_msg, talker, signal_id)
     out = []
     for k in range(n_msg):
         fields: dict[str, object] = {"numMsg": n_msg, "msgNum": k + 1, "numSV": n_sv}
@@ -439,6 +441,24 @@ def gsv_sentences(
         fields["signalID"] = signal_id
         out.append(_serialize(talker, "GSV", fields))
     return out
+
+
+def _plain_gsv(sats: list[SatView], n_msg: int, talker: str, signal_id: str) -> list[bytes]:
+    """:func:`gsv_sentences` of satellites ``sats`` (sorted) as :func:`plain_sentence`
+    writes them from its fields: each satellite's four integer fields written once, each
+    sentence joined from them (the text of the fields dictionary, without building it)."""
+    groups = []
+    for s in sats:
+        az = _int_or_empty(s.az_deg)
+        az = az % 360 if isinstance(az, int) else az
+        el, cno = _int_or_empty(s.el_deg), _int_or_empty(s.cn0_dbhz)
+        groups.append(f"{prn_number(s.prn)},{el},{az},{cno}")
+    head, n_sv, tail = talker + "GSV", str(len(sats)), str(signal_id)
+    n = GSV_SATS_PER_SENTENCE
+    return [
+        _framed(",".join([head, str(n_msg), str(k + 1), n_sv, *groups[n * k : n * (k + 1)], tail]))
+        for k in range(n_msg)
+    ]
 
 
 _GGA_FORMS = ((3, 2), (2, 2), (2, 1))
