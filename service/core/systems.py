@@ -126,8 +126,21 @@ _BY_LETTER: dict[str, GnssSystem] = {s.value: s for s in GnssSystem}
 
 
 def prn_number(sat: str) -> int:
-    """PRN number of a satellite ID like ``"C06"``, ``"C 6"`` or ``"G6"`` (any system)."""
-    return int(sat[1:].strip())
+    """PRN number of a satellite ID like ``"C06"``, ``"C 6"`` or ``"G6"`` (any system);
+    each ID's worked out once (:data:`_PRN_NUMBERS`: the NMEA of an epoch asks for each
+    satellite's several times)."""
+    n = _PRN_NUMBERS.get(sat)
+    if n is None:
+        n = int(sat[1:].strip())
+        if len(_PRN_NUMBERS) >= _PRN_NUMBERS_MAX:
+            _PRN_NUMBERS.clear()
+        _PRN_NUMBERS[sat] = n
+    return n
+
+
+_PRN_NUMBERS: dict[str, int] = {}
+""":func:`prn_number` of the satellite IDs seen (at most :data:`_PRN_NUMBERS_MAX`)."""
+_PRN_NUMBERS_MAX = 1024
 
 
 def sat_id(system: GnssSystem, number: int) -> str:
