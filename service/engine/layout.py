@@ -102,7 +102,7 @@ class Layout:
             clocks = np.zeros((*shape, self.n_clocks))
             clocks[..., 0] = 1.0
         else:  # each row's one-hot: its clock's row of the identity
-            clocks = _eye(self.n_clocks)[np.asarray(clock_idx)]
+            clocks = _eye(self.n_clocks)[np.broadcast_to(np.asarray(clock_idx), shape)]
         parts = [-los, clocks]
         if self.coarse_time:
             if rate_m_s is None:

@@ -92,7 +92,11 @@ def test_golden_replays_cover_every_sentence_type(tmp_path: Path):
 finite = st.floats(allow_nan=False, allow_infinity=False)
 sky_sat = st.builds(
     SatView,
-    st.integers(1, 63).map(lambda n: f"C{n:02d}"),
+    st.one_of(  # (a GSV per talker: BeiDou's, GPS's and Galileo's satellites)
+        st.integers(1, 63).map(lambda n: f"C{n:02d}"),
+        st.integers(1, 32).map(lambda n: f"G{n:02d}"),
+        st.integers(1, 36).map(lambda n: f"E{n:02d}"),
+    ),
     st.one_of(st.floats(-90, 90), st.just(math.nan)),
     st.one_of(st.floats(-360, 720), st.just(math.nan)),
     st.one_of(st.floats(0, 60), st.just(math.nan)),
@@ -143,7 +147,7 @@ def fixes(draw: st.DrawFn):
         std_enu_m=draw(st.one_of(st.none(), st.tuples(sigma, sigma, sigma))),
         cov_enu_m2=cov,
         resid_rms_m=draw(st.one_of(st.none(), st.floats(0, 1e5))),
-        sky=tuple(draw(st.lists(sky_sat, max_size=20))),
+        sky=tuple(draw(st.lists(sky_sat, max_size=45))),
         clock_bias_m=draw(st.floats(-3e5, 3e5)),
         velocity=draw(st.one_of(st.none(), velocity)),
     )
