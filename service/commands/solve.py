@@ -149,7 +149,7 @@ def _solve_plain(
         # the velocities of every solver's fixes in one computation (each fix's the same as
         # alone: with_velocities)
         pairs = [pair for fixes in per_solver for pair in zip(fixes, chunk, strict=True)]
-        moving = _coarse_velocities(with_velocities(pairs, store), pairs, store, opts)
+        moving = _velocities(pairs, store, opts)
         per_solver = [moving[k : k + len(chunk)] for k in range(0, len(moving), len(chunk))]
         for k, epoch in enumerate(chunk):
             yield epoch, [fixes[k] for fixes in per_solver]
@@ -245,27 +245,28 @@ def with_coarse_fixes(
     return out
 
 
-def _coarse_velocities(
-    moving: list[Fix],
-    pairs: list[tuple[Fix, MeasurementEpoch]],
-    store: EphemerisStore,
-    opts: BatchOptions,
+def _velocities(
+    pairs: list[tuple[Fix, MeasurementEpoch]], store: EphemerisStore, opts: BatchOptions
 ) -> list[Fix]:
-    """``moving`` (the velocities of ``pairs`` computed together), those of the coarse-time
-    fixes as the stream gives them (:func:`service.engine.pipeline.fix_with_velocity`: an
-    all-fractional one at its solved receive time), from the rows the fast solver had (the
-    satellites' transmit times from its fractional ranges, as the stream's)."""
-    todo = [j for j, (fix, _) in enumerate(pairs) if fix.method == "coarse_time"]
-    if not todo:
-        return moving
+    """The fixes of ``pairs`` with their velocities: the coarse-time fixes' as the stream
+    gives them (:func:`service.engine.pipeline.fix_with_velocity`: an all-fractional one at
+    its solved receive time, from the rows the fast solver had: the satellites' transmit
+    times from its fractional ranges), the others computed together
+    (:func:`~service.engine.velocity.with_velocities`: each the same as alone), each once."""
+    coarse = [j for j, (fix, _) in enumerate(pairs) if fix.method == "coarse_time"]
+    if not coarse:
+        return with_velocities(pairs, store)
     from service.engine.pipeline import fix_with_velocity
 
-    out = list(moving)
-    for j in todo:
+    out: list[Fix | None] = [None] * len(pairs)
+    taken = set(coarse)
+    rest = [j for j in range(len(pairs)) if j not in taken]
+    for j, fix in zip(rest, with_velocities([pairs[j] for j in rest], store), strict=True):
+        out[j] = fix
+    for j in coarse:
         fix, epoch = pairs[j]
-        view = _fast_view(epoch, opts)
-        out[j] = fix_with_velocity(fix, view, store)
-    return out
+        out[j] = fix_with_velocity(fix, _fast_view(epoch, opts), store)
+    return [fix for fix in out if fix is not None]  # (every index set once)
 
 
 def solve_aided(
@@ -460,7 +461,7 @@ def _with_velocities(
     ks = list(fixes)
     m = len(fixes[ks[0]]) if ks else 0
     pairs = [(f, views[k]) for k in ks for f in fixes[k]]
-    moving = _coarse_velocities(with_velocities(pairs, store), pairs, store, opts)
+    moving = _velocities(pairs, store, opts)
     return {k: moving[j * m : (j + 1) * m] for j, k in enumerate(ks)}
 
 
