@@ -213,6 +213,7 @@ def with_coarse_fixes(
     store: EphemerisStore,
     iono: IonoSet,
     opts: BatchOptions,
+    memo: dict[int, tuple[MeasurementEpoch, Fix, Fix]] | None = None,
 ) -> list[Fix]:
     """The fast solver's ``fixes`` of ``epochs`` (as read: their fractional ranges, those
     of ``--fractional non-geo`` too, are the coarse-time fix's rows), the coarse-time fix
@@ -223,7 +224,9 @@ def with_coarse_fixes(
     solver's settings are ``opts.cfg`` without an epoch's aid, as the stream's; with
     ``opts.with_sky`` a fix gets its sky view as the kernel's do. (Its counters are not
     kept: the aided path solves an epoch more than once; the summary counts the coarse-time
-    fixes written.)"""
+    fixes written.) ``memo`` (the aided path's, for a chunk): an epoch solved again with the
+    same decline of the paper's method gets the same fix without a second search (the
+    coarse-time fix has no aid and no screen: its inputs are the epoch as read)."""
     from service.engine.coarse import TRIED_AFTER, CoarseConfig  # (loaded by solve's flags)
 
     todo = [k for k, fix in enumerate(fixes) if fix.reason_code in TRIED_AFTER]
@@ -234,6 +237,11 @@ def with_coarse_fixes(
     coarse = opts.coarse or CoarseConfig()
     out = list(fixes)
     for k in todo:
+        seen = None if memo is None else memo.get(id(epochs[k]))
+        if seen is not None and seen[0] is epochs[k] and _same_decline(seen[1], fixes[k]):
+            # (the paper's decline itself where the search left it: this solve's)
+            out[k] = fixes[k] if seen[2] is seen[1] else seen[2]
+            continue
         whole = _fast_whole(epochs[k], opts)
         view, set_aside = without_coarse_fractions(whole)
         fix = coarse_time_fix(
@@ -241,8 +249,17 @@ def with_coarse_fixes(
         )
         if opts.with_sky and fix.ok and fix is not fixes[k]:
             fix = replace(fix, sky=sky_view(view, store, fix))
+        if memo is not None:
+            memo[id(epochs[k])] = (epochs[k], fixes[k], fix)
         out[k] = fix
     return out
+
+
+def _same_decline(a: Fix, b: Fix) -> bool:
+    """Whether the paper's method declined ``a`` and ``b`` alike: all that
+    :func:`service.engine.pipeline.coarse_time_fix` reads of the paper's fix (its code and
+    figures) besides returning it."""
+    return a.reason_code == b.reason_code and a.decline == b.decline
 
 
 def _velocities(
@@ -310,6 +327,7 @@ def solve_aided(
         want: list[_Inputs | None] = [None] * n  # the inputs from the fixes as last solved
         cache: dict[int, tuple[object, MeasurementEpoch, dict[str, str]]] = {}
         sides: dict[int, SatSide | None] = {}
+        searched: dict[int, tuple[MeasurementEpoch, Fix, Fix]] = {}  # (with_coarse_fixes)
         front = passes = resolved = 0  # the epochs before the front are final
         done: list[list[Fix]] = []  # their fixes
         while front < n:
@@ -342,7 +360,7 @@ def solve_aided(
                 continue
             passes += 1
             resolved += len(todo)
-            solved, from_coarse = _solve_inputs(views, todo, store, iono, opts, chunk)
+            solved, from_coarse = _solve_inputs(views, todo, store, iono, opts, chunk, searched)
             for k, fixes in solved.items():
                 moved[k], used[k], coarse[k] = fixes, todo[k], k in from_coarse
         log.debug(
@@ -407,6 +425,7 @@ def _solve_inputs(
     iono: IonoSet,
     opts: BatchOptions,
     read: list[MeasurementEpoch],
+    searched: dict[int, tuple[MeasurementEpoch, Fix, Fix]] | None = None,
 ) -> tuple[dict[int, list[Fix]], set[int]]:
     """The fixes (with velocities, without the screen's reasons) of the epochs ``todo``
     given their inputs, solved together: the epochs without an aid in one batch, those
@@ -439,7 +458,7 @@ def _solve_inputs(
             # (a time coarser than 1 ms: the ranges made fractional set aside too)
             fast_in = [_fast_view(r, opts) for r in rows]
             paper = solve_many(fast_in, store, iono, cfg, "fast", opts.with_sky)
-            fast = with_coarse_fixes(paper, [read[k] for k in batch], store, iono, opts)
+            fast = with_coarse_fixes(paper, [read[k] for k in batch], store, iono, opts, searched)
             from_coarse.update(k for k, a, b in zip(batch, paper, fast, strict=True) if a is not b)
             per_solver.append(fast)
         if opts.mode in ("spp", "both"):
