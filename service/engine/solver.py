@@ -435,87 +435,47 @@ def system_delays(
     """:func:`delays` with each row's system's ionosphere: BeiDou rows (``bds_rows``) with
     ``models.bds``, GPS and Galileo rows with ``models.other`` (:meth:`IonoSet.models`), each
     on its own carrier. One epoch or a batch, as :func:`delays` (the kernel, and the
-    coarse-time fix's candidates). One receiver below 100 km (one epoch, or a batch of
-    one: the stream's every solve) has each model computed on its own system's rows only;
-    a batch of more, both on every row and each row's taken (the same bits either way:
-    each row's delay depends on its own figures alone)."""
+    coarse-time fix's candidates). Where every problem has the same system in each column
+    (one epoch, a batch of one, the coarse-time fix's candidates of one epoch), each model
+    is computed on its own system's columns only; otherwise both on every row and each
+    row's taken (the same bits either way: each row's delay depends on its own figures
+    alone)."""
     model = None if models is None else models.bds
     args = (lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, carrier_hz)
     mixed = models is not None and models.other is not model and not bds_rows.all()
-    if models is not None and mixed:
-        one = _one_receiver(lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, carrier_hz)
-        if one is not None and one[0][2] < 100e3:  # one receiver: each model on its own rows
-            (lat, lon, alt, el, az, sow, car), batch = one
-            b = np.asarray(bds_rows, dtype=bool).reshape(el.shape)
-            o = ~b
-            each = np.empty(el.shape)
-            each[b] = iono_m(models.bds, lat, lon, el[b], az[b], sow, car[b])
-            each[o] = iono_m(models.other, lat, lon, el[o], az[o], sow, car[o])
-            slant = saastamoinen_m(lat, alt, el) if cfg.tropo != "off" else None
-            if not batch:
-                return each, slant
-            return each[None], None if slant is None else slant[None]  # (a batch of one)
-    iono, tropo = delays(*args, model, cfg)
-    if iono is not None and models is not None and mixed:
-        other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
-        if other is not None:
-            iono = np.where(bds_rows, iono, other)
+    if models is None or not mixed:
+        return delays(*args, model, cfg)
+    cols = _shared_columns(bds_rows)
+    if cols is None:
+        iono, tropo = delays(*args, model, cfg)
+        if iono is not None:
+            other, _ = delays(*args, models.other, replace(cfg, tropo="off"))
+            if other is not None:
+                iono = np.where(bds_rows, iono, other)
+        return iono, tropo
+    _, tropo = delays(*args, None, cfg)
+    car = np.broadcast_to(carrier_hz, np.shape(el_rad))
+    no_tropo = replace(cfg, tropo="off")
+    iono = np.empty(np.shape(el_rad))
+    for m, c in ((model, cols), (models.other, ~cols)):
+        if c.any():
+            part = (el_rad[..., c], az_rad[..., c], bdt_sow_s, car[..., c])
+            io = delays(lat_rad, lon_rad, alt_m, *part, m, no_tropo)[0]
+            if io is None:  # one receiver above 100 km: no ionosphere (delays)
+                return None, tropo
+            iono[..., c] = io
     return iono, tropo
 
 
-_OneReceiver = tuple[
-    tuple[
-        float | np.ndarray,
-        float | np.ndarray,
-        float,
-        np.ndarray,
-        np.ndarray,
-        float | np.ndarray,
-        np.ndarray,
-    ],
-    bool,
-]
-
-
-def _one_receiver(
-    lat_rad: float | np.ndarray,
-    lon_rad: float | np.ndarray,
-    alt_m: float | np.ndarray,
-    el_rad: np.ndarray,
-    az_rad: np.ndarray,
-    bdt_sow_s: float | np.ndarray,
-    carrier_hz: np.ndarray,
-) -> _OneReceiver | None:
-    """The arguments of :func:`delays` for one receiver (figures as floats, rows (n,) with
-    a carrier each), as :func:`delays` takes a batch of one, and whether they came as a
-    batch of one; None for a batch of more."""
-    if isinstance(alt_m, float):
-        if el_rad.ndim != 1:
-            return None
-        car = carrier_hz
-        if not (isinstance(car, np.ndarray) and car.shape == el_rad.shape):
-            car = np.broadcast_to(car, el_rad.shape)
-        return (lat_rad, lon_rad, alt_m, el_rad, az_rad, bdt_sow_s, car), False
-    if not (
-        isinstance(alt_m, np.ndarray)
-        and alt_m.shape == (1,)
-        and el_rad.ndim == 2
-        and len(el_rad) == 1
-    ):
-        return None
-    car = carrier_hz
-    if not (isinstance(car, np.ndarray) and car.shape == el_rad.shape):
-        car = np.broadcast_to(car, el_rad.shape)
-    figures = (
-        float(np.asarray(lat_rad)[0]),
-        float(np.asarray(lon_rad)[0]),
-        float(alt_m[0]),
-        el_rad[0],
-        az_rad[0],
-        float(np.asarray(bdt_sow_s)[0]),
-        car[0],
-    )
-    return figures, True
+def _shared_columns(bds_rows: np.ndarray) -> np.ndarray | None:
+    """``bds_rows`` (s,) or (e, s) as one (s,) column mask when every problem has the same
+    system in each column (e = 1, or the rows alike), else None."""
+    b = np.asarray(bds_rows, dtype=bool)
+    if b.ndim == 1:
+        return b
+    if b.ndim == 2 and (len(b) == 1 or bool((b == b[0]).all())):
+        return b[0]
+    return None
 
 
 def iono_m(
