@@ -178,15 +178,22 @@ def data_bit_index(icd_bit: int) -> int:
     return pos if word == 0 else 26 + 22 * (word - 1) + pos
 
 
-def subframe_data(words: Sequence[int]) -> tuple[int, int]:
-    """(224-bit data stream, corrected bit count) of ten words; no preamble -> DecodeError."""
+def subframe_data(words: Sequence[int], decode: int = 10) -> tuple[int, int]:
+    """(224-bit data stream, corrected bit count) of ten words; no preamble -> DecodeError.
+    ``decode``: how many of the words, from the first, are decoded (BCH); the others are
+    only checked to be 30-bit words (as :func:`decode_word` checks them) and their bits
+    left 0 (:func:`parse_header`: the header is in words 1-2)."""
     if len(words) != 10:
         raise DecodeError(f"a B1I subframe has 10 words, got {len(words)}")
     data, fixed = decode_word(int(words[0]), True)
-    for w in words[1:]:
+    for w in words[1:decode]:
         d, n = decode_word(int(w), False)
         data = data << 22 | d
         fixed += n
+    for w in words[max(decode, 1) :]:
+        if not 0 <= int(w) <= _WORD_MASK:
+            raise DecodeError(f"not a 30-bit word: {int(w):#x}")
+    data <<= 22 * (10 - max(decode, 1))
     if _get(data, *HEADER["preamble"]) != PREAMBLE:
         raise DecodeError(f"no B1I preamble in word 1 ({int(words[0]):#010x})")
     return data, fixed
@@ -496,19 +503,10 @@ def parse_header(words: Sequence[int], nav_type: str) -> SubframeHeader:
     DecodeError for a missing preamble, FraID outside 1-5, SOW >= 604800 or a page number
     outside the subframe's page range.
     """
-    if len(words) != 10:
-        raise DecodeError(f"a B1I subframe has 10 words, got {len(words)}")
-    # the header is in words 1 and 2 (bits 0-47); the others are checked as subframe_data
-    # checks them (30-bit values, in order) but not decoded: the same result or error, at a
-    # fifth of the BCH work, on the path from a SFRBX to its epoch's fix
-    first, _ = decode_word(int(words[0]), True)
-    second, _ = decode_word(int(words[1]), False)
-    for w in words[2:]:
-        if not 0 <= int(w) <= _WORD_MASK:
-            raise DecodeError(f"not a 30-bit word: {int(w):#x}")
-    data = (first << 22 | second) << (DATA_BITS - 48)
-    if _get(data, *HEADER["preamble"]) != PREAMBLE:
-        raise DecodeError(f"no B1I preamble in word 1 ({int(words[0]):#010x})")
+    # the header is in words 1 and 2 (bits 0-47): the others checked, not decoded (the
+    # same result or error, at a fifth of the BCH work, on the path from a SFRBX to its
+    # epoch's fix)
+    data, _ = subframe_data(words, decode=2)
     return _header(data, nav_type)
 
 
