@@ -261,6 +261,7 @@ rounding error (1e-8 m over 2 h) a few 1e-7 m/s."""
 
 
 _STEPS_S = np.array([[-VELOCITY_STEP_S], [VELOCITY_STEP_S]])
+_STEPS_S.flags.writeable = False  # shared by every call
 
 
 def sat_pos_vel_clock(

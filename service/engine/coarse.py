@@ -45,10 +45,11 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    ``p_fa`` (:func:`service.engine.raim.chi2_threshold`), at a plausible place: height in
    [``alt_min_m``, ``alt_max_m``], |dt| within the prior, every tracked satellite above
    ``-horizon_deg``. It is published only if no other plausible candidate has a statistic
-   below ``uniqueness_margin`` times its own threshold; else the epoch is declined
-   ``ambiguous`` (integer sets compared system by system, relative within a system
-   without a full row: :func:`_agree`). With several systems and no candidate passing
-   (``chi2``), BeiDou's rows alone are solved and judged the same way.
+   below ``uniqueness_margin`` times its own threshold (a plausible candidate without
+   redundancy, whose residuals cannot be tested, always counts as such a rival); else the
+   epoch is declined ``ambiguous`` (integer sets compared system by system, relative
+   within a system without a full row: :func:`_agree`). With several systems and no
+   candidate passing (``chi2``), BeiDou's rows alone are solved and judged the same way.
 5. **The fix.** Only a winner that passed steps 3-4 (or their fault exclusion) is
    published. When its integers are absolute (a full row anchors them, or the solved time
    leaves no doubt about the millisecond common to every range; a further system through
@@ -1023,7 +1024,8 @@ def _evaluate(
 
 
 def _judge(solved: _Solved, cfg: SolverConfig, ccfg: CoarseConfig) -> _Evaluation:
-    """Judge every solved candidate (module docstring, step 4)."""
+    """Judge every solved candidate (module docstring, step 4). Where a candidate has no
+    redundancy its threshold is infinite: it never passes, and if plausible it is a rival."""
     t_max = np.array([chi2_threshold(int(r), cfg.p_fa) if r >= 1 else np.inf for r in solved.dof])
     plausible = (
         (solved.alt >= ccfg.alt_min_m)
