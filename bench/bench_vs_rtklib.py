@@ -28,10 +28,10 @@ Files:
   BDS + GPS + Galileo. bdsfix replays the SBF file (`bdsfix replay --max-speed`, its nav
   blocks the only ephemerides); rnx2rtkp reads the RINEX 3.04 obs and nav that RTKLIB's
   convbin writes from it (``-r sbf``, done once, not timed). Truth: each epoch's
-  PVTGeodetic (the receiver's own SBAS-aided fix, metre level). bdsfix's SBF driver gives
-  BeiDou rows and BDSNav ephemerides only, and RTKLIB 2.4.3's convbin writes no BeiDou
-  ephemeris from SBF, so the two read different systems here; SBF-RNX runs `bdsfix solve`
-  on convbin's RINEX, the same input as rnx2rtkp.
+  PVTGeodetic (the receiver's own SBAS-aided fix, metre level). bdsfix reads the BeiDou,
+  GPS and Galileo rows and the file's BDSNav/GPSNav/GALNav sets, while RTKLIB 2.4.3's
+  convbin writes no BeiDou ephemeris from SBF (rnx2rtkp: GPS and Galileo); SBF-RNX runs
+  `bdsfix solve` on convbin's RINEX, the same input as rnx2rtkp.
 
 Rows with a truth per epoch also print the availability (fixes over the epochs with a
 truth: 205 HKSC, 485 TST, 300 3GEO, 12 SBF) and each side's 3D error p50/p95/max. 3GEO's

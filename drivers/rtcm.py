@@ -1,4 +1,5 @@
-"""RTCM3 frames to bdsfix events: framing, and the BDS messages (parsed by pyrtcm) mapped.
+"""RTCM3 frames to bdsfix events: framing, and the BDS messages (and GPS and Galileo ones
+when their systems are asked for), parsed by pyrtcm, mapped.
 
 Reference: RTCM Standard 10403.3: section 4 (transport layer: ``D3``, 6 reserved zero bits,
 10-bit length, payload, CRC-24Q over header and payload; :data:`FRAMING`), section 3.5.12
@@ -12,6 +13,10 @@ BDS facts from BDS-SIS-ICD-B1I-3.0.
   integer milliseconds are unknown is kept as a *fractional* measurement,
   ``frac_pr_m = c*1ms*((DF398 + fine) mod 1)`` with ``pr_m`` NaN (RTKLIB drops such cells).
   Only B1I cells (signal ID 2, RINEX ``2I``; Table 3.5-108) enter the epoch.
+- GPS MSM 1074-1077 and Galileo MSM 1094-1097 (:data:`OTHER_MSM`), when the mapper's
+  ``systems`` include theirs: the same cells, GPS L1 C/A and Galileo E1 (B, C or B+C) only
+  (:data:`OTHER_MSM_SIGNALS`), their epoch time the system's own TOW (DF004, DF248); GPS
+  1019 and Galileo I/NAV 1046 become ephemerides (:data:`EPH_OF_SYSTEM`).
 - The BDS MSM epoch time DF427 is BDT milliseconds of week; GPST = BDT + 14 s. The GPS week
   comes from a :class:`~drivers.framing.WeekContext` shared with the other mappers of the
   stream: the latest exact week (UBX RXM-RAWX / NAV-TIMEGPS), else the week and t_oe of the
@@ -29,7 +34,9 @@ BDS facts from BDS-SIS-ICD-B1I-3.0.
 Counter keys: ``rtcm:<number>`` per message, ``rtcm_ignored``, ``msm_bds``,
 ``msm_cells_b1i``, ``msm_cells_other_signal``, ``msm_cells_fractional``,
 ``msm_cells_invalid``, ``msm_duplicate_cells``, ``msm_no_week``, ``msm_bad_time``, ``epochs_rtcm``,
-``ephemerides_rtcm``, ``eph_bad_prn``, ``eph_week_<number>`` (a week taken from a non-BDS
+``ephemerides_rtcm``, ``msm_<system>``, ``msm_cells_<system>`` and
+``ephemerides_rtcm_<system>`` (GPS ``G``, Galileo ``E``), ``eph_bad_prn``,
+``eph_week_<number>`` (a week taken from a non-BDS
 ephemeris), ``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that
 message, and a 1042 is passed on for the ephemeris store to refuse).
 """

@@ -3,8 +3,10 @@
 Reference: Septentrio "mosaic-X5 Reference Guide" (firmware 4.x), section "SBF Outline"
 (block header, CRC, ID, length; "Do-Not-Use" values), "Signal Type" (signal numbers) and
 "Satellite ID" (SVID) tables, and the block definitions of MeasEpoch (4027), BDSNav (4081),
-BDSIon (4120), BDSRaw (4047) and PVTGeodetic (4007). Nav, iono, raw and PVT blocks are
-parsed by pysbf2 (which applies the scale factors); MeasEpoch, which arrives every epoch and
+BDSIon (4120), BDSRaw (4047), PVTGeodetic (4007) and, for GPS and Galileo, GPSNav (5891),
+GPSIon (5893), GALNav (4002), GALIon (4030) and GALGstGps (4032). Nav, iono, raw and PVT
+blocks are parsed by pysbf2 (which applies the scale factors); MeasEpoch, which arrives every
+epoch and
 whose signed type-2 offsets (CodeOffsetMSB, DopplerOffsetMSB) pysbf2 1.0.7 reads unsigned,
 is unpacked here with :mod:`struct` (the tests compare the two on every row of the real
 capture, pysbf2's code offset sign-corrected).
@@ -20,9 +22,11 @@ capture, pysbf2's code offset sign-corrected).
   ratio). The signal number is SigIdxLo, or 32 + ObsInfo bits 3-7 when SigIdxLo is 31.
   BeiDou (SVID 141-180: C01-C40, 223-245: C41-C63) B1I (signal 28) gives RINEX ``2I``: the
   full pseudorange, C/N0 (0.25 dB-Hz + 10, except GPS L1P/L2P), Doppler and lock time.
-  Other BeiDou signals are counted (``meas_bds_other_signal``), other systems too
-  (``meas_other_gnss``), as are signals of an auxiliary antenna (``meas_aux_antenna``),
-  missing pseudoranges (``meas_pr_invalid``) and implausible ones (``meas_pr_implausible``).
+  Other BeiDou signals are counted (``meas_bds_other_signal``). GPS L1 C/A and Galileo E1
+  rows are read the same way when their systems are asked for (``meas_G``, ``meas_E``;
+  their other signals counted), other systems are counted (``meas_other_gnss``), as are
+  signals of an auxiliary antenna (``meas_aux_antenna``), missing pseudoranges
+  (``meas_pr_invalid``) and implausible ones (``meas_pr_implausible``).
   Each MeasEpoch is one :class:`~service.core.types.MeasurementEpoch` (``epochs_sbf``),
   tagged with the block's TOW/WNc, the receiver's own time (the week is exact).
 - BDSNav becomes an :class:`~service.core.types.Ephemeris` (BDT week WNt_oe, t_oe and t_oc

@@ -175,10 +175,11 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         _run_flags(d)
     m = command(
         "simulate",
-        "virtual BDS receiver: UBX out",
-        "A virtual B1I receiver at a known place: UBX RXM-MEASX, RXM-RAWX (prMes valid once "
-        "each satellite's SOW decoded) and RXM-SFRBX with real D1/D2 subframe timing, to a "
-        "file, stdout or a pty.",
+        "virtual receiver (BeiDou; GPS and Galileo with --nav): UBX out",
+        "A virtual receiver at a known place (BeiDou B1I; GPS L1 C/A and Galileo E1 from a "
+        "real nav file with --nav and --systems): UBX RXM-MEASX, RXM-RAWX (prMes valid once "
+        "each satellite's time of week decoded) and RXM-SFRBX with real subframe timing, to "
+        "a file, stdout or a pty.",
     )
     if only in (None, "simulate"):
         _simulate_flags(m)
@@ -223,8 +224,9 @@ def _solve_flags(s: argparse.ArgumentParser) -> None:
 
     s.add_argument(
         "obs",
-        help="RINEX 3 observation file (BDS C2I/C1I pseudoranges) or Android GnssLogger log "
-        "(FORMAT:PATH names the format)",
+        help="RINEX 3 observation file (BeiDou C2I/C1I, GPS C1C, Galileo C1C/C1X/C1B "
+        "pseudoranges, as --systems asks) or Android GnssLogger log (FORMAT:PATH names the "
+        "format)",
     )
     s.add_argument("nav", nargs="+", help="one or more RINEX 3 nav files")
     s.add_argument(
@@ -391,7 +393,7 @@ def _replay_flags(r: argparse.ArgumentParser) -> None:
     )
     add_flags(r, FullRuleConfig, "restart (--restart-at and the built-in scenario)")
     add_flags(r, SolverConfig, "solver")
-    add_flags(r, SystemsConfig, "systems (RINEX observation and nav files)")
+    add_flags(r, SystemsConfig, "systems (every input: UBX, RTCM3, SBF, RINEX, GnssLogger)")
     add_flags(r, CoarseConfig, "coarse-time first fix (fewer full ranges than unknowns)")
 
 

@@ -7,7 +7,7 @@ aircraft or a drone), as land-vehicle receivers do (their "automotive" dynamic m
 In a street canyon the rows that remain are few and mostly from high elevations, so the
 vertical is the weakest direction, and reflected (NLOS) ranges, which are long, push the fix
 upwards by tens to hundreds of metres while the chi-square test still passes
-(docs/method.md, "Urban drive"). A height known to a few metres from the last half minute of
+(docs/method.md, "Urban drive"). A height known to a few metres from the last minute of
 fixes adds the missing vertical geometry and one degree of freedom to the test, so fault
 exclusion sees the reflected rows instead of letting the vertical absorb them.
 

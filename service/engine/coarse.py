@@ -7,14 +7,18 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
 
 1. **Doppler position** (:func:`doppler_position`). The pseudorange rate of satellite i is
    rdot_i = e_i . (V_i - v) + d - c dts_i/dt (Kaplan & Hegarty 9.3, as
-   :mod:`service.engine.velocity`); with v = 0 the unknowns are the position x and the clock
-   drift d, solved by Gauss-Newton from the Earth's centre with
-   d(e_i . V_i)/dx = -(V_i - (e_i . V_i) e_i) / rho_i, and a height pseudo-observation
-   (h = 0 +- ``height_sigma_m``). A moving receiver biases it by about |v| / 2e-4 s^-1
-   (50 km at 10 m/s): the prior is not good enough to round integers once.
+   :mod:`service.engine.velocity`); the unknowns are the position x, the clock drift d and
+   the receiver velocity v, solved by Gauss-Newton from the Earth's centre with
+   d(e_i . (V_i - v))/dx = -((V_i - v) - (e_i . (V_i - v)) e_i) / rho_i, a height
+   pseudo-observation (h = 0 +- ``height_sigma_m``) and a velocity prior
+   (``speed_sigma_m_s`` horizontal, ``vertical_speed_sigma_m_s`` vertical): first at rest
+   (v = 0), then with v, backtracking a step that raises the cost. An unmodelled velocity
+   biases the position by about |v| / 2e-4 s^-1 (50 km at 10 m/s); modelling it makes the
+   covariance say so, and the prior is still not good enough to round integers once.
 2. **Candidate integer sets** (:func:`solve_coarse`). A hexagonal grid of prior hypotheses on
-   the ellipsoid, spacing ``grid_step_m``, out to ``search_radius_m`` around the Doppler
-   position; at each point the nearest-satellite rule predicts every range and rounds
+   the ellipsoid, spacing ``grid_step_m``, over the ellipse of ``search_sigmas`` sigmas of
+   the Doppler position's horizontal covariance, never beyond ``search_radius_m``
+   (:func:`hypotheses`); at each point the nearest-satellite rule predicts every range and rounds
    N_j = round((rho_j + b_s - z_j) / (c T_j)), each in units of its own period T_j (1 ms
    B1I and GPS C/A, 4 ms Galileo E1, or a phone's longer one), b_s the clock of the row's
    system s taken from its full rows, or (none) from its nearest satellite. A system with
@@ -43,7 +47,7 @@ prior within half an ambiguity, c T / 2 = 150 km, and a fifth unknown for the ti
    the layout's parameters, 3 + systems + 1) is at least
    ``min_redundancy`` and its weighted residuals pass the chi-square test at the solver's
    ``p_fa`` (:func:`service.engine.raim.chi2_threshold`), at a plausible place: height in
-   [``alt_min_m``, ``alt_max_m``], |dt| within the prior, every tracked satellite above
+   [``alt_min_m``, ``alt_max_m``], |dt| <= 1.5 times the prior, every tracked satellite above
    ``-horizon_deg``. It is published only if no other plausible candidate has a statistic
    below ``uniqueness_margin`` times its own threshold (a plausible candidate without
    redundancy, whose residuals cannot be tested, always counts as such a rival); else the

@@ -2,12 +2,12 @@
 one solver kernel (:mod:`service.engine.solver`), so that a decision and the words of a
 decline are written once.
 
-A converged, weighted solution is judged in the order of docs/method.md: the chi-square
-test of its residuals (:mod:`service.engine.raim`), the plausible shell (altitude, receiver
-clock), the PDOP gate. Its first failure is the decline (:func:`verdict`); a decline's words
-come from the one table (:mod:`service.core.declines`). Fault exclusion ranks candidate
-solutions by :func:`fit_ratio`, in the one exclusion loop (:func:`exclude`), which the
-kernel feeds every candidate of every failed epoch of a stage in one chunk.
+A converged, weighted solution is judged in this order: the chi-square test of its
+residuals (:mod:`service.engine.raim`, docs/method.md), the plausible shell (altitude,
+receiver clock), the PDOP gate. Its first failure is the decline (:func:`verdict`); a
+decline's words come from the one table (:mod:`service.core.declines`). Fault exclusion
+ranks candidate solutions by :func:`fit_ratio`, in the one exclusion loop (:func:`exclude`),
+which the kernel feeds every candidate of every failed epoch of a stage in one chunk.
 """
 
 from __future__ import annotations

@@ -16,8 +16,8 @@ Two phases, so that fast and SPP share one fixed point:
    integer is already fixed), Klobuchar and Saastamoinen corrections, weights from the
    error model (and, given ``SolverConfig.height_aid``, one pseudo-observation row of the
    height: :func:`_height_row`), iterated to convergence. Then the integrity checks of
-   docs/method.md: the chi-square test of the weighted residuals, fault exclusion, the PDOP
-   gate, the plausible shell and the protection levels (:mod:`service.engine.raim`).
+   docs/method.md: the chi-square test of the weighted residuals, fault exclusion, the
+   plausible shell, the PDOP gate and the protection levels (:mod:`service.engine.raim`).
 
 With every measurement full and an approximate position given (``x0_ecef_m``), phase 1 has
 nothing to resolve and phase 2 starts there: conventional SPP, the same solution.

@@ -57,10 +57,10 @@ Field rules, common to all classes:
   used full signal`` plus ``cn0_dbhz`` when measured.
 ``TRACK`` (a satellite's frame-sync event): ``class prn event nav_type gpst_week
   gpst_tow_s since_start_s``; ``prn`` a RINEX 3 satellite ID (BeiDou, or GPS/Galileo from a
-  multi-system source such as a phone log), ``nav_type`` ``D2`` for a BeiDou GEO,
-  ``LNAV`` for a GPS satellite and ``D1`` for every other satellite; ``event`` is ``sow``
-  (a subframe's SOW decoded: ``sow_s`` is the BDT second of week at which that subframe
-  started) or ``full`` (its measurement became a full pseudorange at ``gpst_tow_s``);
+  multi-system source such as a phone log), ``nav_type`` ``D2`` for a BeiDou GEO, ``D1``
+  for every other BeiDou satellite, ``LNAV`` for GPS and ``INAV`` for Galileo; ``event`` is
+  ``sow`` (a subframe's SOW decoded: ``sow_s`` is the BDT second of week at which that
+  subframe started) or ``full`` (its measurement became a full pseudorange at ``gpst_tow_s``);
   ``full_since_s`` (data time since the stream start at which it first became full) when
   the caller knows it.
 ``STATUS``: ``class counters`` ({name: number}) plus any scalar extras the caller adds

@@ -43,10 +43,10 @@ class SinkOptions:
 class Sink:
     """One output. It is handed only what it declares it takes, and may never block.
 
-    ``nmea``: ``"live"`` takes each epoch's GGA as soon as it is built, then the epoch's
-    other sentences; ``"epoch"`` takes the epoch's sentences in one write, after its JSONL
-    line; ``""`` takes no NMEA. ``records``: the record classes (FIX SKY TRACK STATUS) it
-    takes, as dicts, in the order they are published.
+    ``nmea``: ``"live"`` takes each epoch's lead sentences (RMC, VTG, GGA) as soon as they
+    are built, then the epoch's other sentences; ``"epoch"`` takes the epoch's sentences in
+    one write, after its JSONL line; ``""`` takes no NMEA. ``records``: the record classes
+    (FIX SKY TRACK STATUS) it takes, as dicts, in the order they are published.
 
     Opening (the constructor or factory) raises :class:`~service.core.errors.BindError` for
     a listener that cannot bind, :class:`~service.core.errors.InputError` for a file or
