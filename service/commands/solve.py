@@ -23,9 +23,15 @@ from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
+from service.core.timebase import diff_s
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.aiding import HeightAid, Predictor, SatSide, sat_side, with_screened
-from service.engine.recovered import integer_agrees, recovered_ranges
+from service.engine.recovered import (
+    RECOVERED_MAX_AGE_S,
+    integer_agrees,
+    recovered_ranges,
+    system_clock_m,
+)
 from service.engine.solver import (
     CHUNK_EPOCHS,
     EpochAids,
@@ -165,11 +171,12 @@ def _checked(
     with ``--fractional non-geo``), else the next one read (a phone's range fractional in
     the file). Counted in ``counters`` as ``integrity_checks`` and
     ``integrity_failures`` (each failure logged)."""
-    pending: dict[str, tuple[float, float]] = {}  # PRN: (recovered range [m], period [s])
+    # PRN: (recovered range [m], period [s], the recovering fix's clock [m], GPST week, tow)
+    pending: dict[str, tuple[float, float, float | None, int, float]] = {}
 
-    def check(prn: str, rec_m: float, full_m: float, period_s: float) -> None:
+    def check(prn: str, rec_m: float, full_m: float, period_s: float, change_m: float) -> None:
         counters["integrity_checks"] += 1
-        if not integer_agrees(rec_m, full_m, period_s):
+        if not integer_agrees(rec_m, full_m, period_s, change_m):
             counters["integrity_failures"] += 1
             log.error("integrity: %s recovered %.1f m, the file gives %.1f m", prn, rec_m, full_m)
 
@@ -178,17 +185,29 @@ def _checked(
             pending.clear()  # it is checked after it (the stream's rule)
         full = {p: float(pr) for p, pr in zip(epoch.prn, epoch.pr_m, strict=True) if pr == pr}
         for prn in [p for p in pending if p in full]:
-            rec_m, period_s = pending.pop(prn)
-            check(prn, rec_m, full[prn], period_s)
+            # a later epoch's range: the receiver clock's change in between taken out, from
+            # a fix of this epoch (the stream's rule, service.engine.pipeline)
+            rec_m, period_s, then_m, week, tow_s = pending[prn]
+            if diff_s(epoch.gpst_week, epoch.gpst_tow_s, week, tow_s) > RECOVERED_MAX_AGE_S:
+                del pending[prn]
+                counters["integrity_unchecked"] += 1
+                continue
+            now_m = next(
+                (c for c in (system_clock_m(f, prn) for f in fixes) if c is not None), None
+            )
+            if now_m is not None:
+                del pending[prn]
+                check(prn, rec_m, full[prn], period_s, 0.0 if then_m is None else now_m - then_m)
         fast = fixes[0]
         if fast.mode == "fast":
             view = _fast_view(epoch, opts)
             for prn, rec_m in recovered_ranges(view, fast).items():
                 period_s = float(view.period_s[view.prn.index(prn)])
                 if prn in full:
-                    check(prn, rec_m, full[prn], period_s)
+                    check(prn, rec_m, full[prn], period_s, 0.0)
                 else:
-                    pending[prn] = (rec_m, period_s)
+                    then_m = system_clock_m(fast, prn)
+                    pending[prn] = (rec_m, period_s, then_m, epoch.gpst_week, epoch.gpst_tow_s)
         yield epoch, fixes
 
 

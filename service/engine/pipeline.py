@@ -53,7 +53,12 @@ from service.engine.coarse import (
     sow_time_shift,
 )
 from service.engine.layout import BDS_ONLY
-from service.engine.recovered import integer_agrees, recovered_ranges
+from service.engine.recovered import (
+    RECOVERED_MAX_AGE_S,
+    integer_agrees,
+    recovered_ranges,
+    system_clock_m,
+)
 from service.engine.solver import (
     IonoSet,
     SolverConfig,
@@ -88,6 +93,9 @@ class IntegrityCheck:
     full_pr_m: float
     elapsed_s: float
     ok: bool
+    clock_change_m: float = 0.0
+    """What the receiver clock of the satellite's system moved from the fix that recovered
+    the range to the fix of the check (taken out before comparing)."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -283,6 +291,7 @@ class _Recovered:
     tow_s: float
     pr_m: float
     period_s: float
+    clock_m: float  # the recovering fix's clock of the satellite's system (NaN: none)
 
 
 @dataclass
@@ -305,6 +314,7 @@ class Pipeline:
     _restarted: bool = False
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
+    _due: dict[str, _Recovered] = field(default_factory=dict)  # full now: to check
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
     _inav: InavAssembler = field(default_factory=InavAssembler)
@@ -444,11 +454,14 @@ class Pipeline:
         if epoch.restarted:  # the receiver's clock restarted: its old fix is no start
             self.counters["receiver_restarts"] += 1
             self._recovered.clear()
+            self._due.clear()
             self._last_fix = None
             self._height.reset()
             self._predictor.reset()
         view, events = self.tracker.on_epoch(epoch)
-        checks = self._check_integrity(view, events)
+        for ev in events:  # its recovered range is checked with this epoch's fix, or later
+            if ev.event == "full" and ev.prn in self._recovered:
+                self._due[ev.prn] = self._recovered.pop(ev.prn)
         whole = view  # with its fractional ranges, for the coarse-time fix
         view, set_aside = without_coarse_fractions(view)
         cfg = self._start_cfg(view)
@@ -473,11 +486,17 @@ class Pipeline:
                 self.counters["height_aided_fixes"] += 1
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
+        checks = self._check_integrity(view, fix) if self._due else []
         if fix.mode == "fast":
             for prn, pr in recovered_ranges(view, fix).items():
                 i = view.prn.index(prn)
+                clock = system_clock_m(fix, prn)
                 self._recovered[prn] = _Recovered(
-                    epoch.gpst_week, epoch.gpst_tow_s, pr, float(view.period_s[i])
+                    epoch.gpst_week,
+                    epoch.gpst_tow_s,
+                    pr,
+                    float(view.period_s[i]),
+                    math.nan if clock is None else clock,
                 )
         self._emit(events)
         since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
@@ -515,6 +534,7 @@ class Pipeline:
         )
         self.tracker.restart(epoch.gpst_week, epoch.gpst_tow_s, emulator)
         self._recovered.clear()
+        self._due.clear()
         self._last_fix = None
         self._height.reset()
         self._predictor.reset()
@@ -549,26 +569,42 @@ class Pipeline:
             )
         return type(held[0])(**{**held[1], "x0_ecef_m": x0_ecef_m})
 
-    def _check_integrity(
-        self, view: MeasurementEpoch, events: list[TrackEvent]
-    ) -> list[IntegrityCheck]:
+    def _check_integrity(self, view: MeasurementEpoch, fix: Fix) -> list[IntegrityCheck]:
+        """Each recovered range whose satellite is full (its SOW decoded) against the full
+        range, at the first epoch with a fix whose clock of the satellite's system says
+        what the receiver clock moved since the recovering fix (``integer_agrees``: a
+        clock step of the receiver would otherwise move every range by whole
+        milliseconds); within :data:`RECOVERED_MAX_AGE_S` of that fix, else dropped and
+        counted ``integrity_unchecked``."""
         checks = []
-        for ev in events:
-            if ev.event != "full" or ev.prn not in self._recovered:
-                continue
-            rec = self._recovered.pop(ev.prn)
-            i = view.prn.index(ev.prn)
-            full = float(view.pr_m[i])
+        for prn in list(self._due):
+            rec = self._due[prn]
             dt = diff_s(view.gpst_week, view.gpst_tow_s, rec.week, rec.tow_s)
-            ok = integer_agrees(rec.pr_m, full, rec.period_s)
+            if dt > RECOVERED_MAX_AGE_S:
+                del self._due[prn]
+                self.counters["integrity_unchecked"] += 1
+                log.info("integrity: %s recovered %.0f s ago, not checked", prn, dt)
+                continue
+            clock = system_clock_m(fix, prn)
+            full = float(view.pr_m[view.prn.index(prn)]) if prn in view.prn else math.nan
+            if clock is None or not math.isfinite(full):
+                continue  # (the next epoch's fix, or its range)
+            del self._due[prn]
+            change = clock - rec.clock_m if math.isfinite(rec.clock_m) else 0.0
+            ok = integer_agrees(rec.pr_m, full, rec.period_s, change)
             checks.append(
-                IntegrityCheck(ev.prn, view.gpst_week, view.gpst_tow_s, rec.pr_m, full, dt, ok)
+                IntegrityCheck(prn, view.gpst_week, view.gpst_tow_s, rec.pr_m, full, dt, ok, change)
             )
             self.counters["integrity_checks"] += 1
             if not ok:
                 self.counters["integrity_failures"] += 1
                 log.error(
-                    "integrity: %s recovered %.1f m, SOW gives %.1f m", ev.prn, rec.pr_m, full
+                    "integrity: %s recovered %.1f m, SOW gives %.1f m (receiver clock %+.1f m"
+                    " since)",
+                    prn,
+                    rec.pr_m,
+                    full,
+                    change,
                 )
         return checks
 
