@@ -76,6 +76,13 @@ WARM_START_MAX_AGE_S = 30.0
 """A fix older than this [s, data time] is not used as the start of the next solve."""
 SAME_EPOCH_S = 1e-6
 """Two epochs closer than this [s] are the same epoch (records carry 1 us)."""
+REANCHOR_EPOCHS = 3
+"""Epochs in a row, each after the one before it by at most :data:`REANCHOR_STEP_MAX_S`,
+that all come before the latest epoch's time: the stream's time is taken from them again
+(``time_reanchors``). One epoch tagged ahead (a damaged week or time of week) would
+otherwise decline every later epoch ``out_of_order`` until the data time passed it: a week
+for a week number off by one."""
+REANCHOR_STEP_MAX_S = 60.0
 RECEIVER_FIX_MAX_AGE_S = 1.5
 """A receiver's own fix is carried on the results of epochs at most this far from it [s]
 (at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
@@ -311,6 +318,7 @@ class Pipeline:
     counters: Counters = field(default_factory=Counters)
     _first: tuple[int, float] | None = None
     _latest: tuple[int, float] | None = None  # GPST of the latest measurement epoch
+    _behind: list[tuple[int, float]] = field(default_factory=list)  # before _latest, in order
     _restarted: bool = False
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
@@ -434,6 +442,9 @@ class Pipeline:
         self.counters["epochs"] += 1
         early = self._early_decline(epoch)
         if early is not None:
+            if epoch.restarted:  # (the flag is the receiver's, whatever its epoch's time)
+                self.counters["receiver_restarts"] += 1
+                self._forget_fixes()
             count_fix(self.counters, early)
             since = None
             if epoch.week_known:
@@ -453,11 +464,7 @@ class Pipeline:
             restarted_now = False
         if epoch.restarted:  # the receiver's clock restarted: its old fix is no start
             self.counters["receiver_restarts"] += 1
-            self._recovered.clear()
-            self._due.clear()
-            self._last_fix = None
-            self._height.reset()
-            self._predictor.reset()
+            self._forget_fixes()
         view, events = self.tracker.on_epoch(epoch)
         for ev in events:  # its recovered range is checked with this epoch's fix, or later
             if ev.event == "full" and ev.prn in self._recovered:
@@ -512,17 +519,55 @@ class Pipeline:
         )
 
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
-        """The declined fix of an epoch without a week or not after the latest one."""
+        """The declined fix of an epoch without a week or not after the latest one, unless
+        it is the :data:`REANCHOR_EPOCHS`-th in a row before the latest, each after the one
+        before it, or a receiver restart's (its clock set back): then the stream goes on
+        from this epoch (:meth:`_reanchor`)."""
         if not epoch.week_known:
             return declined(epoch, Declined.of(Decline.NO_TIME))
         last = self._latest
         if last is not None:
             step = diff_s(epoch.gpst_week, epoch.gpst_tow_s, *last)
             if step < SAME_EPOCH_S:
+                if step <= -SAME_EPOCH_S:
+                    self._hold_behind(epoch)
+                    # (a receiver restart may set its clock back: its time is the new one)
+                    if epoch.restarted or len(self._behind) >= REANCHOR_EPOCHS:
+                        self._reanchor(epoch, last)
+                        return None
                 what = "repeats" if step > -SAME_EPOCH_S else f"is {-step:.3f} s before"
                 why = Declined.of(Decline.OUT_OF_ORDER, what=what, week=last[0], tow_s=last[1])
                 return declined(epoch, why)
+        self._behind.clear()
         return None
+
+    def _hold_behind(self, epoch: MeasurementEpoch) -> None:
+        """Hold ``epoch``, which is before the latest, with those held before it if it
+        follows the last of them (by at most :data:`REANCHOR_STEP_MAX_S`), else alone."""
+        if self._behind:
+            step = diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._behind[-1])
+            if not SAME_EPOCH_S <= step <= REANCHOR_STEP_MAX_S:
+                self._behind.clear()
+        self._behind.append((epoch.gpst_week, epoch.gpst_tow_s))
+
+    def _reanchor(self, epoch: MeasurementEpoch, stray: tuple[int, float]) -> None:
+        """The stream's time from ``epoch`` again: what the epochs since the stray latest
+        time (``stray``) left is dropped as after a receiver restart."""
+        self.counters["time_reanchors"] += 1
+        log.warning(
+            "%d epochs in a row before GPS week %d %.3f s: the stream's time goes on from "
+            "week %d %.3f s (that epoch was tagged ahead)",
+            len(self._behind),
+            stray[0],
+            stray[1],
+            epoch.gpst_week,
+            epoch.gpst_tow_s,
+        )
+        self._behind.clear()
+        self._latest = None
+        if self._first is not None and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) < 0:
+            self._first = None
+        self._forget_fixes()
 
     def restart(self, epoch: MeasurementEpoch, rng: np.random.Generator) -> None:
         """Emulate a receiver restart at ``epoch``: frame sync is lost, every satellite is
@@ -533,6 +578,12 @@ class Pipeline:
             epoch.gpst_week, epoch.gpst_tow_s, epoch.prn, rng, rule=self.full_rule
         )
         self.tracker.restart(epoch.gpst_week, epoch.gpst_tow_s, emulator)
+        self._forget_fixes()
+
+    def _forget_fixes(self) -> None:
+        """Forget what the fixes so far leave for the next ones (a restart of the receiver,
+        emulated or its own, or of the stream's time): recovered ranges not yet checked,
+        the warm start, the held height and the prediction screen's last fix."""
         self._recovered.clear()
         self._due.clear()
         self._last_fix = None

@@ -185,3 +185,46 @@ def test_out_of_order_rinex_epochs_leave_the_other_fixes_unchanged():
         if f.ok:
             assert np.allclose(f.x_ecef_m, ref.x_ecef_m, atol=1e-4, rtol=0)
     assert sum(f.ok for f in fixes) == sum(f.ok for f in clean.values()) - 1  # epoch 100
+
+
+def test_one_epoch_tagged_a_week_ahead_does_not_stop_the_stream():
+    """HKSC RINEX with epoch 10 tagged a week later (a damaged week number): the epochs after
+    it are before the latest time; the first two are declined ``out_of_order``, the third
+    makes the stream's time its own again (``time_reanchors``), and every later fix is the
+    clean run's. Without that, every epoch after the stray one was declined: a daemon would
+    publish nothing for a week."""
+    store, iono = load_navigation([str(HKSC / "hksc1610.nav")])
+    epochs: list[MeasurementEpoch] = list(RinexObsReader(HKSC / "hksc1610.obs"))
+    pipe = Pipeline(store, iono)
+    clean = [pipe.on_epoch(e).fix for e in epochs]
+    damaged = [*epochs[:10], replace(epochs[10], gpst_week=epochs[10].gpst_week + 1)]
+    damaged += epochs[11:]
+    pipe = Pipeline(store, iono)
+    fixes = [pipe.on_epoch(e).fix for e in damaged]
+    assert [k for k, f in enumerate(fixes) if f.reason_code == "out_of_order"] == [11, 12]
+    assert pipe.counters["time_reanchors"] == 1
+    for f, ref in zip(fixes[13:], clean[13:], strict=True):
+        assert (f.gpst_week, f.gpst_tow_s, f.mode) == (ref.gpst_week, ref.gpst_tow_s, ref.mode)
+        if f.ok:
+            assert np.allclose(f.x_ecef_m, ref.x_ecef_m, atol=1e-4, rtol=0)
+    assert sum(f.ok for f in fixes[13:]) == 192
+
+
+def test_a_receiver_restart_setting_its_clock_back_is_taken_at_once():
+    """A receiver restart (``restarted``) whose clock starts 5 s before the latest epoch: the
+    stream's time is the restarted receiver's at once (no epoch declined), and the restart
+    is counted; a restart flag on an epoch declined for repeating the latest is counted
+    too."""
+    store, iono = load_navigation([str(HKSC / "hksc1610.nav")])
+    epochs: list[MeasurementEpoch] = list(RinexObsReader(HKSC / "hksc1610.obs"))
+    pipe = Pipeline(store, iono)
+    for e in epochs[:20]:
+        pipe.on_epoch(e)
+    back = pipe.on_epoch(replace(epochs[15], restarted=True))
+    assert back.fix.ok and back.fix.gpst_tow_s == epochs[15].gpst_tow_s
+    assert pipe.counters["receiver_restarts"] == 1
+    assert pipe.counters["time_reanchors"] == 1
+    again = pipe.on_epoch(replace(epochs[15], restarted=True))
+    assert again.fix.reason_code == "out_of_order"
+    assert pipe.counters["receiver_restarts"] == 2
+    assert all(pipe.on_epoch(e).fix.ok for e in epochs[16:30])
