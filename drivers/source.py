@@ -131,14 +131,20 @@ class StreamDecoder:
                 frame.protocol, "%s frame at offset %d: %s", frame.protocol, frame.offset, err
             )
         except Exception as err:  # library parse errors of any kind stop here
+            # A frame whose checksum held but which its library or mapper cannot read is
+            # rare on a real stream (a newer message version, or a bug): said, rate-limited,
+            # with the traceback at DEBUG, never only counted
             self.counters[f"decode_errors_{frame.protocol}"] += 1
-            log.debug(
-                "%s frame at offset %d not decoded: %s: %s",
+            self._log.warning(
+                f"{frame.protocol}:decode",
+                "%s frame at offset %d not decoded (%s: %s); counted decode_errors_%s",
                 frame.protocol,
                 frame.offset,
                 type(err).__name__,
                 err,
+                frame.protocol,
             )
+            log.debug("%s frame at offset %d", frame.protocol, frame.offset, exc_info=True)
         return []
 
     def _decode(self, frames: list[Frame]) -> list[Event]:

@@ -586,3 +586,17 @@ def test_gnsslogger_reader_never_raises(lines):
     with hang_guard():
         events = list(GnssLoggerReader(lines))
     assert all(isinstance(e, MeasurementEpoch | ReceiverFix) for e in events)
+
+
+def test_a_checksum_valid_frame_nothing_can_read_is_said_not_only_counted(caplog):
+    """An RXM-RAWX whose checksum holds but whose 20 bytes are no RAWX layout (pyubx2 gives
+    up on its repeated group): counted ``decode_errors_ubx`` and said in a WARNING naming
+    the offset and the error, once per interval (rate-limited), not only at DEBUG."""
+    frame = reseal_ubx(b"\x02\x15" + bytes(range(20)))
+    dec = StreamDecoder()
+    with caplog.at_level("WARNING", logger="drivers.source"):
+        assert dec.feed(frame + frame) == []
+    assert dec.counters["decode_errors_ubx"] == 2
+    said = [r.getMessage() for r in caplog.records if r.name == "drivers.source"]
+    assert len(said) == 1
+    assert "ubx frame at offset 0 not decoded" in said[0] and "decode_errors_ubx" in said[0]
