@@ -33,6 +33,18 @@ NAV_HINT = (
 )
 
 
+def nav_hint(anchor: set[str]) -> str:
+    """What to give when the nav files lack the sets of ``anchor``: :data:`NAV_HINT` for
+    BeiDou, else the same for the systems asked for."""
+    if anchor == {"C"}:
+        return NAV_HINT
+    letters = "/".join(f"'{s}'" for s in sorted(anchor))
+    return (
+        f"give a RINEX 3 nav file with {letters} records of the observations' day "
+        "(e.g. a daily mixed '_MN' file)"
+    )
+
+
 def check_navigation(
     paths: Sequence[str | Path],
     navs: Sequence[NavData],
@@ -57,7 +69,7 @@ def check_navigation(
     ]
     if not toes:
         what = "BDS" if anchor == {"C"} else "/".join(sorted(anchor))
-        raise InputError(f"no usable {what} ephemeris in {names}: {NAV_HINT}")
+        raise InputError(f"no usable {what} ephemeris in {names}: {nav_hint(anchor)}")
     if first is None or first[0] == UNKNOWN_WEEK:
         return
     if min(abs(diff_s(*first, *toe)) for toe in toes) <= NAV_DAY_S:
@@ -68,7 +80,7 @@ def check_navigation(
     what = "BDS" if anchor == {"C"} else "/".join(sorted(anchor))
     raise InputError(
         f"{names}: {what} ephemerides of {span} (GPST), but the observations start "
-        f"{start:%Y-%m-%d %H:%M:%S} GPST: {NAV_HINT}"
+        f"{start:%Y-%m-%d %H:%M:%S} GPST: {nav_hint(anchor)}"
     )
 
 

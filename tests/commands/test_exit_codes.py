@@ -45,6 +45,8 @@ def _bdsfix(*args: str) -> subprocess.CompletedProcess[str]:
         (("replay", HKSC_OBS, "--nav", GPS_NAV, "--max-speed"), 3, "no usable BDS ephemeris"),
         (("run", "--source", HKSC_OBS, "--nav", GPS_NAV, *RUN_QUIET), 3, "no usable BDS"),
         (("solve", TWTF_OBS, HKSC_NAV), 3, NAV_2021_OBS_2023),
+        # GPS alone asked for, a GPS nav of another day: the hint names GPS, not BeiDou
+        (("solve", HKSC_OBS, GPS_NAV, "--systems", "G"), 3, "a RINEX 3 nav file with 'G' rec"),
         (("replay", TWTF_OBS, "--nav", HKSC_NAV, "--max-speed"), 3, NAV_2021_OBS_2023),
         (("run", "--source", TWTF_OBS, "--nav", HKSC_NAV, *RUN_QUIET), 3, NAV_2021_OBS_2023),
         (("run", "--source", POLYU_UBX, "--nav", HKSC_NAV, *RUN_QUIET), 3, NAV_2021_UBX_2024),
