@@ -323,6 +323,9 @@ class Fix:
     fractional: tuple[str, ...] = ()
     ambiguity: dict[str, int] = field(default_factory=dict)
     recovered_pr_m: dict[str, float] = field(default_factory=dict)
+    # a coarse-time fix whose whole period common to a system's ranges is in doubt: its
+    # integers (units of each row's period), right only relative within each system
+    relative_ambiguity: dict[str, int] = field(default_factory=dict)
     resid_rms_m: float | None = None
     iterations: int = 0
     # why a fix is declined (mode "none"): its code, template variant and figures

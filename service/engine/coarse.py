@@ -998,6 +998,9 @@ def _solve_sats(
             full=tuple(p for p in fix.used if p not in integers),
             fractional=tuple(p for p in fractional if p in used),
             ambiguity={p: k for p, k in integers.items() if p in used} if absolute else {},
+            relative_ambiguity=(
+                {} if absolute else {p: k for p, k in integers.items() if p in used}
+            ),
             recovered_pr_m={p: v for p, v in recovered.items() if p in used},
             method=COARSE_TIME,
             time_offset_s=dt,

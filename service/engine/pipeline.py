@@ -83,6 +83,9 @@ that all come before the latest epoch's time: the stream's time is taken from th
 otherwise decline every later epoch ``out_of_order`` until the data time passed it: a week
 for a week number off by one."""
 REANCHOR_STEP_MAX_S = 60.0
+MAX_SHIFTS = 256
+"""Relative-integer groups remembered at most (a fix and a system each); beyond, all are
+forgotten (their ranges are then anchored afresh by the next full one)."""
 RECEIVER_FIX_MAX_AGE_S = 1.5
 """A receiver's own fix is carried on the results of epochs at most this far from it [s]
 (at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
@@ -299,6 +302,7 @@ class _Recovered:
     pr_m: float
     period_s: float
     clock_m: float  # the recovering fix's clock of the satellite's system (NaN: none)
+    whole_m: float = 0.0  # c x the whole period common to its system's ranges (0: absolute)
 
 
 @dataclass
@@ -323,6 +327,9 @@ class Pipeline:
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _due: dict[str, _Recovered] = field(default_factory=dict)  # full now: to check
+    # relative integers: (week, tow, system) of their fix -> the shift its first full range
+    # gave, c x whole periods, which every other range of that fix and system must share
+    _shifts: dict[tuple[int, float, str], float] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
     _inav: InavAssembler = field(default_factory=InavAssembler)
@@ -505,6 +512,7 @@ class Pipeline:
                     float(view.period_s[i]),
                     math.nan if clock is None else clock,
                 )
+            self._keep_relative(whole, fix)
         self._emit(events)
         since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
         return EpochResult(
@@ -586,6 +594,7 @@ class Pipeline:
         the warm start, the held height and the prediction screen's last fix."""
         self._recovered.clear()
         self._due.clear()
+        self._shifts.clear()
         self._last_fix = None
         self._height.reset()
         self._predictor.reset()
@@ -620,6 +629,34 @@ class Pipeline:
             )
         return type(held[0])(**{**held[1], "x0_ecef_m": x0_ecef_m})
 
+    def _keep_relative(self, view: MeasurementEpoch, fix: Fix) -> None:
+        """The ranges a coarse-time fix with relative integers makes (``relative_ambiguity``:
+        each system's common whole period in doubt), kept to be checked as the recovered
+        ranges are, relative to the first of their fix and system that is full
+        (:meth:`_check_integrity`). ``view``: the epoch with the fractional ranges the fix
+        was solved from."""
+        if not fix.relative_ambiguity:
+            return
+        rows = {
+            p: i
+            for i, p in enumerate(view.prn)
+            if p in fix.relative_ambiguity and math.isfinite(float(view.frac_pr_m[i]))
+        }
+        whole: dict[str, float] = {}  # each system's longest period among its rows
+        for p, i in rows.items():
+            whole[p[:1]] = max(whole.get(p[:1], 0.0), C_M_S * float(view.period_s[i]))
+        for p, i in rows.items():
+            period_s = float(view.period_s[i])
+            clock = system_clock_m(fix, p)
+            self._recovered[p] = _Recovered(
+                view.gpst_week,
+                view.gpst_tow_s,
+                float(view.frac_pr_m[i]) + fix.relative_ambiguity[p] * C_M_S * period_s,
+                period_s,
+                math.nan if clock is None else clock,
+                whole[p[:1]],
+            )
+
     def _check_integrity(self, view: MeasurementEpoch, fix: Fix) -> list[IntegrityCheck]:
         """Each recovered range whose satellite is full (its SOW decoded) against the full
         range, at the first epoch with a fix whose clock of the satellite's system says
@@ -642,6 +679,18 @@ class Pipeline:
                 continue  # (the next epoch's fix, or its range)
             del self._due[prn]
             change = clock - rec.clock_m if math.isfinite(rec.clock_m) else 0.0
+            if rec.whole_m > 0.0:  # relative integers: the shift of the first full one
+                key = (rec.week, rec.tow_s, prn[:1])
+                shift = self._shifts.get(key)
+                if shift is None:
+                    shift = round((full - change - rec.pr_m) / rec.whole_m) * rec.whole_m
+                    if len(self._shifts) >= MAX_SHIFTS:
+                        self._shifts.clear()
+                    self._shifts[key] = shift
+                    self.counters["integrity_relative_anchors"] += 1
+                    if rec.whole_m < 1.5 * C_M_S * rec.period_s:
+                        continue  # (its own period is the whole one: nothing to compare)
+                change += shift
             ok = integer_agrees(rec.pr_m, full, rec.period_s, change)
             checks.append(
                 IntegrityCheck(prn, view.gpst_week, view.gpst_tow_s, rec.pr_m, full, dt, ok, change)

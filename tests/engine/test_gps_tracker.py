@@ -90,12 +90,14 @@ def test_hiroshima_restart_confirms_recovered_gps_integers(capsys, tmp_path):
     paper's fast fixes at 1-3 s, which hold 9 GPS
     integers recovered from the GEOs' fix; the GPS satellites become full at 8 s (the next
     GPST subframe boundary at 6 s after the 0.1-0.5 s sync, + 1.2 s), and every recovered
-    integer is confirmed then: 23 checks (14 BeiDou IGSO/MEO + 9 GPS), 0 failures. BeiDou
-    alone (``--systems C``) gives the 14 BeiDou checks; every system (the default) 32, the
-    9 Galileo satellites' integers confirmed too."""
+    integer is confirmed then: 23 checks (14 BeiDou IGSO/MEO + 9 GPS), 0 failures, and 4
+    more of the coarse-time fix's relative integers (of satellites the fast fixes after it
+    did not recover again). BeiDou alone (``--systems C``: no coarse-time fix) gives the 14
+    BeiDou checks; every system (the default) 36, the 9 Galileo satellites' integers
+    confirmed too."""
     rtcm = DATA / "hiroshima-oem729-rtcm-2022" / "20221213-010900.rtcm"
     recs, n, bad = _replay(capsys, tmp_path, rtcm, "--systems", "C,G", "--restart-at", "20")
-    assert (n, bad) == (23, 0)
+    assert (n, bad) == (23 + 4, 0)
     first = [r for r in recs if r["class"] == "FIX" and r["mode"] == "fast"]
     # at 0 s, before four GEOs are full: the coarse-time fix (BeiDou and GPS rows)
     assert [r["since_start_s"] for r in first if r.get("method") == "coarse_time"] == [0.0]
@@ -116,7 +118,7 @@ def test_hiroshima_restart_confirms_recovered_gps_integers(capsys, tmp_path):
     _, n, bad = _replay(capsys, tmp_path, rtcm, "--systems", "C", "--restart-at", "20")
     assert (n, bad) == (14, 0)
     _, n, bad = _replay(capsys, tmp_path, rtcm, "--restart-at", "20")
-    assert (n, bad) == (14 + 9 + 9, 0)
+    assert (n, bad) == (14 + 9 + 9 + 4, 0)
 
 
 def test_polyu_restart_under_the_subframe_rule_follows_the_lnav_subframes(capsys, tmp_path):

@@ -79,3 +79,49 @@ def test_a_satellite_back_after_minutes_is_left_unchecked_not_failed(drive):
     assert victim not in checked
     assert pipe.counters["integrity_unchecked"] == 1
     assert pipe.counters["integrity_failures"] == 0
+
+
+def _perth():
+    from drivers.source import file_epochs
+    from service.core.types import MeasurementEpoch
+
+    perth = DATA / "android-perth-s8-2017"
+    store, iono = load_navigation(
+        [str(perth / "PERT00AUS_R_20172780000_01D_MN.rnx")], systems="CGE"
+    )
+    events, _ = file_epochs(perth / "SensorLog20171005.txt", systems=("C", "G", "E"))
+    return store, iono, [e for e in events if isinstance(e, MeasurementEpoch)]
+
+
+@pytest.mark.parametrize("wrong", [False, True])
+def test_relative_integers_of_a_coarse_time_fix_are_checked_too(wrong):
+    """The Perth phone's start (Galaxy S8, no SOW before 12 s, its time 6 s off): its first
+    12 fixes are coarse-time fixes whose whole period common to each system's ranges is in
+    doubt (``relative_ambiguity``). Once a system's satellites are full, the first of them
+    gives that common shift and every other one must share it: 9 such checks, all passing
+    (before, these fixes' integers were never checked). With one of the last coarse-time
+    fix's GPS ranges made one period (1 ms) longer, a wrong integer, the GPS checks fail:
+    its own, or, were it the first full one (the anchor of the shift), the others'."""
+    store, iono, epochs = _perth()
+    pipe = Pipeline(store, iono)
+    relative = []
+    checks = []
+    for ep in epochs:
+        result = pipe.on_epoch(ep)
+        checks += result.integrity
+        if result.fix.relative_ambiguity:
+            relative.append(result.fix)
+            if wrong and len(relative) == 12:  # one GPS integer one period off
+                gps = [p for p in sorted(result.fix.relative_ambiguity) if p[0] == "G"]
+                prn = min(gps, key=lambda p: pipe._recovered[p].period_s)
+                pipe._recovered[prn].pr_m += C_M_S * pipe._recovered[prn].period_s
+    assert len(relative) == 12
+    assert pipe.counters["integrity_relative_anchors"] >= 2  # GPS and BeiDou
+    from_relative = [c for c in checks if c.elapsed_s < 10 and c.gpst_tow_s < 348080]
+    assert len(from_relative) >= 9
+    failed = [c for c in checks if not c.ok]
+    if wrong:  # (the range made wrong, or, if it was the first full, the others with it)
+        assert failed and {c.prn[0] for c in failed} == {"G"}
+        assert pipe.counters["integrity_failures"] == len(failed)
+    else:
+        assert not failed and pipe.counters["integrity_failures"] == 0
