@@ -12,7 +12,17 @@ another version with the same names reads the same).
   of a coarse-time fix (the pipeline keeps fractional ranges out of the fix while it
   exceeds :data:`service.engine.timetag.COARSE_TIME_S`). A change of
   ``HardwareClockDiscontinuityCount`` is a restart of the phone's clock: counted
-  (``android_clock_restarts``) and the epoch carries ``restarted=True``.
+  (``android_clock_restarts``) and the epoch carries ``restarted=True``. An epoch whose
+  BiasNanos is not a finite number, or whose time is not a GPS week within
+  [:data:`MIN_GPS_WEEK`, :data:`MAX_GPS_WEEK`] (a FullBiasNanos of -1e30, of the wrong sign,
+  0), is skipped with its rows (``android_bad_time``): no time, no measurement.
+- **One row per satellite and signal**: the Raw rows of one epoch are its measurements, a
+  satellite's signal once; a repeated one (the same Svid and band again in the epoch) is
+  the same measurement, so the first is kept and the later ones are dropped
+  (``android_duplicate_rows``; :meth:`service.core.types.MeasurementEpoch.from_columns`
+  drops them), and an epoch reads at most :data:`MAX_EPOCH_ROWS` rows, the later ones
+  dropped (``android_excess_rows``): a log whose TimeNanos never changes is then many
+  epochs' rows in one, bounded, not one epoch of thousands of rows.
 - **Per signal**, ``State`` (:data:`STATE_BITS`) says how much of the transmit time
   ``ReceivedSvTimeNanos`` holds (:func:`known_period_s`): modulo 1 ms at code lock, 2 ms at
   BeiDou D2 bit sync, 4 ms at Galileo E1B/C code lock, 20 ms at bit sync, 100 ms at Galileo
@@ -50,7 +60,8 @@ Counter keys: ``android_nav_bds``, ``android_nav_bad``, ``android_nav_no_time``,
 ``android_other_gnss``, ``android_other_band``, ``android_no_code_lock``,
 ``android_sv_time_uncertain``, ``android_full``, ``android_fractional``,
 ``android_multipath``, ``android_clock_restarts``, ``android_fix_rows``,
-``android_nav_rows``, ``android_status_rows``.
+``android_nav_rows``, ``android_status_rows``, ``android_bad_svid``, ``android_bad_time``,
+``android_duplicate_rows``, ``android_excess_rows``.
 """
 
 from __future__ import annotations
@@ -112,6 +123,18 @@ MAX_SV_TIME_UNC_NS = 1000.0
 phones write 1e9 for a time they do not hold)."""
 
 WEEK_NS = 604_800 * 10**9
+MIN_GPS_WEEK = 1877
+"""GPS week of 2016-01-01: no phone gave raw measurements before Android 7 (API 24, 2016),
+so an earlier week is a broken clock field (FullBiasNanos 0 or of the wrong sign)."""
+MAX_GPS_WEEK = 4096
+"""GPS week of 2058-07-07: a later week is a broken clock field (FullBiasNanos -1e30 or
+-2**63), not a recording."""
+MAX_EPOCH_ROWS = 1024
+"""The most Raw rows one epoch reads. Every satellite of the seven constellations Android
+names (GPS 32, SBAS 39, GLONASS 24 slots and up to 14 frequency numbers, QZSS 10, BeiDou
+63, Galileo 36, NavIC 14: under 250 Svids) on three bands each is under 750 rows; more is a
+log whose TimeNanos does not advance, whose rows beyond this are dropped
+(``android_excess_rows``) so that no input makes one epoch unbounded."""
 BDT_MINUS_GPST_NS = -14 * 10**9
 """BDT = GPST - 14 s (BDS-SIS-ICD-B1I-3.0 4.3)."""
 
@@ -288,7 +311,18 @@ class GnssLoggerReader:
                     yield from self._epoch(pending, lineno)
                     pending = []
                 key = k
-                pending.append(fields)
+                if len(pending) < MAX_EPOCH_ROWS:
+                    pending.append(fields)
+                else:
+                    if self.counters["android_excess_rows"] == 0:
+                        log.warning(
+                            "%s:%d: more than %d Raw rows of one TimeNanos; the rest of the "
+                            "epoch's rows are dropped",
+                            self.name,
+                            lineno,
+                            MAX_EPOCH_ROWS,
+                        )
+                    self.counters["android_excess_rows"] += 1
             elif kind == "Fix":
                 self.counters["android_fix_rows"] += 1
                 fix = self._fix(fields)
@@ -316,10 +350,11 @@ class GnssLoggerReader:
         c = self._raw_cols
         try:
             gps_ns = int(first[c["TimeNanos"]]) - _int(first[c["FullBiasNanos"]])
-            week, tow_ns = divmod(gps_ns, WEEK_NS)
-            return week, (tow_ns - float(first[c["BiasNanos"]] or 0.0)) * 1e-9
+            bias_ns = float(first[c["BiasNanos"]] or 0.0)
         except (KeyError, IndexError, ValueError, OverflowError):
             return None
+        time = _gpst(gps_ns, bias_ns)
+        return None if time is None else (time[0], (time[1] - bias_ns) * 1e-9)
 
     def _nav(self, f: list[str]) -> NavSubframe | None:
         """A BeiDou D1/D2 subframe of a Nav row, or None (counted)."""
@@ -379,16 +414,27 @@ class GnssLoggerReader:
             self.counters["android_bad_rows"] += len(rows)
             log.warning("%s:%d: epoch without a usable clock, skipped", self.name, lineno)
             return
+        gpst = _gpst(time_ns - full_bias_ns, bias_ns)
+        if gpst is None:
+            self.counters["android_bad_time"] += 1
+            if self.counters["android_bad_time"] == 1:
+                log.warning(
+                    "%s:%d: epoch whose clock (FullBiasNanos %s, BiasNanos %s) gives no GPS "
+                    "time in weeks %d-%d, skipped (counted android_bad_time)",
+                    self.name,
+                    lineno,
+                    first[c["FullBiasNanos"]],
+                    first[c["BiasNanos"]],
+                    MIN_GPS_WEEK,
+                    MAX_GPS_WEEK,
+                )
+            return
         restarted = self._discontinuity is not None and discontinuity != self._discontinuity
         if restarted:
             self.counters["android_clock_restarts"] += 1
         self._discontinuity = discontinuity
-        gps_ns = time_ns - full_bias_ns
-        self._time = (
-            gps_ns // WEEK_NS,
-            (gps_ns % WEEK_NS - bias_ns) * 1e-9,
-        )  # integer ns since the GPS epoch, before BiasNanos
-        week, tow_int_ns = divmod(gps_ns, WEEK_NS)
+        week, tow_int_ns = gpst  # integer ns of week, before BiasNanos
+        self._time = (week, (tow_int_ns - bias_ns) * 1e-9)
         for f in rows:
             try:
                 row = self._row(f, tow_int_ns, bias_ns)
@@ -461,18 +507,16 @@ class GnssLoggerReader:
                 if d_ns > WEEK_NS // 2:
                     d_ns -= WEEK_NS
                 pr[i] = (d_ns + r.t_rx_frac_ns) * 1e-9 * C_M_S
-                self.counters["android_full"] += 1
             else:
                 p_ns = round(r.period_s * 1e9)
                 d_ns = (r.t_rx_ns - r.t_sv_ns) % p_ns
                 frac[i] = ((d_ns + r.t_rx_frac_ns) % p_ns) * 1e-9 * C_M_S
                 period[i] = r.period_s
-                self.counters["android_fractional"] += 1
         full = np.isfinite(pr)
         for i in np.flatnonzero(full).tolist():
             period[i] = constants_of(rows[i].prn).code_period_s
         frac = np.where(full, np.mod(pr, period * C_M_S), frac)
-        return MeasurementEpoch.from_columns(
+        epoch = MeasurementEpoch.from_columns(
             week,
             (tow_int_ns - bias_ns) * 1e-9,
             [r.prn for r in rows],
@@ -489,6 +533,25 @@ class GnssLoggerReader:
             time_unc_s=math.inf if math.isnan(bias_unc_ns) else bias_unc_ns * 1e-9,
             restarted=restarted,
         )
+        if len(epoch) < n:
+            self.counters["android_duplicate_rows"] += n - len(epoch)
+        n_full = int(np.count_nonzero(~np.isnan(epoch.pr_m)))  # the full ranges kept
+        self.counters["android_full"] += n_full
+        self.counters["android_fractional"] += len(epoch) - n_full
+        return epoch
+
+
+def _gpst(gps_ns: int, bias_ns: float) -> tuple[int, int] | None:
+    """(GPS week, integer ns of week) of an epoch whose receiver time is ``gps_ns`` integer
+    ns since the GPS epoch (TimeNanos - FullBiasNanos) before ``bias_ns`` (BiasNanos), or
+    None when that is no time: BiasNanos not a finite number, or the week outside
+    [:data:`MIN_GPS_WEEK`, :data:`MAX_GPS_WEEK`]."""
+    if not math.isfinite(bias_ns):
+        return None
+    week, tow_int_ns = divmod(gps_ns, WEEK_NS)
+    if not MIN_GPS_WEEK <= week <= MAX_GPS_WEEK:
+        return None
+    return week, tow_int_ns
 
 
 def events(

@@ -49,7 +49,12 @@ line (the ``>`` record identifier of the RINEX 3 data record description):
 
 An epoch flag above 6 (RINEX 3 defines 0-6) is not damage to the framing: the epoch and its
 announced records are skipped with a warning and counted (``epochs_skipped``) by both
-readers, so ``bdsfix solve`` and ``bdsfix replay`` read such a file alike.
+readers, so ``bdsfix solve`` and ``bdsfix replay`` read such a file alike. So is a
+satellite's record repeated in an epoch (RINEX 3 has one record per satellite in an epoch):
+the first is kept, the later ones are the same measurement again and are dropped by both
+readers, counted (``duplicate_records``) with a warning at the first
+(:meth:`service.core.types.MeasurementEpoch.from_columns` drops them); solved twice they
+would double the satellite's weight and shrink the protection levels.
 """
 
 from __future__ import annotations
@@ -736,13 +741,7 @@ class RinexObsReader:
             pr.append(value)
             cn0.append(c)
             dop.append(d)
-        n_bds = sum(p[:1] == _READ for p in prn)
-        self.counters["bds_measurements"] += n_bds
-        if n_bds < len(prn):
-            for p in prn:
-                if p[:1] != _READ:
-                    self.counters[f"{p[:1]}_measurements"] += 1
-        return MeasurementEpoch.from_columns(
+        epoch = MeasurementEpoch.from_columns(
             when[0],
             when[1],
             prn,
@@ -752,6 +751,22 @@ class RinexObsReader:
             doppler_hz=dop,
             source="rinex",
         )
+        if len(epoch) < len(prn):
+            if not self.counters["duplicate_records"]:
+                log.warning(
+                    "%s:%d: a satellite's record repeated in the epoch: the first kept, "
+                    "later ones dropped (counted duplicate_records)",
+                    self.path,
+                    first - 1,
+                )
+            self.counters["duplicate_records"] += len(prn) - len(epoch)
+        n_bds = sum(p[:1] == _READ for p in epoch.prn)
+        self.counters["bds_measurements"] += n_bds
+        if n_bds < len(epoch):
+            for p in epoch.prn:
+                if p[:1] != _READ:
+                    self.counters[f"{p[:1]}_measurements"] += 1
+        return epoch
 
 
 def iter_obs(path: str | Path) -> Iterator[MeasurementEpoch]:

@@ -14,6 +14,7 @@ import numpy as np
 
 from service.core.constants import WEEK_S
 from service.core.declines import Declined
+from service.core.errors import DecodeError
 from service.core.systems import constants_of
 
 FixMode = Literal["fast", "spp", "none"]
@@ -38,6 +39,13 @@ class MeasurementEpoch:
     BiasUncertaintyNanos; NaN: the source does not say, taken as exact), ``restarted`` that
     the receiver's clock restarted just before this epoch (Android
     HardwareClockDiscontinuityCount).
+
+    Two invariants hold for every epoch, whichever reader built it: its time is a number
+    (a non-finite ``gpst_tow_s`` raises :class:`~service.core.errors.DecodeError` at
+    construction: a reader checks its time fields first and counts what it skips, so this
+    is the backstop, never reached by a reader that does), and each (satellite, signal) pair
+    is one row (:meth:`from_columns` keeps the first of repeated pairs; the readers count
+    the rows it dropped, e.g. ``android_duplicate_rows``, ``duplicate_records``).
     """
 
     gpst_week: int
@@ -53,6 +61,13 @@ class MeasurementEpoch:
     source: str = ""
     time_unc_s: float = math.nan
     restarted: bool = False
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.gpst_tow_s):
+            raise DecodeError(
+                f"{self.source or 'measurement'} epoch at GPS week {self.gpst_week} with time "
+                f"of week {self.gpst_tow_s!r}: not a time"
+            )
 
     def __len__(self) -> int:
         return len(self.prn)
@@ -96,7 +111,12 @@ class MeasurementEpoch:
     ) -> MeasurementEpoch:
         """Build an epoch, filling absent columns with NaN and deriving ``frac_pr_m``;
         ``period_s`` None is each satellite's system's code period
-        (:attr:`service.core.systems.SystemConstants.code_period_s`)."""
+        (:attr:`service.core.systems.SystemConstants.code_period_s`).
+
+        A (``prn``, ``signal``) pair given more than once is one row, its first (a repeated
+        record is the same measurement, not a second one: solving it twice would double its
+        weight and shrink the protection levels); the caller counts the dropped rows as
+        ``len(prn) - len(epoch)``."""
         n = len(prn)
         pr = np.asarray(pr_m, dtype=float).reshape(n)
         if period_s is None:
@@ -116,7 +136,7 @@ class MeasurementEpoch:
         def col(v: np.ndarray | Sequence[float] | None) -> np.ndarray:
             return np.full(n, np.nan) if v is None else np.asarray(v, dtype=float).reshape(n)
 
-        return cls(
+        epoch = cls(
             gpst_week=int(gpst_week),
             gpst_tow_s=float(gpst_tow_s),
             prn=tuple(prn),
@@ -131,6 +151,13 @@ class MeasurementEpoch:
             time_unc_s=float(time_unc_s),
             restarted=restarted,
         )
+        pairs = list(zip(epoch.prn, epoch.signal, strict=True))
+        if len(set(pairs)) == n:
+            return epoch
+        first: dict[tuple[str, str], int] = {}
+        for i, pair in enumerate(pairs):
+            first.setdefault(pair, i)
+        return epoch.rows(sorted(first.values()))
 
 
 @dataclass(frozen=True, slots=True)

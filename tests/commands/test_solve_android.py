@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+
+import pytest
 
 from service.commands.cli import main
 from tests.engine.test_android_periods import PERTH
@@ -57,3 +60,99 @@ def test_replay_takes_a_format_named_by_its_scheme(tmp_path, capsys):
         outs.append([x for x in out.read_text().splitlines() if '"FIX"' in x])
     capsys.readouterr()
     assert len(outs[0]) == 445 and outs[0] == outs[1]
+
+
+def _perth_copy(tmp_path, name: str, edit) -> str:
+    """A copy of the Perth log's first 4000 lines (150 epochs) with ``edit(fields, k)``
+    applied to the fields of its k-th Raw row (from 1), as ``gnsslogger:PATH``; the column
+    numbers from the log's own header."""
+    with LOG.open() as fh:
+        head = [next(fh) for _ in range(4000)]
+    names = next(x for x in head if x.startswith("# Raw,"))[2:].strip().split(",")
+    col = {n: names.index(n) for n in ("TimeNanos", "BiasNanos", "FullBiasNanos")}
+    out, k = [], 0
+    for line in head:
+        if line.startswith("Raw,"):
+            k += 1
+            f = line.rstrip("\n").split(",")
+            lines = edit(f, k, col)
+            out += [",".join(x) + "\n" for x in lines]
+        else:
+            out.append(line)
+    path = tmp_path / f"{name}.txt"
+    path.write_text("".join(out))
+    return f"gnsslogger:{path}"
+
+
+def _strict_json(line: str) -> dict:
+    def refuse(word: str) -> None:
+        raise ValueError(f"{word} in {line[:80]}")
+
+    return json.loads(line, parse_constant=refuse)
+
+
+def _set(name: str, value: str, rows=None):
+    def edit(f, k, col):
+        if rows is None or k in rows:
+            f[col[name]] = value
+        return [f]
+
+    return edit
+
+
+DAMAGES = {
+    "clean": lambda f, k, col: [f],
+    "every_row_twice": lambda f, k, col: [f, f],
+    "bias_nan_mid": _set("BiasNanos", "NaN", set(range(1001, 1030))),
+    "bias_nan": _set("BiasNanos", "NaN"),
+    "bias_inf": _set("BiasNanos", "Infinity"),
+    "full_bias_1e30": _set("FullBiasNanos", "-1e30"),
+    "one_time_nanos": _set("TimeNanos", "-2123000000"),
+}
+
+
+@pytest.fixture(scope="module")
+def damaged_runs(tmp_path_factory):
+    """``bdsfix solve`` and ``bdsfix replay`` (every system) of each damaged copy: (exit
+    codes, solve's records, replay's FIX records, stderr)."""
+    tmp_path = tmp_path_factory.mktemp("damaged-perth")
+    runs = {}
+    for name, edit in DAMAGES.items():
+        spec = _perth_copy(tmp_path, name, edit)
+        solved, replayed = tmp_path / f"{name}.solve.jsonl", tmp_path / f"{name}.replay.jsonl"
+        rc_solve = main(["solve", spec, str(NAV), "--out", str(solved)])
+        args = ["replay", spec, "--nav", str(NAV), "--max-speed", "--systems", "C,G,E"]
+        rc_replay = main([*args, "--jsonl-out", str(replayed), "--nmea-out", os.devnull])
+        fixes = [x for x in replayed.read_text().splitlines() if '"class":"FIX"' in x]
+        runs[name] = (rc_solve, rc_replay, solved.read_text().splitlines(), fixes)
+    return runs
+
+
+@pytest.mark.parametrize("name", [n for n in DAMAGES if n != "clean"])
+def test_damaged_clock_fields_and_repeated_rows_never_crash_nor_change_the_fixes(
+    damaged_runs, name
+):
+    """The reviewer's damaged phone logs (/tmp/rev-input/gl_*.txt, made again here): a
+    BiasNanos NaN on Raw rows 1001-1029 once stopped ``solve`` after 75 records (NaN in the
+    JSON) and ``replay`` with a traceback, NaN or Inf everywhere and a FullBiasNanos of
+    -1e30 before any fix; every row twice gave 73 fast fixes instead of 132 and a replay
+    with HPL 22 m for 53 m; one TimeNanos for every row ran past 120 s. Now both commands
+    exit 0 with strict JSON: the repeated rows give exactly the clean copy's records, the
+    mid-file NaN the clean records but those of its one epoch, the copies whose every epoch
+    has no time none."""
+    rc_solve, rc_replay, solved, fixes = damaged_runs[name]
+    _, _, clean_solved, clean_fixes = damaged_runs["clean"]
+    assert (rc_solve, rc_replay) == (0, 0)
+    records = [_strict_json(x) for x in solved]
+    assert len(clean_solved) == 2 * 150 and len(clean_fixes) == 150  # both solvers
+    if name == "every_row_twice":
+        assert solved == clean_solved and fixes == clean_fixes
+    elif name == "bias_nan_mid":
+        times = {r["gpst_tow_s"] for r in map(json.loads, clean_solved)}
+        (lost,) = times - {r["gpst_tow_s"] for r in records}
+        assert solved == [x for x in clean_solved if json.loads(x)["gpst_tow_s"] != lost]
+        assert fixes == [x for x in clean_fixes if json.loads(x)["gpst_tow_s"] != round(lost, 6)]
+    elif name == "one_time_nanos":
+        assert len(records) <= 2 and len(fixes) <= 1  # one epoch
+    else:
+        assert records == [] and fixes == []

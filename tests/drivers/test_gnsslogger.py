@@ -430,3 +430,148 @@ def test_a_blank_time_uncertainty_is_unknown_and_an_impossible_svid_is_no_row():
     assert epoch.time_unc_s == math.inf
     assert counters["android_bad_svid"] == 1
     assert len(epoch) == len(rows) - 1 and "G99" not in epoch.prn
+
+
+# ------------------------------------------- damaged copies of the Perth log: clock and rows
+
+HEAD_LINES = 4000
+"""The Perth log's first 4000 lines: 3,472 Raw rows (2,701 of them kept: BeiDou, GPS, Galileo
+with a usable range), 150 epochs (about 150 s)."""
+
+
+def _perth_head() -> tuple[list[str], dict[str, int]]:
+    """The first lines of the Perth log and its Raw columns by name (the first of a name)."""
+    head = _lines(PERTH, HEAD_LINES)
+    header = next(x for x in head if x.startswith("# Raw,"))[2:].strip().split(",")
+    col: dict[str, int] = {}
+    for i, name in enumerate(header):
+        col.setdefault(name, i)
+    return head, col
+
+
+def _edit(head: list[str], col: dict[str, int], name: str, value: str, which=None) -> list[str]:
+    """``head`` with the field ``name`` of the Raw rows numbered in ``which`` (from 1; None:
+    every one) set to ``value``."""
+    out, k = [], 0
+    for line in head:
+        if line.startswith("Raw,"):
+            k += 1
+            if which is None or k in which:
+                f = line.rstrip("\n").split(",")
+                f[col[name]] = value
+                line = ",".join(f) + "\n"
+        out.append(line)
+    return out
+
+
+def _first_rows(head: list[str], col: dict[str, int]) -> list[int]:
+    """The numbers (from 1) of the Raw rows that open an epoch: a new TimeNanos."""
+    out, k, last = [], 0, None
+    for line in head:
+        if line.startswith("Raw,"):
+            k += 1
+            t = line.split(",")[col["TimeNanos"]]
+            if t != last:
+                out.append(k)
+            last = t
+    return out
+
+
+def _read(lines: list[str]) -> tuple[list[MeasurementEpoch], Counters]:
+    counters = Counters()
+    epochs = [e for e in GnssLoggerReader(lines, counters) if isinstance(e, MeasurementEpoch)]
+    return epochs, counters
+
+
+def _assert_same_epoch(a: MeasurementEpoch, b: MeasurementEpoch) -> None:
+    assert (a.gpst_week, a.gpst_tow_s, a.prn, a.signal) == (
+        b.gpst_week,
+        b.gpst_tow_s,
+        b.prn,
+        b.signal,
+    )
+    assert (a.time_unc_s, a.restarted) == (b.time_unc_s, b.restarted)
+    for name in ("pr_m", "frac_pr_m", "period_s", "cn0_dbhz", "doppler_hz"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+DAMAGED_CLOCKS = {
+    # BiasNanos NaN on Raw rows 1001-1029 (the reviewer's gl_biasnan_mid.txt): once crashed
+    # the JSON output after 75 fixes
+    "bias_nan_mid": ("BiasNanos", "NaN", set(range(1001, 1030))),
+    "bias_nan": ("BiasNanos", "NaN", None),
+    "bias_inf": ("BiasNanos", "Infinity", None),
+    # GPST = TimeNanos - FullBiasNanos: 1e30 ns is week 1.7e12; -2**63 + 1 week 15250 (2262)
+    "full_bias_1e30": ("FullBiasNanos", "-1e30", None),
+    "full_bias_min": ("FullBiasNanos", "-9223372036854775807", None),
+    "full_bias_0": ("FullBiasNanos", "0", None),  # GPST 2.1 s: week 0
+    "full_bias_positive": ("FullBiasNanos", "1191199253693999999", None),  # before 1980
+}
+
+
+@pytest.mark.parametrize("name", DAMAGED_CLOCKS)
+def test_an_epoch_whose_clock_gives_no_time_is_skipped_and_counted(name):
+    """The epoch's time is that of its first Raw row's clock fields (TimeNanos,
+    FullBiasNanos, BiasNanos): an epoch whose first row's BiasNanos is not finite, or whose
+    GPST is not a week of 2016-2058, is skipped and counted ``android_bad_time``; every
+    other epoch is the undamaged log's, row for row (a damaged row later in an epoch takes
+    the first row's clock, as the undamaged one does)."""
+    head, col = _perth_head()
+    field, value, which = DAMAGED_CLOCKS[name]
+    clean, _ = _read(head)
+    assert len(clean) == len(_first_rows(head, col)) == 150
+    epochs, counters = _read(_edit(head, col, field, value, which))
+    damaged = [
+        k for k, first in enumerate(_first_rows(head, col)) if which is None or first in which
+    ]
+    assert counters["android_bad_time"] == len(damaged) and damaged
+    kept = [e for k, e in enumerate(clean) if k not in damaged]
+    assert len(epochs) == len(kept)
+    for a, b in zip(epochs, kept, strict=True):
+        _assert_same_epoch(a, b)
+
+
+def test_a_repeated_row_is_one_measurement_the_first():
+    """Every Raw row written twice (the reviewer's gl_dup_rows.txt; solved as independent
+    measurements they had doubled the redundancy and shrunk HPL 53 -> 22 m) reads as the
+    undamaged log; and when the repeat carries another ReceivedSvTimeNanos (+1 us: 300 m),
+    the first row is the measurement. The repeats are counted ``android_duplicate_rows``,
+    one per row the undamaged log gives."""
+    head, col = _perth_head()
+    clean, clean_counters = _read(head)
+    shifted = {}
+    for line in head:
+        if line.startswith("Raw,"):
+            f = line.rstrip("\n").split(",")
+            f[col["ReceivedSvTimeNanos"]] = str(int(f[col["ReceivedSvTimeNanos"]]) + 1000)
+            shifted[line] = ",".join(f) + "\n"
+    for repeat in (lambda x: x, shifted.__getitem__):
+        lines = [y for x in head for y in ((x, repeat(x)) if x.startswith("Raw,") else (x,))]
+        epochs, counters = _read(lines)
+        assert counters["android_duplicate_rows"] == sum(len(e) for e in clean) > 2500
+        for key in ("android_full", "android_fractional"):
+            assert counters[key] == clean_counters[key]
+        assert len(epochs) == len(clean)
+        for a, b in zip(epochs, clean, strict=True):
+            _assert_same_epoch(a, b)
+
+
+def test_a_time_that_never_advances_gives_one_bounded_epoch():
+    """Every Raw row with the first row's TimeNanos (the reviewer's gl_timenanos_neg.txt:
+    once one epoch of 3,472 rows on which the coarse-time fix's exclusion ran for minutes):
+    one epoch that reads the first MAX_EPOCH_ROWS rows, the rest counted
+    ``android_excess_rows``, each satellite once, the first epoch's satellites with the
+    undamaged log's first measurements."""
+    from drivers.gnsslogger import MAX_EPOCH_ROWS
+
+    head, col = _perth_head()
+    clean, _ = _read(head)
+    n_raw = sum(x.startswith("Raw,") for x in head)
+    first_time = next(x for x in head if x.startswith("Raw,")).split(",")[col["TimeNanos"]]
+    (epoch,), counters = _read(_edit(head, col, "TimeNanos", first_time))
+    assert n_raw > MAX_EPOCH_ROWS
+    assert counters["android_excess_rows"] == n_raw - MAX_EPOCH_ROWS
+    assert len(set(zip(epoch.prn, epoch.signal, strict=True))) == len(epoch) < 100
+    assert counters["android_duplicate_rows"] > 500
+    idx = [epoch.prn.index(p) for p in clean[0].prn]
+    _assert_same_epoch(epoch.rows(idx), clean[0])

@@ -459,6 +459,55 @@ def test_damaged_records_name_their_line(tmp_path):
         list(RinexObsReader(cut))
 
 
+def _repeat_geo_records(lines: list[str], shift_m: float = 0.0) -> tuple[list[str], int]:
+    """``lines`` with the GEO records (C01-C05) of every epoch written again at the end of
+    the epoch, the epoch line's count raised to match (the reviewer's
+    rx_dup_geo_lines.obs), the repeat's pseudorange ``shift_m`` larger; and how many
+    records were repeated."""
+    out: list[str] = []
+    repeated = 0
+    k = _end_of_header(lines) + 1
+    out += lines[:k]
+    while k < len(lines):
+        head, n = lines[k], int(lines[k][32:35])
+        body = lines[k + 1 : k + 1 + n]
+        again = [r for r in body if r[:3] in {f"C{p:02d}" for p in range(1, 6)}]
+        if shift_m:
+            again = [f"{r[:3]}{float(r[3:17]) + shift_m:14.3f}{r[17:]}" for r in again]
+        out += [f"{head[:32]}{n + len(again):3d}{head[35:]}", *body, *again]
+        repeated += len(again)
+        k += 1 + n
+    return out, repeated
+
+
+@pytest.mark.parametrize("lenient", [False, True], ids=["strict", "lenient"])
+def test_a_repeated_satellite_record_is_one_measurement_the_first(tmp_path, lenient):
+    """hksc1610.obs with each epoch's GEO records written twice (solved as independent
+    measurements they had made n_full 5 -> 10 GEO rows): both readers give the original's
+    epochs, row for row, the first record kept even when the repeat says another range
+    (+1 km), the repeats counted ``duplicate_records``."""
+    lines = _lines(HKSC_OBS)
+    clean = list(RinexObsReader(DATA / HKSC_OBS, lenient=lenient, systems="CGE"))
+    for shift_m in (0.0, 1000.0):
+        damaged, repeated = _repeat_geo_records(lines, shift_m)
+        reader = RinexObsReader(
+            _write(tmp_path, f"dup{shift_m:g}.obs", damaged), lenient=lenient, systems="CGE"
+        )
+        epochs = list(reader)
+        assert repeated == 5 * len(clean) == reader.counters["duplicate_records"]
+        assert reader.counters["bds_measurements"] == sum(p[0] == "C" for e in clean for p in e.prn)
+        assert len(epochs) == len(clean)
+        for a, b in zip(epochs, clean, strict=True):
+            assert (a.gpst_week, a.gpst_tow_s, a.prn, a.signal) == (
+                b.gpst_week,
+                b.gpst_tow_s,
+                b.prn,
+                b.signal,
+            )
+            for name in ("pr_m", "frac_pr_m", "cn0_dbhz", "doppler_hz"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
 def test_not_rinex3_no_end_of_header_wrong_type(tmp_path):
     v2 = tmp_path / "old.obs"
     v2.write_text(
