@@ -85,7 +85,7 @@ from service.core.gal_nav import (
 from service.core.geometry import geodetic_to_ecef
 from service.core.gps_nav import lnav_subframe
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
-from service.core.timebase import BDT_GPST_OFFSET_S, bdt_to_gpst, gpst_to_bdt
+from service.core.timebase import bdt_to_gpst, gpst_sow_to_bdt_sow, gpst_to_bdt
 from service.core.types import (
     Ephemeris,
     KlobucharParams,
@@ -388,7 +388,7 @@ def ephemeris_from_gpsnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
         prn=sat_id(GnssSystem.GPS, prn),
         week=bdt_week,
         toe_sow_s=toe_bdt,
-        toc_sow_s=(float(msg.t_oc) - BDT_GPST_OFFSET_S) % WEEK_S,
+        toc_sow_s=gpst_sow_to_bdt_sow(float(msg.t_oc)),
         tgd1_s=float(msg.T_gd),
         health=int(msg.health),
         aode=int(msg.IODE2),
@@ -421,7 +421,7 @@ def ephemeris_from_galnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
         prn=sat_id(GnssSystem.GAL, prn),
         week=bdt_week,
         toe_sow_s=toe_bdt,
-        toc_sow_s=(float(msg.t_oc) - BDT_GPST_OFFSET_S) % WEEK_S,
+        toc_sow_s=gpst_sow_to_bdt_sow(float(msg.t_oc)),
         tgd1_s=math.nan if bgd_e5b == BGD_DNU_S else bgd_e5b,
         tgd2_s=0.0 if bgd_e5a == BGD_DNU_S else bgd_e5a,
         health=health,
