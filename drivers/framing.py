@@ -322,9 +322,23 @@ class WeekContext:
     reference, else the system clock (``clock_week``), else a sane epoch. When the stream's
     week replaces a hint more than a week away, that is logged (a wrong system clock or
     ``--gps-week``).
+
+    Once the stream has given a week, a stream report more than DISAGREE_S from the reference
+    (one damaged ephemeris message: a week field off by one moves every later epoch a week) is
+    ignored: :meth:`set_approx` returns False, :attr:`disagreements` counts it, and it is
+    logged (rate-limited, per source). The stream's new time is taken only when reports say
+    it consistently: CONFIRM_IN_A_ROW in a row, agreeing with each other within DISAGREE_S,
+    none agreeing with the reference in between, from at least two kinds of source (one
+    system's messages can all be damaged alike, and come in bursts) or from the only kind the
+    stream has given; that is logged as a warning.
     """
 
     HINT, STREAM, EXACT = 0, 1, 2
+    DISAGREE_S = 86_400.0
+    """A stream report further than this from the reference [s] disagrees with it: an
+    ephemeris's t_oe is within hours of its transmission (BDS hourly, ICD B1I 5.2.4.9; GPS
+    and Galileo within their 4 h fit), a day leaves room for a stored set."""
+    CONFIRM_IN_A_ROW = 3
 
     def __init__(
         self,
@@ -337,6 +351,12 @@ class WeekContext:
         self.source = ""
         """What set the reference (for the log and the tests)."""
         self.clock_week = clock_week
+        self.disagreements = 0
+        """Stream reports ignored for disagreeing with the reference."""
+        self._stream_kinds: set[str] = set()
+        # consecutive disagreeing stream reports that agree with each other: (source, week, tow)
+        self._streak: list[tuple[str, int, float]] = []
+        self._log = RateLimitedLog(log)
         if gps_week is not None:
             self._ref, self._rank, self.source = (gps_week, None), self.HINT, "--gps-week"
 
@@ -351,8 +371,58 @@ class WeekContext:
     def set_exact(self, gps_week: int, tow_s: float) -> None:
         self._set(self.EXACT, gps_week, tow_s, "receiver time")
 
-    def set_approx(self, gps_week: int, tow_s: float, source: str = "stream") -> None:
+    def set_approx(self, gps_week: int, tow_s: float, source: str = "stream") -> bool:
+        """A week the stream gives (``source`` names its kind of message); False when it is
+        ignored for disagreeing with the stream's week (see the class)."""
+        known = self._rank == self.STREAM
+        self._stream_kinds.add(source)
+        if known and not self._agrees(gps_week, tow_s, source):
+            return False
         self._set(self.STREAM, gps_week, tow_s, source)
+        return True
+
+    def _agrees(self, gps_week: int, tow_s: float, source: str) -> bool:
+        """Whether a stream report may set the reference (see the class): it agrees with it,
+        or it completes a consistent run of reports that say the stream's new time."""
+        if self._ref is None:  # cannot happen: a STREAM rank has set it
+            return True
+        ref_week, ref_tow = self._ref
+        if ref_tow is None or abs(diff_s(gps_week, tow_s, ref_week, ref_tow)) <= self.DISAGREE_S:
+            self._streak.clear()
+            return True
+        streak = self._streak
+        if streak and abs(diff_s(gps_week, tow_s, *streak[-1][1:])) > self.DISAGREE_S:
+            streak.clear()
+        streak.append((source, gps_week, tow_s))
+        kinds = {k for k, _w, _t in streak}
+        if len(streak) >= self.CONFIRM_IN_A_ROW and (
+            len(kinds) >= 2 or kinds == self._stream_kinds
+        ):
+            log.warning(
+                "GPS week %d (tow %.0f s) replaces week %d (tow %.0f s): %d reports in a row "
+                "from %s say so",
+                gps_week,
+                tow_s,
+                ref_week,
+                ref_tow,
+                len(streak),
+                ", ".join(sorted(kinds)),
+            )
+            streak.clear()
+            return True
+        self.disagreements += 1
+        self._log.warning(
+            source,
+            "ignored GPS week %d tow %.0f s from %s: %.1f days from the stream's week %d tow "
+            "%.0f s (a damaged message?)",
+            gps_week,
+            tow_s,
+            source,
+            diff_s(gps_week, tow_s, ref_week, ref_tow) / 86_400.0,
+            ref_week,
+            ref_tow,
+        )
+        return False
 
     def set_hint(self, gps_week: int, tow_s: float, source: str = "system clock") -> None:
         self._set(self.HINT, gps_week, tow_s, source)

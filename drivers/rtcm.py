@@ -37,9 +37,10 @@ Counter keys: ``rtcm:<number>`` per message, ``rtcm_ignored``, ``msm_bds``,
 ``ephemerides_rtcm``, ``msm_<system>``, ``msm_cells_<system>`` and
 ``ephemerides_rtcm_<system>`` (GPS ``G``, Galileo ``E``), ``eph_bad_prn``,
 ``eph_week_<number>`` (a week taken from a non-BDS
-ephemeris), ``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that
-message, a 1019/1046 gives no set, and a 1042 is passed on for the ephemeris store to
-refuse).
+ephemeris), ``eph_week_disagrees`` (an ephemeris whose week and t_oe are more than a day
+from the stream's: ignored for the week, see :class:`~drivers.framing.WeekContext`),
+``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that message, a
+1019/1046 gives no set, and a 1042 is passed on for the ephemeris store to refuse).
 """
 
 from __future__ import annotations
@@ -421,7 +422,8 @@ class RtcmMapper:
         eph = ephemeris_from_1042(msg)
         if 0.0 <= eph.toe_sow_s < WEEK_S and 0.0 <= eph.toc_sow_s < WEEK_S:
             gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
-            self.week.set_approx(gps_week, gps_tow, "RTCM 1042 (BDS ephemeris)")
+            if not self.week.set_approx(gps_week, gps_tow, "RTCM 1042 (BDS ephemeris)"):
+                self.counters["eph_week_disagrees"] += 1
         else:
             # DF505/DF493 (17 bits, 8 s) can hold up to 1,048,568 s; beyond a week the set
             # breaks the ICD (5.2.4.9): no week from it, and the store refuses it
@@ -491,8 +493,10 @@ class RtcmMapper:
             self.counters["eph_bad_toe"] += 1
             return
         week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
-        self.week.set_approx(week, toe, f"RTCM {number} ({spec.system} ephemeris)")
-        self.counters[f"eph_week_{number}"] += 1
+        if self.week.set_approx(week, toe, f"RTCM {number} ({spec.system} ephemeris)"):
+            self.counters[f"eph_week_{number}"] += 1
+        else:
+            self.counters["eph_week_disagrees"] += 1
 
     # --- MSM ------------------------------------------------------------------------------
     def _on_msm(self, msg: Any, level: int, system: GnssSystem = MSM_SYSTEM) -> list[Event]:

@@ -50,7 +50,9 @@ Counter keys: ``sbf:<Name>`` per block, ``sbf_ignored``, ``epochs_sbf``, ``sbf_b
 ``sbf_pvt_no_fix``; with GPS/Galileo: ``meas_G``, ``meas_E``, ``meas_G_other_signal``,
 ``meas_E_other_signal``, ``ephemerides_sbf_G``, ``ephemerides_sbf_E``, ``galnav_fnav``,
 ``galnav_no_e1b_health`` (a GALNav block whose E1-B health is flagged not available:
-refused), ``eph_bad_week``, ``iono_sbf_G``, ``sbf_gal_ion_unused``, ``ggto_sbf``,
+refused), ``eph_bad_week``, ``eph_week_disagrees`` (a BDSNav week more than a day from the
+stream's: not taken, see :class:`~drivers.framing.WeekContext`), ``iono_sbf_G``,
+``sbf_gal_ion_unused``, ``ggto_sbf``,
 ``gpsraw_crc_failed``, ``gpsraw_unmapped``, ``galraw_other_signal``, ``galraw_crc_failed``,
 ``galraw_unmapped``.
 """
@@ -585,7 +587,8 @@ class SbfMapper:
         eph = ephemeris_from_bdsnav(msg, prn)
         if 0.0 <= eph.toe_sow_s < WEEK_S:
             gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
-            self.week.set_approx(gps_week, gps_tow, "SBF BDSNav")
+            if not self.week.set_approx(gps_week, gps_tow, "SBF BDSNav"):
+                self.counters["eph_week_disagrees"] += 1
         self.counters["ephemerides_sbf"] += 1
         return [eph]
 
