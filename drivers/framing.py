@@ -327,10 +327,11 @@ class WeekContext:
     (one damaged ephemeris message: a week field off by one moves every later epoch a week) is
     ignored: :meth:`set_approx` returns False, :attr:`disagreements` counts it, and it is
     logged (rate-limited, per source). The stream's new time is taken only when reports say
-    it consistently: CONFIRM_IN_A_ROW in a row, agreeing with each other within DISAGREE_S,
-    none agreeing with the reference in between, from at least two kinds of source (one
-    system's messages can all be damaged alike, and come in bursts) or from the only kind the
-    stream has given; that is logged as a warning.
+    it consistently: CONFIRM_IN_A_ROW in a row, each within DISAGREE_S of the one before,
+    none agreeing with the reference in between, and the latest reports of more kinds of
+    message (``source``) saying the new time than the reference (one system's messages can
+    all be damaged alike, and come in bursts; a stream whose first report was the damaged one
+    is corrected by the others); that is logged as a warning.
     """
 
     HINT, STREAM, EXACT = 0, 1, 2
@@ -353,9 +354,10 @@ class WeekContext:
         self.clock_week = clock_week
         self.disagreements = 0
         """Stream reports ignored for disagreeing with the reference."""
-        self._stream_kinds: set[str] = set()
-        # consecutive disagreeing stream reports that agree with each other: (source, week, tow)
-        self._streak: list[tuple[str, int, float]] = []
+        # the latest stream report of each kind of message (source), and the run of
+        # disagreeing reports in a row: (the latest, how many, each near the one before)
+        self._latest: dict[str, tuple[int, float]] = {}
+        self._run: tuple[tuple[int, float], int] | None = None
         self._log = RateLimitedLog(log)
         if gps_week is not None:
             self._ref, self._rank, self.source = (gps_week, None), self.HINT, "--gps-week"
@@ -374,41 +376,45 @@ class WeekContext:
     def set_approx(self, gps_week: int, tow_s: float, source: str = "stream") -> bool:
         """A week the stream gives (``source`` names its kind of message); False when it is
         ignored for disagreeing with the stream's week (see the class)."""
-        known = self._rank == self.STREAM
-        self._stream_kinds.add(source)
-        if known and not self._agrees(gps_week, tow_s, source):
+        if self._rank == self.STREAM and not self._agrees(gps_week, tow_s, source):
             return False
         self._set(self.STREAM, gps_week, tow_s, source)
+        self._latest[source] = (gps_week, tow_s)
         return True
+
+    def _near(self, a: tuple[int, float], b: tuple[int, float | None]) -> bool:
+        return b[1] is not None and abs(diff_s(a[0], a[1], b[0], b[1])) <= self.DISAGREE_S
 
     def _agrees(self, gps_week: int, tow_s: float, source: str) -> bool:
         """Whether a stream report may set the reference (see the class): it agrees with it,
-        or it completes a consistent run of reports that say the stream's new time."""
-        if self._ref is None:  # cannot happen: a STREAM rank has set it
+        or it completes a run of reports that say the stream's new time, from more kinds of
+        message than still say the reference's."""
+        ref = self._ref
+        report = (gps_week, tow_s)
+        if ref is None or ref[1] is None or self._near(report, ref):
+            self._run = None
             return True
-        ref_week, ref_tow = self._ref
-        if ref_tow is None or abs(diff_s(gps_week, tow_s, ref_week, ref_tow)) <= self.DISAGREE_S:
-            self._streak.clear()
-            return True
-        streak = self._streak
-        if streak and abs(diff_s(gps_week, tow_s, *streak[-1][1:])) > self.DISAGREE_S:
-            streak.clear()
-        streak.append((source, gps_week, tow_s))
-        kinds = {k for k, _w, _t in streak}
-        if len(streak) >= self.CONFIRM_IN_A_ROW and (
-            len(kinds) >= 2 or kinds == self._stream_kinds
-        ):
+        self._latest[source] = report
+        if self._run is not None and self._near(report, self._run[0]):
+            self._run = (report, self._run[1] + 1)
+        else:
+            self._run = (report, 1)
+        saying_new = sorted(k for k, r in self._latest.items() if self._near(r, report))
+        saying_ref = sorted(k for k, r in self._latest.items() if self._near(r, ref))
+        ref_week, ref_tow = ref[0], float(ref[1])
+        if self._run[1] >= self.CONFIRM_IN_A_ROW and len(saying_new) > len(saying_ref):
             log.warning(
                 "GPS week %d (tow %.0f s) replaces week %d (tow %.0f s): %d reports in a row "
-                "from %s say so",
+                "say so, the latest of %s (against %s)",
                 gps_week,
                 tow_s,
                 ref_week,
                 ref_tow,
-                len(streak),
-                ", ".join(sorted(kinds)),
+                self._run[1],
+                ", ".join(saying_new),
+                ", ".join(saying_ref) or "none",
             )
-            streak.clear()
+            self._run = None
             return True
         self.disagreements += 1
         self._log.warning(

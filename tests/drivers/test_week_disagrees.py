@@ -4,10 +4,11 @@ every 1019 cut 54 fixes to 10).
 
 WeekContext keeps the stream's week once one is known: a report more than a day from it is
 ignored (counted, logged rate-limited) unless reports say the new time consistently (three in
-a row, agreeing with each other, from two kinds of message or from the only kind the stream
-has given). End to end, damaged copies of the Hiroshima OEM729 RTCM are written to tmp_path
-(field positions from RTCM 10403.3 Tables 3.5-21 and 3.5-116, checked by pyrtcm's reading of
-the damaged file); the recording is GPS week 2240 (DATA/README.md: 2022-12-13).
+a row, none agreeing with the reference between them, and the latest reports of more kinds
+of message saying the new time than the old). End to end, damaged copies of the Hiroshima
+OEM729 RTCM are written to tmp_path (field positions from RTCM 10403.3 Tables 3.5-21 and
+3.5-116, checked by pyrtcm's reading of the damaged file); the recording is GPS week 2240
+(DATA/README.md: 2022-12-13).
 """
 
 from __future__ import annotations
@@ -97,6 +98,23 @@ def test_the_only_kind_of_a_stream_moves_it_after_three_in_a_row():
     assert not wc.set_approx(WEEK, TOW + 30.0, "RTCM 1042")
     assert wc.set_approx(WEEK, TOW + 60.0, "RTCM 1042")
     assert wc.resolve(TOW + 61.0) == WEEK
+
+
+def test_a_damaged_first_report_is_corrected_by_the_other_kinds():
+    """The stream's first ephemeris a damaged 1046 (week + 1), the 1046s all damaged alike,
+    the other kinds right: once two kinds say the right week against one, three in a row
+    take it, and the damaged kind never takes it back."""
+    wc = WeekContext()
+    assert wc.set_approx(WEEK + 1, TOW, "RTCM 1046")
+    assert not wc.set_approx(WEEK, TOW, "RTCM 1045")
+    assert wc.set_approx(WEEK + 1, TOW, "RTCM 1046")  # agrees with the (wrong) reference
+    assert not wc.set_approx(WEEK, TOW + 10.0, "RTCM 1019")
+    assert not wc.set_approx(WEEK, TOW + 20.0, "RTCM 1019")
+    assert wc.set_approx(WEEK, TOW + 30.0, "RTCM 1019")  # 1019 and 1045 against 1046
+    assert wc.resolve(TOW + 31.0) == WEEK
+    for k in range(20):
+        assert not wc.set_approx(WEEK + 1, TOW + 40.0 + k, "RTCM 1046")
+    assert wc.resolve(TOW + 100.0) == WEEK
 
 
 def test_a_hint_still_gives_way_to_the_stream():
