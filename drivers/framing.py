@@ -322,9 +322,24 @@ class WeekContext:
     reference, else the system clock (``clock_week``), else a sane epoch. When the stream's
     week replaces a hint more than a week away, that is logged (a wrong system clock or
     ``--gps-week``).
+
+    Once the stream has given a week, a stream report more than DISAGREE_S from the reference
+    (one damaged ephemeris message: a week field off by one moves every later epoch a week) is
+    ignored: :meth:`set_approx` returns False, :attr:`disagreements` counts it, and it is
+    logged (rate-limited, per source). The stream's new time is taken only when reports say
+    it consistently: CONFIRM_IN_A_ROW in a row, each within DISAGREE_S of the one before,
+    none agreeing with the reference in between, and the latest reports of more kinds of
+    message (``source``) saying the new time than the reference (one system's messages can
+    all be damaged alike, and come in bursts; a stream whose first report was the damaged one
+    is corrected by the others); that is logged as a warning.
     """
 
     HINT, STREAM, EXACT = 0, 1, 2
+    DISAGREE_S = 86_400.0
+    """A stream report further than this from the reference [s] disagrees with it: an
+    ephemeris's t_oe is within hours of its transmission (BDS hourly, ICD B1I 5.2.4.9; GPS
+    and Galileo within their 4 h fit), a day leaves room for a stored set."""
+    CONFIRM_IN_A_ROW = 3
 
     def __init__(
         self,
@@ -337,6 +352,13 @@ class WeekContext:
         self.source = ""
         """What set the reference (for the log and the tests)."""
         self.clock_week = clock_week
+        self.disagreements = 0
+        """Stream reports ignored for disagreeing with the reference."""
+        # the latest stream report of each kind of message (source), and the run of
+        # disagreeing reports in a row: (the latest, how many, each near the one before)
+        self._latest: dict[str, tuple[int, float]] = {}
+        self._run: tuple[tuple[int, float], int] | None = None
+        self._log = RateLimitedLog(log)
         if gps_week is not None:
             self._ref, self._rank, self.source = (gps_week, None), self.HINT, "--gps-week"
 
@@ -351,8 +373,62 @@ class WeekContext:
     def set_exact(self, gps_week: int, tow_s: float) -> None:
         self._set(self.EXACT, gps_week, tow_s, "receiver time")
 
-    def set_approx(self, gps_week: int, tow_s: float, source: str = "stream") -> None:
+    def set_approx(self, gps_week: int, tow_s: float, source: str = "stream") -> bool:
+        """A week the stream gives (``source`` names its kind of message); False when it is
+        ignored for disagreeing with the stream's week (see the class)."""
+        if self._rank == self.STREAM and not self._agrees(gps_week, tow_s, source):
+            return False
         self._set(self.STREAM, gps_week, tow_s, source)
+        self._latest[source] = (gps_week, tow_s)
+        return True
+
+    def _near(self, a: tuple[int, float], b: tuple[int, float | None]) -> bool:
+        return b[1] is not None and abs(diff_s(a[0], a[1], b[0], b[1])) <= self.DISAGREE_S
+
+    def _agrees(self, gps_week: int, tow_s: float, source: str) -> bool:
+        """Whether a stream report may set the reference (see the class): it agrees with it,
+        or it completes a run of reports that say the stream's new time, from more kinds of
+        message than still say the reference's."""
+        ref = self._ref
+        report = (gps_week, tow_s)
+        if ref is None or ref[1] is None or self._near(report, ref):
+            self._run = None
+            return True
+        self._latest[source] = report
+        if self._run is not None and self._near(report, self._run[0]):
+            self._run = (report, self._run[1] + 1)
+        else:
+            self._run = (report, 1)
+        saying_new = sorted(k for k, r in self._latest.items() if self._near(r, report))
+        saying_ref = sorted(k for k, r in self._latest.items() if self._near(r, ref))
+        ref_week, ref_tow = ref[0], float(ref[1])
+        if self._run[1] >= self.CONFIRM_IN_A_ROW and len(saying_new) > len(saying_ref):
+            log.warning(
+                "GPS week %d (tow %.0f s) replaces week %d (tow %.0f s): %d reports in a row "
+                "say so, the latest of %s (against %s)",
+                gps_week,
+                tow_s,
+                ref_week,
+                ref_tow,
+                self._run[1],
+                ", ".join(saying_new),
+                ", ".join(saying_ref) or "none",
+            )
+            self._run = None
+            return True
+        self.disagreements += 1
+        self._log.warning(
+            source,
+            "ignored GPS week %d tow %.0f s from %s: %.1f days from the stream's week %d tow "
+            "%.0f s (a damaged message?)",
+            gps_week,
+            tow_s,
+            source,
+            diff_s(gps_week, tow_s, ref_week, ref_tow) / 86_400.0,
+            ref_week,
+            ref_tow,
+        )
+        return False
 
     def set_hint(self, gps_week: int, tow_s: float, source: str = "system clock") -> None:
         self._set(self.HINT, gps_week, tow_s, source)

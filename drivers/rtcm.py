@@ -37,8 +37,10 @@ Counter keys: ``rtcm:<number>`` per message, ``rtcm_ignored``, ``msm_bds``,
 ``ephemerides_rtcm``, ``msm_<system>``, ``msm_cells_<system>`` and
 ``ephemerides_rtcm_<system>`` (GPS ``G``, Galileo ``E``), ``eph_bad_prn``,
 ``eph_week_<number>`` (a week taken from a non-BDS
-ephemeris), ``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that
-message, and a 1042 is passed on for the ephemeris store to refuse).
+ephemeris), ``eph_week_disagrees`` (an ephemeris whose week and t_oe are more than a day
+from the stream's: ignored for the week, see :class:`~drivers.framing.WeekContext`),
+``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that message, a
+1019/1046 gives no set, and a 1042 is passed on for the ephemeris store to refuse).
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ from service.core.timebase import (
     GST_GPS_WEEK_OFFSET,
     bdt_to_gpst,
     diff_s,
+    gpst_sow_to_bdt_sow,
     gpst_to_bdt,
 )
 from service.core.types import UNKNOWN_WEEK, Ephemeris, MeasurementEpoch
@@ -154,21 +157,22 @@ EPH_BDS = 1042
 
 @dataclass(frozen=True, slots=True)
 class EphWeek:
-    """Where a non-BDS ephemeris message carries its week and t_oe (RTCM 10403.3 section
-    3.5.6 ff.): the week field modulo ``modulus`` counts from GPS week ``offset``."""
+    """Where a non-BDS ephemeris message carries its week, t_oe and t_oc (RTCM 10403.3
+    section 3.5.6 ff.): the week field modulo ``modulus`` counts from GPS week ``offset``."""
 
     system: str
     week_df: str
     toe_df: str
+    toc_df: str
     modulus: int
     offset: int = 0
 
 
 EPH_WEEKS: dict[int, EphWeek] = {
-    1019: EphWeek("GPS", "DF076", "DF093", 1024),  # DF076 10 bits
-    1044: EphWeek("QZSS", "DF452", "DF442", 1024),  # DF452 10 bits, GPS week numbering
-    1045: EphWeek("Galileo F/NAV", "DF289", "DF304", 4096, GST_GPS_WEEK_OFFSET),  # 12 bits
-    1046: EphWeek("Galileo I/NAV", "DF289", "DF304", 4096, GST_GPS_WEEK_OFFSET),
+    1019: EphWeek("GPS", "DF076", "DF093", "DF081", 1024),  # DF076 10 bits
+    1044: EphWeek("QZSS", "DF452", "DF442", "DF430", 1024),  # 10 bits, GPS week numbering
+    1045: EphWeek("Galileo F/NAV", "DF289", "DF304", "DF293", 4096, GST_GPS_WEEK_OFFSET),
+    1046: EphWeek("Galileo I/NAV", "DF289", "DF304", "DF293", 4096, GST_GPS_WEEK_OFFSET),
 }
 """Ephemerides of other systems read only for their week, while the stream's week is not
 exact (the 1042 BDS week, 13 bits from BDT week 0, comes with the ephemeris itself)."""
@@ -303,6 +307,17 @@ def ephemeris_from_1042(msg: Any) -> Ephemeris:
     )
 
 
+def _toe_in_week(msg: Any, spec: EphWeek) -> float | None:
+    """The t_oe [s] of a non-BDS ephemeris message, or None when its t_oe or t_oc is no time
+    of week: DF093/DF081 (16 bits x 16 s) reach 1,048,560 s, DF304/DF293 (14 bits x 60 s)
+    983,040 s. Such a message gives neither a week nor a set (wrapping the time into the
+    week would make one of the damage)."""
+    toe = float(getattr(msg, spec.toe_df))
+    if 0.0 <= toe < WEEK_S and 0.0 <= float(getattr(msg, spec.toc_df)) < WEEK_S:
+        return toe
+    return None
+
+
 def _same_time(week_a: int, tow_a: float, week_b: int, tow_b: float) -> bool:
     """Two MSM times are one epoch (times of week only while a week is unknown)."""
     if UNKNOWN_WEEK in (week_a, week_b):
@@ -407,7 +422,8 @@ class RtcmMapper:
         eph = ephemeris_from_1042(msg)
         if 0.0 <= eph.toe_sow_s < WEEK_S and 0.0 <= eph.toc_sow_s < WEEK_S:
             gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
-            self.week.set_approx(gps_week, gps_tow, "RTCM 1042 (BDS ephemeris)")
+            if not self.week.set_approx(gps_week, gps_tow, "RTCM 1042 (BDS ephemeris)"):
+                self.counters["eph_week_disagrees"] += 1
         else:
             # DF505/DF493 (17 bits, 8 s) can hold up to 1,048,568 s; beyond a week the set
             # breaks the ICD (5.2.4.9): no week from it, and the store refuses it
@@ -422,15 +438,15 @@ class RtcmMapper:
         system = EPH_OF_SYSTEM[number]
         spec = EPH_WEEKS[number]
         if system is GnssSystem.GPS:
-            number_df, fields, toc_df = "DF009", GPS_1019_FIELDS, "DF081"
+            number_df, fields = "DF009", GPS_1019_FIELDS
         else:
-            number_df, fields, toc_df = "DF252", GAL_1046_FIELDS, "DF293"
+            number_df, fields = "DF252", GAL_1046_FIELDS
         n = int(getattr(msg, number_df))
         if not 1 <= n <= SYSTEM_CONSTANTS[system].prn_max:
             self.counters["eph_bad_prn"] += 1
             return []
-        toe = float(getattr(msg, spec.toe_df))
-        if not 0.0 <= toe < WEEK_S:
+        toe = _toe_in_week(msg, spec)
+        if toe is None:
             self.counters["eph_bad_toe"] += 1
             return []
         week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
@@ -438,7 +454,7 @@ class RtcmMapper:
             name: float(getattr(msg, df)) * (ICD_PI if semi else 1.0) for name, df, semi in fields
         }
         bdt_week, toe_bdt = gpst_to_bdt(week, toe)
-        toc_bdt = (float(getattr(msg, toc_df)) - BDT_GPST_OFFSET_S) % WEEK_S
+        toc_bdt = gpst_sow_to_bdt_sow(float(getattr(msg, spec.toc_df)))
         if system is GnssSystem.GPS:
             ura_index = int(msg.DF077)
             extra: dict[str, Any] = {
@@ -472,13 +488,15 @@ class RtcmMapper:
 
     def _on_eph_week(self, msg: Any, number: int) -> None:
         spec = EPH_WEEKS[number]
-        toe = float(getattr(msg, spec.toe_df))
-        if not 0.0 <= toe < WEEK_S:
+        toe = _toe_in_week(msg, spec)
+        if toe is None:
             self.counters["eph_bad_toe"] += 1
             return
         week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
-        self.week.set_approx(week, toe, f"RTCM {number} ({spec.system} ephemeris)")
-        self.counters[f"eph_week_{number}"] += 1
+        if self.week.set_approx(week, toe, f"RTCM {number} ({spec.system} ephemeris)"):
+            self.counters[f"eph_week_{number}"] += 1
+        else:
+            self.counters["eph_week_disagrees"] += 1
 
     # --- MSM ------------------------------------------------------------------------------
     def _on_msm(self, msg: Any, level: int, system: GnssSystem = MSM_SYSTEM) -> list[Event]:

@@ -50,7 +50,9 @@ Counter keys: ``sbf:<Name>`` per block, ``sbf_ignored``, ``epochs_sbf``, ``sbf_b
 ``sbf_pvt_no_fix``; with GPS/Galileo: ``meas_G``, ``meas_E``, ``meas_G_other_signal``,
 ``meas_E_other_signal``, ``ephemerides_sbf_G``, ``ephemerides_sbf_E``, ``galnav_fnav``,
 ``galnav_no_e1b_health`` (a GALNav block whose E1-B health is flagged not available:
-refused), ``eph_bad_week``, ``iono_sbf_G``, ``sbf_gal_ion_unused``, ``ggto_sbf``,
+refused), ``eph_bad_week``, ``eph_week_disagrees`` (a BDSNav week more than a day from the
+stream's: not taken, see :class:`~drivers.framing.WeekContext`), ``iono_sbf_G``,
+``sbf_gal_ion_unused``, ``ggto_sbf``,
 ``gpsraw_crc_failed``, ``gpsraw_unmapped``, ``galraw_other_signal``, ``galraw_crc_failed``,
 ``galraw_unmapped``.
 """
@@ -85,7 +87,7 @@ from service.core.gal_nav import (
 from service.core.geometry import geodetic_to_ecef
 from service.core.gps_nav import lnav_subframe
 from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, sat_id
-from service.core.timebase import BDT_GPST_OFFSET_S, bdt_to_gpst, gpst_to_bdt
+from service.core.timebase import bdt_to_gpst, gpst_sow_to_bdt_sow, gpst_to_bdt
 from service.core.types import (
     Ephemeris,
     KlobucharParams,
@@ -388,7 +390,7 @@ def ephemeris_from_gpsnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
         prn=sat_id(GnssSystem.GPS, prn),
         week=bdt_week,
         toe_sow_s=toe_bdt,
-        toc_sow_s=(float(msg.t_oc) - BDT_GPST_OFFSET_S) % WEEK_S,
+        toc_sow_s=gpst_sow_to_bdt_sow(float(msg.t_oc)),
         tgd1_s=float(msg.T_gd),
         health=int(msg.health),
         aode=int(msg.IODE2),
@@ -421,7 +423,7 @@ def ephemeris_from_galnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
         prn=sat_id(GnssSystem.GAL, prn),
         week=bdt_week,
         toe_sow_s=toe_bdt,
-        toc_sow_s=(float(msg.t_oc) - BDT_GPST_OFFSET_S) % WEEK_S,
+        toc_sow_s=gpst_sow_to_bdt_sow(float(msg.t_oc)),
         tgd1_s=math.nan if bgd_e5b == BGD_DNU_S else bgd_e5b,
         tgd2_s=0.0 if bgd_e5a == BGD_DNU_S else bgd_e5a,
         health=health,
@@ -585,7 +587,8 @@ class SbfMapper:
         eph = ephemeris_from_bdsnav(msg, prn)
         if 0.0 <= eph.toe_sow_s < WEEK_S:
             gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
-            self.week.set_approx(gps_week, gps_tow, "SBF BDSNav")
+            if not self.week.set_approx(gps_week, gps_tow, "SBF BDSNav"):
+                self.counters["eph_week_disagrees"] += 1
         self.counters["ephemerides_sbf"] += 1
         return [eph]
 

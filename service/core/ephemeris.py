@@ -42,7 +42,7 @@ from service.core.counters import Counters
 from service.core.errors import BdsfixError, EphemerisError
 from service.core.orbit import EphemerisArrays, sat_pos_clock
 from service.core.ratelog import RateLimitedLog
-from service.core.systems import SYSTEM_CONSTANTS, constants_of, prn_number
+from service.core.systems import SYSTEM_CONSTANTS, GnssSystem, constants_of, prn_number, system_of
 from service.core.timebase import diff_s
 from service.core.types import Ephemeris, KlobucharParams
 
@@ -103,6 +103,66 @@ apart a GEO's extrapolation reaches hundreds of km (C05, 2019-04-28: 367 km at 1
 t_oe written a week off moves a MEO 4,555 km (Omega_e t_oe). 1 km is 58 times the largest
 agreement measured; a smaller error is a range error that RAIM tests (chi-square,
 exclusion)."""
+
+
+def _signed_field_max(bits: int, lsb: float) -> float:
+    """Largest magnitude a two's complement field of ``bits`` bits and scale ``lsb`` can
+    carry: 2^(bits-1) LSB (its most negative value)."""
+    return 2.0 ** (bits - 1) * lsb
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class ClockBounds:
+    """Largest |value| a system's broadcast can carry for the clock terms and group delays
+    (from the field's width and scale factor): a set beyond any of them was not broadcast
+    as such, whatever wrote it."""
+
+    af0_s: float
+    af1_s_s: float
+    af2_s_s2: float
+    group_delay_s: float
+    """T_GD / TGD1 / TGD2 / BGD: both ``tgd1_s`` and ``tgd2_s``."""
+
+
+_GPS_CLOCK = ClockBounds(
+    # IS-GPS-200 20.3.3.3, Table 20-I/20-III: a_f0 22 bits x 2^-31 s, a_f1 16 bits x 2^-43
+    # s/s, a_f2 8 bits x 2^-55 s/s^2, T_GD 8 bits x 2^-31 s (all two's complement)
+    af0_s=_signed_field_max(22, 2.0**-31),  # 2^-10 s, 977 us
+    af1_s_s=_signed_field_max(16, 2.0**-43),  # 2^-28
+    af2_s_s2=_signed_field_max(8, 2.0**-55),  # 2^-48
+    group_delay_s=_signed_field_max(8, 2.0**-31),  # 2^-24 s, 59.6 ns
+)
+CLOCK_BOUNDS: dict[GnssSystem, ClockBounds] = {
+    # BDS-SIS-ICD-B1I-3.0 5.2.4.10 (a0 24 bits x 2^-33 s, a1 22 bits x 2^-50 s/s, a2 11 bits
+    # x 2^-66 s/s^2) and 5.2.4.8 (TGD1, TGD2 10 bits x 0.1 ns)
+    GnssSystem.BDS: ClockBounds(
+        af0_s=_signed_field_max(24, 2.0**-33),  # 2^-10 s
+        af1_s_s=_signed_field_max(22, 2.0**-50),  # 2^-29
+        af2_s_s2=_signed_field_max(11, 2.0**-66),  # 2^-56
+        group_delay_s=_signed_field_max(10, 1e-10),  # 51.2 ns
+    ),
+    GnssSystem.GPS: _GPS_CLOCK,
+    # IS-QZSS-PNT 4.1.2: the LNAV subframes of IS-GPS-200, the same fields
+    GnssSystem.QZS: _GPS_CLOCK,
+    # Galileo OS SIS ICD 5.1.3 (af0 31 bits x 2^-34 s, af1 21 bits x 2^-46 s/s, af2 6 bits x
+    # 2^-59 s/s^2; I/NAV and F/NAV alike) and 5.1.5 (BGD 10 bits x 2^-32 s)
+    GnssSystem.GAL: ClockBounds(
+        af0_s=_signed_field_max(31, 2.0**-34),  # 2^-4 s, 62.5 ms
+        af1_s_s=_signed_field_max(21, 2.0**-46),  # 2^-26
+        af2_s_s2=_signed_field_max(6, 2.0**-59),  # 2^-54
+        group_delay_s=_signed_field_max(10, 2.0**-32),  # 2^-23 s, 119 ns
+    ),
+}
+"""Per system, the bounds of the ``clock`` and ``group_delay`` checks of
+:func:`ephemeris_problem`. The real recordings reach at most: af0 2^-10 s (BDS C58, unhealthy,
+2024; the bound is inclusive), 7.0 ms (Galileo E09), 0.81 ms (GPS); |TGD| 48 ns (BDS),
+47 ns (Galileo BGD), 20 ns (GPS)."""
+TOC_TOE_MAX_S = 4 * 3600.0
+"""Most |t_oc - t_oe| [s] (across the week's end) of a set: each system broadcasts its clock
+and orbit for one epoch (BDS 5.2.4.9-10, GPS 20.3.4.5, Galileo 5.1.2-3); every set of the
+real recordings has t_oc = t_oe. A clock reference hours from the orbit's is a damaged field
+(a t_oc wrapped into the week, a field of another set)."""
+
 LOG_INTERVAL_S = 60.0
 """A refusal log line per (PRN, check) at most this often (wall clock); the next says how
 many refusals it stood for."""
@@ -151,9 +211,18 @@ def ephemeris_problem(eph: Ephemeris) -> EphemerisProblem | None:
       refused, not normalised: its writer does not follow the ICD, so its other fields
       deserve no more trust, and the receiver's own sets (or a conforming source) cover the
       satellite;
+    - ``toc_toe``: t_oc is within TOC_TOE_MAX_S of t_oe (across the week's end): a set's clock
+      and orbit are referenced to one epoch (5.2.4.9-5.2.4.10);
     - ``ura``: URA is the unusable class URAI 15, > 6144 m, or not a number (5.2.4.5);
     - ``sqrt_a``, ``eccentricity``, ``inclination``: sqrt(A), e and i0 (ephemeris
       parameters, 5.2.4.12) within the windows of this module's constants;
+    - ``clock``: |af0|, |af1|, |af2| at most what the system's broadcast fields can carry
+      (:data:`CLOCK_BOUNDS`: BDS ICD B1I 5.2.4.10, a0 < 2^-10 s; IS-GPS-200 20.3.3.3, a_f0 <
+      2^-10 s; Galileo OS SIS ICD 5.1.3, af0 < 2^-4 s; af1 and af2 likewise). A set beyond
+      them was never broadcast as such, and one absurd clock term would otherwise spoil
+      every epoch's solution, not one satellite's range;
+    - ``group_delay``: |tgd1|, |tgd2| (BDS TGD1/TGD2, 5.2.4.8; GPS T_GD, 20.3.3.3.3.2;
+      Galileo BGD, 5.1.5) within their field's range, likewise;
     - ``radius``: the position at t_oe by the user algorithm of the satellite's system
       (5.2.4.12, Table 5-11, and the BeiDou GEO algorithm for C01-C05/C59-C63;
       :func:`service.core.orbit.sat_pos_clock`) is finite and its radius within
@@ -212,6 +281,13 @@ def _field_problem(eph: Ephemeris) -> EphemerisProblem | None:
                 "time_of_week",
                 f"{name} {getattr(eph, name):g} s is not a time of week [0, {WEEK_S:g}) s",
             )
+    toc_toe_s = (eph.toc_sow_s - eph.toe_sow_s + WEEK_S / 2) % WEEK_S - WEEK_S / 2
+    if abs(toc_toe_s) > TOC_TOE_MAX_S:
+        return EphemerisProblem(
+            "toc_toe",
+            f"toc {eph.toc_sow_s:g} s is {toc_toe_s / 3600:+.1f} h from toe {eph.toe_sow_s:g} s "
+            f"(at most {TOC_TOE_MAX_S / 3600:g} h)",
+        )
     ura_m = eph.ura_m
     if not (isinstance(ura_m, Real) and 0.0 <= ura_m <= URA_MAX_M):
         return EphemerisProblem(
@@ -230,6 +306,25 @@ def _field_problem(eph: Ephemeris) -> EphemerisProblem | None:
             "inclination",
             f"i0 {math.degrees(eph.i0_rad):.2f} deg outside [0, {math.degrees(I0_MAX_RAD):g}] deg",
         )
+    bounds = CLOCK_BOUNDS.get(system_of(eph.prn))
+    if bounds is not None:
+        for name, value, bound in (
+            ("af0", eph.af0_s, bounds.af0_s),
+            ("af1", eph.af1_s_s, bounds.af1_s_s),
+            ("af2", eph.af2_s_s2, bounds.af2_s_s2),
+        ):
+            if not abs(value) <= bound:
+                return EphemerisProblem(
+                    "clock",
+                    f"{name} {value:g} beyond what the broadcast can carry (|{name}| <= {bound:g})",
+                )
+        for name, value in (("tgd1", eph.tgd1_s), ("tgd2", eph.tgd2_s)):
+            if not abs(value) <= bounds.group_delay_s:
+                return EphemerisProblem(
+                    "group_delay",
+                    f"{name} {value:g} s beyond what the broadcast can carry "
+                    f"(|{name}| <= {bounds.group_delay_s:g} s)",
+                )
     return None
 
 

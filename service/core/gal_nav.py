@@ -27,7 +27,12 @@ from typing import Any
 
 from service.core.constants import ICD_PI, WEEK_S
 from service.core.errors import DecodeError
-from service.core.timebase import BDT_GPST_OFFSET_S, GST_GPS_WEEK_OFFSET, gpst_to_bdt
+from service.core.timebase import (
+    BDT_GPST_OFFSET_S,
+    GST_GPS_WEEK_OFFSET,
+    gpst_sow_to_bdt_sow,
+    gpst_to_bdt,
+)
 from service.core.types import Ephemeris, NavSubframe, TimeOffset
 
 
@@ -241,7 +246,7 @@ def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Eph
         prn=prn,
         week=bdt_week,
         toe_sow_s=toe_bdt,
-        toc_sow_s=(float(nav.toc) - BDT_GPST_OFFSET_S) % WEEK_S,
+        toc_sow_s=gpst_sow_to_bdt_sow(float(nav.toc)),
         af0_s=float(nav.af0),
         af1_s_s=float(nav.af1),
         af2_s_s2=float(nav.af2),

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 from service.core.constants import ICD_PI, URA_M, WEEK_S
 from service.core.errors import DecodeError
-from service.core.timebase import BDT_GPST_OFFSET_S, gpst_to_bdt
+from service.core.timebase import BDT_GPST_OFFSET_S, gpst_sow_to_bdt_sow, gpst_to_bdt
 from service.core.types import Ephemeris, KlobucharParams, NavSubframe
 
 log = logging.getLogger(__name__)
@@ -205,7 +205,7 @@ def ephemeris_from_subframes(prn: str, sf1: int, sf2: int, sf3: int, ref_week: i
         prn=prn,
         week=bdt_week,
         toe_sow_s=toe_bdt,
-        toc_sow_s=(toc - BDT_GPST_OFFSET_S) % WEEK_S,
+        toc_sow_s=gpst_sow_to_bdt_sow(toc),
         af0_s=_get(sf1, 216, 22, True) * 2.0**-31,
         af1_s_s=_get(sf1, 200, 16, True) * 2.0**-43,
         af2_s_s2=_get(sf1, 192, 8, True) * 2.0**-55,

@@ -72,6 +72,20 @@ def gpst_to_bdt(week: int, tow_s: float) -> tuple[int, float]:
     return normalize(week - BDT_GPS_WEEK_OFFSET, tow_s - BDT_GPST_OFFSET_S)
 
 
+def gpst_sow_to_bdt_sow(sow_s: float) -> float:
+    """A GPST (or GST) time of week [s] as the BDT time of week of the same instant, within
+    BDT's week (BDT = GPST - 14 s: the first 14 s of a GPST week are the end of BDT's
+    previous one), for a broadcast t_oc held beside its set's t_oe.
+
+    A time outside [0, 604800) s is no time of week (a GPS t_oc field, 16 bits x 16 s,
+    reaches 1,048,560 s; Galileo's, 14 bits x 60 s, 983,040 s): it is returned as it is,
+    not wrapped into the week, so that the ephemeris store refuses the set (check
+    ``time_of_week``) instead of taking a time made of the damage."""
+    if not 0.0 <= sow_s < WEEK_S:
+        return sow_s
+    return (sow_s - BDT_GPST_OFFSET_S) % WEEK_S
+
+
 def bdt_to_gpst(week: int, sow_s: float) -> tuple[int, float]:
     """BDT (week, sow) to GPST (week, tow)."""
     return normalize(week + BDT_GPS_WEEK_OFFSET, sow_s + BDT_GPST_OFFSET_S)

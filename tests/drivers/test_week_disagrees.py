@@ -1,0 +1,239 @@
+"""An ephemeris week that disagrees with the stream's does not move the stream's week
+(read-only review: DF289 + 1 in every RTCM 1046 stamped 25 fixes a week late, DF076 + 1 in
+every 1019 cut 54 fixes to 10).
+
+WeekContext keeps the stream's week once one is known: a report more than a day from it is
+ignored (counted, logged rate-limited) unless reports say the new time consistently (three in
+a row, none agreeing with the reference between them, and the latest reports of more kinds
+of message saying the new time than the old). End to end, damaged copies of the Hiroshima
+OEM729 RTCM are written to tmp_path (field positions from RTCM 10403.3 Tables 3.5-21 and
+3.5-116, checked by pyrtcm's reading of the damaged file); the recording is GPS week 2240
+(DATA/README.md: 2022-12-13).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from pyrtcm import RTCMReader
+from pyrtcm.rtcmhelpers import calc_crc24q
+
+from drivers.framing import WeekContext
+from tests.support.paths import DATA, ROOT
+from tests.support.replay import replay_with_status
+
+HIROSHIMA = DATA / "hiroshima-oem729-rtcm-2022/20221213-010900.rtcm"
+WEEK = 2240  # DATA/README.md
+TOW = 176_400.0
+DAY_S = 86_400.0
+
+
+def test_a_report_a_week_off_is_ignored_and_counted(caplog):
+    wc = WeekContext()
+    assert wc.set_approx(WEEK, TOW, "RTCM 1042")
+    with caplog.at_level(logging.WARNING, logger="drivers.framing"):
+        for _ in range(10):
+            assert not wc.set_approx(WEEK + 1, TOW, "RTCM 1046")
+            assert wc.set_approx(WEEK, TOW + 60.0, "RTCM 1019")
+    assert wc.disagreements == 10
+    assert wc.resolve(TOW + 100.0) == WEEK
+    lines = [r for r in caplog.records if "ignored GPS week" in r.getMessage()]
+    assert len(lines) == 1  # rate-limited per source
+    assert "2241" in lines[0].getMessage() and "RTCM 1046" in lines[0].getMessage()
+
+
+def test_hours_apart_agree():
+    wc = WeekContext()
+    assert wc.set_approx(WEEK, TOW, "RTCM 1042")
+    assert wc.set_approx(WEEK, TOW + 7200.0, "RTCM 1019")  # a t_oe two hours on
+    # the reference is now the latest report: a day before it, less a second, agrees
+    assert wc.set_approx(WEEK, TOW + 7200.0 - DAY_S + 1.0, "RTCM 1046")
+    assert not wc.set_approx(WEEK, TOW + 7200.0 + 2 * DAY_S, "RTCM 1046")
+    assert wc.disagreements == 1
+
+
+def test_one_kind_of_message_alone_never_moves_a_stream_of_several():
+    """A burst of one system's messages (all damaged alike) is not consistency."""
+    wc = WeekContext()
+    assert wc.set_approx(WEEK, TOW, "RTCM 1042")
+    assert wc.set_approx(WEEK, TOW, "RTCM 1019")
+    for _ in range(32):
+        assert not wc.set_approx(WEEK + 1, TOW, "RTCM 1019")
+    assert wc.resolve(TOW) == WEEK
+
+
+def test_consistent_reports_from_two_kinds_take_the_new_time(caplog):
+    wc = WeekContext()
+    assert wc.set_approx(WEEK, TOW, "RTCM 1042")
+    assert wc.set_approx(WEEK, TOW, "RTCM 1019")
+    with caplog.at_level(logging.WARNING, logger="drivers.framing"):
+        assert not wc.set_approx(WEEK + 3, 1000.0, "RTCM 1019")
+        assert not wc.set_approx(WEEK + 3, 1030.0, "RTCM 1042")
+        assert wc.set_approx(WEEK + 3, 1060.0, "RTCM 1019")
+    assert wc.resolve(1100.0) == WEEK + 3
+    assert "replaces week 2240" in caplog.text
+    assert wc.disagreements == 2
+
+
+def test_an_agreeing_report_breaks_the_run():
+    wc = WeekContext()
+    assert wc.set_approx(WEEK, TOW, "RTCM 1042")
+    for _ in range(5):
+        assert not wc.set_approx(WEEK + 1, TOW, "RTCM 1046")
+        assert not wc.set_approx(WEEK + 1, TOW, "RTCM 1019")
+        assert wc.set_approx(WEEK, TOW, "RTCM 1045")  # the stream's week again
+    assert wc.resolve(TOW) == WEEK
+
+
+def test_the_only_kind_of_a_stream_moves_it_after_three_in_a_row():
+    """A BDS-only stream whose first 1042 was wrong: the following ones correct it."""
+    wc = WeekContext()
+    assert wc.set_approx(WEEK + 1, TOW, "RTCM 1042")
+    assert not wc.set_approx(WEEK, TOW, "RTCM 1042")
+    assert not wc.set_approx(WEEK, TOW + 30.0, "RTCM 1042")
+    assert wc.set_approx(WEEK, TOW + 60.0, "RTCM 1042")
+    assert wc.resolve(TOW + 61.0) == WEEK
+
+
+def test_a_damaged_first_report_is_corrected_by_the_other_kinds():
+    """The stream's first ephemeris a damaged 1046 (week + 1), the 1046s all damaged alike,
+    the other kinds right: once two kinds say the right week against one, three in a row
+    take it, and the damaged kind never takes it back."""
+    wc = WeekContext()
+    assert wc.set_approx(WEEK + 1, TOW, "RTCM 1046")
+    assert not wc.set_approx(WEEK, TOW, "RTCM 1045")
+    assert wc.set_approx(WEEK + 1, TOW, "RTCM 1046")  # agrees with the (wrong) reference
+    assert not wc.set_approx(WEEK, TOW + 10.0, "RTCM 1019")
+    assert not wc.set_approx(WEEK, TOW + 20.0, "RTCM 1019")
+    assert wc.set_approx(WEEK, TOW + 30.0, "RTCM 1019")  # 1019 and 1045 against 1046
+    assert wc.resolve(TOW + 31.0) == WEEK
+    for k in range(20):
+        assert not wc.set_approx(WEEK + 1, TOW + 40.0 + k, "RTCM 1046")
+    assert wc.resolve(TOW + 100.0) == WEEK
+
+
+def test_a_hint_still_gives_way_to_the_stream():
+    wc = WeekContext(WEEK + 100)
+    assert wc.set_approx(WEEK, TOW, "RTCM 1042")
+    assert wc.resolve(TOW) == WEEK and wc.disagreements == 0
+
+
+# --- end to end ------------------------------------------------------------------------------
+
+
+def _rtcm_frames(data: bytes) -> list[tuple[int, int]]:
+    out, i = [], 0
+    while i + 6 <= len(data):
+        if data[i] == 0xD3 and not data[i + 1] & 0xFC:
+            n = ((data[i + 1] & 3) << 8 | data[i + 2]) + 6
+            if i + n <= len(data) and calc_crc24q(data[i : i + n]) == 0:
+                out.append((i, n))
+                i += n
+                continue
+        i += 1
+    return out
+
+
+def _add_to_field(out: Path, number: int, start: int, length: int, delta: int) -> int:
+    """Copy of the Hiroshima stream with ``delta`` added to the field at payload bit
+    ``start`` of every message ``number`` (CRC-24Q redone); returns how many."""
+    data = HIROSHIMA.read_bytes()
+    parts, prev, n = [], 0, 0
+    for i, size in _rtcm_frames(data):
+        frame = bytearray(data[i : i + size])
+        if (frame[3] << 4 | frame[4] >> 4) == number:
+            bits = int.from_bytes(frame[3:-3], "big")
+            width = 8 * (size - 6)
+            shift = width - start - length
+            value = ((bits >> shift) + delta) & ((1 << length) - 1)
+            bits = bits & ~(((1 << length) - 1) << shift) | value << shift
+            frame[3:-3] = bits.to_bytes(size - 6, "big")
+            frame[-3:] = calc_crc24q(bytes(frame[:-3])).to_bytes(3, "big")
+            n += 1
+        parts += [data[prev:i], bytes(frame)]
+        prev = i + size
+    out.write_bytes(b"".join(parts) + data[prev:])
+    return n
+
+
+def _fields(path: Path, number: str, name: str) -> list[int]:
+    with path.open("rb") as fh:
+        return [
+            int(getattr(m, name)) for _raw, m in RTCMReader(fh, quitonerror=0)
+            if m is not None and m.identity == number
+        ]  # fmt: skip
+
+
+def _replay(source: Path, out: Path) -> dict[tuple[int, float], dict]:
+    run = subprocess.run(
+        [sys.executable, "-m", "service", "replay", str(source), "--max-speed",
+         "--nmea-out", "/dev/null", "--systems", "C,G,E", "--jsonl-out", str(out)],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    recs = [json.loads(line) for line in out.read_text().splitlines()]
+    return {
+        (r["gpst_week"], r["gpst_tow_s"]): r
+        for r in recs
+        if r["class"] == "FIX" and r.get("x_ecef_m") is not None
+    }
+
+
+def _first_msm_tow_after(numbers: set[str]) -> float:
+    """GPST tow [s] of the first GPS/Galileo MSM epoch at or after the first message of
+    ``numbers`` in the stream (DF004 / DF248: ms of the GPS / Galileo week; GST = GPST)."""
+    seen = False
+    with HIROSHIMA.open("rb") as fh:
+        for _raw, m in RTCMReader(fh, quitonerror=0):
+            if m is None:
+                continue
+            seen = seen or m.identity in numbers
+            if seen and m.identity in ("1077", "1097"):
+                return int(m.DF004 if m.identity == "1077" else m.DF248) / 1000.0
+    raise AssertionError(f"no {numbers} in the stream")
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    fixes = _replay(HIROSHIMA, tmp_path_factory.mktemp("clean") / "clean.jsonl")
+    assert len(fixes) == 54 and {w for w, _t in fixes} == {WEEK}
+    return fixes
+
+
+def test_gps_week_plus_one_in_every_1019_changes_nothing(clean, tmp_path):
+    damaged = tmp_path / "gps_week.rtcm"
+    # 1019: number 12 bits, DF009 6, then DF076 (GPS week mod 1024, 10 bits) at bit 18
+    n = _add_to_field(damaged, 1019, 18, 10, 1)
+    assert n == 22
+    assert set(_fields(damaged, "1019", "DF076")) == {(WEEK + 1) % 1024}
+    fixes = _replay(damaged, tmp_path / "gps_week.jsonl")
+    assert fixes.keys() == clean.keys()
+    run = replay_with_status(damaged, "--systems", "C,G,E", "--nmea-out", "/dev/null")
+    counters = run.final["counters"]
+    assert counters["source_eph_week_disagrees"] == n
+    assert counters.get("source_eph_week_1019", 0) == 0
+
+
+def test_galileo_week_plus_one_in_every_1046_keeps_the_week(clean, tmp_path):
+    damaged = tmp_path / "gal_week.rtcm"
+    # 1046: number 12 bits, DF252 6, then DF289 (GST week, 12 bits) at bit 18
+    n = _add_to_field(damaged, 1046, 18, 12, 1)
+    assert n == 45
+    assert set(_fields(damaged, "1046", "DF289")) == {WEEK - 1024 + 1}
+    fixes = _replay(damaged, tmp_path / "gal_week.jsonl")
+    assert {w for w, _t in fixes} == {WEEK}  # before: 25 fixes stamped 2241
+    assert fixes.keys() <= clean.keys()
+    # the Galileo sets (all damaged) are the only ones before the first 1019/1042: the
+    # epochs before those arrive are the only ones lost
+    first_other = _first_msm_tow_after({"1019", "1042"})
+    lost = clean.keys() - fixes.keys()
+    assert all(t < first_other for _w, t in lost), (sorted(lost), first_other)
+    run = replay_with_status(damaged, "--systems", "C,G,E", "--nmea-out", "/dev/null")
+    counters = run.final["counters"]
+    assert counters["source_eph_week_disagrees"] == n
+    assert counters.get("source_eph_week_1046", 0) == 0
