@@ -61,8 +61,9 @@ Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``measx_E_other_signal``, ``measx_only_sats``, ``measx_uncalibrated``,
 ``measx_offset_rejected``, ``epochs_ubx``, ``epoch_late_message``, ``epoch_no_week``,
 ``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_gps``, ``sfrbx_gal``, ``sfrbx_other_gnss``,
-``sfrbx_no_time``,
-``sfrbx_unmapped``, ``subframes``.
+``sfrbx_no_time``, ``sfrbx_unmapped``, ``subframes``, ``nav_pvt_bad_date`` (a NAV-PVT date
+outside :data:`NAV_PVT_YEARS`), ``nav_pvt_week_disagrees`` (a NAV-PVT week the stream's
+week rule ignored: :class:`~drivers.framing.WeekContext`).
 """
 
 from __future__ import annotations
@@ -170,6 +171,10 @@ FRAMING = UbxFraming(
     max_payload=DEFAULT_MAX_PAYLOAD,
 )
 
+
+NAV_PVT_YEARS = (2010, 2100)
+"""The years a UBX-NAV-PVT date may have (the message came with u-blox 7, 2012): a date
+outside them, flagged valid, is a damaged frame's, and no week is taken from it."""
 
 # Messages the mapper reads; everything else is counted by name and ignored.
 RAWX, MEASX, SFRBX = "RXM-RAWX", "RXM-MEASX", "RXM-SFRBX"
@@ -887,6 +892,9 @@ class UbxMapper:
     def _on_nav_pvt(self, msg: Any) -> None:
         if not (msg.validDate and msg.validTime):
             return
+        if not NAV_PVT_YEARS[0] <= msg.year <= NAV_PVT_YEARS[1]:
+            self.counters["nav_pvt_bad_date"] += 1  # (a damaged frame: not a week to take)
+            return
         try:
             utc = dt.datetime(msg.year, msg.month, msg.day, msg.hour, msg.min, msg.second)
         except ValueError:
@@ -899,7 +907,8 @@ class UbxMapper:
         # other side of a week boundary
         week += round((utc_tow - tow) / WEEK_S)
         self._last_nav_time = (week, tow)
-        self.week.set_approx(week, tow, "UBX NAV-PVT")
+        if not self.week.set_approx(week, tow, "UBX NAV-PVT"):
+            self.counters["nav_pvt_week_disagrees"] += 1
 
     # --- navigation subframes ---------------------------------------------------------------
     def _on_sfrbx(self, msg: Any) -> list[Event]:

@@ -174,3 +174,27 @@ def test_x20p_subframes_get_their_time_but_are_not_b1i():
     events, dec = decode(X20P.read_bytes())
     assert dec.counters["sfrbx_bds"] == dec.counters["sfrbx_unmapped"] == 100
     assert dec.counters["sfrbx_no_time"] == 0 and not events
+
+
+def test_a_nav_pvt_with_a_damaged_year_gives_no_week():
+    """The PolyU F9P capture's first UBX-NAV-PVT with its year field made 1284 and the
+    checksum made again (a frame damaged before its checksum was computed, or garbage that
+    passes it): flagged valid, but no week is taken from it (counted ``nav_pvt_bad_date``);
+    the same frame undamaged gives the capture's week (2333: 2024-09-25)."""
+    from drivers.ubx import fletcher8
+
+    capture = DATA / "hk-polyu-f9p-ubx-2024" / "COM18___9600_240925_072456.ubx"
+    frames = Framer(PROTOCOLS).feed(capture.read_bytes()[:1_000_000])
+    pvt = next(f.raw for f in frames if f.protocol == "ubx" and f.raw[2:4] == b"\x01\x07")
+    body = bytearray(pvt[2:-2])
+    assert int.from_bytes(body[4 + 4 : 4 + 6], "little") == 2024  # year (payload offset 4)
+    body[4 + 4 : 4 + 6] = (1284).to_bytes(2, "little")
+    damaged = bytes(pvt[:2]) + bytes(body) + fletcher8(body)
+    dec = StreamDecoder(gps_week=2300)
+    dec.feed(damaged)
+    assert dec.counters["nav_pvt_bad_date"] == 1
+    assert dec.week.resolve(0.0) == 2300
+    dec = StreamDecoder(gps_week=2300)
+    dec.feed(pvt)
+    assert dec.counters["nav_pvt_bad_date"] == 0
+    assert dec.week.source == "UBX NAV-PVT" and dec.week.resolve(285_000.0) == 2333
