@@ -319,6 +319,8 @@ def _field_problem(eph: Ephemeris) -> EphemerisProblem | None:
                     f"{name} {value:g} beyond what the broadcast can carry (|{name}| <= {bound:g})",
                 )
         for name, value in (("tgd1", eph.tgd1_s), ("tgd2", eph.tgd2_s)):
+            if not math.isfinite(value):  # (SBF's do-not-use, e.g. a GALNav BGD)
+                return EphemerisProblem("group_delay", f"{name} not available")
             if not abs(value) <= bounds.group_delay_s:
                 return EphemerisProblem(
                     "group_delay",

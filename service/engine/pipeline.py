@@ -83,9 +83,6 @@ that all come before the latest epoch's time: the stream's time is taken from th
 otherwise decline every later epoch ``out_of_order`` until the data time passed it: a week
 for a week number off by one."""
 REANCHOR_STEP_MAX_S = 60.0
-MAX_SHIFTS = 256
-"""Relative-integer groups remembered at most (a fix and a system each); beyond, all are
-forgotten (their ranges are then anchored afresh by the next full one)."""
 RECEIVER_FIX_MAX_AGE_S = 1.5
 """A receiver's own fix is carried on the results of epochs at most this far from it [s]
 (at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
@@ -104,8 +101,10 @@ class IntegrityCheck:
     elapsed_s: float
     ok: bool
     clock_change_m: float = 0.0
-    """What the receiver clock of the satellite's system moved from the fix that recovered
-    the range to the fix of the check (taken out before comparing)."""
+    """What was taken out of the full range before comparing: what the receiver clock of
+    the satellite's system moved from the fix that recovered the range to the fix of the
+    check; for a relative integer, the receiver clock then and what the first full range of
+    its fix and system was off by (whole periods and the recovering fix's clock)."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -302,7 +301,7 @@ class _Recovered:
     pr_m: float
     period_s: float
     clock_m: float  # the recovering fix's clock of the satellite's system (NaN: none)
-    whole_m: float = 0.0  # c x the whole period common to its system's ranges (0: absolute)
+    relative: bool = False  # its integer only relative within its fix's system
 
 
 @dataclass
@@ -322,13 +321,15 @@ class Pipeline:
     counters: Counters = field(default_factory=Counters)
     _first: tuple[int, float] | None = None
     _latest: tuple[int, float] | None = None  # GPST of the latest measurement epoch
+    _before_latest: tuple[int, float] | None = None  # GPST of the epoch before the latest
     _behind: list[tuple[int, float]] = field(default_factory=list)  # before _latest, in order
+    _restarted_at: tuple[int, float] | None = None  # GPST of the emulated restart
     _restarted: bool = False
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
     _recovered: dict[str, _Recovered] = field(default_factory=dict)
     _due: dict[str, _Recovered] = field(default_factory=dict)  # full now: to check
-    # relative integers: (week, tow, system) of their fix -> the shift its first full range
-    # gave, c x whole periods, which every other range of that fix and system must share
+    # relative integers: (week, tow, system) of their fix -> what its first full range was
+    # off by (whole periods, the receiver clock), which every other one must share
     _shifts: dict[tuple[int, float, str], float] = field(default_factory=dict)
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
@@ -459,13 +460,14 @@ class Pipeline:
             return EpochResult(epoch, early, since)
         if self._first is None:
             self._first = (epoch.gpst_week, epoch.gpst_tow_s)
-        self._latest = (epoch.gpst_week, epoch.gpst_tow_s)
+        self._before_latest, self._latest = self._latest, (epoch.gpst_week, epoch.gpst_tow_s)
         if (
             self.restart_at_s is not None
             and not self._restarted
             and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) >= self.restart_at_s
         ):
             self._restarted = restarted_now = True
+            self._restarted_at = (epoch.gpst_week, epoch.gpst_tow_s)
             self.restart(epoch, np.random.default_rng(self.sync_seed))
         else:
             restarted_now = False
@@ -529,8 +531,10 @@ class Pipeline:
     def _early_decline(self, epoch: MeasurementEpoch) -> Fix | None:
         """The declined fix of an epoch without a week or not after the latest one, unless
         it is the :data:`REANCHOR_EPOCHS`-th in a row before the latest, each after the one
-        before it, or a receiver restart's (its clock set back): then the stream goes on
-        from this epoch (:meth:`_reanchor`)."""
+        before it and the first not before the epoch before the latest (the latest jumped
+        ahead: epochs sent again, or captures that overlap, come before that one too), or a
+        receiver restart's (its clock set back): then the stream goes on from this epoch
+        (:meth:`_reanchor`)."""
         if not epoch.week_known:
             return declined(epoch, Declined.of(Decline.NO_TIME))
         last = self._latest
@@ -540,7 +544,7 @@ class Pipeline:
                 if step <= -SAME_EPOCH_S:
                     self._hold_behind(epoch)
                     # (a receiver restart may set its clock back: its time is the new one)
-                    if epoch.restarted or len(self._behind) >= REANCHOR_EPOCHS:
+                    if epoch.restarted or self._stray_latest():
                         self._reanchor(epoch, last)
                         return None
                 what = "repeats" if step > -SAME_EPOCH_S else f"is {-step:.3f} s before"
@@ -558,23 +562,47 @@ class Pipeline:
                 self._behind.clear()
         self._behind.append((epoch.gpst_week, epoch.gpst_tow_s))
 
-    def _reanchor(self, epoch: MeasurementEpoch, stray: tuple[int, float]) -> None:
-        """The stream's time from ``epoch`` again: what the epochs since the stray latest
-        time (``stray``) left is dropped as after a receiver restart."""
-        self.counters["time_reanchors"] += 1
-        log.warning(
-            "%d epochs in a row before GPS week %d %.3f s: the stream's time goes on from "
-            "week %d %.3f s (that epoch was tagged ahead)",
-            len(self._behind),
-            stray[0],
-            stray[1],
-            epoch.gpst_week,
-            epoch.gpst_tow_s,
-        )
+    def _stray_latest(self) -> bool:
+        """Whether the epochs held before the latest show that the latest was tagged ahead:
+        :data:`REANCHOR_EPOCHS` of them, the first not before the epoch before the latest
+        (it may repeat that one's time: a stream's messages of one time can come as two
+        epochs around the stray one)."""
+        if len(self._behind) < REANCHOR_EPOCHS:
+            return False
+        before = self._before_latest
+        return before is None or diff_s(*self._behind[0], *before) > -SAME_EPOCH_S
+
+    def _reanchor(self, epoch: MeasurementEpoch, latest: tuple[int, float]) -> None:
+        """The stream's time from ``epoch`` again, which is before ``latest``: what the
+        fixes before left is dropped as after a receiver restart (the checks still due
+        counted ``integrity_unchecked``), and an emulated restart at or after ``latest``
+        is to be made again."""
+        if epoch.restarted:
+            log.warning(
+                "the receiver restarted with its clock %.3f s before the latest epoch's "
+                "(GPS week %d %.3f s): the stream's time goes on from its",
+                -diff_s(epoch.gpst_week, epoch.gpst_tow_s, *latest),
+                latest[0],
+                latest[1],
+            )
+        else:
+            self.counters["time_reanchors"] += 1
+            log.warning(
+                "%d epochs in a row before GPS week %d %.3f s and after the one before it: "
+                "that epoch was tagged ahead; the stream's time goes on from week %d %.3f s",
+                len(self._behind),
+                latest[0],
+                latest[1],
+                epoch.gpst_week,
+                epoch.gpst_tow_s,
+            )
         self._behind.clear()
-        self._latest = None
+        self._latest = self._before_latest = None
         if self._first is not None and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *self._first) < 0:
             self._first = None
+        at = self._restarted_at
+        if at is not None and diff_s(epoch.gpst_week, epoch.gpst_tow_s, *at) < 0:
+            self._restarted, self._restarted_at = False, None
         self._forget_fixes()
 
     def restart(self, epoch: MeasurementEpoch, rng: np.random.Generator) -> None:
@@ -592,6 +620,9 @@ class Pipeline:
         """Forget what the fixes so far leave for the next ones (a restart of the receiver,
         emulated or its own, or of the stream's time): recovered ranges not yet checked,
         the warm start, the held height and the prediction screen's last fix."""
+        unchecked = len(self._recovered) + len(self._due)
+        if unchecked:
+            self.counters["integrity_unchecked"] += unchecked
         self._recovered.clear()
         self._due.clear()
         self._shifts.clear()
@@ -637,25 +668,32 @@ class Pipeline:
         was solved from."""
         if not fix.relative_ambiguity:
             return
-        rows = {
-            p: i
-            for i, p in enumerate(view.prn)
-            if p in fix.relative_ambiguity and math.isfinite(float(view.frac_pr_m[i]))
-        }
-        whole: dict[str, float] = {}  # each system's longest period among its rows
-        for p, i in rows.items():
-            whole[p[:1]] = max(whole.get(p[:1], 0.0), C_M_S * float(view.period_s[i]))
-        for p, i in rows.items():
+        for i, p in enumerate(view.prn):
+            if p not in fix.relative_ambiguity or not math.isfinite(float(view.frac_pr_m[i])):
+                continue
             period_s = float(view.period_s[i])
-            clock = system_clock_m(fix, p)
+            # (its clock: the group's first full range's offset holds it, whatever it is)
             self._recovered[p] = _Recovered(
                 view.gpst_week,
                 view.gpst_tow_s,
                 float(view.frac_pr_m[i]) + fix.relative_ambiguity[p] * C_M_S * period_s,
                 period_s,
-                math.nan if clock is None else clock,
-                whole[p[:1]],
+                0.0,
+                relative=True,
             )
+
+    def _keep_shift(
+        self, key: tuple[int, float, str], shift_m: float, view: MeasurementEpoch
+    ) -> None:
+        """Keep a relative group's offset; those of fixes beyond the check's age go."""
+        old = [
+            k
+            for k in self._shifts
+            if diff_s(view.gpst_week, view.gpst_tow_s, k[0], k[1]) > RECOVERED_MAX_AGE_S
+        ]
+        for k in old:
+            del self._shifts[k]
+        self._shifts[key] = shift_m
 
     def _check_integrity(self, view: MeasurementEpoch, fix: Fix) -> list[IntegrityCheck]:
         """Each recovered range whose satellite is full (its SOW decoded) against the full
@@ -663,7 +701,10 @@ class Pipeline:
         what the receiver clock moved since the recovering fix (``integer_agrees``: a
         clock step of the receiver would otherwise move every range by whole
         milliseconds); within :data:`RECOVERED_MAX_AGE_S` of that fix, else dropped and
-        counted ``integrity_unchecked``."""
+        counted ``integrity_unchecked``. A relative integer (:meth:`_keep_relative`) is
+        compared with the first of its fix and system to be full: that one's offset from
+        its full range (whole periods in doubt, the fix's clock) is every other's too, to
+        within half its period (``integrity_relative_anchors`` counts the first ones)."""
         checks = []
         for prn in list(self._due):
             rec = self._due[prn]
@@ -679,17 +720,13 @@ class Pipeline:
                 continue  # (the next epoch's fix, or its range)
             del self._due[prn]
             change = clock - rec.clock_m if math.isfinite(rec.clock_m) else 0.0
-            if rec.whole_m > 0.0:  # relative integers: the shift of the first full one
+            if rec.relative:  # what the first full one of its fix and system was off by
                 key = (rec.week, rec.tow_s, prn[:1])
                 shift = self._shifts.get(key)
                 if shift is None:
-                    shift = round((full - change - rec.pr_m) / rec.whole_m) * rec.whole_m
-                    if len(self._shifts) >= MAX_SHIFTS:
-                        self._shifts.clear()
-                    self._shifts[key] = shift
+                    self._keep_shift(key, full - change - rec.pr_m, view)
                     self.counters["integrity_relative_anchors"] += 1
-                    if rec.whole_m < 1.5 * C_M_S * rec.period_s:
-                        continue  # (its own period is the whole one: nothing to compare)
+                    continue  # (nothing to compare it with yet)
                 change += shift
             ok = integer_agrees(rec.pr_m, full, rec.period_s, change)
             checks.append(
@@ -699,8 +736,8 @@ class Pipeline:
             if not ok:
                 self.counters["integrity_failures"] += 1
                 log.error(
-                    "integrity: %s recovered %.1f m, SOW gives %.1f m (receiver clock %+.1f m"
-                    " since)",
+                    "integrity: %s recovered %.1f m, SOW gives %.1f m (%+.1f m taken out: the"
+                    " receiver clock since, and for a relative integer its reference's offset)",
                     prn,
                     rec.pr_m,
                     full,

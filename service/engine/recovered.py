@@ -47,8 +47,9 @@ def system_clock_m(fix: Fix, prn: str) -> float | None:
     """The receiver clock [m] of ``fix`` for the system of satellite ``prn``: its entry in
     ``clocks_m`` on a fix of several systems, else ``clock_bias_m`` (a fix of one system:
     that of ``prn`` if it used any of its satellites); None for a declined fix or a system
-    it did not solve."""
-    if not fix.ok:
+    it did not solve, or a coarse-time fix whose integers are relative (its clocks hold
+    whole periods in doubt: no receiver clock to check against)."""
+    if not fix.ok or fix.relative_ambiguity:
         return None
     if fix.clocks_m:
         return fix.clocks_m.get(prn[:1])
