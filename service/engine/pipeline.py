@@ -83,6 +83,8 @@ that all come before the latest epoch's time: the stream's time is taken from th
 otherwise decline every later epoch ``out_of_order`` until the data time passed it: a week
 for a week number off by one."""
 REANCHOR_STEP_MAX_S = 60.0
+"""The largest step [s] between two of the epochs held before the latest for them to count
+as one run (a receiver's epochs, not two stray ones)."""
 RECEIVER_FIX_MAX_AGE_S = 1.5
 """A receiver's own fix is carried on the results of epochs at most this far from it [s]
 (at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
@@ -580,7 +582,7 @@ class Pipeline:
         if epoch.restarted:
             log.warning(
                 "the receiver restarted with its clock %.3f s before the latest epoch's "
-                "(GPS week %d %.3f s): the stream's time goes on from its",
+                "(GPS week %d %.3f s): the stream's time goes on from its restart",
                 -diff_s(epoch.gpst_week, epoch.gpst_tow_s, *latest),
                 latest[0],
                 latest[1],
