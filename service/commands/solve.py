@@ -18,7 +18,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import IO, TYPE_CHECKING, Literal
 
-from service.core.counters import Counters
+from service.core.counters import Counters, skipped_input
 from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
 from service.core.files import open_output
@@ -636,8 +636,7 @@ def main_solve(args: argparse.Namespace) -> int:
     if excluded:
         parts_ex = ", ".join(f"{k} {n}" for k, n in excluded.most_common())
         print(f"  excluded by fault detection: {parts_ex}", file=sys.stderr)
-    skipped = {k: n for k, n in sorted(read_counters.items()) if k.endswith("_skipped") and n}
-    for line in skipped_line(skipped):
+    for line in skipped_line(skipped_input(read_counters)):
         print(line, file=sys.stderr)
     if n_epochs == 0:
         print(f"  {no_epochs_hint('solve')}", file=sys.stderr)

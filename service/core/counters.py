@@ -37,3 +37,29 @@ class Counters(Counter[str]):
 
     def __reduce__(self) -> Any:  # pickle and copy without the lock
         return (type(self), (dict(self),))
+
+
+SKIP_KEYS = frozenset(
+    {
+        "resyncs",
+        "android_bad_time",
+        "android_duplicate_rows",
+        "android_excess_rows",
+        "duplicate_records",
+    }
+)
+SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
+"""Source counter names that count damaged input (see :mod:`drivers.framing`,
+:mod:`drivers.source`, :mod:`drivers.rinex`, :mod:`drivers.gnsslogger`): with the
+``*_skipped`` ones they are the "skipped input" of the summaries of ``replay``, ``run`` and
+``solve`` and of every STATUS record (:func:`skipped_input`)."""
+
+
+def skipped_input(counters: Mapping[str, int | float]) -> dict[str, int]:
+    """The counters of ``counters`` that count damaged input dropped (:data:`SKIP_KEYS`,
+    :data:`SKIP_PREFIXES`, ``*_skipped``), non-zero, by name."""
+    return {
+        k: int(v)
+        for k, v in sorted(counters.items())
+        if v and (k in SKIP_KEYS or k.startswith(SKIP_PREFIXES) or k.endswith("_skipped"))
+    }

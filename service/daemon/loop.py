@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from service.core.counters import skipped_input
 from service.core.errors import BdsfixError
 from service.core.types import (
     Ephemeris,
@@ -79,11 +80,6 @@ writes them there, one epoch a line, when it ends: the source's last read with b
 (``read_at_s`` of a live source read inline, else NaN), solve start, solve end, GGA handed
 to the live NMEA sinks (the outputs' ``gga_out_s``, NaN without them) and publish end. For
 ``bench/bench_latency.py``, which pairs them with its own write and arrival times."""
-SKIP_KEYS = frozenset({"resyncs"})
-SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
-"""Source counter names (see :mod:`drivers.framing`, :mod:`drivers.source`,
-:mod:`drivers.rinex`) that count damaged input; with ``*_skipped`` they make
-:meth:`Runner.skipped` (the summaries of ``replay`` and ``run``, every STATUS record)."""
 
 
 class Outputs(Protocol):
@@ -435,12 +431,9 @@ class Runner:
         return dict(self.source_counters)
 
     def skipped(self) -> dict[str, int]:
-        """Source counters of input that was dropped (bad bytes, frames, RINEX lines/epochs)."""
-        return {
-            k: int(v)
-            for k, v in sorted(self._source_snapshot().items())
-            if v and (k in SKIP_KEYS or k.startswith(SKIP_PREFIXES) or k.endswith("_skipped"))
-        }
+        """Source counters of input that was dropped (bad bytes, frames, RINEX lines/epochs,
+        phone rows: :func:`~service.core.counters.skipped_input`)."""
+        return skipped_input(self._source_snapshot())
 
     def save_store(self, final: bool = False) -> None:
         """Save the ephemeris store if it changed (or the last write failed): prune it, take

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 
@@ -120,11 +122,13 @@ def damaged_runs(tmp_path_factory):
     for name, edit in DAMAGES.items():
         spec = _perth_copy(tmp_path, name, edit)
         solved, replayed = tmp_path / f"{name}.solve.jsonl", tmp_path / f"{name}.replay.jsonl"
-        rc_solve = main(["solve", spec, str(NAV), "--out", str(solved)])
-        args = ["replay", spec, "--nav", str(NAV), "--max-speed", "--systems", "C,G,E"]
-        rc_replay = main([*args, "--jsonl-out", str(replayed), "--nmea-out", os.devnull])
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            rc_solve = main(["solve", spec, str(NAV), "--out", str(solved)])
+            args = ["replay", spec, "--nav", str(NAV), "--max-speed", "--systems", "C,G,E"]
+            rc_replay = main([*args, "--jsonl-out", str(replayed), "--nmea-out", os.devnull])
         fixes = [x for x in replayed.read_text().splitlines() if '"class":"FIX"' in x]
-        runs[name] = (rc_solve, rc_replay, solved.read_text().splitlines(), fixes)
+        runs[name] = (rc_solve, rc_replay, solved.read_text().splitlines(), fixes, err.getvalue())
     return runs
 
 
@@ -140,13 +144,16 @@ def test_damaged_clock_fields_and_repeated_rows_never_crash_nor_change_the_fixes
     exit 0 with strict JSON: the repeated rows give exactly the clean copy's records, the
     mid-file NaN the clean records but those of its one epoch, the copies whose every epoch
     has no time none."""
-    rc_solve, rc_replay, solved, fixes = damaged_runs[name]
-    _, _, clean_solved, clean_fixes = damaged_runs["clean"]
+    rc_solve, rc_replay, solved, fixes, err = damaged_runs[name]
+    _, _, clean_solved, clean_fixes, clean_err = damaged_runs["clean"]
+    assert "skipped input" not in clean_err
     assert (rc_solve, rc_replay) == (0, 0)
     records = [_strict_json(x) for x in solved]
     assert len(clean_solved) == 2 * 150 and len(clean_fixes) == 150  # both solvers
     if name == "every_row_twice":
         assert solved == clean_solved and fixes == clean_fixes
+        # both summaries (solve's, then replay's) say what was dropped
+        assert err.count("skipped input: android_duplicate_rows") == 2
     elif name == "bias_nan_mid":
         times = {r["gpst_tow_s"] for r in map(json.loads, clean_solved)}
         (lost,) = times - {r["gpst_tow_s"] for r in records}
