@@ -28,12 +28,12 @@ from pathlib import Path
 
 import pytest
 from pyrtcm import RTCMReader
-from pyrtcm.rtcmhelpers import calc_crc24q
 from pysbf2 import SBFReader
 
 from drivers.rinex import read_nav
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.timebase import gpst_sow_to_bdt_sow
+from tests.support.captures import edit_rtcm_field
 from tests.support.paths import DATA, ROOT
 from tests.support.replay import replay_with_status
 
@@ -281,50 +281,13 @@ def test_rinex_every_galileo_af0_1e10_is_refused_and_every_epoch_still_fixes(tmp
     assert fixes.keys() == clean.keys()
 
 
-def _rtcm_frames(data: bytes) -> list[tuple[int, int]]:
-    """(offset, length) of the CRC-24Q-valid RTCM3 frames."""
-    out, i = [], 0
-    while i + 6 <= len(data):
-        if data[i] == 0xD3 and not data[i + 1] & 0xFC:
-            n = ((data[i + 1] & 3) << 8 | data[i + 2]) + 6
-            if i + n <= len(data) and calc_crc24q(data[i : i + n]) == 0:
-                out.append((i, n))
-                i += n
-                continue
-        i += 1
-    return out
-
-
-def _set_bits(frame: bytearray, start: int, length: int, value: int) -> None:
-    """Write ``value`` MSB first at payload bit ``start`` of an RTCM3 frame, CRC-24Q redone."""
-    for k in range(length):
-        pos = 24 + start + k
-        bit = (value >> (length - 1 - k)) & 1
-        frame[pos // 8] = (frame[pos // 8] & ~(1 << (7 - pos % 8))) | (bit << (7 - pos % 8))
-    frame[-3:] = calc_crc24q(bytes(frame[:-3])).to_bytes(3, "big")
-
-
-def _damaged_rtcm(out: Path, number: int, start: int, length: int, value: int) -> int:
-    data = HIROSHIMA.read_bytes()
-    parts, prev, n = [], 0, 0
-    for i, size in _rtcm_frames(data):
-        frame = bytearray(data[i : i + size])
-        if (frame[3] << 4 | frame[4] >> 4) == number:
-            _set_bits(frame, start, length, value)
-            n += 1
-        parts += [data[prev:i], bytes(frame)]
-        prev = i + size
-    out.write_bytes(b"".join(parts) + data[prev:])
-    return n
-
-
 def test_rtcm_1019_toc_beyond_the_week_gives_no_set_and_every_epoch_still_fixes(tmp_path):
     clean = _replay(HIROSHIMA, tmp_path / "clean.jsonl")
     assert len(clean) == 54
     damaged = tmp_path / "toc.rtcm"
     # 1019 (RTCM 10403.3 Table 3.5-21): number 12, DF009 6, DF076 10, DF077 4, DF078 2,
     # DF079 14, DF071 8 bits, then DF081 (t_oc, 16 bits x 16 s) at bit 56
-    n = _damaged_rtcm(damaged, 1019, 56, 16, 0xFFFF)
+    n = edit_rtcm_field(HIROSHIMA, damaged, 1019, 56, 16, lambda _: 0xFFFF)
     assert n == 22  # DATA/README.md's GPS ephemerides: 22 x 1019
     with damaged.open("rb") as fh:
         tocs = {

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import pytest
 from pyrtcm import RTCMReader
-from pyrtcm.rtcmhelpers import calc_crc24q
 
 from drivers.framing import WeekContext
+from tests.support.captures import edit_rtcm_field
 from tests.support.paths import DATA, ROOT
 from tests.support.replay import replay_with_status
 
@@ -126,41 +126,6 @@ def test_a_hint_still_gives_way_to_the_stream():
 # --- end to end ------------------------------------------------------------------------------
 
 
-def _rtcm_frames(data: bytes) -> list[tuple[int, int]]:
-    out, i = [], 0
-    while i + 6 <= len(data):
-        if data[i] == 0xD3 and not data[i + 1] & 0xFC:
-            n = ((data[i + 1] & 3) << 8 | data[i + 2]) + 6
-            if i + n <= len(data) and calc_crc24q(data[i : i + n]) == 0:
-                out.append((i, n))
-                i += n
-                continue
-        i += 1
-    return out
-
-
-def _add_to_field(out: Path, number: int, start: int, length: int, delta: int) -> int:
-    """Copy of the Hiroshima stream with ``delta`` added to the field at payload bit
-    ``start`` of every message ``number`` (CRC-24Q redone); returns how many."""
-    data = HIROSHIMA.read_bytes()
-    parts, prev, n = [], 0, 0
-    for i, size in _rtcm_frames(data):
-        frame = bytearray(data[i : i + size])
-        if (frame[3] << 4 | frame[4] >> 4) == number:
-            bits = int.from_bytes(frame[3:-3], "big")
-            width = 8 * (size - 6)
-            shift = width - start - length
-            value = ((bits >> shift) + delta) & ((1 << length) - 1)
-            bits = bits & ~(((1 << length) - 1) << shift) | value << shift
-            frame[3:-3] = bits.to_bytes(size - 6, "big")
-            frame[-3:] = calc_crc24q(bytes(frame[:-3])).to_bytes(3, "big")
-            n += 1
-        parts += [data[prev:i], bytes(frame)]
-        prev = i + size
-    out.write_bytes(b"".join(parts) + data[prev:])
-    return n
-
-
 def _fields(path: Path, number: str, name: str) -> list[int]:
     with path.open("rb") as fh:
         return [
@@ -208,7 +173,7 @@ def clean(tmp_path_factory):
 def test_gps_week_plus_one_in_every_1019_changes_nothing(clean, tmp_path):
     damaged = tmp_path / "gps_week.rtcm"
     # 1019: number 12 bits, DF009 6, then DF076 (GPS week mod 1024, 10 bits) at bit 18
-    n = _add_to_field(damaged, 1019, 18, 10, 1)
+    n = edit_rtcm_field(HIROSHIMA, damaged, 1019, 18, 10, lambda week: week + 1)
     assert n == 22
     assert set(_fields(damaged, "1019", "DF076")) == {(WEEK + 1) % 1024}
     fixes = _replay(damaged, tmp_path / "gps_week.jsonl")
@@ -222,7 +187,7 @@ def test_gps_week_plus_one_in_every_1019_changes_nothing(clean, tmp_path):
 def test_galileo_week_plus_one_in_every_1046_keeps_the_week(clean, tmp_path):
     damaged = tmp_path / "gal_week.rtcm"
     # 1046: number 12 bits, DF252 6, then DF289 (GST week, 12 bits) at bit 18
-    n = _add_to_field(damaged, 1046, 18, 12, 1)
+    n = edit_rtcm_field(HIROSHIMA, damaged, 1046, 18, 12, lambda week: week + 1)
     assert n == 45
     assert set(_fields(damaged, "1046", "DF289")) == {WEEK - 1024 + 1}
     fixes = _replay(damaged, tmp_path / "gal_week.jsonl")

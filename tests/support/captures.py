@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
+from pyrtcm.rtcmhelpers import calc_crc24q
+
+from drivers.framing import Framer
+from drivers.protocols import PROTOCOLS
+from drivers.rtcm import message_number
 from drivers.ubx import fletcher8
 
 
@@ -13,3 +19,32 @@ def ubx_poll_capture(path: Path) -> Path:
     body = b"\x01\x07\x00\x00"
     path.write_bytes(b"\xb5\x62" + body + fletcher8(body))
     return path
+
+
+def edit_rtcm_field(
+    src: Path, out: Path, number: int, start: int, length: int, new: Callable[[int], int]
+) -> int:
+    """Write to ``out`` a copy of the RTCM3 capture ``src`` whose every message ``number``
+    has the field of ``length`` bits at payload bit ``start`` set to ``new(old)`` (modulo
+    2**length), its CRC-24Q made again by pyrtcm (a damage the frame's check cannot see);
+    every other byte as it was. Returns how many messages were changed."""
+    data = src.read_bytes()
+    framer = Framer(PROTOCOLS)
+    frames = [f for f in framer.feed(data) + framer.flush() if f.protocol == "rtcm"]
+    parts, prev, n = [], 0, 0
+    mask = (1 << length) - 1
+    for f in frames:
+        frame = bytearray(f.raw)
+        if message_number(f.raw) == number:
+            size = len(frame)
+            bits = int.from_bytes(frame[3:-3], "big")
+            shift = 8 * (size - 6) - start - length
+            value = new((bits >> shift) & mask) & mask
+            bits = bits & ~(mask << shift) | value << shift
+            frame[3:-3] = bits.to_bytes(size - 6, "big")
+            frame[-3:] = calc_crc24q(bytes(frame[:-3])).to_bytes(3, "big")
+            n += 1
+        parts += [data[prev : f.offset], bytes(frame)]
+        prev = f.offset + len(f.raw)
+    out.write_bytes(b"".join(parts) + data[prev:])
+    return n
