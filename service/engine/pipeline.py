@@ -56,6 +56,7 @@ from service.engine.layout import BDS_ONLY
 from service.engine.recovered import (
     RECOVERED_MAX_AGE_S,
     integer_agrees,
+    integer_ranges,
     recovered_ranges,
     system_clock_m,
 )
@@ -668,20 +669,13 @@ class Pipeline:
         ranges are, relative to the first of their fix and system that is full
         (:meth:`_check_integrity`). ``view``: the epoch with the fractional ranges the fix
         was solved from."""
-        if not fix.relative_ambiguity:
-            return
-        for i, p in enumerate(view.prn):
-            if p not in fix.relative_ambiguity or not math.isfinite(float(view.frac_pr_m[i])):
+        for p, pr_m in integer_ranges(view, fix.relative_ambiguity).items():
+            if not math.isfinite(pr_m):
                 continue
-            period_s = float(view.period_s[i])
+            period_s = float(view.period_s[view.prn.index(p)])
             # (its clock: the group's first full range's offset holds it, whatever it is)
             self._recovered[p] = _Recovered(
-                view.gpst_week,
-                view.gpst_tow_s,
-                float(view.frac_pr_m[i]) + fix.relative_ambiguity[p] * C_M_S * period_s,
-                period_s,
-                0.0,
-                relative=True,
+                view.gpst_week, view.gpst_tow_s, pr_m, period_s, 0.0, relative=True
             )
 
     def _keep_shift(

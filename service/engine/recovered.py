@@ -6,6 +6,7 @@ batch command imports the pipeline only for a file that needs the coarse-time fi
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 from service.core.constants import C_M_S
 from service.core.types import Fix, MeasurementEpoch
@@ -23,8 +24,17 @@ def recovered_ranges(view: MeasurementEpoch, fix: Fix) -> dict[str, float]:
     GEOs' full rows), and for the other systems' fractional rows, whose integers the solver
     gives only in ``ambiguity`` (paper eq. 11 with the BeiDou clock), fraction + N c T."""
     out = dict(fix.recovered_pr_m)
-    for prn, n in fix.ambiguity.items():
-        if prn not in out and prn in view.prn:
+    for prn, pr_m in integer_ranges(view, fix.ambiguity).items():
+        out.setdefault(prn, pr_m)
+    return out
+
+
+def integer_ranges(view: MeasurementEpoch, integers: Mapping[str, int]) -> dict[str, float]:
+    """The ranges that ``integers`` (units of each row's period) make of the fractional
+    ranges of ``view``'s rows, fraction + N c T (paper eq. 11), for those it has."""
+    out = {}
+    for prn, n in integers.items():
+        if prn in view.prn:
             i = view.prn.index(prn)
             out[prn] = float(view.frac_pr_m[i] + n * C_M_S * view.period_s[i])
     return out
