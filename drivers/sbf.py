@@ -6,10 +6,9 @@ Reference: Septentrio "mosaic-X5 Reference Guide" (firmware 4.x), section "SBF O
 BDSIon (4120), BDSRaw (4047), PVTGeodetic (4007) and, for GPS and Galileo, GPSNav (5891),
 GPSIon (5893), GALNav (4002), GALIon (4030) and GALGstGps (4032). Nav, iono, raw and PVT
 blocks are parsed by pysbf2 (which applies the scale factors); MeasEpoch, which arrives every
-epoch and
-whose signed type-2 offsets (CodeOffsetMSB, DopplerOffsetMSB) pysbf2 1.0.7 reads unsigned,
-is unpacked here with :mod:`struct` (the tests compare the two on every row of the real
-capture, pysbf2's code offset sign-corrected).
+epoch and whose signed type-2 offsets (CodeOffsetMSB, DopplerOffsetMSB) pysbf2 1.0.7 reads
+unsigned, is unpacked here with :mod:`struct` (the tests compare the two on every row of the
+real capture, pysbf2's code offset sign-corrected).
 
 - Frame: ``$@``, CRC u16, ID u16 (bits 0-12 block number, 13-15 revision), Length u16 (the
   whole block, a multiple of 4), body. The CRC is CRC-16-CCITT (polynomial 0x1021, initial
