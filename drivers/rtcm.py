@@ -377,10 +377,14 @@ class RtcmMapper:
             return self._on_msm(msg, self._msm[number][1], self._msm[number][0])
         out: list[Event] = []
         if number in EPH_WEEKS:
+            toe = _toe_in_week(msg, EPH_WEEKS[number])
+            if toe is None:  # counted once per message: it gives neither a week nor a set
+                self.counters["eph_bad_toe"] += 1
+                return out
             if not self.week.exact:
-                self._on_eph_week(msg, number)
+                self._on_eph_week(msg, number, toe)
             if number in self._eph:
-                out = self._on_other_eph(msg, number)
+                out = self._on_other_eph(msg, number, toe)
         return out
 
     def flush(self) -> list[Event]:
@@ -432,9 +436,10 @@ class RtcmMapper:
         self.counters["ephemerides_rtcm"] += 1
         return [eph]
 
-    def _on_other_eph(self, msg: Any, number: int) -> list[Event]:
+    def _on_other_eph(self, msg: Any, number: int, toe: float) -> list[Event]:
         """A GPS 1019 or Galileo I/NAV 1046 as an :class:`Ephemeris` put on BDT (GPST and
-        GST - 14 s, week - 1356, as every set is held; the week from the broadcast one)."""
+        GST - 14 s, week - 1356, as every set is held; the week from the broadcast one);
+        ``toe``: its t_oe [s], checked to be a time of the week (:func:`_toe_in_week`)."""
         system = EPH_OF_SYSTEM[number]
         spec = EPH_WEEKS[number]
         if system is GnssSystem.GPS:
@@ -444,10 +449,6 @@ class RtcmMapper:
         n = int(getattr(msg, number_df))
         if not 1 <= n <= SYSTEM_CONSTANTS[system].prn_max:
             self.counters["eph_bad_prn"] += 1
-            return []
-        toe = _toe_in_week(msg, spec)
-        if toe is None:
-            self.counters["eph_bad_toe"] += 1
             return []
         week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
         values: dict[str, Any] = {
@@ -486,12 +487,8 @@ class RtcmMapper:
             )
         ]
 
-    def _on_eph_week(self, msg: Any, number: int) -> None:
+    def _on_eph_week(self, msg: Any, number: int, toe: float) -> None:
         spec = EPH_WEEKS[number]
-        toe = _toe_in_week(msg, spec)
-        if toe is None:
-            self.counters["eph_bad_toe"] += 1
-            return
         week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
         if self.week.set_approx(week, toe, f"RTCM {number} ({spec.system} ephemeris)"):
             self.counters[f"eph_week_{number}"] += 1

@@ -31,6 +31,7 @@ from pyrtcm import RTCMReader
 from pysbf2 import SBFReader
 
 from drivers.rinex import read_nav
+from drivers.source import open_source
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.timebase import gpst_sow_to_bdt_sow
 from tests.support.captures import edit_rtcm_field
@@ -299,8 +300,43 @@ def test_rtcm_1019_toc_beyond_the_week_gives_no_set_and_every_epoch_still_fixes(
     assert fixes.keys() == clean.keys()
     run = replay_with_status(damaged, "--systems", "C,G,E", "--nmea-out", "/dev/null")
     counters = run.final["counters"]
-    # counted where the week is looked for and where the set would be made (driver counters
-    # are published with the source_ prefix)
-    assert counters["source_eph_bad_toe"] == 2 * n
+    # once per message, though it is looked at for the week and for the set (driver counters
+    # are published with the source_ prefix; before: 2 * n)
+    assert counters["source_eph_bad_toe"] == n
     assert counters.get("source_ephemerides_rtcm_G", 0) == 0
     assert counters.get("source_eph_week_1019", 0) == 0
+
+
+@pytest.mark.parametrize("systems", ["C", "C,G,E"])
+def test_rtcm_one_1019_toe_beyond_the_week_is_counted_once(tmp_path, systems):
+    """One 1019 with t_oe = 0xFFFF x 16 s: ``eph_bad_toe`` 1 (before: 2 when GPS is asked
+    for, the message read for the stream's week and again for the set), that set alone
+    missing, and no week from it."""
+    damaged = tmp_path / "toe.rtcm"
+    changed: list[int] = []
+
+    def first_only(old: int) -> int:
+        changed.append(old)
+        return 0xFFFF if len(changed) == 1 else old
+
+    # 1019 (RTCM 10403.3 Table 3.5-21): DF081 (t_oc) 16 bits at 56, DF082 8, DF083 16,
+    # DF084 22, DF085 10, DF086 16, DF087 16, DF088 32, DF089 16, DF090 32, DF091 16,
+    # DF092 32, then DF093 (t_oe, 16 bits x 16 s) at bit 288
+    assert edit_rtcm_field(HIROSHIMA, damaged, 1019, 288, 16, first_only) == 22
+    with damaged.open("rb") as fh:
+        toes = [
+            float(m.DF093) for _raw, m in RTCMReader(fh, quitonerror=0)
+            if m is not None and m.identity == "1019"
+        ]  # fmt: skip
+    assert toes[0] == 0xFFFF * 16.0 and all(0 <= t < 604_800 for t in toes[1:])
+    counts = {}
+    for path in (HIROSHIMA, damaged):
+        src = open_source(str(path), systems=frozenset(systems.split(",")))
+        for _event in src:
+            pass
+        counts[path] = src.counters
+    clean, hurt = counts[HIROSHIMA], counts[damaged]
+    assert clean["eph_bad_toe"] == 0 and hurt["eph_bad_toe"] == 1
+    assert hurt["eph_week_1019"] == clean["eph_week_1019"] - 1 == 21
+    if "G" in systems:
+        assert hurt["ephemerides_rtcm_G"] == clean["ephemerides_rtcm_G"] - 1 == 21
