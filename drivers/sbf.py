@@ -50,7 +50,10 @@ Counter keys: ``sbf:<Name>`` per block, ``sbf_ignored``, ``epochs_sbf``, ``sbf_b
 ``meas_E_other_signal``, ``ephemerides_sbf_G``, ``ephemerides_sbf_E``, ``galnav_fnav``,
 ``galnav_no_e1b_health`` (a GALNav block whose E1-B health is flagged not available:
 refused), ``eph_bad_week``, ``eph_week_disagrees`` (a BDSNav week more than a day from the
-stream's: not taken, see :class:`~drivers.framing.WeekContext`), ``iono_sbf_G``,
+stream's: not taken, see :class:`~drivers.framing.WeekContext`), ``eph_bad_toe`` (a
+BDSNav, GPSNav or GALNav whose t_oe or t_oc is no time of the week, as RTCM's: no week is
+taken from it, a GPSNav/GALNav gives no set, a BDSNav is passed on for the ephemeris store
+to refuse), ``iono_sbf_G``,
 ``sbf_gal_ion_unused``, ``ggto_sbf``,
 ``gpsraw_crc_failed``, ``gpsraw_unmapped``, ``galraw_other_signal``, ``galraw_crc_failed``,
 ``galraw_unmapped``.
@@ -378,6 +381,15 @@ def _kepler(msg: Any) -> dict[str, Any]:
     return out
 
 
+def _times_in_week(msg: Any) -> bool:
+    """Whether a BDSNav, GPSNav or GALNav block's t_oe and t_oc (u4 seconds: up to
+    4,294,967,295, the do-not-use value) are times of the week, [0, 604800) s (BDS ICD B1I
+    5.2.4.9, IS-GPS-200 20.3.4.5, Galileo OS SIS ICD 5.1.2: at most 604,784 s / 604,740 s).
+    A GPS or Galileo set put on BDT would otherwise be wrapped into a later week, its time
+    made of the damage."""
+    return 0.0 <= float(msg.t_oe) < WEEK_S and 0.0 <= float(msg.t_oc) < WEEK_S
+
+
 def ephemeris_from_gpsnav(msg: Any, prn: int, wnc: int) -> Ephemeris:
     """A pysbf2 GPSNav block (IS-GPS-200 subframes 1-3 as the receiver decoded them) as an
     :class:`Ephemeris` on BDT (GPST - 14 s, as every set is held). WNt_oe is the week
@@ -584,10 +596,12 @@ class SbfMapper:
             self.counters["eph_bad_prn"] += 1
             return []
         eph = ephemeris_from_bdsnav(msg, prn)
-        if 0.0 <= eph.toe_sow_s < WEEK_S:
+        if _times_in_week(msg):
             gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
             if not self.week.set_approx(gps_week, gps_tow, "SBF BDSNav"):
                 self.counters["eph_week_disagrees"] += 1
+        else:  # as RTCM 1042: no week from it, passed on for the store to refuse
+            self.counters["eph_bad_toe"] += 1
         self.counters["ephemerides_sbf"] += 1
         return [eph]
 
@@ -671,6 +685,9 @@ class SbfMapper:
             if prn is None or prn > SYSTEM_CONSTANTS[GnssSystem.GPS].prn_max:
                 self.counters["eph_bad_prn"] += 1
                 return []
+            if not _times_in_week(msg):  # as RTCM 1019: no set (wrapped, it would be damage)
+                self.counters["eph_bad_toe"] += 1
+                return []
             eph = ephemeris_from_gpsnav(msg, prn, wnc)
         else:
             if int(msg.Source) != GAL_SOURCE_INAV:  # F/NAV: the E5a clock; E1 uses I/NAV's
@@ -682,6 +699,9 @@ class SbfMapper:
                 return []
             if abs(int(msg.WNt_oe) - wnc) > 1:
                 self.counters["eph_bad_week"] += 1
+                return []
+            if not _times_in_week(msg):  # as RTCM 1046: no set
+                self.counters["eph_bad_toe"] += 1
                 return []
             if not int(getattr(msg, "L1-BHealth")):  # E1-B health unknown: not for an E1 user
                 self.counters["galnav_no_e1b_health"] += 1

@@ -33,6 +33,7 @@ from service.core.types import (
     TimeOffset,
 )
 from service.engine.solver import IonoSet, SolverConfig, solve
+from tests.support.captures import edit_sbf_field
 from tests.support.paths import DATA
 
 LOG = DATA / "leuven-septentrio-sbf-2025" / "log_0000.sbf"
@@ -246,3 +247,64 @@ def test_a_galnav_block_without_e1b_health_is_refused():
     unknown = _Unknown()
     assert mapper._on_other_nav(GAL_NAV, unknown, wnc) == []
     assert mapper.counters["galnav_no_e1b_health"] == 1
+
+
+# byte offsets of t_oe (u4 s) in the blocks (SBF reference guide: GPSNav and BDSNav carry the
+# same layout up to t_oe; GALNav's Keplerian floats come first), checked by pysbf2 below
+TOE_AT = {"GPSNav": (5891, 88), "GALNav": (GAL_NAV, 100), "BDSNav": (4081, 88)}
+LETTER = {"GPSNav": "G", "GALNav": "E", "BDSNav": "C"}
+WEEK_S = 604_800  # IS-GPS-200 20.3.3.4.3: t_oe at most 604,784 s
+
+
+@pytest.mark.parametrize(
+    ("block", "damage"),
+    [
+        # the do-not-use value
+        pytest.param("GPSNav", lambda toe: 0xFFFFFFFF, id="gpsnav-ffffffff"),
+        # the same time a week on: no time of week
+        pytest.param("GPSNav", lambda toe: toe + WEEK_S, id="gpsnav-plus-a-week"),
+        pytest.param("GALNav", lambda toe: 0xFFFFFFFF, id="galnav-ffffffff"),
+        pytest.param("BDSNav", lambda toe: 0xFFFFFFFF, id="bdsnav-ffffffff"),
+    ],
+)
+def test_a_nav_block_whose_toe_is_no_time_of_the_week_is_counted_and_never_wrapped(
+    tmp_path, block, damage
+):
+    """The first ``block`` with its t_oe outside [0, 604800) s (CRC made again): counted
+    ``eph_bad_toe`` 1 (before: nothing), as RTCM 1019/1046/1042 are; a GPSNav/GALNav gives no
+    set (before: its time wrapped, week 2360 + 7101 or + 1, the set held as another week's),
+    a BDSNav is passed on as read and the store refuses it (check ``time_of_week``)."""
+    number, offset = TOE_AT[block]
+    hit: list[int] = []
+
+    def first_only(toe: float) -> float:
+        hit.append(int(toe))
+        return damage(toe) if len(hit) == 1 else toe
+
+    damaged = tmp_path / "toe.sbf"
+    assert edit_sbf_field(LOG, damaged, number, offset, "<I", first_only) == 1
+    with open(damaged, "rb") as fh:
+        toes = [float(m.t_oe) for _, m in SBFReader(fh) if m.identity == block]
+    assert toes[0] == damage(hit[0]) and toes[1:] == hit[1:]
+    assert all(0 <= t < WEEK_S for t in hit)
+
+    with open_source(str(damaged), systems=frozenset("CGE")) as src:
+        events = list(src)
+        counters = dict(src.counters)
+    clean_events, clean = _events("CGE")
+    assert clean.get("eph_bad_toe", 0) == 0 and counters["eph_bad_toe"] == 1
+    letter = LETTER[block]
+    mine = [e for e in _of(events, Ephemeris) if e.prn[0] == letter]
+    ref = [e for e in _of(clean_events, Ephemeris) if e.prn[0] == letter]
+    # every set put on BDT lies within a week of the recording's (WNc 2360, DATA/README.md)
+    assert all(abs(e.week + 1356 - 2360) <= 1 for e in mine)
+    if block == "BDSNav":
+        assert len(mine) == len(ref) == 20  # DATA/README.md: BDSNav x20
+        bad = [e for e in mine if e.toe_sow_s == 0xFFFFFFFF]
+        assert len(bad) == 1
+        store = EphemerisStore()
+        assert not store.add(bad[0])
+        assert ephemeris_problem(bad[0]).check == "time_of_week"
+    else:
+        assert len(mine) == len(ref) - 1
+        assert counters[f"ephemerides_sbf_{letter}"] == clean[f"ephemerides_sbf_{letter}"] - 1

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import binascii
+import struct
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,4 +49,40 @@ def edit_rtcm_field(
         parts += [data[prev : f.offset], bytes(frame)]
         prev = f.offset + len(f.raw)
     out.write_bytes(b"".join(parts) + data[prev:])
+    return n
+
+
+def edit_sbf_field(
+    src: Path,
+    out: Path,
+    number: int,
+    offset: int,
+    fmt: str,
+    new: Callable[[float], float],
+    only: Callable[[bytes], bool] | None = None,
+) -> int:
+    """Write to ``out`` a copy of the SBF capture ``src`` whose blocks ``number`` (ID bits
+    0-12; those ``only(block)`` accepts, if given) have the field packed as ``fmt`` (struct,
+    little-endian) at byte ``offset`` of the block set to ``new(old)``, the block's CRC
+    (CRC-16-CCITT over ID, Length and body) made again: a damage the check cannot see; every
+    other byte as it was. Blocks found by the project's Framer. Returns how many blocks were
+    changed (``new(old) != old``)."""
+    data = bytearray(src.read_bytes())
+    framer = Framer(PROTOCOLS)
+    n = 0
+    for f in framer.feed(bytes(data)) + framer.flush():
+        i = f.offset
+        if f.protocol != "sbf" or struct.unpack_from("<H", data, i + 4)[0] & 0x1FFF != number:
+            continue
+        if only is not None and not only(f.raw):
+            continue
+        old = struct.unpack_from(fmt, data, i + offset)[0]
+        value = new(old)
+        if value == old:
+            continue
+        struct.pack_into(fmt, data, i + offset, value)
+        end = i + len(f.raw)
+        struct.pack_into("<H", data, i + 2, binascii.crc_hqx(bytes(data[i + 4 : end]), 0))
+        n += 1
+    out.write_bytes(bytes(data))
     return n
