@@ -323,7 +323,10 @@ class WeekContext:
     week replaces a hint more than a week away, that is logged (a wrong system clock or
     ``--gps-week``).
 
-    Once the stream has given a week, a stream report more than DISAGREE_S from the reference
+    Once the receiver's own time is known, a stream report is only compared with it: one more
+    than DISAGREE_S away is counted in :attr:`disagreements` and logged as below, and
+    :meth:`set_approx` returns False. Once the stream has given a week, a stream report more
+    than DISAGREE_S from the reference
     (one damaged ephemeris message: a week field off by one moves every later epoch a week) is
     ignored: :meth:`set_approx` returns False, :attr:`disagreements` counts it, and it is
     logged (rate-limited, per source). The stream's new time is taken only when reports say
@@ -375,7 +378,14 @@ class WeekContext:
 
     def set_approx(self, gps_week: int, tow_s: float, source: str = "stream") -> bool:
         """A week the stream gives (``source`` names its kind of message); False when it is
-        ignored for disagreeing with the stream's week (see the class)."""
+        ignored for disagreeing with the stream's week (see the class), or with the
+        receiver's own time once that is known (never taken then: only compared, so that a
+        damaged ephemeris week is counted whichever time the stream keeps)."""
+        ref = self._ref
+        if self._rank == self.EXACT and ref is not None and ref[1] is not None:
+            if self._near((gps_week, tow_s), ref):
+                return True
+            return self._ignored(gps_week, tow_s, source, ref[0], ref[1])
         if self._rank == self.STREAM and not self._agrees(gps_week, tow_s, source):
             return False
         self._set(self.STREAM, gps_week, tow_s, source)
@@ -416,6 +426,13 @@ class WeekContext:
             )
             self._run = None
             return True
+        return self._ignored(gps_week, tow_s, source, ref_week, ref_tow)
+
+    def _ignored(
+        self, gps_week: int, tow_s: float, source: str, ref_week: int, ref_tow: float
+    ) -> bool:
+        """A report that disagrees with the reference (``ref_week``, ``ref_tow``): counted,
+        logged (rate-limited per ``source``); False."""
         self.disagreements += 1
         self._log.warning(
             source,

@@ -37,8 +37,10 @@ Counter keys: ``rtcm:<number>`` per message, ``rtcm_ignored``, ``msm_bds``,
 ``ephemerides_rtcm``, ``msm_<system>``, ``msm_cells_<system>`` and
 ``ephemerides_rtcm_<system>`` (GPS ``G``, Galileo ``E``), ``eph_bad_prn``,
 ``eph_week_<number>`` (a week taken from a non-BDS
-ephemeris), ``eph_week_disagrees`` (an ephemeris whose week and t_oe are more than a day
-from the stream's: ignored for the week, see :class:`~drivers.framing.WeekContext`),
+ephemeris), ``eph_week_disagrees`` (a 1019, 1042, 1044, 1045 or 1046 whose week and t_oe are
+more than a day from the stream's time, or from the receiver's own in a stream that carries
+it: ignored for the week, see :class:`~drivers.framing.WeekContext`; the set, if one is
+made, is still passed on),
 ``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that message, a
 1019/1046 gives no set, and a 1042 is passed on for the ephemeris store to refuse).
 """
@@ -377,14 +379,17 @@ class RtcmMapper:
             return self._on_msm(msg, self._msm[number][1], self._msm[number][0])
         out: list[Event] = []
         if number in EPH_WEEKS:
-            toe = _toe_in_week(msg, EPH_WEEKS[number])
+            spec = EPH_WEEKS[number]
+            toe = _toe_in_week(msg, spec)
             if toe is None:  # counted once per message: it gives neither a week nor a set
                 self.counters["eph_bad_toe"] += 1
                 return out
-            if not self.week.exact:
-                self._on_eph_week(msg, number, toe)
+            week = self.week.broadcast_week(
+                int(getattr(msg, spec.week_df)), spec.modulus, spec.offset
+            )
+            self._on_eph_week(number, week, toe)
             if number in self._eph:
-                out = self._on_other_eph(msg, number, toe)
+                out = self._on_other_eph(msg, number, week, toe)
         return out
 
     def flush(self) -> list[Event]:
@@ -436,10 +441,11 @@ class RtcmMapper:
         self.counters["ephemerides_rtcm"] += 1
         return [eph]
 
-    def _on_other_eph(self, msg: Any, number: int, toe: float) -> list[Event]:
+    def _on_other_eph(self, msg: Any, number: int, week: int, toe: float) -> list[Event]:
         """A GPS 1019 or Galileo I/NAV 1046 as an :class:`Ephemeris` put on BDT (GPST and
-        GST - 14 s, week - 1356, as every set is held; the week from the broadcast one);
-        ``toe``: its t_oe [s], checked to be a time of the week (:func:`_toe_in_week`)."""
+        GST - 14 s, week - 1356, as every set is held); ``week``: its GPS week, from the
+        broadcast one; ``toe``: its t_oe [s], checked to be a time of the week
+        (:func:`_toe_in_week`)."""
         system = EPH_OF_SYSTEM[number]
         spec = EPH_WEEKS[number]
         if system is GnssSystem.GPS:
@@ -450,7 +456,6 @@ class RtcmMapper:
         if not 1 <= n <= SYSTEM_CONSTANTS[system].prn_max:
             self.counters["eph_bad_prn"] += 1
             return []
-        week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
         values: dict[str, Any] = {
             name: float(getattr(msg, df)) * (ICD_PI if semi else 1.0) for name, df, semi in fields
         }
@@ -487,13 +492,18 @@ class RtcmMapper:
             )
         ]
 
-    def _on_eph_week(self, msg: Any, number: int, toe: float) -> None:
-        spec = EPH_WEEKS[number]
-        week = self.week.broadcast_week(int(getattr(msg, spec.week_df)), spec.modulus, spec.offset)
-        if self.week.set_approx(week, toe, f"RTCM {number} ({spec.system} ephemeris)"):
-            self.counters[f"eph_week_{number}"] += 1
-        else:
+    def _on_eph_week(self, number: int, week: int, toe: float) -> None:
+        """The GPS ``week`` and t_oe [s] of a non-BDS ephemeris message for the stream's
+        week (``eph_week_<number>`` when taken); one more than a day from the stream's time
+        (or the receiver's own, which it never replaces) is counted ``eph_week_disagrees``,
+        as a 1042's is."""
+        exact = self.week.exact
+        if not self.week.set_approx(
+            week, toe, f"RTCM {number} ({EPH_WEEKS[number].system} ephemeris)"
+        ):
             self.counters["eph_week_disagrees"] += 1
+        elif not exact:
+            self.counters[f"eph_week_{number}"] += 1
 
     # --- MSM ------------------------------------------------------------------------------
     def _on_msm(self, msg: Any, level: int, system: GnssSystem = MSM_SYSTEM) -> list[Event]:

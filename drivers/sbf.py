@@ -49,8 +49,10 @@ Counter keys: ``sbf:<Name>`` per block, ``sbf_ignored``, ``epochs_sbf``, ``sbf_b
 ``sbf_pvt_no_fix``; with GPS/Galileo: ``meas_G``, ``meas_E``, ``meas_G_other_signal``,
 ``meas_E_other_signal``, ``ephemerides_sbf_G``, ``ephemerides_sbf_E``, ``galnav_fnav``,
 ``galnav_no_e1b_health`` (a GALNav block whose E1-B health is flagged not available:
-refused), ``eph_bad_week``, ``eph_week_disagrees`` (a BDSNav week more than a day from the
-stream's: not taken, see :class:`~drivers.framing.WeekContext`), ``eph_bad_toe`` (a
+refused), ``eph_bad_week``, ``eph_week_disagrees`` (a BDSNav, GPSNav or GALNav week and
+t_oe more than a day from the stream's time, the receiver's own once a MeasEpoch has given
+it: not taken, the set passed on, as RTCM's; see :class:`~drivers.framing.WeekContext`),
+``eph_bad_toe`` (a
 BDSNav, GPSNav or GALNav whose t_oe or t_oc is no time of the week, as RTCM's: no week is
 taken from it, a GPSNav/GALNav gives no set, a BDSNav is passed on for the ephemeris store
 to refuse), ``iono_sbf_G``,
@@ -707,6 +709,11 @@ class SbfMapper:
                 self.counters["galnav_no_e1b_health"] += 1
                 return []
             eph = ephemeris_from_galnav(msg, prn, wnc)
+        # as BDSNav and RTCM 1019/1046: a week more than a day from the stream's (or the
+        # receiver's own) time is counted; the set is passed on all the same
+        gps_week, gps_tow = bdt_to_gpst(eph.week, eph.toe_sow_s)
+        if not self.week.set_approx(gps_week, gps_tow, f"SBF {block_name(number)}"):
+            self.counters["eph_week_disagrees"] += 1
         self.counters[f"ephemerides_sbf_{eph.prn[0]}"] += 1
         return [eph]
 

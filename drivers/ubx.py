@@ -63,7 +63,8 @@ Counter keys: ``ubx:<NAME>`` per message, ``ubx_ignored``, ``ubx_poll``,
 ``ubx_bad_time``, ``sfrbx_bds``, ``sfrbx_gps``, ``sfrbx_gal``, ``sfrbx_other_gnss``,
 ``sfrbx_no_time``, ``sfrbx_unmapped``, ``subframes``, ``nav_pvt_bad_date`` (a NAV-PVT date
 outside :data:`NAV_PVT_YEARS`), ``nav_pvt_week_disagrees`` (a NAV-PVT week the stream's
-week rule ignored: :class:`~drivers.framing.WeekContext`).
+week rule ignored, or more than a day from the receiver's own time of RXM-RAWX /
+NAV-TIMEGPS: :class:`~drivers.framing.WeekContext`).
 """
 
 from __future__ import annotations

@@ -21,9 +21,11 @@ from pathlib import Path
 
 import pytest
 from pyrtcm import RTCMReader
+from pysbf2 import SBFReader
 
 from drivers.framing import WeekContext
-from tests.support.captures import edit_rtcm_field
+from drivers.source import open_source
+from tests.support.captures import edit_rtcm_field, edit_sbf_field
 from tests.support.paths import DATA, ROOT
 from tests.support.replay import replay_with_status
 
@@ -123,6 +125,19 @@ def test_a_hint_still_gives_way_to_the_stream():
     assert wc.resolve(TOW) == WEEK and wc.disagreements == 0
 
 
+def test_the_receivers_own_time_is_compared_never_replaced(caplog):
+    """Once a receiver time tag has set the week (UBX RAWX, SBF MeasEpoch), an ephemeris
+    report a week off is counted and logged as one against the stream's week is (before:
+    True, never counted), and the receiver's time stays."""
+    wc = WeekContext()
+    wc.set_exact(WEEK, TOW)
+    with caplog.at_level(logging.WARNING, logger="drivers.framing"):
+        assert wc.set_approx(WEEK, TOW + 3_600.0, "RTCM 1019")  # t_oe an hour ahead
+        assert not wc.set_approx(WEEK + 1, TOW, "RTCM 1042")
+    assert wc.disagreements == 1 and wc.exact and wc.resolve(TOW) == WEEK
+    assert any("RTCM 1042" in r.getMessage() for r in caplog.records)
+
+
 # --- end to end ------------------------------------------------------------------------------
 
 
@@ -202,3 +217,74 @@ def test_galileo_week_plus_one_in_every_1046_keeps_the_week(clean, tmp_path):
     counters = run.final["counters"]
     assert counters["source_eph_week_disagrees"] == n
     assert counters.get("source_eph_week_1046", 0) == 0
+
+
+F9R = DATA / "ublox-logs/ublox-zed-f9r.log"
+LEUVEN_SBF = DATA / "leuven-septentrio-sbf-2025/log_0000.sbf"
+
+
+def _driver_counters(path: Path) -> dict[str, int]:
+    with open_source(str(path), systems=frozenset("CGE")) as src:
+        for _event in src:
+            pass
+        return dict(src.counters)
+
+
+@pytest.mark.parametrize(
+    ("number", "start", "length", "dfield", "made"),
+    [
+        # RTCM 10403.3: after the number (12 bits) and the satellite ID (6 bits) comes the
+        # week: 1042 DF489 (BDT, 13 bits), 1019 DF076 (mod 1024), 1046 DF289 (GST, 12 bits)
+        (1042, 18, 13, "DF489", "ephemerides_rtcm"),
+        (1019, 18, 10, "DF076", "ephemerides_rtcm_G"),
+        (1046, 18, 12, "DF289", "ephemerides_rtcm_E"),
+    ],
+)
+def test_rtcm_week_plus_one_beside_the_receivers_own_time_is_counted(
+    tmp_path, number, start, length, dfield, made
+):
+    """The u-blox F9R capture carries the receiver's time (the week is exact: no
+    ``eph_week_<number>`` is taken) and RTCM ephemerides: each of them a week late is counted
+    ``eph_week_disagrees`` (before: 0 on this path, the week never compared), the sets still
+    passed on as on the RTCM-only path."""
+    damaged = tmp_path / "week.log"
+    n = edit_rtcm_field(F9R, damaged, number, start, length, lambda week: week + 1)
+    assert n == {1042: 19, 1019: 19, 1046: 15}[number]  # DATA/README.md: 1042 x 19
+    before, after = _fields(F9R, str(number), dfield), _fields(damaged, str(number), dfield)
+    assert [a - b for a, b in zip(after, before, strict=True)] == [1] * n
+    clean, hurt = _driver_counters(F9R), _driver_counters(damaged)
+    assert not any(k.startswith("eph_week") for k in clean)  # the receiver's own week
+    assert hurt["eph_week_disagrees"] == n
+    assert hurt[made] == clean[made]
+
+
+@pytest.mark.parametrize(
+    ("block", "number", "offset", "made"),
+    [
+        # WNt_oe (u2) byte offsets, checked by pysbf2 below: GPSNav (mod 1024) and BDSNav
+        # after WNt_oc at 136, GALNav (GPS weeks) before WNt_oc at 126
+        ("GPSNav", 5891, 138, "ephemerides_sbf_G"),
+        ("GALNav", 4002, 124, "ephemerides_sbf_E"),
+        ("BDSNav", 4081, 138, "ephemerides_sbf"),
+    ],
+)
+def test_sbf_nav_week_plus_one_is_counted(tmp_path, block, number, offset, made):
+    """Every GPSNav, GALNav or BDSNav of the Leuven SBF with WNt_oe + 1 (CRC made again):
+    each is counted ``eph_week_disagrees`` (before: 0 for all three, the MeasEpoch week being
+    the receiver's own; GPSNav's and GALNav's never even compared), as RTCM's are."""
+    damaged = tmp_path / "week.sbf"
+    n = edit_sbf_field(LEUVEN_SBF, damaged, number, offset, "<H", lambda week: week + 1)
+    assert n == {"GPSNav": 18, "GALNav": 16, "BDSNav": 20}[block]  # DATA/README.md
+
+    def weeks(path: Path) -> list[int]:
+        with path.open("rb") as fh:
+            return [
+                int(m.WNt_oe) for _raw, m in SBFReader(fh, quitonerror=0)
+                if m is not None and m.identity == block
+            ]  # fmt: skip
+
+    assert [a - b for a, b in zip(weeks(damaged), weeks(LEUVEN_SBF), strict=True)] == [1] * n
+    clean, hurt = _driver_counters(LEUVEN_SBF), _driver_counters(damaged)
+    assert clean.get("eph_week_disagrees", 0) == 0
+    assert hurt["eph_week_disagrees"] == n
+    assert hurt[made] == clean[made]
