@@ -616,7 +616,7 @@ def main_solve(args: argparse.Namespace) -> int:
             )
             n_fixes = ran - counts[f"{solver}:none"]
             parts.append(f"{solver} solver {n_fixes} fixes ({modes or 'none'})")
-    print(f"bdsfix solve: {n_epochs} epochs; " + "; ".join(parts), file=sys.stderr)
+    print("; ".join([f"bdsfix solve: {n_epochs} epochs", *parts]), file=sys.stderr)
     if engine["integrity_checks"]:
         print(
             f"  fast solver integrity checks {engine['integrity_checks']} (recovered "

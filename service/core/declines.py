@@ -261,7 +261,10 @@ NO_EPOCHS: dict[str, str] = {
     "RXM-RAWX/MEASX or RTCM3 MSM 1124-1127); 'bdsfix configure' sets a u-blox receiver up",
     "run_never_opened": "the source never opened ({failures} attempts, see the WARNING "
     "lines): is the receiver plugged in, or the server listening?",
-    "solve": "no measurement epoch in the obs file: it needs BDS pseudoranges (C2I or C1I)",
+    # an epoch record without a BDS pseudorange is still an epoch (solve declines it): none
+    # at all means the file has no epoch after its header
+    "solve": "no measurement epoch in the obs file: a RINEX 3 obs file needs epoch records "
+    "after its header, a GnssLogger log Raw rows",
 }
 """What a command says when it saw no measurement epoch at all (no decline then: no epoch
 was solved), in that command's own flags; ``run_never_opened``: ``run``'s source never

@@ -13,6 +13,7 @@ import sys
 import numpy as np
 import pytest
 
+from service.core.declines import NO_EPOCHS
 from tests.support.paths import DATA, ROOT
 
 GPS_NAV = str(DATA / "hk-polyu-f9p-ubx-2024" / "hksc269h.24n")  # RINEX 3, GPS only
@@ -125,6 +126,59 @@ def test_a_file_with_nothing_to_read_is_an_input_error(tmp_path, command, kind):
     assert len(lines) == 1, out.stderr
     expected = "decompress it first" if kind == "gzip" else "expected a capture of UBX"
     assert expected in lines[0]
+
+
+PERTH = DATA / "android-perth-s8-2017"
+
+
+def _header_only(path):
+    """The HKSC RINEX 3.04 obs file up to END OF HEADER: every header record (C2I among its
+    BDS observation types), no epoch."""
+    text = (DATA / "hksc-2021" / "hksc1610.obs").read_text()
+    path.write_text(text[: text.index("END OF HEADER")] + "END OF HEADER\n")
+    return path
+
+
+def _without_raw_rows(path):
+    """The Perth GnssLogger log without its Raw rows (its header comments stay)."""
+    lines = (PERTH / "SensorLog20171005.txt").read_text().splitlines(keepends=True)
+    path.write_text("".join(ln for ln in lines if not ln.startswith("Raw,")))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("make", "nav"),
+    [
+        (_header_only, HKSC_NAV),
+        (_without_raw_rows, str(PERTH / "PERT00AUS_R_20172780000_01D_MN.rnx")),
+    ],
+    ids=["rinex-header-only", "gnsslogger-without-raw"],
+)
+@pytest.mark.parametrize("command", ["solve", "replay"])
+def test_a_readable_file_without_epochs_ends_with_the_no_epoch_hint(tmp_path, make, nav, command):
+    """A file bdsfix reads that holds no measurement epoch (a RINEX obs file with a complete
+    header and no epoch record, a GnssLogger log without Raw rows) is not an input error:
+    exit 0, no output, and the summary's "0 epochs" with the command's no-epoch hint, as for
+    an SBF capture with an empty MeasEpoch (tests/golden/leuven-sbf-all-blocks.summary).
+    Only a file with nothing bdsfix reads at all is exit 3 (above). The solve hint says what
+    is missing (before: "it needs BDS pseudoranges (C2I or C1I)", though the header-only
+    file's header lists C2I)."""
+    path = make(tmp_path / "input")
+    args = [command, str(path), nav] if command == "solve" else [command, str(path)]
+    if command == "replay":
+        args += ["--nav", nav, "--max-speed"]
+    out = _bdsfix(*args)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout == ""
+    assert "error:" not in out.stderr and "Traceback" not in out.stderr
+    lines = out.stderr.splitlines()
+    summary = next(ln for ln in lines if ln.startswith(f"bdsfix {command}: 0 epochs"))
+    assert summary in (f"bdsfix {command}: 0 epochs", f"bdsfix {command}: 0 epochs; fixes fast"
+                       " 0, spp 0, none 0; integrity checks 0, failures 0")  # fmt: skip
+    assert f"  {NO_EPOCHS[command]}" in lines
+    if command == "solve":  # what the file lacks, not a signal its header lists
+        assert "C2I" in path.read_text() or "Raw," in path.read_text()
+        assert "needs epoch records after its header, a GnssLogger log Raw rows" in out.stderr
 
 
 # matplotlib made unimportable (a None entry in sys.modules makes `import matplotlib` raise
