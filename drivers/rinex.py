@@ -84,6 +84,7 @@ from service.core.timebase import (
     bdt_to_gpst,
     gpst_from_utc,
     gpst_to_bdt,
+    toe_gpst_to_bdt,
 )
 from service.core.types import Ephemeris, KlobucharParams, MeasurementEpoch, TimeOffset
 
@@ -930,8 +931,10 @@ def _nav_ephemeris(prn: str, rec: list[str], path: Path, lineno: int) -> tuple[E
         e5a, e5b = kwargs.pop("bgd_e5a_s"), kwargs.pop("bgd_e5b_s")
         kwargs["tgd1_s"], kwargs["tgd2_s"] = (e5b, e5a) if inav else (e5a, e5b)
         rank = int(inav)
-    if system != GnssSystem.BDS and math.isfinite(kwargs["toe_sow_s"]):
-        kwargs["week"], kwargs["toe_sow_s"] = gpst_to_bdt(int(kwargs["week"]), kwargs["toe_sow_s"])
+    if system != GnssSystem.BDS:  # (a t_oe outside the week stays as read: the store refuses it)
+        kwargs["week"], kwargs["toe_sow_s"] = toe_gpst_to_bdt(
+            int(kwargs["week"]), kwargs["toe_sow_s"]
+        )
     eph = Ephemeris(prn=prn, toc_sow_s=float(toc_sow), source="rinex", **kwargs)  # type: ignore[arg-type]
     return eph, rank
 

@@ -31,7 +31,7 @@ from service.core.timebase import (
     BDT_GPST_OFFSET_S,
     GST_GPS_WEEK_OFFSET,
     gpst_sow_to_bdt_sow,
-    gpst_to_bdt,
+    toe_gpst_to_bdt,
 )
 from service.core.types import Ephemeris, NavSubframe, TimeOffset
 
@@ -240,7 +240,7 @@ def ephemeris_from_words(prn: str, words: dict[int, int], gpst_week: int) -> Eph
     toe = float(nav.toe)
     # t_oe is within half a week of the transmission
     week = week_tx + (1 if toe - tow_tx < -WEEK_S / 2 else -1 if toe - tow_tx > WEEK_S / 2 else 0)
-    bdt_week, toe_bdt = gpst_to_bdt(week, toe)
+    bdt_week, toe_bdt = toe_gpst_to_bdt(week, toe)  # (beyond the week: as read, refused)
     sc = ICD_PI
     return Ephemeris(
         prn=prn,

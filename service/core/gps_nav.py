@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 from service.core.constants import ICD_PI, URA_M, WEEK_S
 from service.core.errors import DecodeError
-from service.core.timebase import BDT_GPST_OFFSET_S, gpst_sow_to_bdt_sow, gpst_to_bdt
+from service.core.timebase import BDT_GPST_OFFSET_S, gpst_sow_to_bdt_sow, toe_gpst_to_bdt
 from service.core.types import Ephemeris, KlobucharParams, NavSubframe
 
 log = logging.getLogger(__name__)
@@ -200,7 +200,7 @@ def ephemeris_from_subframes(prn: str, sf1: int, sf2: int, sf3: int, ref_week: i
     toc = _get(sf1, 176, 16) * 16.0
     # t_oe is within half a week of the transmission (20.3.4.5)
     week = week_tx + (1 if toe - tow_tx < -WEEK_S / 2 else -1 if toe - tow_tx > WEEK_S / 2 else 0)
-    bdt_week, toe_bdt = gpst_to_bdt(week, toe)
+    bdt_week, toe_bdt = toe_gpst_to_bdt(week, toe)  # (beyond the week: as read, refused)
     return Ephemeris(
         prn=prn,
         week=bdt_week,

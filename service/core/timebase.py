@@ -86,6 +86,19 @@ def gpst_sow_to_bdt_sow(sow_s: float) -> float:
     return (sow_s - BDT_GPST_OFFSET_S) % WEEK_S
 
 
+def toe_gpst_to_bdt(week: int, toe_s: float) -> tuple[int, float]:
+    """A GPS or Galileo set's (week, t_oe) on GPST as its (week, t_oe) on BDT (as every set
+    is held): :func:`gpst_to_bdt` when t_oe is a time of the week; a t_oe outside
+    [0, 604800) s (a damaged field: GPS LNAV's 16 bits x 16 s reach 1,048,560 s, IS-GPS-200
+    20.3.3.4.3 Table 20-III; Galileo's 14 bits x 60 s, 983,040 s; a RINEX record any number)
+    is kept as it is, on the BDT week count, not wrapped into a later week, so that the
+    ephemeris store refuses the set (check ``time_of_week``) as :func:`gpst_sow_to_bdt_sow`
+    does for its t_oc."""
+    if not 0.0 <= toe_s < WEEK_S:
+        return week - BDT_GPS_WEEK_OFFSET, toe_s
+    return gpst_to_bdt(week, toe_s)
+
+
 def bdt_to_gpst(week: int, sow_s: float) -> tuple[int, float]:
     """BDT (week, sow) to GPST (week, tow)."""
     return normalize(week + BDT_GPS_WEEK_OFFSET, sow_s + BDT_GPST_OFFSET_S)
