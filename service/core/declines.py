@@ -172,9 +172,11 @@ DECLINES: dict[Decline, DeclineText] = {
         "ambiguous integers",
         {
             "": "coarse-time fix: {passing} integer candidates pass, {rivals} rivals within "
-            "the uniqueness margin"
+            "the uniqueness margin",
+            "exclusion": "fault exclusion: {passing} candidates pass with different integers "
+            "({prn}: {n_taken} or {n_other} periods)",
         },
-        "more than one integer set fits: the coarse-time fix declines rather than guess",
+        "more than one integer set fits: the fix declines rather than guess",
     ),
 }
 """The one table of decline words: label, reason templates and hint per code."""

@@ -124,6 +124,35 @@ def no_exclusion(fix: Fix, max_exclusions: int) -> Fix:
     return replace(fix, decline=why)
 
 
+def ambiguous_exclusion(fix: Fix, passing: int, clash: tuple[str, int, int]) -> Fix:
+    """``fix`` (a failed test's decline) declined because ``passing`` candidates of fault
+    exclusion pass with different integers: ``clash`` is a satellite and its integer in the
+    best-fitting candidate and in another (:func:`integer_clash`)."""
+    prn, n_taken, n_other = clash
+    why = Declined.of(
+        Decline.AMBIGUOUS,
+        "exclusion",
+        passing=passing,
+        prn=prn,
+        n_taken=n_taken,
+        n_other=n_other,
+    )
+    return replace(fix, decline=why)
+
+
+def integer_clash(
+    taken: Mapping[str, int], others: Sequence[Mapping[str, int]]
+) -> tuple[str, int, int] | None:
+    """The first satellite (in PRN order) whose integer (paper eq. 11: whole periods of a
+    fractional range) differs between ``taken`` and one of ``others``, with both integers;
+    None when every satellite the candidates share has one integer."""
+    for other in others:
+        for prn in sorted(taken.keys() & other.keys()):
+            if taken[prn] != other[prn]:
+                return prn, taken[prn], other[prn]
+    return None
+
+
 def fit_ratio(chi2: float | None, chi2_max: float | None) -> float:
     """chi2 / threshold of a candidate solution of fault exclusion (inf: no test): the
     smallest ranks first."""
@@ -193,6 +222,10 @@ def exclude(
     the best-fitting failed candidate is the start of the next stage. An exclusion must
     leave a testable solution (redundancy >= 1 after it), so it needs redundancy >= 2
     before. Why a satellite went is its w-test in the failed solution (:meth:`Failed.why`).
+    A fast fix's candidates each resolve the integers again: when two candidates of a stage
+    pass with different integers for a satellite both use, at least one of them passed
+    with a wrong integer and nothing tells which, so the solution is declined
+    (:func:`ambiguous_exclusion`) rather than the best-fitting one published.
 
     Returns the fixes of the solutions an exclusion resolved (``excluded`` says which
     satellites went and why) and the keys with none (their fix is :func:`no_exclusion` of
@@ -214,6 +247,7 @@ def exclude(
             break  # every solution left has redundancy < 2: hopeless (below)
         results = solve(cands)
         passed: dict[Key, tuple[float, Fix, int]] = {}
+        passing_ints: dict[Key, list[dict[str, int]]] = {}  # each passing candidate's
         failing: dict[Key, tuple[float, Failed, int, State]] = {}
         unsure: set[Key] = set()
         for (key, k), (res, after) in zip(owner, results, strict=True):
@@ -221,6 +255,7 @@ def exclude(
                 unsure.add(key)
             elif isinstance(res, Fix):
                 if res.ok:
+                    passing_ints.setdefault(key, []).append(res.ambiguity)
                     ratio = fit_ratio(res.chi2, res.chi2_max)
                     if key not in passed or _better(ratio, passed[key][0]):
                         passed[key] = (ratio, res, k)
@@ -236,7 +271,11 @@ def exclude(
                 hopeless.add(key)
             elif key in passed:
                 _, fix, k = passed[key]
-                out[key] = replace(fix, excluded=removed | {f.kept[k]: f.why(k)})
+                clash = integer_clash(fix.ambiguity, passing_ints[key])
+                if clash is not None:
+                    out[key] = ambiguous_exclusion(f.fix, len(passing_ints[key]), clash)
+                else:
+                    out[key] = replace(fix, excluded=removed | {f.kept[k]: f.why(k)})
             elif key in failing:
                 _, f2, k, after = failing[key]
                 nxt[key] = (f2, after, removed | {f.kept[k]: f.why(k)})
