@@ -23,19 +23,21 @@ def test_solve_of_the_perth_log_gives_the_streams_fixes(tmp_path, capsys):
     of the same log), byte for byte bar the stream's ``since_start_s``: all 445 epochs
     fixed, the first 12 by the coarse-time fix (every range fractional, the phone's time
     uncertain by 5.97 s: the prior 5 sigma of it, pipeline.wide_time_prior), the same
-    decision in both (pipeline.coarse_time_fix). Its integrity checks are the stream's: the
-    6 recovered ranges whose satellite's full range comes later in the log, none wrong."""
+    decision in both (pipeline.coarse_time_fix). Its integrity checks are the stream's, by
+    the one rule (recovered.RecoveredLedger): the 6 recovered ranges whose satellite's full
+    range comes later in the log and 9 relative integers of the coarse-time fixes (checked
+    against the first full range of their fix and system, 2 such anchors), none wrong."""
     out = tmp_path / "perth.jsonl"
     args = ["solve", str(LOG), str(NAV), "--fractional", "none", "--mode", "fast"]
     assert main([*args, "--format", "jsonl", "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "445 epochs" in err and "fast solver coarse-time fixes 12 " in err
-    assert "fast solver integrity checks 6 " in err and "failures 0" in err
+    assert "fast solver integrity checks 15 " in err and "failures 0" in err
     batch = out.read_text().splitlines()
     replayed = tmp_path / "replay.jsonl"
     args = ["replay", str(LOG), "--nav", str(NAV), "--max-speed", "--jsonl-out", str(replayed)]
     assert main(args) == 0
-    capsys.readouterr()
+    assert "integrity checks 15, failures 0" in capsys.readouterr().err
     stream = [x for x in replayed.read_text().splitlines() if '"class":"FIX"' in x]
     assert len(batch) == len(stream) == 445
     assert [without_since_start(x) for x in stream] == batch
