@@ -76,7 +76,8 @@ def system_clock_m(fix: Fix, prn: str) -> float | None:
 
 @dataclass(frozen=True, slots=True)
 class IntegrityCheck:
-    """A recovered pseudorange checked against the full one after the SOW arrived."""
+    """A recovered pseudorange checked against the full one after the SOW arrived (in
+    ``bdsfix solve``: the file's full range)."""
 
     prn: str
     gpst_week: int
@@ -113,21 +114,22 @@ class RecoveredLedger:
 
     The rule: a fast fix recovers a fractional range's integer (paper eq. 11, fraction + N
     c T: :func:`recovered_ranges`; a coarse-time fix's relative integers,
-    ``relative_ambiguity``, too: :meth:`keep`). Once the satellite is full (:meth:`due`) the
-    recovered range is checked against its full range (:meth:`check`) at the first epoch
-    with a fix giving the receiver clock of the satellite's system
+    ``relative_ambiguity``, too: :meth:`keep`). Once the satellite is full (:meth:`due`)
+    the recovered range is checked against its full range (:meth:`check`) at the first
+    epoch with a fix giving the receiver clock of the satellite's system
     (:func:`system_clock_m`), what that clock moved since the recovering fix taken out
     (:func:`integer_agrees`: a clock step of the receiver would otherwise move every range
-    by whole milliseconds); at the recovering fix's own epoch nothing moved (no clock
-    needed). A range recovered more than :data:`RECOVERED_MAX_AGE_S` before is dropped
-    and counted ``integrity_unchecked``, and so are those pending when the receiver
-    restarts (:meth:`forget`). A relative integer is compared with the first of its fix
-    and system to be full: that one's offset from its full range (whole periods in doubt,
-    the fix's clock) is every other's too, to within half its period
-    (``integrity_relative_anchors`` counts the first ones). Counted in ``counters``:
-    ``integrity_checks``, ``integrity_failures`` (each failure logged), ``integrity_unchecked``
-    and ``integrity_relative_anchors``. ``full_from``: where the full range came from, for
-    the log."""
+    by whole milliseconds); at the recovering fix's own epoch (``bdsfix solve``'s ranges
+    made fractional, full in the file) nothing moved: no clock needed, but for a relative
+    integer, whose offset holds one. A range recovered more than
+    :data:`RECOVERED_MAX_AGE_S` before is dropped and counted ``integrity_unchecked``, and
+    so are those pending when the receiver restarts (:meth:`forget`). A relative integer
+    is compared with the first of its fix and system to be full: that one's offset from
+    its full range (whole periods in doubt, the fix's clock) is every other's too, to
+    within half its period (``integrity_relative_anchors`` counts the first ones). Counted
+    in ``counters``: ``integrity_checks``, ``integrity_failures`` (each failure logged),
+    ``integrity_unchecked`` and ``integrity_relative_anchors``. ``full_from``: where the
+    full range came from, for the log."""
 
     counters: Counters = field(default_factory=Counters)
     full_from: str = "SOW"
