@@ -14,6 +14,7 @@ import gc
 import itertools
 import logging
 import sys
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import IO, TYPE_CHECKING, Literal
@@ -23,15 +24,9 @@ from service.core.ephemeris import EphemerisStore
 from service.core.errors import InputError
 from service.core.files import open_output
 from service.core.systems import DEFAULT_SYSTEMS
-from service.core.timebase import diff_s
 from service.core.types import Fix, MeasurementEpoch
 from service.engine.aiding import HeightAid, Predictor, SatSide, sat_side, with_screened
-from service.engine.recovered import (
-    RECOVERED_MAX_AGE_S,
-    integer_agrees,
-    recovered_ranges,
-    system_clock_m,
-)
+from service.engine.recovered import RecoveredLedger
 from service.engine.solver import (
     CHUNK_EPOCHS,
     EpochAids,
@@ -120,8 +115,12 @@ def solve_epochs(
     solves them in batches until those inputs settle. The fast solver's epochs with too few
     full ranges get the stream's coarse-time fix (:func:`with_coarse_fixes`), and the ranges
     its fixes recover are checked against the file's full ones (:func:`_checked`), counted
-    in ``counters`` (``integrity_checks``, ``integrity_failures``) when given."""
+    in ``counters`` (``integrity_checks``, ``integrity_failures``, ``integrity_unchecked``,
+    ``integrity_relative_anchors``) when given."""
     counters = Counters() if counters is None else counters
+    read: deque[MeasurementEpoch] = deque()  # as read, until _checked takes them
+    if opts.mode != "spp":
+        epochs = _kept(epochs, read)
     if opts.cfg.height_aiding or opts.cfg.screen_predicted_m > 0.0:
         solved = solve_aided(epochs, store, iono, opts)
     else:
@@ -129,7 +128,16 @@ def solve_epochs(
     if opts.mode == "spp":
         yield from solved
     else:
-        yield from _checked(solved, opts, counters)
+        yield from _checked(solved, read, opts, counters)
+
+
+def _kept(
+    epochs: Iterator[MeasurementEpoch], read: deque[MeasurementEpoch]
+) -> Iterator[MeasurementEpoch]:
+    """``epochs``, each also appended to ``read`` as it is read."""
+    for epoch in epochs:
+        read.append(epoch)
+        yield epoch
 
 
 def _solve_plain(
@@ -162,52 +170,33 @@ def _solve_plain(
 
 
 def _checked(
-    solved: Iterator[tuple[MeasurementEpoch, list[Fix]]], opts: BatchOptions, counters: Counters
+    solved: Iterator[tuple[MeasurementEpoch, list[Fix]]],
+    read: deque[MeasurementEpoch],
+    opts: BatchOptions,
+    counters: Counters,
 ) -> Iterator[tuple[MeasurementEpoch, list[Fix]]]:
     """``solved`` as it is, each range a fast fix recovered (paper eq. 11, or the
-    coarse-time fix's integers) checked as the stream checks it once the satellite's SOW
-    decodes (:func:`service.engine.recovered.integer_agrees`): against the file's full range
-    of the satellite, that of the same epoch where the file has it (every non-GEO range
-    with ``--fractional non-geo``), else the next one read (a phone's range fractional in
-    the file). Counted in ``counters`` as ``integrity_checks`` and
-    ``integrity_failures`` (each failure logged)."""
-    # PRN: (recovered range [m], period [s], the recovering fix's clock [m], GPST week, tow)
-    pending: dict[str, tuple[float, float, float | None, int, float]] = {}
-
-    def check(prn: str, rec_m: float, full_m: float, period_s: float, change_m: float) -> None:
-        counters["integrity_checks"] += 1
-        if not integer_agrees(rec_m, full_m, period_s, change_m):
-            counters["integrity_failures"] += 1
-            log.error("integrity: %s recovered %.1f m, the file gives %.1f m", prn, rec_m, full_m)
-
+    coarse-time fix's integers, relative ones too) checked by the stream's rule
+    (:class:`service.engine.recovered.RecoveredLedger`) against the file's full range of
+    the satellite: that of the same epoch where the file has it (every non-GEO range with
+    ``--fractional non-geo``), else a later one (a phone's range fractional in the file),
+    with the clock of any of the epoch's fixes. Counted in ``counters``
+    (``integrity_checks``, ``integrity_failures``, ``integrity_unchecked``,
+    ``integrity_relative_anchors``). ``read``: the epochs as read, in the order solved (a
+    coarse-time fix's relative integers are of the fractional ranges of a receiver time
+    coarser than 1 ms, which the solved epochs have set aside)."""
+    ledger = RecoveredLedger(counters, full_from="the file")
     for epoch, fixes in solved:
+        as_read = read.popleft()
         if epoch.restarted:  # the receiver's clock restarted: nothing recovered before
-            pending.clear()  # it is checked after it (the stream's rule)
-        full = {p: float(pr) for p, pr in zip(epoch.prn, epoch.pr_m, strict=True) if pr == pr}
-        for prn in [p for p in pending if p in full]:
-            # a later epoch's range: the receiver clock's change in between taken out, from
-            # a fix of this epoch (the stream's rule, service.engine.pipeline)
-            rec_m, period_s, then_m, week, tow_s = pending[prn]
-            if diff_s(epoch.gpst_week, epoch.gpst_tow_s, week, tow_s) > RECOVERED_MAX_AGE_S:
-                del pending[prn]
-                counters["integrity_unchecked"] += 1
-                continue
-            now_m = next(
-                (c for c in (system_clock_m(f, prn) for f in fixes) if c is not None), None
-            )
-            if now_m is not None:
-                del pending[prn]
-                check(prn, rec_m, full[prn], period_s, 0.0 if then_m is None else now_m - then_m)
-        fast = fixes[0]
-        if fast.mode == "fast":
-            view = _fast_view(epoch, opts)
-            for prn, rec_m in recovered_ranges(view, fast).items():
-                period_s = float(view.period_s[view.prn.index(prn)])
-                if prn in full:
-                    check(prn, rec_m, full[prn], period_s, 0.0)
-                else:
-                    then_m = system_clock_m(fast, prn)
-                    pending[prn] = (rec_m, period_s, then_m, epoch.gpst_week, epoch.gpst_tow_s)
+            ledger.forget()  # it is checked after it
+        full = [p for p, pr in zip(epoch.prn, epoch.pr_m, strict=True) if pr == pr]
+        ledger.due(full)  # those recovered at an earlier epoch
+        ledger.check(epoch, fixes)
+        if fixes[0].mode == "fast":
+            ledger.keep(_fast_view(epoch, opts), _fast_whole(as_read, opts), fixes[0])
+        ledger.due(full)  # and this epoch's own
+        ledger.check(epoch, fixes)
         yield epoch, fixes
 
 

@@ -4,7 +4,8 @@ Per measurement epoch: the tracker decides which measurements are full, the engi
 from all usable ones (the fast fix, which is SPP when everything is full; with fewer than
 four full ranges the coarse-time fix of :mod:`service.engine.coarse`), and integrity
 bookkeeping compares every recovered pseudorange with the full one that arrives once the
-satellite's SOW decodes. A refused solution is passed on as ``mode="none"`` with its reason,
+satellite's SOW decodes (:class:`service.engine.recovered.RecoveredLedger`, the rule of
+``bdsfix solve`` too). A refused solution is passed on as ``mode="none"`` with its reason,
 never as a position.
 
 Two kinds of epoch are declined before the tracker and the solver see them, so that every
@@ -53,13 +54,7 @@ from service.engine.coarse import (
     sow_time_shift,
 )
 from service.engine.layout import BDS_ONLY
-from service.engine.recovered import (
-    RECOVERED_MAX_AGE_S,
-    integer_agrees,
-    integer_ranges,
-    recovered_ranges,
-    system_clock_m,
-)
+from service.engine.recovered import IntegrityCheck, RecoveredLedger
 from service.engine.solver import (
     IonoSet,
     SolverConfig,
@@ -90,24 +85,6 @@ RECEIVER_FIX_MAX_AGE_S = 1.5
 """A receiver's own fix is carried on the results of epochs at most this far from it [s]
 (at 1 Hz: the fix of the same or the previous second; an SBF PVTGeodetic follows the
 MeasEpoch of its second, so the epoch carries the previous second's)."""
-
-
-@dataclass(frozen=True, slots=True)
-class IntegrityCheck:
-    """A recovered pseudorange checked against the full one after the SOW arrived."""
-
-    prn: str
-    gpst_week: int
-    gpst_tow_s: float
-    recovered_pr_m: float
-    full_pr_m: float
-    elapsed_s: float
-    ok: bool
-    clock_change_m: float = 0.0
-    """What was taken out of the full range before comparing: what the receiver clock of
-    the satellite's system moved from the fix that recovered the range to the fix of the
-    check; for a relative integer, the receiver clock then and what the first full range of
-    its fix and system was off by (whole periods and the recovering fix's clock)."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -297,16 +274,6 @@ def _coarse_fix(
     return paper
 
 
-@dataclass(slots=True)
-class _Recovered:
-    week: int
-    tow_s: float
-    pr_m: float
-    period_s: float
-    clock_m: float  # the recovering fix's clock of the satellite's system (NaN: none)
-    relative: bool = False  # its integer only relative within its fix's system
-
-
 @dataclass
 class Pipeline:
     """Stateful wiring of tracker, ephemeris store and engine (no I/O of its own)."""
@@ -329,11 +296,7 @@ class Pipeline:
     _restarted_at: tuple[int, float] | None = None  # GPST of the emulated restart
     _restarted: bool = False
     _last_fix: tuple[int, float, tuple[float, float, float]] | None = None
-    _recovered: dict[str, _Recovered] = field(default_factory=dict)
-    _due: dict[str, _Recovered] = field(default_factory=dict)  # full now: to check
-    # relative integers: (week, tow, system) of their fix -> what its first full range was
-    # off by (whole periods, the receiver clock), which every other one must share
-    _shifts: dict[tuple[int, float, str], float] = field(default_factory=dict)
+    _ledger: RecoveredLedger = field(init=False)  # the ranges fast fixes recovered
     _assembler: EphemerisAssembler = field(default_factory=EphemerisAssembler)
     _lnav: LnavAssembler = field(default_factory=LnavAssembler)
     _inav: InavAssembler = field(default_factory=InavAssembler)
@@ -344,6 +307,9 @@ class Pipeline:
     ggto: TimeOffset | None = None
     """The latest broadcast GST - GPST offset (:mod:`service.core.gal_nav`): recorded, not
     applied (each system has its own receiver clock, which absorbs it)."""
+
+    def __post_init__(self) -> None:
+        self._ledger = RecoveredLedger(self.counters)
 
     # --- navigation data -----------------------------------------------------------------
     def add_ephemeris(self, eph: Ephemeris) -> None:
@@ -478,9 +444,8 @@ class Pipeline:
             self.counters["receiver_restarts"] += 1
             self._forget_fixes()
         view, events = self.tracker.on_epoch(epoch)
-        for ev in events:  # its recovered range is checked with this epoch's fix, or later
-            if ev.event == "full" and ev.prn in self._recovered:
-                self._due[ev.prn] = self._recovered.pop(ev.prn)
+        # their recovered ranges are checked with this epoch's fix, or later
+        self._ledger.due(ev.prn for ev in events if ev.event == "full")
         whole = view  # with its fractional ranges, for the coarse-time fix
         view, set_aside = without_coarse_fractions(view)
         cfg = self._start_cfg(view)
@@ -505,19 +470,8 @@ class Pipeline:
                 self.counters["height_aided_fixes"] += 1
         if fix.ok and fix.x_ecef_m is not None:
             self._last_fix = (epoch.gpst_week, epoch.gpst_tow_s, fix.x_ecef_m)
-        checks = self._check_integrity(view, fix) if self._due else []
-        if fix.mode == "fast":
-            for prn, pr in recovered_ranges(view, fix).items():
-                i = view.prn.index(prn)
-                clock = system_clock_m(fix, prn)
-                self._recovered[prn] = _Recovered(
-                    epoch.gpst_week,
-                    epoch.gpst_tow_s,
-                    pr,
-                    float(view.period_s[i]),
-                    math.nan if clock is None else clock,
-                )
-            self._keep_relative(whole, fix)
+        checks = self._ledger.check(view, (fix,))
+        self._ledger.keep(view, whole, fix)
         self._emit(events)
         since = self.tracker.since_start_s(epoch.gpst_week, epoch.gpst_tow_s)
         return EpochResult(
@@ -623,12 +577,7 @@ class Pipeline:
         """Forget what the fixes so far leave for the next ones (a restart of the receiver,
         emulated or its own, or of the stream's time): recovered ranges not yet checked,
         the warm start, the held height and the prediction screen's last fix."""
-        unchecked = len(self._recovered) + len(self._due)
-        if unchecked:
-            self.counters["integrity_unchecked"] += unchecked
-        self._recovered.clear()
-        self._due.clear()
-        self._shifts.clear()
+        self._ledger.forget()
         self._last_fix = None
         self._height.reset()
         self._predictor.reset()
@@ -662,84 +611,6 @@ class Pipeline:
                 {f.name: getattr(cfg, f.name) for f in fields(cfg) if f.init},
             )
         return type(held[0])(**{**held[1], "x0_ecef_m": x0_ecef_m})
-
-    def _keep_relative(self, view: MeasurementEpoch, fix: Fix) -> None:
-        """The ranges a coarse-time fix with relative integers makes (``relative_ambiguity``:
-        each system's common whole period in doubt), kept to be checked as the recovered
-        ranges are, relative to the first of their fix and system that is full
-        (:meth:`_check_integrity`). ``view``: the epoch with the fractional ranges the fix
-        was solved from."""
-        for p, pr_m in integer_ranges(view, fix.relative_ambiguity).items():
-            if not math.isfinite(pr_m):
-                continue
-            period_s = float(view.period_s[view.prn.index(p)])
-            # (its clock: the group's first full range's offset holds it, whatever it is)
-            self._recovered[p] = _Recovered(
-                view.gpst_week, view.gpst_tow_s, pr_m, period_s, 0.0, relative=True
-            )
-
-    def _keep_shift(
-        self, key: tuple[int, float, str], shift_m: float, view: MeasurementEpoch
-    ) -> None:
-        """Keep a relative group's offset; those of fixes beyond the check's age go."""
-        old = [
-            k
-            for k in self._shifts
-            if diff_s(view.gpst_week, view.gpst_tow_s, k[0], k[1]) > RECOVERED_MAX_AGE_S
-        ]
-        for k in old:
-            del self._shifts[k]
-        self._shifts[key] = shift_m
-
-    def _check_integrity(self, view: MeasurementEpoch, fix: Fix) -> list[IntegrityCheck]:
-        """Each recovered range whose satellite is full (its SOW decoded) against the full
-        range, at the first epoch with a fix whose clock of the satellite's system says
-        what the receiver clock moved since the recovering fix (``integer_agrees``: a
-        clock step of the receiver would otherwise move every range by whole
-        milliseconds); within :data:`RECOVERED_MAX_AGE_S` of that fix, else dropped and
-        counted ``integrity_unchecked``. A relative integer (:meth:`_keep_relative`) is
-        compared with the first of its fix and system to be full: that one's offset from
-        its full range (whole periods in doubt, the fix's clock) is every other's too, to
-        within half its period (``integrity_relative_anchors`` counts the first ones)."""
-        checks = []
-        for prn in list(self._due):
-            rec = self._due[prn]
-            dt = diff_s(view.gpst_week, view.gpst_tow_s, rec.week, rec.tow_s)
-            if dt > RECOVERED_MAX_AGE_S:
-                del self._due[prn]
-                self.counters["integrity_unchecked"] += 1
-                log.info("integrity: %s recovered %.0f s ago, not checked", prn, dt)
-                continue
-            clock = system_clock_m(fix, prn)
-            full = float(view.pr_m[view.prn.index(prn)]) if prn in view.prn else math.nan
-            if clock is None or not math.isfinite(full):
-                continue  # (the next epoch's fix, or its range)
-            del self._due[prn]
-            change = clock - rec.clock_m if math.isfinite(rec.clock_m) else 0.0
-            if rec.relative:  # what the first full one of its fix and system was off by
-                key = (rec.week, rec.tow_s, prn[:1])
-                shift = self._shifts.get(key)
-                if shift is None:
-                    self._keep_shift(key, full - change - rec.pr_m, view)
-                    self.counters["integrity_relative_anchors"] += 1
-                    continue  # (nothing to compare it with yet)
-                change += shift
-            ok = integer_agrees(rec.pr_m, full, rec.period_s, change)
-            checks.append(
-                IntegrityCheck(prn, view.gpst_week, view.gpst_tow_s, rec.pr_m, full, dt, ok, change)
-            )
-            self.counters["integrity_checks"] += 1
-            if not ok:
-                self.counters["integrity_failures"] += 1
-                log.error(
-                    "integrity: %s recovered %.1f m, SOW gives %.1f m (%+.1f m taken out: the"
-                    " receiver clock since, and for a relative integer its reference's offset)",
-                    prn,
-                    rec.pr_m,
-                    full,
-                    change,
-                )
-        return checks
 
     def _emit(self, events: list[TrackEvent]) -> None:
         if self.on_track is not None:

@@ -23,19 +23,21 @@ def test_solve_of_the_perth_log_gives_the_streams_fixes(tmp_path, capsys):
     of the same log), byte for byte bar the stream's ``since_start_s``: all 445 epochs
     fixed, the first 12 by the coarse-time fix (every range fractional, the phone's time
     uncertain by 5.97 s: the prior 5 sigma of it, pipeline.wide_time_prior), the same
-    decision in both (pipeline.coarse_time_fix). Its integrity checks are the stream's: the
-    6 recovered ranges whose satellite's full range comes later in the log, none wrong."""
+    decision in both (pipeline.coarse_time_fix). Its integrity checks are the stream's, by
+    the one rule (recovered.RecoveredLedger): the 6 recovered ranges whose satellite's full
+    range comes later in the log and 9 relative integers of the coarse-time fixes (checked
+    against the first full range of their fix and system, 2 such anchors), none wrong."""
     out = tmp_path / "perth.jsonl"
     args = ["solve", str(LOG), str(NAV), "--fractional", "none", "--mode", "fast"]
     assert main([*args, "--format", "jsonl", "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "445 epochs" in err and "fast solver coarse-time fixes 12 " in err
-    assert "fast solver integrity checks 6 " in err and "failures 0" in err
+    assert "fast solver integrity checks 15 " in err and "failures 0" in err
     batch = out.read_text().splitlines()
     replayed = tmp_path / "replay.jsonl"
     args = ["replay", str(LOG), "--nav", str(NAV), "--max-speed", "--jsonl-out", str(replayed)]
     assert main(args) == 0
-    capsys.readouterr()
+    assert "integrity checks 15, failures 0" in capsys.readouterr().err
     stream = [x for x in replayed.read_text().splitlines() if '"class":"FIX"' in x]
     assert len(batch) == len(stream) == 445
     assert [without_since_start(x) for x in stream] == batch
@@ -163,3 +165,56 @@ def test_damaged_clock_fields_and_repeated_rows_never_crash_nor_change_the_fixes
         assert len(records) <= 2 and len(fixes) <= 1  # one epoch
     else:
         assert records == [] and fixes == []
+
+
+INTEGRITY = ("integrity_checks", "integrity_failures", "integrity_unchecked")
+
+
+def _integrity(counters) -> dict[str, int]:
+    return {k: int(counters.get(k, 0)) for k in (*INTEGRITY, "integrity_relative_anchors")}
+
+
+@pytest.mark.parametrize(("restart_at", "checks", "unchecked"), [(None, 15, 0), (14, 13, 6)])
+def test_a_receiver_restart_drops_pending_checks_in_solve_as_in_the_stream(
+    tmp_path, restart_at, checks, unchecked
+):
+    """The Perth log, and a copy with HardwareClockDiscontinuityCount 1 from its 15th epoch
+    on (the phone's clock restarted there: drivers.gnsslogger marks the epoch
+    ``restarted``), through ``bdsfix solve``'s check (``--fractional none``) and the
+    stream's Pipeline: by the one rule (recovered.RecoveredLedger) both check the same 15
+    recovered ranges without the restart, and with it both drop the 6 still waiting for
+    their satellite's full range (``integrity_unchecked``), checking 13; none wrong."""
+    from drivers.source import file_epochs
+    from service.commands.solve import BatchOptions, load_navigation, solve_epochs
+    from service.core.counters import Counters
+    from service.core.types import MeasurementEpoch
+    from service.engine.pipeline import Pipeline
+
+    path = LOG
+    if restart_at is not None:
+        lines = LOG.read_text().splitlines(keepends=True)
+        names = next(x for x in lines if x.startswith("# Raw,"))[2:].strip().split(",")
+        k, t = names.index("HardwareClockDiscontinuityCount"), names.index("TimeNanos")
+        times = sorted({int(x.split(",")[t]) for x in lines if x.startswith("Raw,")})
+        out = []
+        for line in lines:
+            f = line.split(",")
+            if line.startswith("Raw,") and int(f[t]) >= times[restart_at]:
+                f[k] = "1"
+            out.append(",".join(f))
+        path = tmp_path / "restarted.txt"
+        path.write_text("".join(out))
+    store, iono = load_navigation([str(NAV)], systems="CGE")
+    events, _ = file_epochs(path, systems=("C", "G", "E"))
+    epochs = [e for e in events if isinstance(e, MeasurementEpoch)]
+    assert [k for k, e in enumerate(epochs) if e.restarted] == (
+        [] if restart_at is None else [restart_at]
+    )
+    batch = Counters()
+    opts = BatchOptions(mode="fast", fractional="none")
+    assert len(list(solve_epochs(iter(epochs), store, iono, opts, batch))) == 445
+    pipe = Pipeline(store, iono)
+    for epoch in epochs:
+        pipe.on_epoch(epoch)
+    assert _integrity(batch) == _integrity(pipe.counters)
+    assert [batch[k] for k in INTEGRITY] == [checks, 0, unchecked]

@@ -4,8 +4,11 @@ on a real RINEX file with no GEO: the u-blox F9P beside the HKSC station."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
+import os
+import re
 import statistics
 from dataclasses import replace
 
@@ -121,3 +124,44 @@ def test_aided_solve_of_coarse_time_fixes_equals_the_stream(capsys):
     assert len(solved) == len(streamed) == 300
     assert all('"method":"coarse_time"' in line for line in streamed)
     assert solved == streamed
+
+
+def test_solve_checks_the_relative_integers_and_fails_a_wrong_one(monkeypatch, capsys, caplog):
+    """The F9P file (no GEO): every fast fix is a coarse-time fix whose integers are relative
+    (each system's whole period in doubt), and ``solve`` checks them as the stream does
+    (recovered.RecoveredLedger): per fix and system the first full range gives the shift,
+    every other range must share it, against the file's full range of the same epoch (3448
+    checks, none wrong). With one GPS integer of the 100th fix one period more (a wrong
+    integer, 1 ms), the same checks are made and that fix's GPS checks fail: its own, or,
+    were it the anchor of the shift, every other GPS satellite's; no other check fails."""
+    import service.commands.solve as solve_mod
+
+    target = next(itertools.islice(RinexObsReader(OBS), 99, None))
+    target_t = (target.gpst_week, target.gpst_tow_s)
+    wrong: list[str] = []
+    coarse_fixes = solve_mod.with_coarse_fixes
+
+    def with_one_wrong(fixes, read, *args, **kwargs):
+        out = coarse_fixes(fixes, read, *args, **kwargs)
+        for k, (fix, epoch) in enumerate(zip(out, read, strict=True)):
+            if (epoch.gpst_week, epoch.gpst_tow_s) == target_t and not wrong:
+                n = fix.relative_ambiguity
+                wrong.append(min(p for p in n if p[0] == "G"))
+                out[k] = replace(fix, relative_ambiguity={**n, wrong[0]: n[wrong[0]] + 1})
+        return out
+
+    def checks() -> tuple[int, int]:
+        assert main(["solve", str(OBS), str(NAV), "--mode", "both", "--out", os.devnull]) == 0
+        line = next(x for x in capsys.readouterr().err.splitlines() if "integrity" in x)
+        found = re.search(r"integrity checks (\d+) .*failures (\d+)", line)
+        assert found, line
+        return int(found[1]), int(found[2])
+
+    assert checks() == (3448, 0)
+    monkeypatch.setattr(solve_mod, "with_coarse_fixes", with_one_wrong)
+    with caplog.at_level("ERROR", logger="service.engine.recovered"):
+        n_checks, n_failed = checks()
+    assert len(wrong) == 1 and n_checks == 3448
+    failed = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert n_failed == len(failed) >= 1
+    assert all(m.startswith("integrity: G") and "the file gives" in m for m in failed)

@@ -1,6 +1,7 @@
 """The check of a fast fix's recovered ranges once each satellite's time of week decodes
-(service.engine.pipeline, ``_check_integrity``), on the TST urban drive's u-blox receiver,
-whose clock steps by whole milliseconds (every range jumps by 300 km or more at once).
+(service.engine.recovered.RecoveredLedger, as the pipeline keeps it), on the TST urban
+drive's u-blox receiver, whose clock steps by whole milliseconds (every range jumps by 300
+km or more at once).
 
 The truth is the file itself: every range the emulated restart made fractional is full in
 the file, so a recovered range must equal the file's own range at the epoch it was recovered,
@@ -113,8 +114,8 @@ def test_relative_integers_of_a_coarse_time_fix_are_checked_too(wrong):
             relative.append(result.fix)
             if wrong and len(relative) == 12:  # one GPS integer one period off
                 gps = [p for p in sorted(result.fix.relative_ambiguity) if p[0] == "G"]
-                prn = min(gps, key=lambda p: pipe._recovered[p].period_s)
-                pipe._recovered[prn].pr_m += C_M_S * pipe._recovered[prn].period_s
+                prn = min(gps, key=lambda p: pipe._ledger.recovered[p].period_s)
+                pipe._ledger.recovered[prn].pr_m += C_M_S * pipe._ledger.recovered[prn].period_s
     assert len(relative) == 12
     assert pipe.counters["integrity_relative_anchors"] >= 2  # GPS and BeiDou
     from_relative = [c for c in checks if c.elapsed_s < 10 and c.gpst_tow_s < 348080]
