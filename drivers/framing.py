@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
+from service.core.constants import WEEK_S
 from service.core.counters import Counters
 from service.core.ratelog import RateLimitedLog
 from service.core.timebase import (
@@ -313,7 +314,8 @@ class WeekContext:
     - ``HINT``: ``--gps-week`` (the constructor) or the system clock of a live stream
       (:meth:`set_hint`);
     - ``STREAM``: a week the stream gives with a time near now: a broadcast ephemeris's week
-      and t_oe (RTCM 1019, 1042, 1044, 1045, 1046), a UBX NAV-PVT date (:meth:`set_approx`);
+      and t_oe (RTCM 1019, 1042, 1044, 1045, 1046; SBF BDSNav, GPSNav, GALNav), a UBX
+      NAV-PVT date (:meth:`set_approx`);
     - ``EXACT``: the receiver's own time tag (UBX RXM-RAWX, NAV-TIMEGPS; :meth:`set_exact`).
 
     A time of week is resolved to the week (of the reference week and its neighbours) that
@@ -343,6 +345,10 @@ class WeekContext:
     ephemeris's t_oe is within hours of its transmission (BDS hourly, ICD B1I 5.2.4.9; GPS
     and Galileo within their 4 h fit), a day leaves room for a stored set."""
     CONFIRM_IN_A_ROW = 3
+    HANDOVER_S = 4 * 3600.0
+    """How near a week boundary a set's t_oe and the stream's time must both be for the set's
+    week, the week of its transmission, to be moved across it (:meth:`toe_week`): a GPS
+    set's fit interval, within which it is broadcast around its t_oe."""
 
     def __init__(
         self,
@@ -480,6 +486,25 @@ class WeekContext:
         if ref is None:
             ref = self.clock_week() or MIN_SANE_GPS_WEEK
         return offset + nearest_week(week_mod, modulus, ref - offset)
+
+    def toe_week(self, week: int, toe_s: float) -> tuple[int, bool]:
+        """The GPS week of a set's t_oe from the week its message gives, which is the week
+        of transmission (GPS subframe 1's WN, IS-GPS-200 20.3.3.3.1.1, which RTCM 1019's
+        DF076 carries; Galileo's WN, OS SIS ICD 5.1.2, in RTCM 1045/1046): a set broadcast in
+        the last :data:`HANDOVER_S` of a week for a t_oe in the first of the next one (or the
+        reverse) belongs to the next (previous) week, since t_oe is within half a week of its
+        transmission (IS-GPS-200 20.3.4.5). Moved only when the stream's time (the reference)
+        is in that week's last (first) hours and t_oe in the other's, so that a week field
+        off by one elsewhere still disagrees; True when moved."""
+        ref = self._ref
+        if ref is None or ref[1] is None or week != ref[0]:
+            return week, False
+        end = WEEK_S - self.HANDOVER_S
+        if toe_s < self.HANDOVER_S and ref[1] >= end:
+            return week + 1, True
+        if toe_s >= end and ref[1] < self.HANDOVER_S:
+            return week - 1, True
+        return week, False
 
     def resolve(self, tow_s: float) -> int | None:
         """GPS week of a GPST time of week, or None when no week is known yet."""

@@ -42,7 +42,10 @@ more than a day from the stream's time, or from the receiver's own in a stream t
 it: ignored for the week, see :class:`~drivers.framing.WeekContext`; the set, if one is
 made, is still passed on),
 ``eph_bad_toe`` (a t_oe or t_oc outside the week: no week is taken from that message, a
-1019/1046 gives no set, and a 1042 is passed on for the ephemeris store to refuse).
+1019/1046 gives no set, and a 1042 is passed on for the ephemeris store to refuse),
+``eph_week_handovers`` (a 1019/1044/1045/1046 broadcast at a week's end for a t_oe in the
+next week, or the reverse, whose week of transmission was moved to its t_oe's:
+:meth:`~drivers.framing.WeekContext.toe_week`).
 """
 
 from __future__ import annotations
@@ -176,8 +179,10 @@ EPH_WEEKS: dict[int, EphWeek] = {
     1045: EphWeek("Galileo F/NAV", "DF289", "DF304", "DF293", 4096, GST_GPS_WEEK_OFFSET),
     1046: EphWeek("Galileo I/NAV", "DF289", "DF304", "DF293", 4096, GST_GPS_WEEK_OFFSET),
 }
-"""Ephemerides of other systems read only for their week, while the stream's week is not
-exact (the 1042 BDS week, 13 bits from BDT week 0, comes with the ephemeris itself)."""
+"""Ephemerides of other systems whose week and t_oe give the stream a week, or are compared
+with it once it has one (:meth:`~drivers.framing.WeekContext.set_approx`); the week they
+carry is that of their transmission (:meth:`~drivers.framing.WeekContext.toe_week`). The
+1042 BDS week, 13 bits from BDT week 0, comes with the ephemeris itself."""
 USED_MESSAGES = frozenset({*BDS_MSM, EPH_BDS, *EPH_WEEKS})
 EPH_OF_SYSTEM = {1019: GnssSystem.GPS, 1046: GnssSystem.GAL}
 """Ephemeris messages mapped to :class:`Ephemeris` when their system is read: GPS 1019 and
@@ -387,6 +392,9 @@ class RtcmMapper:
             week = self.week.broadcast_week(
                 int(getattr(msg, spec.week_df)), spec.modulus, spec.offset
             )
+            week, moved = self.week.toe_week(week, toe)  # (the week of transmission)
+            if moved:
+                self.counters["eph_week_handovers"] += 1
             self._on_eph_week(number, week, toe)
             if number in self._eph:
                 out = self._on_other_eph(msg, number, week, toe)

@@ -173,8 +173,8 @@ DECLINES: dict[Decline, DeclineText] = {
         {
             "": "coarse-time fix: {passing} integer candidates pass, {rivals} rivals within "
             "the uniqueness margin",
-            "exclusion": "fault exclusion: {passing} candidates pass with different integers "
-            "({prn}: {n_taken} or {n_other} periods)",
+            "exclusion": "fault exclusion: {passing} candidates pass, not all with the best "
+            "fit's integers ({prn}: {n_taken} or {n_other} periods)",
         },
         "more than one integer set fits: the fix declines rather than guess",
     ),
@@ -265,7 +265,7 @@ NO_EPOCHS: dict[str, str] = {
     "lines): is the receiver plugged in, or the server listening?",
     # an epoch record without a BDS pseudorange is still an epoch (solve declines it): none
     # at all means the file has no epoch after its header
-    "solve": "no measurement epoch in the obs file: a RINEX 3 obs file needs epoch records "
+    "solve": "no measurement epoch in the file: a RINEX 3 obs file needs epoch records "
     "after its header, a GnssLogger log Raw rows",
 }
 """What a command says when it saw no measurement epoch at all (no decline then: no epoch

@@ -125,9 +125,10 @@ def no_exclusion(fix: Fix, max_exclusions: int) -> Fix:
 
 
 def ambiguous_exclusion(fix: Fix, passing: int, clash: tuple[str, int, int]) -> Fix:
-    """``fix`` (a failed test's decline) declined because ``passing`` candidates of fault
-    exclusion pass with different integers: ``clash`` is a satellite and its integer in the
-    best-fitting candidate and in another (:func:`integer_clash`)."""
+    """``fix`` (a failed test's decline) declined because of the ``passing`` candidates of
+    fault exclusion, one has another integer than the best-fitting one: ``clash`` is the
+    satellite and its integer in the best-fitting candidate and in the other
+    (:func:`integer_clash`)."""
     prn, n_taken, n_other = clash
     why = Declined.of(
         Decline.AMBIGUOUS,
@@ -222,10 +223,10 @@ def exclude(
     the best-fitting failed candidate is the start of the next stage. An exclusion must
     leave a testable solution (redundancy >= 1 after it), so it needs redundancy >= 2
     before. Why a satellite went is its w-test in the failed solution (:meth:`Failed.why`).
-    A fast fix's candidates each resolve the integers again: when two candidates of a stage
-    pass with different integers for a satellite both use, at least one of them passed
-    with a wrong integer and nothing tells which, so the solution is declined
-    (:func:`ambiguous_exclusion`) rather than the best-fitting one published.
+    A fast fix's candidates each resolve the integers again: when a passing candidate of a
+    stage has another integer than the best-fitting one for a satellite both use, one of
+    the two passed with a wrong integer and nothing tells which, so the solution is
+    declined (:func:`ambiguous_exclusion`) rather than the best-fitting one published.
 
     Returns the fixes of the solutions an exclusion resolved (``excluded`` says which
     satellites went and why) and the keys with none (their fix is :func:`no_exclusion` of

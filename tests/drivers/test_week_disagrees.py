@@ -288,3 +288,67 @@ def test_sbf_nav_week_plus_one_is_counted(tmp_path, block, number, offset, made)
     assert clean.get("eph_week_disagrees", 0) == 0
     assert hurt["eph_week_disagrees"] == n
     assert hurt[made] == clean[made]
+
+
+def _1019s_at(tmp_path: Path, toe_s: float) -> list:
+    """The F9R capture's 1019s with t_oe and t_oc (DF093 at payload bit 288, DF081 at bit 56,
+    16 bits of 16 s each: RTCM 10403.3 Table 3.5-21) set to ``toe_s``, CRC made again; as
+    pyrtcm reads them."""
+    at_toc, at_both = tmp_path / "toc.log", tmp_path / "both.log"
+    raw = int(toe_s) // 16
+    assert edit_rtcm_field(F9R, at_toc, 1019, 56, 16, lambda _v: raw) == 19
+    assert edit_rtcm_field(at_toc, at_both, 1019, 288, 16, lambda _v: raw) == 19
+    with at_both.open("rb") as fh:
+        msgs = [m for _raw, m in RTCMReader(fh, quitonerror=0) if m and m.identity == "1019"]
+    assert {(float(m.DF093), float(m.DF081)) for m in msgs} == {(toe_s, toe_s)}
+    return msgs
+
+
+@pytest.mark.parametrize(
+    ("stream_tow_s", "toe_s", "toe_week_step"),
+    [
+        (603_000.0, 0.0, 1),  # Saturday 23:30, for Sunday 00:00: the next week's
+        (1_800.0, 604_000.0, -1),  # Sunday 00:30, for Saturday 23:46: the last week's
+    ],
+)
+def test_a_1019_at_the_week_handover_is_held_in_its_toes_week(
+    tmp_path, caplog, stream_tow_s, toe_s, toe_week_step
+):
+    """A GPS set is broadcast around its t_oe, and DF076 is the week of transmission
+    (subframe 1's WN, IS-GPS-200 20.3.3.3.1.1): at the end of a week the sets of the next
+    one's first hours come with this week's number (the review found every 1019 of the
+    Hiroshima stream about 50 minutes ahead of its time). Such a set is held in its t_oe's
+    week, counted ``eph_week_handovers``, with no disagreement and no warning; before, it
+    was held a week off (and, beside the receiver's time, warned of as damage)."""
+    from drivers.rtcm import RtcmMapper
+
+    msgs = _1019s_at(tmp_path, toe_s)
+    week = 2000 + (int(msgs[0].DF076) - 2000) % 1024  # the capture's week, from its DF076
+    wc = WeekContext()
+    wc.set_exact(week, stream_tow_s)  # the receiver's own time, at the week's end (start)
+    mapper = RtcmMapper(week=wc, systems="CG")
+    with caplog.at_level(logging.WARNING, logger="drivers"):
+        sets = [eph for m in msgs for eph in mapper.on_message(m)]
+    assert len(sets) == 19 and not caplog.records
+    # GPST (week + step, t_oe) on BDT: week - 1356, 14 s earlier
+    bdt = (week + toe_week_step - 1356, toe_s - 14.0)
+    expected = bdt if bdt[1] >= 0.0 else (bdt[0] - 1, bdt[1] + 604_800.0)
+    assert {(e.week, e.toe_sow_s) for e in sets} == {expected}
+    assert mapper.counters["eph_week_handovers"] == 19
+    assert "eph_week_disagrees" not in mapper.counters
+
+
+def test_a_1019_a_week_off_mid_week_is_no_handover(tmp_path):
+    """The handover is only at a week's boundary: mid-week, a 1019 whose week is one more
+    than the receiver's time still disagrees (the damage the tests above count)."""
+    from drivers.rtcm import RtcmMapper
+
+    msgs = _1019s_at(tmp_path, 302_400.0)
+    week = 2000 + (int(msgs[0].DF076) - 2000) % 1024
+    wc = WeekContext()
+    wc.set_exact(week - 1, 302_400.0)
+    mapper = RtcmMapper(week=wc, systems="CG")
+    for m in msgs:
+        mapper.on_message(m)
+    assert mapper.counters["eph_week_disagrees"] == 19
+    assert "eph_week_handovers" not in mapper.counters
