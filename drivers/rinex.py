@@ -1,7 +1,8 @@
-"""Streaming RINEX 3 readers (observation and navigation), versions 3.02-3.05.
+"""Streaming RINEX 3 and 4 readers (observation and navigation), versions 3.02-3.05 and
+4.00-4.02.
 
 Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RTCM-SC104,
-2018) and 3.05 (2020). What this module relies on, by section:
+2018), 3.05 (2020) and 4.00 (2021). What this module relies on, by section:
 
 - Header records (Appendix, "GNSS observation data file - header section description" and
   "GNSS navigation message file - header section description"): labels in columns 61-80,
@@ -33,6 +34,14 @@ Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RT
   Fortran ``D`` exponents are read correctly. The toc of a BDS record is BDT.
 - ``IONOSPHERIC CORR`` (A4,1X,4D12.4): ``BDSA``/``BDSB`` and ``GPSA``/``GPSB``;
   ``LEAP SECONDS`` (4I6,A3; identifier ``BDS`` or blank).
+- RINEX 4 (4.00, section 5.4 and the navigation appendix): an observation file is read as
+  a 3.05 one; a navigation file's records each open with a line ``> TYPE SV MSG`` (``EPH``,
+  ``STO``, ``EOP``, ``ION``) and run to the next. The ``EPH`` records of GPS/QZSS/NavIC LNAV,
+  Galileo I/NAV and F/NAV, BeiDou D1 and D2, SBAS and GLONASS FDMA hold the RINEX 3 record
+  of their system; the Klobuchar coefficients come in ``ION`` records (``C D1D2``,
+  ``G LNAV``: the transmission epoch and three D19.12 fields, then lines of 4X,4D19.12),
+  the header's ``IONOSPHERIC CORR`` being gone. Other records (CNAV, CNV1-3, ``STO``,
+  ``EOP`` ...) are skipped, counted ``records4_<TYPE>_<MSG>``.
 
 A malformed file raises :class:`~service.core.errors.FramingError` whose message starts with
 ``<file>:<1-based line>:``. A *lenient* observation reader (``RinexObsReader(path,
@@ -67,7 +76,7 @@ import math
 import weakref
 import zlib
 from collections import Counter
-from collections.abc import Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Literal
@@ -351,9 +360,10 @@ def _read_header(lines: _Lines, kind: str) -> _Header:
         version = float(first[:9])
     except ValueError as exc:
         raise lines.error(f"bad RINEX version {first[:9].strip()!r}") from exc
-    if not 3.0 <= version < 4.0:
+    if not 3.0 <= version < 5.0:
         raise lines.error(
-            f"RINEX version {version:.2f} is not 3.xx (this reader reads RINEX 3.02-3.05)"
+            f"RINEX version {version:.2f} is not 3.xx or 4.xx (this reader reads RINEX "
+            "3.02-3.05 and 4.00-4.02)"
         )
     file_type = first[20:21]
     if file_type != kind:
@@ -946,6 +956,104 @@ NTRIP_NAV_HERE = (
 """The error (no URL in it: it may hold credentials) for a URL given as a nav file."""
 
 
+_NAV4_EPH: dict[str, frozenset[str]] = {
+    GnssSystem.GPS: frozenset({"LNAV"}),
+    GnssSystem.GAL: frozenset({"INAV", "FNAV"}),
+    GnssSystem.BDS: frozenset({"D1", "D2"}),
+    GnssSystem.QZS: frozenset({"LNAV"}),
+    GnssSystem.IRN: frozenset({"LNAV"}),
+    GnssSystem.SBAS: frozenset({"SBAS"}),
+    GnssSystem.GLO: frozenset({"FDMA"}),
+}
+"""RINEX 4 ephemeris message types whose data record is the RINEX 3 record of the system
+(4.00, section 5.4 and the per-message tables of the navigation appendix): GPS/QZSS/NavIC
+LNAV, Galileo I/NAV and F/NAV, BeiDou D1 and D2, SBAS, GLONASS FDMA. The others (CNAV,
+CNV1-3, L1NV ...) have other layouts and are skipped, counted."""
+_NAV4_KLOBUCHAR: dict[tuple[str, str], Literal["BDS", "GPS"]] = {
+    ("C", "D1D2"): "BDS",
+    ("G", "LNAV"): "GPS",
+}
+"""RINEX 4 ``ION`` records read: the Klobuchar coefficients BeiDou D1/D2 and GPS LNAV
+broadcast (the navigation appendix's Klobuchar table)."""
+
+
+def _nav4_records(
+    body: list[str],
+    base: int,
+    path: Path,
+    record_lines: dict[str, int],
+    take: Callable[[list[str], int], None],
+    counters: Counter[str],
+) -> dict[str, KlobucharParams]:
+    """Walk the records of a RINEX 4 navigation file (4.00 section 5.4): each opens with a
+    line ``> TYPE SV MSG`` (``EPH``, ``STO``, ``EOP``, ``ION``; SV a satellite or, for
+    ``ION`` and ``EOP``, a system letter; MSG the message type) and runs to the next such
+    line. An ``EPH`` record of a type of :data:`_NAV4_EPH` is a RINEX 3 record, handed to
+    ``take``; the Klobuchar ``ION`` records of :data:`_NAV4_KLOBUCHAR` give the first set of
+    each system; every other record is counted (``records4_<TYPE>_<MSG>``) and skipped.
+    Lines before the first ``>`` are an error (FramingError)."""
+    iono: dict[str, KlobucharParams] = {}
+    i, n_body = 0, len(body)
+    while i < n_body:
+        line = body[i]
+        i += 1
+        if not line.strip():
+            counters["blank_lines"] += 1
+            continue
+        start = base + i
+        if not line.startswith(">"):
+            raise FramingError(
+                f"{path}:{start}: expected a RINEX 4 record line '> TYPE SV MSG', got "
+                f"{line.rstrip()[:40]!r}"
+            )
+        head = line[1:].split()
+        end = i
+        while end < n_body and not body[end].startswith(">"):
+            end += 1
+        rec = body[i:end]
+        i = end
+        while rec and not rec[-1].strip():
+            rec.pop()
+        kind, sv, msg = [*head, "", "", ""][:3]
+        system = sv[:1]
+        eph = kind == "EPH" and msg in _NAV4_EPH.get(system, frozenset())
+        if eph and rec and system in record_lines and rec[0][:1] == system:
+            take(rec, start + 1)
+            continue
+        if kind == "ION" and (system, msg) in _NAV4_KLOBUCHAR:
+            name = _NAV4_KLOBUCHAR[(system, msg)]
+            if name not in iono:
+                got = _klobuchar4(rec, name, path, start + 1)
+                if got is not None:
+                    iono[name] = got
+            counters[f"records4_ION_{msg}"] += 1
+            continue
+        counters[f"records4_{kind}_{msg}"] += 1
+    return iono
+
+
+def _klobuchar4(
+    rec: list[str], system: Literal["BDS", "GPS"], path: Path, lineno: int
+) -> KlobucharParams | None:
+    """alpha0-3 and beta0-3 of a RINEX 4 Klobuchar ``ION`` record: its first line holds
+    the transmission epoch in columns 1-23 then three D19.12 fields, the next lines four
+    after 4 blanks (the navigation appendix's Klobuchar table); the eight coefficients are
+    its first eight fields. An unreadable record is logged and skipped (None): the
+    ephemerides stay usable."""
+    fields = [rec[0][23:42], rec[0][42:61], rec[0][61:80]] if rec else []
+    for text in rec[1:]:
+        fields += [text[4 + 19 * k : 23 + 19 * k] for k in range(4)]
+    try:
+        v = [_float(f) for f in fields[:8]]
+    except ValueError:
+        v = []
+    if len(v) < 8 or any(math.isnan(x) for x in v):
+        log.warning("%s:%d: unreadable %s Klobuchar ION record skipped", path, lineno, system)
+        return None
+    alpha, beta = (v[0], v[1], v[2], v[3]), (v[4], v[5], v[6], v[7])
+    return klobuchar_on_grid(KlobucharParams(alpha=alpha, beta=beta, system=system))
+
+
 def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
     """The ephemerides of ``systems`` (RINEX letters among BDS, GPS and Galileo; BeiDou alone
     by default), on BDT (see :func:`_nav_ephemeris`), and the ionosphere coefficients of a
@@ -968,31 +1076,12 @@ def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
         if h.version >= 3.05:
             record_lines[GnssSystem.GLO] = 5
         held: dict[str, dict[tuple[int, float], tuple[tuple[int, float], Ephemeris]]] = {}
-        # the records as one list, walked by index (line k of ``body`` is line base + k + 1
-        # of the file): a day's mixed nav file is ~7,000 lines, most of them of systems not
-        # read, and a method call per line was a third of reading it
-        body = lines.rest()
-        base = lines.n
-        i, n_body = 0, len(body)
-        while i < n_body:
-            line = body[i]
-            i += 1
-            if not line.strip():
-                counters["blank_lines"] += 1
-                continue
+
+        def take(rec: list[str], start: int) -> None:
+            """One navigation record (its lines, trailing blank ones dropped; ``start``: the
+            file's line of its first): counted, and kept when of a system read."""
+            line = rec[0]
             sys_char = line[0]
-            start = base + i
-            if sys_char not in record_lines:
-                raise lines.error(
-                    f"expected a navigation record, got {line.rstrip()[:40]!r}", start
-                )
-            end = i
-            while end < n_body and body[end][:1] in (" ", "\n", "\r"):
-                end += 1
-            rec = body[i - 1 : end]
-            i = end
-            while len(rec) > 1 and not rec[-1].strip():
-                rec.pop()  # trailing blank lines belong to no record
             want = record_lines[sys_char]
             if len(rec) != want:
                 if sys_char in read:
@@ -1011,7 +1100,7 @@ def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
                 )
             counters[f"records_{sys_char}"] += 1
             if sys_char not in read:
-                continue
+                return
             prn = _sat_id(line[:3])
             eph, rank = _nav_ephemeris(prn, rec, path, start)
             tot = _float(rec[7][4:23])
@@ -1022,13 +1111,45 @@ def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
                 counters[f"{_SYSTEM_NAMES[GnssSystem(sys_char)].lower()}_repeated_sets"] += 1
             if key not in sets or (rank, tot) >= sets[key][0]:
                 sets[key] = ((rank, tot), eph)
+
+        # the records as one list, walked by index (line k of ``body`` is line base + k + 1
+        # of the file): a day's mixed nav file is ~7,000 lines, most of them of systems not
+        # read, and a method call per line was a third of reading it
+        body = lines.rest()
+        base = lines.n
+        if h.version >= 4.0:
+            iono4 = _nav4_records(body, base, path, record_lines, take, counters)
+        else:
+            iono4 = {}
+            i, n_body = 0, len(body)
+            while i < n_body:
+                line = body[i]
+                i += 1
+                if not line.strip():
+                    counters["blank_lines"] += 1
+                    continue
+                start = base + i
+                if line[0] not in record_lines:
+                    raise lines.error(
+                        f"expected a navigation record, got {line.rstrip()[:40]!r}", start
+                    )
+                end = i
+                while end < n_body and body[end][:1] in (" ", "\n", "\r"):
+                    end += 1
+                rec = body[i - 1 : end]
+                i = end
+                while len(rec) > 1 and not rec[-1].strip():
+                    rec.pop()  # trailing blank lines belong to no record
+                take(rec, start)
     return NavData(
         version=h.version,
         ephemerides={
             p: tuple(e for _, (_, e) in sorted(d.items())) for p, d in sorted(held.items())
         },
-        iono_bds=_iono(h.records.get("IONOSPHERIC CORR", []), "BDSA", "BDSB", "BDS", path),
-        iono_gps=_iono(h.records.get("IONOSPHERIC CORR", []), "GPSA", "GPSB", "GPS", path),
+        iono_bds=iono4.get("BDS")
+        or _iono(h.records.get("IONOSPHERIC CORR", []), "BDSA", "BDSB", "BDS", path),
+        iono_gps=iono4.get("GPS")
+        or _iono(h.records.get("IONOSPHERIC CORR", []), "GPSA", "GPSB", "GPS", path),
         leap_seconds=_leap_seconds(h, path),
         counters=dict(counters),
         ggto=_ggto(h.records.get("TIME SYSTEM CORR", []), path),

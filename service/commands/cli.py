@@ -136,8 +136,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
     s = command(
         "solve",
-        "batch per-epoch solutions from RINEX 3 obs (or a GnssLogger log) + nav",
-        "Solve every epoch of a RINEX 3 observation file (or an Android GnssLogger log) "
+        "batch per-epoch solutions from RINEX 3/4 obs (or a GnssLogger log) + nav",
+        "Solve every epoch of a RINEX 3 or 4 observation file (or an Android GnssLogger log) "
         "with the fast fix and/or SPP and "
         "write one record per epoch and solver; a summary with the decline reasons goes "
         "to stderr.",
@@ -157,7 +157,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         "replay",
         "replay a capture (or the built-in scenario) as a receiver",
         "Feed a capture through the same stream path as the daemon: a UBX/RTCM3/SBF/NMEA "
-        "capture, a RINEX 3 obs file or an Android GnssLogger log, paced in real time "
+        "capture, a RINEX 3/4 obs file or an Android GnssLogger log, paced in real time "
         "(--max-speed: as fast as "
         "possible); with no FILE, the built-in virtual receiver near Beijing at full speed. "
         "NMEA goes to stdout unless another output is asked for; a summary to stderr.",
@@ -224,11 +224,11 @@ def _solve_flags(s: argparse.ArgumentParser) -> None:
 
     s.add_argument(
         "obs",
-        help="RINEX 3 observation file (BeiDou C2I/C1I, GPS C1C, Galileo C1C/C1X/C1B "
+        help="RINEX 3/4 observation file (BeiDou C2I/C1I, GPS C1C, Galileo C1C/C1X/C1B "
         "pseudoranges, as --systems asks) or Android GnssLogger log (FORMAT:PATH names the "
         "format)",
     )
-    s.add_argument("nav", nargs="+", help="one or more RINEX 3 nav files")
+    s.add_argument("nav", nargs="+", help="one or more RINEX 3/4 nav files")
     s.add_argument(
         "--mode",
         choices=["fast", "spp", "both"],
@@ -327,14 +327,14 @@ def _replay_flags(r: argparse.ArgumentParser) -> None:
     r.add_argument(
         "files",
         nargs="*",
-        help="UBX/RTCM/SBF/NMEA capture, RINEX 3 obs or GnssLogger log (FORMAT:PATH, e.g. "
+        help="UBX/RTCM/SBF/NMEA capture, RINEX 3/4 obs or GnssLogger log (FORMAT:PATH, e.g. "
         "gnsslogger:log.txt, names the format); none: the built-in virtual receiver near "
         "Beijing",
     )
     r.add_argument(
         "--nav",
         action="append",
-        help="RINEX 3 nav file(s): held ephemerides; with no FILE, the built-in virtual "
+        help="RINEX 3/4 nav file(s): held ephemerides; with no FILE, the built-in virtual "
         "receiver flies their satellites (GPS and Galileo too with --systems) instead of Table 1",
     )
     r.add_argument(
@@ -415,7 +415,7 @@ def _simulate_flags(m: argparse.ArgumentParser) -> None:
     from service.core.systems import SystemsConfig
     from service.output.sinks import SINKS
 
-    m.add_argument("--nav", help="RINEX 3 nav file (default: the paper's Table 1 set)")
+    m.add_argument("--nav", help="RINEX 3/4 nav file (default: the paper's Table 1 set)")
     add_flags(
         m,
         SystemsConfig,
@@ -510,7 +510,7 @@ def _ttff_flags(t: argparse.ArgumentParser) -> None:
     from service.engine.solver import SolverConfig
 
     t.add_argument(
-        "obs", nargs="?", help="RINEX 3 obs file or GnssLogger log (not with --simulate)"
+        "obs", nargs="?", help="RINEX 3/4 obs file or GnssLogger log (not with --simulate)"
     )
     t.add_argument("nav", nargs="*", help="RINEX 3 nav file(s)")
     t.add_argument("--trials", type=int, default=100, help="number of restarts")
