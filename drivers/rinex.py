@@ -38,8 +38,8 @@ Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RT
   a 3.05 one; a navigation file's records each open with a line ``> TYPE SV MSG`` (``EPH``,
   ``STO``, ``EOP``, ``ION``) and run to the next. The ``EPH`` records of GPS/QZSS/NavIC LNAV,
   Galileo I/NAV and F/NAV, BeiDou D1 and D2, SBAS and GLONASS FDMA hold the RINEX 3 record
-  of their system; the Klobuchar coefficients come in ``ION`` records (``C D1D2``,
-  ``G LNAV``: the transmission epoch and three D19.12 fields, then lines of 4X,4D19.12),
+  of their system; the Klobuchar coefficients come in ``ION`` records (BeiDou ``D1D2``,
+  GPS ``LNAV``: the transmission epoch and three D19.12 fields, then lines of 4X,4D19.12),
   the header's ``IONOSPHERIC CORR`` being gone. Other records (CNAV, CNV1-3, ``STO``,
   ``EOP`` ...) are skipped, counted ``records4_<TYPE>_<MSG>``.
 
@@ -986,12 +986,13 @@ def _nav4_records(
     counters: Counter[str],
 ) -> dict[str, KlobucharParams]:
     """Walk the records of a RINEX 4 navigation file (4.00 section 5.4): each opens with a
-    line ``> TYPE SV MSG`` (``EPH``, ``STO``, ``EOP``, ``ION``; SV a satellite or, for
-    ``ION`` and ``EOP``, a system letter; MSG the message type) and runs to the next such
-    line. An ``EPH`` record of a type of :data:`_NAV4_EPH` is a RINEX 3 record, handed to
-    ``take``; the Klobuchar ``ION`` records of :data:`_NAV4_KLOBUCHAR` give the first set of
-    each system; every other record is counted (``records4_<TYPE>_<MSG>``) and skipped.
-    Lines before the first ``>`` are an error (FramingError)."""
+    line ``> TYPE SV MSG`` (``EPH``, ``STO``, ``EOP``, ``ION``; SV the satellite that sent
+    it, of which only the system letter is read; MSG the message type; 4.02 may add a
+    subtype) and runs to the next such line. An ``EPH`` record of a type of
+    :data:`_NAV4_EPH` is a RINEX 3 record, handed to ``take``; the Klobuchar ``ION``
+    records of :data:`_NAV4_KLOBUCHAR` give the first set of each system; every other
+    record is counted (``records4_<TYPE>_<MSG>``) and skipped. Lines before the first
+    ``>`` are an error (FramingError)."""
     iono: dict[str, KlobucharParams] = {}
     i, n_body = 0, len(body)
     while i < n_body:

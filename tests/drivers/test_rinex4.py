@@ -50,7 +50,7 @@ def _d19(values: list[float]) -> str:
     return "".join(f"{v:19.12E}" for v in values)
 
 
-def _klobuchar_record(system: str, msg: str, header: list[str], a: str, b: str) -> str:
+def _klobuchar_record(sv: str, msg: str, header: list[str], a: str, b: str) -> str:
     """A RINEX 4 Klobuchar ION record of the header's ``a``/``b`` IONOSPHERIC CORR values:
     the transmission epoch and alpha0-2, then alpha3 and beta0-2, then beta3 and the region
     (0: wide area)."""
@@ -61,7 +61,7 @@ def _klobuchar_record(system: str, msg: str, header: list[str], a: str, b: str) 
             vals[line[:4]] = [float(f.replace("D", "E")) for f in fields]
     alpha, beta = vals[a], vals[b]
     return (
-        f"> ION {system} {msg}\n"
+        f"> ION {sv} {msg}\n"  # the satellite that sent it
         f"    2021 06 10 00 00 00{_d19(alpha[:3])}\n"
         f"    {_d19([alpha[3], *beta[:3]])}\n"
         f"    {_d19([beta[3], 0.0])}\n"
@@ -76,8 +76,8 @@ def _nav4(tmp_path: Path) -> Path:
         for line in header[1:]
         if line[60:80].strip() not in ("IONOSPHERIC CORR", "TIME SYSTEM CORR")
     ]
-    out.append(_klobuchar_record("C", "D1D2", header, "BDSA", "BDSB"))
-    out.append(_klobuchar_record("G", "LNAV", header, "GPSA", "GPSB"))
+    out.append(_klobuchar_record("C01", "D1D2", header, "BDSA", "BDSB"))
+    out.append(_klobuchar_record("G01", "LNAV", header, "GPSA", "GPSB"))
     first_gps = next(r for r in records if r[0][0] == "G")
     # records of other message types, whose layouts differ: skipped, counted
     out.append("> EPH G01 CNAV\n" + "".join(first_gps) + first_gps[-1])
