@@ -544,7 +544,12 @@ def _open_out(path: str) -> Iterator[IO[str]]:
 def main_solve(args: argparse.Namespace) -> int:
     from drivers.source import file_epochs
     from service.commands.options import coarse_config, solver_config, systems_of
-    from service.commands.summary import decline_lines, no_epochs_hint, skipped_line
+    from service.commands.summary import (
+        decline_lines,
+        no_epochs_hint,
+        skipped_line,
+        unchecked_text,
+    )
     from service.output.records import csv_header, fix_csv_row, fix_json_line
 
     if args.format == "nmea":  # pynmeagps only when asked for (start-up)
@@ -610,7 +615,7 @@ def main_solve(args: argparse.Namespace) -> int:
         print(
             f"  fast solver integrity checks {engine['integrity_checks']} (recovered "
             "ranges against the file's full ones), failures "
-            f"{engine['integrity_failures']}",
+            f"{engine['integrity_failures']}{unchecked_text(engine)}",
             file=sys.stderr,
         )
     if engine["coarse_fixes"]:

@@ -58,11 +58,19 @@ def stream_lines(
         f"bdsfix {command}: {n_epochs} epochs; fixes fast {int(c.get('fix_fast', 0))}, "
         f"spp {int(c.get('fix_spp', 0))}, none {int(c.get('fix_none', 0))}; integrity checks "
         f"{int(c.get('integrity_checks', 0))}, failures {int(c.get('integrity_failures', 0))}"
+        + unchecked_text(c)
     ]
     lines += [*excluded_lines(c), *decline_lines(c, command=command), *skipped_line(skipped)]
     if n_epochs == 0:
         lines.append(f"  {no_epochs_hint(command, c)}")
     return lines
+
+
+def unchecked_text(counters: Mapping[str, int | float]) -> str:
+    """``", unchecked N"`` when recovered ranges went unchecked (their satellite full too
+    late, or a receiver restart: ``integrity_unchecked``), else nothing."""
+    n = int(counters.get("integrity_unchecked", 0))
+    return f", unchecked {n}" if n else ""
 
 
 def no_epochs_hint(command: str, counters: Mapping[str, int | float] | None = None) -> str:

@@ -218,3 +218,14 @@ def test_a_receiver_restart_drops_pending_checks_in_solve_as_in_the_stream(
         pipe.on_epoch(epoch)
     assert _integrity(batch) == _integrity(pipe.counters)
     assert [batch[k] for k in INTEGRITY] == [checks, 0, unchecked]
+    # the summaries say it: "unchecked N" only where some went unchecked
+    said = f"failures 0, unchecked {unchecked}" if unchecked else "failures 0\n"
+    for args in (
+        ["solve", str(path), str(NAV), "--mode", "fast", "--fractional", "none"],
+        ["replay", str(path), "--nav", str(NAV), "--max-speed", "--jsonl-out", os.devnull],
+    ):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            assert main([*args, "--out", os.devnull] if args[0] == "solve" else args) == 0
+        line = next(x for x in err.getvalue().splitlines(True) if "integrity checks" in x)
+        assert f"integrity checks {checks}" in line and said in line, line
