@@ -41,7 +41,9 @@ Format: "RINEX, The Receiver Independent Exchange Format", versions 3.04 (IGS/RT
   of their system; the Klobuchar coefficients come in ``ION`` records (BeiDou ``D1D2``,
   GPS ``LNAV``: the transmission epoch and three D19.12 fields, then lines of 4X,4D19.12),
   the header's ``IONOSPHERIC CORR`` being gone. Other records (CNAV, CNV1-3, ``STO``,
-  ``EOP`` ...) are skipped, counted ``records4_<TYPE>_<MSG>``.
+  ``EOP`` ...) are skipped, counted ``records4_<TYPE>_<system>_<MSG>``. The GST - GPST
+  offset, a ``TIME SYSTEM CORR`` header record in RINEX 3, is an ``STO`` record in RINEX 4:
+  not read (it is only ever recorded, :class:`~service.core.types.TimeOffset`).
 
 A malformed file raises :class:`~service.core.errors.FramingError` whose message starts with
 ``<file>:<1-based line>:``. A *lenient* observation reader (``RinexObsReader(path,
@@ -969,6 +971,8 @@ _NAV4_EPH: dict[str, frozenset[str]] = {
 (4.00, section 5.4 and the per-message tables of the navigation appendix): GPS/QZSS/NavIC
 LNAV, Galileo I/NAV and F/NAV, BeiDou D1 and D2, SBAS, GLONASS FDMA. The others (CNAV,
 CNV1-3, L1NV ...) have other layouts and are skipped, counted."""
+_NAV4_TYPES = frozenset({"EPH", "STO", "EOP", "ION"})
+"""The record types of a RINEX 4 navigation file (4.00 section 5.4)."""
 _NAV4_KLOBUCHAR: dict[tuple[str, str], Literal["BDS", "GPS"]] = {
     ("C", "D1D2"): "BDS",
     ("G", "LNAV"): "GPS",
@@ -984,6 +988,7 @@ def _nav4_records(
     record_lines: dict[str, int],
     take: Callable[[list[str], int], None],
     counters: Counter[str],
+    read: frozenset[str],
 ) -> dict[str, KlobucharParams]:
     """Walk the records of a RINEX 4 navigation file (4.00 section 5.4): each opens with a
     line ``> TYPE SV MSG`` (``EPH``, ``STO``, ``EOP``, ``ION``; SV the satellite that sent
@@ -991,8 +996,12 @@ def _nav4_records(
     subtype) and runs to the next such line. An ``EPH`` record of a type of
     :data:`_NAV4_EPH` is a RINEX 3 record, handed to ``take``; the Klobuchar ``ION``
     records of :data:`_NAV4_KLOBUCHAR` give the first set of each system; every other
-    record is counted (``records4_<TYPE>_<MSG>``) and skipped. Lines before the first
-    ``>`` are an error (FramingError)."""
+    record is counted (``records4_<TYPE>_<system>_<MSG>``, the ION records read too) and
+    skipped.
+    A FramingError (``<file>:<line>``) for lines before the first ``>``, a ``>`` line that
+    is no ``> TYPE SV MSG`` of the four types, and an ``EPH`` record whose first data line
+    is not of its satellite (a line lost, a damaged ``>`` line), where either system is in
+    ``read``; of other systems that is a warning, counted ``records_<system>_odd_length``."""
     iono: dict[str, KlobucharParams] = {}
     i, n_body = 0, len(body)
     while i < n_body:
@@ -1015,21 +1024,31 @@ def _nav4_records(
         i = end
         while rec and not rec[-1].strip():
             rec.pop()
-        kind, sv, msg = [*head, "", "", ""][:3]
+        if len(head) < 3 or head[0] not in _NAV4_TYPES:
+            raise FramingError(f"{path}:{start}: bad RINEX 4 record line {line.rstrip()!r}")
+        kind, sv, msg = head[:3]
         system = sv[:1]
-        eph = kind == "EPH" and msg in _NAV4_EPH.get(system, frozenset())
-        if eph and rec and system in record_lines and rec[0][:1] == system:
-            take(rec, start + 1)
-            continue
+        if kind == "EPH":
+            data_sv = _sat_id(rec[0][:3]) if rec and rec[0][:1].strip() else ""
+            if data_sv != _sat_id(sv):  # a line lost, or the '>' line of another record
+                why = f"{path}:{start}: RINEX 4 {sv} {msg} record without its data line for {sv}"
+                if system in read or data_sv[:1] in read:
+                    raise FramingError(why)
+                counters[f"records_{system}_odd_length"] += 1
+                log.warning("%s", why)
+                continue
+            if msg in _NAV4_EPH.get(system, frozenset()):
+                take(rec, start + 1)
+                continue
         if kind == "ION" and (system, msg) in _NAV4_KLOBUCHAR:
             name = _NAV4_KLOBUCHAR[(system, msg)]
             if name not in iono:
                 got = _klobuchar4(rec, name, path, start + 1)
                 if got is not None:
                     iono[name] = got
-            counters[f"records4_ION_{msg}"] += 1
+            counters[f"records4_ION_{system}_{msg}"] += 1
             continue
-        counters[f"records4_{kind}_{msg}"] += 1
+        counters[f"records4_{kind}_{system}_{msg}"] += 1
     return iono
 
 
@@ -1058,7 +1077,7 @@ def _klobuchar4(
 def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
     """The ephemerides of ``systems`` (RINEX letters among BDS, GPS and Galileo; BeiDou alone
     by default), on BDT (see :func:`_nav_ephemeris`), and the ionosphere coefficients of a
-    RINEX 3 nav file (mixed or of one system).
+    RINEX 3 or 4 nav file (mixed or of one system; RINEX 4: :func:`_nav4_records`).
 
     Records of other systems are skipped (counted in ``counters``). When the same set
     (PRN, week, toe) appears more than once, a Galileo I/NAV set wins over an F/NAV one
@@ -1119,7 +1138,7 @@ def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
         body = lines.rest()
         base = lines.n
         if h.version >= 4.0:
-            iono4 = _nav4_records(body, base, path, record_lines, take, counters)
+            iono4 = _nav4_records(body, base, path, record_lines, take, counters, read)
         else:
             iono4 = {}
             i, n_body = 0, len(body)

@@ -13,9 +13,13 @@ reads from the RINEX 3 files, which tests/drivers/test_rinex.py checks against g
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
+import pytest
+
 from drivers.rinex import RinexObsReader, read_nav
+from service.core.errors import FramingError
 from tests.support.paths import DATA
 
 HKSC = DATA / "hksc-2021"
@@ -77,6 +81,8 @@ def _nav4(tmp_path: Path) -> Path:
         if line[60:80].strip() not in ("IONOSPHERIC CORR", "TIME SYSTEM CORR")
     ]
     out.append(_klobuchar_record("C01", "D1D2", header, "BDSA", "BDSB"))
+    # a QZSS Klobuchar record first: not GPS's, though of the same message type
+    out.append(_klobuchar_record("J01", "LNAV", header, "BDSA", "BDSB"))
     out.append(_klobuchar_record("G01", "LNAV", header, "GPSA", "GPSB"))
     first_gps = next(r for r in records if r[0][0] == "G")
     # records of other message types, whose layouts differ: skipped, counted
@@ -106,10 +112,11 @@ def test_a_rinex4_nav_file_gives_what_its_rinex3_form_gives(tmp_path, caplog):
     assert four.iono_bds == three.iono_bds is not None
     assert four.iono_gps == three.iono_gps is not None
     assert four.leap_seconds == three.leap_seconds
-    assert four.counters["records4_EPH_CNAV"] == 1
-    assert four.counters["records4_STO_LNAV"] == 1
-    assert four.counters["records4_EOP_LNAV"] == 1
-    assert four.counters["records4_ION_D1D2"] == four.counters["records4_ION_LNAV"] == 1
+    assert four.counters["records4_EPH_G_CNAV"] == 1
+    assert four.counters["records4_STO_G_LNAV"] == 1
+    assert four.counters["records4_EOP_G_LNAV"] == 1
+    assert four.counters["records4_ION_C_D1D2"] == four.counters["records4_ION_G_LNAV"] == 1
+    assert four.counters["records4_ION_J_LNAV"] == 1
     for system in "CGERJ":  # every record of the v3 file, counted by system, as there
         assert four.counters.get(f"records_{system}") == three.counters.get(f"records_{system}")
 
@@ -124,3 +131,50 @@ def test_a_rinex4_obs_file_gives_what_its_rinex3_form_gives(tmp_path):
     for a, b in zip(three, four, strict=True):
         assert (a.gpst_week, a.gpst_tow_s, a.prn) == (b.gpst_week, b.gpst_tow_s, b.prn)
         assert a.pr_m.tobytes() == b.pr_m.tobytes()
+
+
+def _damaged(tmp_path: Path, edit, system: str = "C") -> Path:
+    """The RINEX 4 form of the HKSC nav file with its first ``> EPH`` record of ``system``
+    (lines of the file, the ``>`` line first) changed by ``edit``."""
+    lines = _nav4(tmp_path).read_text().splitlines(keepends=True)
+    at = next(k for k, line in enumerate(lines) if line.startswith(f"> EPH {system}"))
+    lines[at : at + 9] = edit(lines[at : at + 9])
+    damaged = tmp_path / "damaged.rnx"
+    damaged.write_text("".join(lines))
+    return damaged
+
+
+@pytest.mark.parametrize(
+    ("name", "edit"),
+    [
+        ("a '>' line alone", lambda r: [">\n", *r[1:]]),
+        ("no message type", lambda r: [" ".join(r[0].split()[:3]) + "\n", *r[1:]]),
+        ("an unknown record type", lambda r: [r[0].replace("EPH", "EHP"), *r[1:]]),
+        ("its first data line lost", lambda r: [r[0], *r[2:]]),
+        ("no data lines", lambda r: [r[0]]),
+        ("another system's '>' line", lambda r: [r[0].replace("> EPH C", "> EPH G"), *r[1:]]),
+        ("another system's type", lambda r: ["> EPH G06 LNAV\n", *r[1:]]),
+        ("another satellite's '>' line", lambda r: [r[0][:7] + "63" + r[0][9:], *r[1:]]),
+        ("a line missing", lambda r: r[:-1]),
+    ],
+)
+def test_a_damaged_rinex4_record_is_an_error_naming_its_line(tmp_path, name, edit):
+    """Each damage that would lose a BeiDou set is a FramingError at the record's line, as
+    the RINEX 3 reader's damaged records are, never a set silently dropped."""
+    damaged = _damaged(tmp_path, edit)
+    with pytest.raises(FramingError, match=rf"^{re.escape(str(damaged))}:\d+: ") as err:
+        read_nav(damaged, ("C", "G", "E"))
+    lineno = int(str(err.value).split(":")[1])
+    text = damaged.read_text().splitlines()
+    assert text[lineno - 1].startswith((">", "C")), (name, text[lineno - 1])
+
+
+def test_a_damaged_record_of_a_system_not_read_is_a_warning(tmp_path, caplog):
+    """The same damage (a GPS record's first data line lost) where the caller does not read
+    GPS (a BeiDou-only solve) is logged and counted; every BeiDou set is read."""
+    damaged = _damaged(tmp_path, lambda r: [r[0], *r[2:]], system="G")
+    with caplog.at_level(logging.WARNING):
+        nav = read_nav(damaged, ("C",))
+    assert nav.counters["records_G_odd_length"] == 1
+    assert [r.getMessage() for r in caplog.records if "without its data line" in r.getMessage()]
+    assert nav.ephemerides == read_nav(NAV3, ("C",)).ephemerides
