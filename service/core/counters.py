@@ -46,11 +46,15 @@ SKIP_KEYS = frozenset(
         "android_duplicate_rows",
         "android_excess_rows",
         "duplicate_records",
+        "eph_bad_prn",
+        "eph_bad_toe",
+        "eph_bad_week",
     }
 )
 SKIP_PREFIXES = ("bad_", "bytes_skipped", "decode_errors_", "map_errors_")
 """Source counter names that count damaged input (see :mod:`drivers.framing`,
-:mod:`drivers.source`, :mod:`drivers.rinex`, :mod:`drivers.gnsslogger`): with the
+:mod:`drivers.source`, :mod:`drivers.rinex`, :mod:`drivers.gnsslogger`; the ``eph_bad_*``
+ephemeris messages of :mod:`drivers.rtcm` and :mod:`drivers.sbf`): with the
 ``*_skipped`` ones they are the "skipped input" of the summaries of ``replay``, ``run`` and
 ``solve`` and of every STATUS record (:func:`skipped_input`)."""
 

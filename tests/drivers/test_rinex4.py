@@ -104,7 +104,7 @@ def test_a_rinex4_nav_file_gives_what_its_rinex3_form_gives(tmp_path, caplog):
     three = read_nav(NAV3, systems)
     with caplog.at_level(logging.WARNING):
         four = read_nav(v4, systems)
-    assert not caplog.records
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert four.version == 4.0
     assert four.ephemerides == three.ephemerides
     assert sum(len(s) for s in four.ephemerides.values()) > 100
