@@ -21,7 +21,7 @@ from pysbf2 import SBFReader
 from drivers.sbf import GAL_NAV, SbfMapper
 from drivers.source import open_source
 from service.core.constants import C_M_S
-from service.core.counters import Counters
+from service.core.counters import Counters, skipped_input
 from service.core.ephemeris import EphemerisStore, ephemeris_problem
 from service.core.geometry import geodetic_to_ecef
 from service.core.orbit import EphemerisArrays, sat_pos_clock
@@ -293,6 +293,9 @@ def test_a_nav_block_whose_toe_is_no_time_of_the_week_is_counted_and_never_wrapp
         counters = dict(src.counters)
     clean_events, clean = _events("CGE")
     assert clean.get("eph_bad_toe", 0) == 0 and counters["eph_bad_toe"] == 1
+    # the summaries' skipped input (and STATUS) name it
+    assert skipped_input(counters).get("eph_bad_toe") == 1
+    assert "eph_bad_toe" not in skipped_input(clean)
     letter = LETTER[block]
     mine = [e for e in _of(events, Ephemeris) if e.prn[0] == letter]
     ref = [e for e in _of(clean_events, Ephemeris) if e.prn[0] == letter]
