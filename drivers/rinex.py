@@ -985,7 +985,6 @@ def _nav4_records(
     body: list[str],
     base: int,
     path: Path,
-    record_lines: dict[str, int],
     take: Callable[[list[str], int], None],
     counters: Counter[str],
     read: frozenset[str],
@@ -1138,7 +1137,7 @@ def read_nav(path: str | Path, systems: Iterable[str] = (_READ,)) -> NavData:
         body = lines.rest()
         base = lines.n
         if h.version >= 4.0:
-            iono4 = _nav4_records(body, base, path, record_lines, take, counters, read)
+            iono4 = _nav4_records(body, base, path, take, counters, read)
         else:
             iono4 = {}
             i, n_body = 0, len(body)
